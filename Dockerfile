@@ -1,0 +1,29 @@
+# One image for gateway and worker (the command differs), installed by the same script the tests run.
+FROM python:3.11-slim
+
+# CPU wheels: the image must not pull CUDA; the GPU profile in docker-compose.yml overrides this build arg.
+ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
+ENV TORCH_INDEX=${TORCH_INDEX} \
+    PRECOND_EXTRAS=model \
+    PIP_NO_CACHE_DIR=1 \
+    PYTHONUNBUFFERED=1 \
+    PATH=/app/.venv/bin:$PATH \
+    MODEL_CACHE_DIR=/models
+
+WORKDIR /app
+COPY pyproject.toml README.md* ./
+COPY scripts/install.sh scripts/install.sh
+COPY schemas schemas
+COPY service service
+COPY worker worker
+COPY sandbox sandbox
+COPY cli cli
+COPY evaluation evaluation
+COPY examples examples
+COPY docker docker
+RUN bash scripts/install.sh
+
+RUN useradd --create-home --uid 10001 precond && mkdir -p /models && chown precond /models
+USER precond
+EXPOSE 8000
+CMD ["precond", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -1,0 +1,93 @@
+"""Throughput and latency of the sandbox on shared SGD data (a benchmark, not a test).
+
+    python bench/sandbox_bench.py [--domain Restaurants_1] [--candidates 500] [--json PATH]
+
+Reports candidate×point evaluations per second for `evaluate`, p50/p95 latency of a trivial `check`,
+and cold start (Sandbox() to first result).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import statistics
+import time
+from pathlib import Path
+from typing import Any
+
+from sandbox import Limits, Sandbox
+
+DATA = Path("/work/shared/data/sgd")
+ATOMS = (
+    "self.user.requested_slot[slot]", "not self.user.requested_slot[slot]",
+    "self.user.informed_slot[slot]", "not self.user.informed_slot[slot]", "self.query_success",
+    "not self.query_success", "self.user.selected", "self.user.affirmed", "self.user.no_more",
+    "self.user.selected or self.user.no_more", "slot in self.user.informed_slot",
+)
+
+
+def candidates(domain: dict[str, Any], count: int) -> dict[str, list[str]]:
+    """GT assertions first, then generated atoms, spread round-robin over the SYSTEM actions."""
+    actions = [f"SYSTEM.{a}" for a in domain["gt_preconditions"]]
+    pool = [(f"SYSTEM.{a}", e) for a, exprs in domain["gt_preconditions"].items() for e in exprs]
+    atoms = list(ATOMS) + [f"self.user.informed_slot[{s!r}]" for s in domain["slots"]]
+    atoms += [f"not self.user.informed_intent[{i!r}]" for i in domain["search_intents"]]
+    generated = ((a, e) for e, a in itertools.product(atoms, actions))
+    chosen: dict[str, list[str]] = {a: [] for a in actions}
+    for action, expression in itertools.islice(itertools.chain(pool, itertools.cycle(generated)), count):
+        chosen[action].append(expression)
+    return chosen
+
+
+def bench(domain_name: str, count: int, repeats: int) -> dict[str, float]:
+    domain = json.loads((DATA / f"{domain_name}.json").read_text())
+    spec, demos = domain["spec_program"], [d["program"] for d in domain["demos"]]
+    preconditions = {f"SYSTEM.{a}": e for a, e in domain["gt_preconditions"].items()}
+    chosen = candidates(domain, count)
+    start = time.perf_counter()
+    with Sandbox(Limits(timeout_s=60, cpu_s=60)) as sandbox:
+        sandbox.check(spec, {}, "user = USER()", ["user.SELECT()"])
+        cold = time.perf_counter() - start
+        best = float("inf")
+        evaluations = 0
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            result = sandbox.evaluate(spec, demos, chosen)
+            best = min(best, time.perf_counter() - t0)
+            evaluations = sum(len(result.points[a]) * len(r) for a, r in result.results.items())
+        history = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')"
+        latencies = []
+        for _ in range(200):
+            t0 = time.perf_counter()
+            sandbox.check(spec, preconditions, history, ["system.REQUEST('city')"])
+            latencies.append(time.perf_counter() - t0)
+    latencies.sort()
+    return {
+        "candidates": float(sum(len(v) for v in chosen.values())),
+        "evaluations": float(evaluations),
+        "evaluate_s": best,
+        "evaluations_per_s": evaluations / best,
+        "check_p50_ms": 1000 * statistics.median(latencies),
+        "check_p95_ms": 1000 * latencies[int(0.95 * len(latencies)) - 1],
+        "cold_start_ms": 1000 * cold,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--domain", default="Restaurants_1")
+    parser.add_argument("--candidates", type=int, default=500)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--json", type=Path, help="also write the figures to this file")
+    args = parser.parse_args()
+    figures = bench(args.domain, args.candidates, args.repeats)
+    width = max(map(len, figures))
+    for name, value in figures.items():
+        print(f"{name:<{width}}  {value:>14,.2f}")
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""`precond eval preconditions|policy|report|all`: the evaluation harness (see evaluation/ and docs/results.md).
+
+Everything expensive is cached under `--cache` (default `.eval-cache/`, gitignored), so every command can be
+interrupted and re-run, and `precond eval all` regenerates docs/results.md from whatever is cached plus the
+cheap model-free configurations.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+from evaluation.cache import DEFAULT_CACHE, JsonCache
+
+DataOption = Annotated[list[Path], typer.Option("--data", help="../shared/data/sgd or ../shared/data/alfworld; repeatable.")]
+CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
+DEFAULT_DATA = [Path("../shared/data/sgd"), Path("../shared/data/alfworld")]
+EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
+
+
+@cache
+def _engine(with_model: bool) -> Any:
+    """One engine per process; the model loads on its first use only."""
+    import torch
+
+    from worker.factory import build_engine
+
+    torch.set_num_threads(1)
+    return build_engine(with_model=with_model)
+
+
+def _satisfaction(cache_dir: JsonCache) -> Any:
+    from sandbox import Limits, Sandbox
+    from evaluation.scoring import Satisfaction
+
+    return Satisfaction(Sandbox(Limits(**EVAL_LIMITS)), cache_dir)  # type: ignore[arg-type]
+
+
+def _domains(data: list[Path], alfworld_modes: str) -> list[Any]:
+    from evaluation.domains import ARG_MODES, load_domains
+
+    modes = [m.strip() for m in alfworld_modes.split(",") if m.strip()]
+    out = []
+    for path in data:
+        if (path / "demos.json").exists():
+            for mode in modes:
+                if mode not in ARG_MODES:
+                    raise typer.BadParameter(f"unknown ALFWorld argument mode {mode!r}; known: {ARG_MODES}")
+                out.extend(load_domains(path, mode))  # type: ignore[arg-type]
+        else:
+            out.extend(load_domains(path))
+    return out
+
+
+def preconditions(
+    data: DataOption = DEFAULT_DATA,
+    configs: Annotated[str, typer.Option(help="Config names or grids (evaluation/configs.py), comma-separated.")]
+    = "no-model",
+    alfworld_args: Annotated[str, typer.Option(help="ALFWorld argument domains: state, trajectory or both.")]
+    = "state,trajectory",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+    force: Annotated[bool, typer.Option(help="Re-run inference even when cached.")] = False,
+) -> None:
+    """Infer preconditions per domain and configuration; score P/R/F1 on the test trajectories."""
+    from evaluation.configs import expand
+    from evaluation.preconditions import evaluate
+    from evaluation.report import precondition_table, store_precondition_results
+
+    store = JsonCache(cache_dir)
+    chosen = expand(configs)
+    needs_model = any(c.uses_model for c in chosen)
+    result = evaluate(_domains(data, alfworld_args), chosen, store, _satisfaction(store),
+                      lambda: _engine(needs_model).infer, force)
+    path = store_precondition_results(store, result)
+    typer.echo(precondition_table(result["summary"]))
+    typer.echo(f"\nper-domain and per-action results: {path}")
+
+
+def policy(
+    data: Annotated[Path, typer.Option("--data", help="The SGD data directory.")] = DEFAULT_DATA[0],
+    configs: Annotated[str, typer.Option(help="Policy configs or grids (evaluation/policy.py).")] = "default",
+    domains: Annotated[str, typer.Option(help="SGD services, comma-separated; empty: all.")] = "",
+    dialogs: Annotated[int, typer.Option(help="First N test dialogs per domain.")] = 2,
+    turns: Annotated[int, typer.Option(help="First N system turns per dialog.")] = 6,
+    inferred_from: Annotated[str, typer.Option(help="Precondition config for the 'inferred' rows.")]
+    = "model+enumerate/recency",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Next-action prediction at system turns: turn F1 and GT precondition compatibility."""
+    from evaluation.configs import parse_config
+    from evaluation.policy import expand_policy, run_policy, summarize_policy
+    from evaluation.preconditions import infer
+    from evaluation.report import policy_table, store_policy_results
+
+    store = JsonCache(cache_dir)
+    wanted = {d.strip() for d in domains.split(",") if d.strip()}
+    chosen = [d for d in _domains([data], "state") if d.benchmark == "sgd" and (not wanted or d.name in wanted)]
+    source = parse_config(inferred_from)
+    engine = _engine(True)
+    rows = []
+    for domain in chosen:
+        raw = json.loads(next(p for p in data.glob("*.json") if p.stem == domain.name).read_text())
+        inferred = infer(domain, source, store, lambda: engine.infer)
+        for config in expand_policy(configs):
+            pre = domain.gt if config.source == "gt" else inferred.preconditions
+            results = run_policy(engine, domain, config, pre, raw["test"][:dialogs], store, turns)
+            rows.append({"domain": domain.name, "config": config.name, "inferred_from": source.name,
+                         "dialogs": dialogs, "max_turns": turns} | summarize_policy(results))
+    path = store_policy_results(store, rows)
+    typer.echo(policy_table(rows))
+    typer.echo(f"\nresults: {path}")
+
+
+def report(
+    cache_dir: CacheOption = DEFAULT_CACHE,
+    out: Annotated[Path, typer.Option(help="Markdown file to write; plots go to img/ beside it.")]
+    = Path("docs/results.md"),
+    bench: Annotated[Path, typer.Option(help="Sandbox benchmark script (run with --json if present).")]
+    = Path("bench/sandbox_bench.py"),
+) -> None:
+    """Regenerate docs/results.md and docs/img/*.png from the cached results."""
+    from evaluation.report import write_report
+
+    write_report(JsonCache(cache_dir), out, bench)
+    typer.echo(f"wrote {out}")
+
+
+def run_all(
+    data: DataOption = DEFAULT_DATA,
+    cache_dir: CacheOption = DEFAULT_CACHE,
+    configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "default",
+) -> None:
+    """Score every precondition config (cached inferences are reused), then regenerate the report."""
+    preconditions(data=data, configs=configs, alfworld_args="state,trajectory", cache_dir=cache_dir, force=False)
+    report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"))
+
+
+def register(app: typer.Typer) -> None:
+    group = typer.Typer(help="Evaluate precondition inference and the policy on the shared data.",
+                        no_args_is_help=True)
+    group.command("preconditions")(preconditions)
+    group.command("policy")(policy)
+    group.command("report")(report)
+    group.command("all")(run_all)
+    app.add_typer(group, name="eval")

@@ -1,0 +1,86 @@
+"""Inference configurations as short names, so a grid is a list of strings on the command line and in caches.
+
+`<generators>/<ranking>[/key=value...]`, generators joined by `+`:
+
+    enumerate/subsumption            model+enumerate/recency/spp=4/dpp=2      model/recency/demos=4
+
+keys: `spp` samples per prompt, `ppa` prompts per action, `dpp` demonstrations per prompt, `seed`, and
+`demos` = how many of the domain's demonstrations the request gets (the first N; default all).
+Two names are baselines that run no inference: `always` (no precondition: every action always allowed)
+and `gt` (the ground truth; must score 1.0, a check of the scoring pipeline).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, get_args
+
+from schemas.api import Generator, InferOptions, Ranking
+
+BASELINES = ("always", "gt")
+_KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
+         "seed": "seed"}
+DEMO_COUNTS = (1, 2, 4)
+
+GRIDS: dict[str, tuple[str, ...]] = {
+    "baselines": BASELINES,
+    "enumerate": ("enumerate/subsumption", "enumerate/recency"),
+    "enumerate-demos": tuple(f"enumerate/{r}/demos={n}" for r in ("subsumption", "recency") for n in DEMO_COUNTS),
+    "model": ("model/subsumption", "model/recency", "model+enumerate/subsumption", "model+enumerate/recency"),
+    "model-ablation": ("model/recency/spp=2", "model/recency/spp=16", "model/recency/dpp=2",
+                       "model/recency/demos=2"),
+}
+GRIDS["no-model"] = GRIDS["baselines"] + GRIDS["enumerate"] + GRIDS["enumerate-demos"]
+GRIDS["default"] = GRIDS["no-model"] + GRIDS["model"]
+
+
+@dataclass(frozen=True)
+class InferConfig:
+    name: str
+    baseline: str | None = None
+    generators: tuple[str, ...] = ()
+    ranking: str = "subsumption"
+    demos: int | None = None
+    options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def uses_model(self) -> bool:
+        return "model" in self.generators
+
+    def infer_options(self) -> InferOptions:
+        return InferOptions(generators=list(self.generators), ranking=self.ranking, **self.options)  # type: ignore[arg-type]
+
+
+def parse_config(name: str) -> InferConfig:
+    if name in BASELINES:
+        return InferConfig(name, baseline=name)
+    parts = name.split("/")
+    if len(parts) < 2:
+        raise ValueError(f"config {name!r}: expected <generators>/<ranking>[/key=value...] or one of {BASELINES}")
+    generators = tuple(parts[0].split("+"))
+    for g in generators:
+        if g not in get_args(Generator):
+            raise ValueError(f"config {name!r}: unknown generator {g!r}")
+    if parts[1] not in get_args(Ranking):
+        raise ValueError(f"config {name!r}: unknown ranking {parts[1]!r}")
+    options: dict[str, Any] = {}
+    demos: int | None = None
+    for item in parts[2:]:
+        key, _, value = item.partition("=")
+        if key == "demos":
+            demos = None if value == "all" else int(value)
+        elif key in _KEYS:
+            options[_KEYS[key]] = int(value)
+        else:
+            raise ValueError(f"config {name!r}: unknown key {key!r} (known: demos, {', '.join(_KEYS)})")
+    config = InferConfig(name, None, generators, parts[1], demos, options)
+    config.infer_options()  # fail now on out-of-range values, not after an hour of other configs
+    return config
+
+
+def expand(names: str) -> list[InferConfig]:
+    """Comma-separated config names and grid names (`default`, `no-model`, `model`, ...), deduplicated."""
+    out: list[str] = []
+    for item in (n.strip() for n in names.split(",") if n.strip()):
+        out.extend(GRIDS.get(item, (item,)))
+    return [parse_config(n) for n in dict.fromkeys(out)]

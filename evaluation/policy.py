@@ -1,0 +1,189 @@
+"""`precond eval policy`: next-action prediction on SGD test dialogs (paper, "Precondition-aware Agent Policy").
+
+At every system turn the history is the dialog so far and the policy predicts the turn's actions with one
+`NextActionRequest` (max_actions > 1). A turn with a service call is split where the environment answers
+(`system.set_query_status(...)`): that status is an observation, not an action, so it is appended to the
+history as the data has it and the rest of the turn is predicted after it. The predictions of a turn's
+segments together are compared with the turn's reference actions (system acts and service calls) as
+multisets of calls: turn F1 (`evaluation.metrics.turn_f1`), averaged over turns.
+
+Precondition compatibility is the share of predicted actions that the GROUND-TRUTH preconditions allow in
+the state where they were predicted, checked with `Engine.check` (the sandbox). A prediction that is not a
+call of an action function counts as incompatible: a policy that emits garbage has not respected anything.
+
+Policy configurations, `<preconditions>/<use>/shots=N`:
+  preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
+  use:           plain (no precondition use) | prompt (written into the prompt's spec) |
+                 verify (Algorithm 1's verified sampling) | both
+"""
+
+from __future__ import annotations
+
+import ast
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from tqdm import tqdm
+
+from evaluation.cache import JsonCache
+from evaluation.domains import SGD_SETUP_STATEMENTS, Domain
+from evaluation.metrics import mean, percentile, turn_f1
+from schemas.api import (
+    CheckRequest,
+    CheckResponse,
+    NextActionOptions,
+    NextActionRequest,
+    NextActionResponse,
+)
+from schemas.errors import PrecondError
+
+USES = {"plain": (False, False), "prompt": (True, False), "verify": (False, True), "both": (True, True)}
+SOURCES = ("none", "inferred", "gt")
+GRIDS: dict[str, tuple[str, ...]] = {
+    "default": ("none/plain/shots=1", "inferred/prompt/shots=1", "inferred/verify/shots=1",
+                "inferred/both/shots=1", "gt/verify/shots=1", "gt/both/shots=1",
+                "none/plain/shots=3", "inferred/both/shots=3", "gt/both/shots=3"),
+    "small": ("none/plain/shots=1", "inferred/verify/shots=1", "gt/verify/shots=1"),
+}
+MAX_ACTIONS = 5
+
+
+class PolicyEngine(Protocol):
+    """The two engine operations the policy evaluation uses (`worker.engine.Engine` satisfies it)."""
+
+    def next_action(self, request: NextActionRequest) -> NextActionResponse: ...
+
+    def check(self, request: CheckRequest) -> CheckResponse: ...
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    name: str
+    source: str
+    in_prompt: bool
+    verify: bool
+    shots: int
+
+
+def parse_policy_config(name: str) -> PolicyConfig:
+    parts = name.split("/")
+    if len(parts) != 3 or parts[0] not in SOURCES or parts[1] not in USES or not parts[2].startswith("shots="):
+        raise ValueError(f"policy config {name!r}: expected <none|inferred|gt>/<plain|prompt|verify|both>/shots=N")
+    if parts[0] == "none" and parts[1] != "plain":
+        raise ValueError(f"policy config {name!r}: without preconditions only 'plain' makes sense")
+    in_prompt, verify = USES[parts[1]]
+    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")))
+
+
+def expand_policy(names: str) -> list[PolicyConfig]:
+    out: list[str] = []
+    for item in (n.strip() for n in names.split(",") if n.strip()):
+        out.extend(GRIDS.get(item, (item,)))
+    return [parse_policy_config(n) for n in dict.fromkeys(out)]
+
+
+def normalize_call(text: str) -> str:
+    """One spelling per call (quotes, spaces), as the engine reports predicted calls (`ast.unparse`)."""
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError:
+        return text.strip()
+    return ast.unparse(tree)
+
+
+@dataclass(frozen=True)
+class Segment:
+    """Part of a system turn predicted in one request: the history before it and the reference actions."""
+
+    key: str
+    turn: int
+    history: str
+    reference: tuple[str, ...]
+
+
+def segments(dialog: dict[str, Any]) -> Iterator[Segment]:
+    """System turns, split after each `set_query_status` (an observation inside the turn)."""
+    lines = dialog["program"].splitlines()
+    steps = dialog["steps"]
+    for turn_index, turn in enumerate(dialog["turns"]):
+        if turn["speaker"] != "SYSTEM":
+            continue
+        start, end = turn["steps"]
+        cut = start
+        for k in range(start, end + 1):
+            if k == end or steps[k]["kind"] == "query_status":
+                if k > cut:  # nothing after a status that ends the turn: no request to make
+                    yield _segment(lines, steps, turn_index, cut, k)
+                cut = k + 1
+
+
+def _segment(lines: Sequence[str], steps: Sequence[dict[str, Any]], turn: int, start: int, end: int) -> Segment:
+    history = "\n".join(lines[: SGD_SETUP_STATEMENTS + start]) + "\n"
+    reference = tuple(normalize_call(lines[SGD_SETUP_STATEMENTS + k]) for k in range(start, end)
+                      if steps[k]["kind"] in ("system_act", "service_call"))
+    return Segment(f"{turn}:{start}", turn, history, reference)
+
+
+def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, preconditions: dict[str, list[str]],
+             segment: Segment, seed: int) -> dict[str, Any]:
+    used = preconditions if config.source != "none" else {}
+    request = NextActionRequest(
+        spec=domain.spec, preconditions=used, demonstrations=list(domain.demonstrations[: config.shots]),
+        history=segment.history,
+        options=NextActionOptions(max_actions=MAX_ACTIONS, preconditions_in_prompt=config.in_prompt,
+                                  verify=config.verify, seed=seed),
+    )
+    start = time.perf_counter()
+    response = engine.next_action(request)
+    seconds = time.perf_counter() - start
+    predicted = [normalize_call(a.call) for a in response.actions]
+    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds,
+            "compatible": _compatible(engine, domain, segment.history, predicted)}
+
+
+def _compatible(engine: PolicyEngine, domain: Domain, history: str, calls: list[str]) -> list[bool]:
+    """Each predicted call judged by the GT in the segment's state (system acts do not change the state)."""
+    if not calls:
+        return []
+    try:
+        verdicts = engine.check(CheckRequest(spec=domain.spec, preconditions=domain.gt, history=history,
+                                             calls=calls)).results
+    except PrecondError:
+        return [False] * len(calls)
+    return [v.allowed for v in verdicts]
+
+
+def run_policy(engine: PolicyEngine, domain: Domain, config: PolicyConfig, preconditions: dict[str, list[str]],
+               dialogs: Sequence[dict[str, Any]], cache: JsonCache, max_turns: int | None,
+               seed: int = 0) -> list[dict[str, Any]]:
+    """Every selected segment's prediction, from the cache when present; one cache file per dialog."""
+    results: list[dict[str, Any]] = []
+    for dialog in tqdm(dialogs, desc=f"{domain.name} {config.name}", unit="dialog", leave=False):
+        done: dict[str, Any] = cache.get("policy", domain.name, config.name, dialog["dialogue_id"]) or {}
+        turns = sorted({s.turn for s in segments(dialog)})[:max_turns]
+        for segment in (s for s in segments(dialog) if s.turn in turns):
+            if segment.key not in done:
+                done[segment.key] = _predict(engine, domain, config, preconditions, segment, seed) | {
+                    "turn": segment.turn}
+                cache.put(done, "policy", domain.name, config.name, dialog["dialogue_id"])
+            results.append(done[segment.key] | {"dialog": dialog["dialogue_id"]})
+    return results
+
+
+def summarize_policy(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Turn F1 over turns (segments merged), compatibility over predicted actions, latency over requests."""
+    turns: dict[tuple[str, int], tuple[list[str], list[str]]] = {}
+    for r in results:
+        predicted, reference = turns.setdefault((r["dialog"], r["turn"]), ([], []))
+        predicted.extend(r["predicted"])
+        reference.extend(r["reference"])
+    scores = [turn_f1(p, ref) for p, ref in turns.values()]
+    compatible = [c for r in results for c in r["compatible"]]
+    latency = [r["seconds"] for r in results]
+    return {"turns": len(turns), "requests": len(results), "actions": len(compatible),
+            "f1": mean(s.f1 for s in scores), "precision": mean(s.precision for s in scores),
+            "recall": mean(s.recall for s in scores),
+            "compatibility": mean(1.0 if c else 0.0 for c in compatible),
+            "latency_p50_s": percentile(latency, 50), "latency_p95_s": percentile(latency, 95)}

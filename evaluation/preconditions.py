@@ -1,0 +1,109 @@
+"""`precond eval preconditions`: infer on each domain's demonstrations, score on its test trajectories.
+
+Inference goes through `Engine.infer`, exactly as a client's request would; the request carries the spec
+and the demonstrations and nothing else (the domain's ground truth stays in `Domain.gt`). Each (domain,
+configuration) inference is cached with its preconditions and phase timings, so scoring, tables and plots can
+be regenerated without the model.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from tqdm import tqdm
+
+from evaluation.cache import JsonCache
+from evaluation.configs import InferConfig
+from evaluation.domains import Domain
+from evaluation.metrics import ActionScore, PRF, domain_macro, macro
+from evaluation.scoring import Satisfaction, score
+from schemas.api import InferRequest, InferResponse
+from schemas.errors import PrecondError
+
+InferFn = Callable[[InferRequest], InferResponse]
+
+
+@dataclass(frozen=True)
+class Inference:
+    """What one inference produced, as cached: enough to score and to report timings, nothing more."""
+
+    preconditions: dict[str, list[str]]
+    seconds: dict[str, float]
+    wall_s: float
+    model: str | None
+    error: str | None = None
+
+
+def build_request(domain: Domain, config: InferConfig) -> InferRequest:
+    demos = list(domain.demonstrations[: config.demos] if config.demos else domain.demonstrations)
+    return InferRequest(spec=domain.spec, demonstrations=demos, actions=list(domain.actions),
+                        options=config.infer_options())
+
+
+def _run_engine(infer: InferFn, domain: Domain, config: InferConfig) -> Inference:
+    start = time.perf_counter()
+    try:
+        response = infer(build_request(domain, config))
+    except PrecondError as exc:
+        return Inference({}, {}, time.perf_counter() - start, None, f"{exc.kind}: {exc.message}")
+    wall = time.perf_counter() - start
+    model = response.model.name if response.model else None
+    return Inference(response.preconditions, dict(response.stats.seconds), wall, model)
+
+
+def infer(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callable[[], InferFn],
+          force: bool = False) -> Inference:
+    """Baselines need no engine; everything else is cached per (domain, config) unless `force`."""
+    if config.baseline == "always":
+        return Inference({}, {}, 0.0, None)
+    if config.baseline == "gt":
+        return Inference(dict(domain.gt), {}, 0.0, None)
+    stored = None if force else cache.get("infer", domain.infer_as, config.name)
+    if stored is not None:
+        return Inference(**stored)
+    result = _run_engine(engine(), domain, config)
+    if result.error is None:  # errors (e.g. no model) are retried on the next run, not cached
+        cache.put(result.__dict__, "infer", domain.infer_as, config.name)
+    return result
+
+
+def action_row(s: ActionScore) -> dict[str, Any]:
+    prf = s.prf.as_dict() if s.prf else None
+    return {"n_points": s.n_points, "n_pred": s.n_pred, "n_gt": s.n_gt, "n_both": s.n_both, "prf": prf}
+
+
+def evaluate(domains: Sequence[Domain], configs: Sequence[InferConfig], cache: JsonCache,
+             sat: Satisfaction, engine: Callable[[], InferFn], force: bool = False) -> dict[str, Any]:
+    """Every config on every domain; a row per (config, domain) plus the benchmark-level macro per config."""
+    rows: list[dict[str, Any]] = []
+    pairs = [(c, d) for c in configs for d in domains]
+    for config, domain in tqdm(pairs, desc="preconditions", unit="run"):
+        result = infer(domain, config, cache, engine, force)
+        row: dict[str, Any] = {"config": config.name, "domain": domain.name, "benchmark": domain.benchmark,
+                               "uses_model": config.uses_model,
+                               "n_demos": min(config.demos or len(domain.demonstrations), len(domain.demonstrations)),
+                               "seconds": result.seconds, "wall_s": result.wall_s, "model": result.model,
+                               "error": result.error, "preconditions": result.preconditions}
+        if result.error is None:
+            scores = score(domain, result.preconditions, sat)
+            row["macro"] = domain_macro(scores).as_dict()
+            row["actions"] = {a: action_row(s) for a, s in scores.items()}
+        rows.append(row)
+    return {"rows": rows, "summary": summarize(rows)}
+
+
+def summarize(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Per config and benchmark: the mean of the domains' macros (see evaluation.metrics)."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault((row["config"], row["benchmark"]), []).append(row)
+    out = []
+    for (config, benchmark), members in groups.items():
+        scored = [PRF(**m["macro"]) for m in members if "macro" in m]
+        out.append({"config": config, "benchmark": benchmark, "domains": len(scored),
+                    "errors": sorted({m["error"] for m in members if m.get("error")}),
+                    "macro": macro(scored).as_dict() if scored else None})
+    return out

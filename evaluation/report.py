@@ -1,0 +1,244 @@
+"""docs/results.md and its plots, regenerated from the cache alone (no inference, no model).
+
+Results of separate runs (SGD now, ALFWorld later, model configs when the model is ready) are merged by
+(config, domain), newest wins, so the report always shows everything measured so far.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from evaluation.cache import JsonCache
+from evaluation.metrics import PRF, macro
+from evaluation.preconditions import summarize
+
+SPEED_DOMAIN = "Restaurants_1"
+PER_ACTION_CONFIGS = ("always", "enumerate/subsumption", "enumerate/recency", "model/recency",
+                      "model+enumerate/recency")
+TABLE_BENCHMARKS = (("sgd", "sgd"), ("alfworld", "alfworld"), ("alfworld-trajectory", "alfworld"))
+
+
+# ---- storage ---------------------------------------------------------------------------------------------
+
+
+def store_precondition_results(store: JsonCache, result: dict[str, Any]) -> Path:
+    old = store.get("results", "preconditions") or {"rows": []}
+    rows = {(r["config"], r["domain"]): r for r in old["rows"]}
+    rows.update({(r["config"], r["domain"]): r for r in result["rows"]})
+    merged = list(rows.values())
+    return store.put({"rows": merged, "summary": summarize(merged)}, "results", "preconditions")
+
+
+def store_policy_results(store: JsonCache, new: Sequence[dict[str, Any]]) -> Path:
+    old = store.get("results", "policy") or []
+    rows = {(r["config"], r["domain"]): r for r in old}
+    rows.update({(r["config"], r["domain"]): r for r in new})
+    return store.put(list(rows.values()), "results", "policy")
+
+
+# ---- tables ----------------------------------------------------------------------------------------------
+
+
+def _fmt(value: float | None) -> str:
+    return "–" if value is None else f"{value:.3f}"
+
+
+def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def _group_macro(rows: Sequence[dict[str, Any]], config: str, group: str) -> PRF | None:
+    """Mean of domain macros of `config` over the domains of `group` (sgd, alfworld, alfworld-trajectory)."""
+    chosen = [PRF(**r["macro"]) for r in rows if r["config"] == config and "macro" in r
+              and (r["domain"] == group if group.startswith("alfworld") else r["benchmark"] == group)]
+    return macro(chosen) if chosen else None
+
+
+def precondition_table(summary: Sequence[dict[str, Any]]) -> str:
+    """Console table from a run's summary: one line per config and benchmark."""
+    rows = [[s["config"], s["benchmark"], str(s["domains"]), *(
+        (_fmt(s["macro"]["precision"]), _fmt(s["macro"]["recall"]), _fmt(s["macro"]["f1"]))
+        if s["macro"] else ("–", "–", "–")), "; ".join(s["errors"])] for s in summary]
+    return _markdown(["config", "benchmark", "domains", "P", "R", "F1", "errors"], rows)
+
+
+def main_table(rows: Sequence[dict[str, Any]]) -> str:
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    header = ["config"] + [f"{name} {m}" for name, _ in TABLE_BENCHMARKS for m in ("P", "R", "F1")]
+    body = []
+    for config in configs:
+        cells = [f"`{config}`"]
+        for group, _ in TABLE_BENCHMARKS:
+            prf = _group_macro(rows, config, group)
+            cells += [_fmt(prf.precision), _fmt(prf.recall), _fmt(prf.f1)] if prf else ["–"] * 3
+        body.append(cells)
+    return _markdown(header, body)
+
+
+def domain_table(rows: Sequence[dict[str, Any]]) -> str:
+    domains = list(dict.fromkeys(r["domain"] for r in rows))
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    index = {(r["config"], r["domain"]): r for r in rows}
+    body = []
+    for config in configs:
+        cells = [f"`{config}`"]
+        for domain in domains:
+            row = index.get((config, domain))
+            cells.append(f"{row['macro']['precision']:.2f} / {row['macro']['recall']:.2f} / {row['macro']['f1']:.2f}"
+                         if row and "macro" in row else "–")
+        body.append(cells)
+    return _markdown(["config (P / R / F1)", *domains], body)
+
+
+def action_table(rows: Sequence[dict[str, Any]], domain: str) -> str:
+    index = {r["config"]: r for r in rows if r["domain"] == domain and "actions" in r}
+    configs = [c for c in PER_ACTION_CONFIGS if c in index]
+    if not configs:
+        return ""
+    actions = list(index[configs[0]]["actions"])
+    body = []
+    for action in actions:
+        cells = [action.split(".", 1)[1]]
+        for config in configs:
+            s = index[config]["actions"][action]
+            cells.append("–" if s["prf"] is None else
+                         f"{s['prf']['precision']:.2f} / {s['prf']['recall']:.2f} / {s['prf']['f1']:.2f}")
+        body.append(cells)
+    return _markdown(["action (P / R / F1)", *(f"`{c}`" for c in configs)], body)
+
+
+def policy_table(rows: Sequence[dict[str, Any]]) -> str:
+    body = [[r["domain"], f"`{r['config']}`", str(r["turns"]),
+             str(r["actions"]), _fmt(r["f1"]), _fmt(r["compatibility"]), f"{r['latency_p50_s']:.2f}",
+             f"{r['latency_p95_s']:.2f}"] for r in rows]
+    return _markdown(["domain", "config", "turns", "predicted actions", "turn F1", "GT compat.",
+                      "p50 s/request", "p95 s/request"], body)
+
+
+def _policy_overall(rows: Sequence[dict[str, Any]]) -> str:
+    """Per config, means over domains (turn-weighted), the paper's ablation layout."""
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    body = []
+    for config in configs:
+        members = [r for r in rows if r["config"] == config]
+        turns = sum(r["turns"] for r in members) or 1
+        actions = sum(r["actions"] for r in members) or 1
+        f1 = sum(r["f1"] * r["turns"] for r in members) / turns
+        compat = sum(r["compatibility"] * r["actions"] for r in members) / actions
+        body.append([f"`{config}`", str(len(members)), str(turns), _fmt(f1), _fmt(compat)])
+    return _markdown(["config", "domains", "turns", "turn F1", "GT compat."], body)
+
+
+def speed_table(rows: Sequence[dict[str, Any]]) -> str:
+    chosen = [r for r in rows if r["domain"] == SPEED_DOMAIN and r.get("seconds")
+              and "demos=" not in r["config"]]
+    phases = list(dict.fromkeys(p for r in chosen for p in r["seconds"]))
+    body = [[f"`{r['config']}`", *(f"{r['seconds'].get(p, 0.0):.2f}" for p in phases), f"{r['wall_s']:.1f}"]
+            for r in chosen]
+    return _markdown(["config", *(f"{p} s" for p in phases), "total s"], body)
+
+
+# ---- machine ---------------------------------------------------------------------------------------------
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def _memory_gib() -> str:
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemTotal"):
+                return f"{int(line.split()[1]) / 2**20:.1f} GiB"
+    except OSError:
+        pass
+    return "unknown"
+
+
+def _git_commit() -> str:
+    try:
+        out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, check=False)
+    except OSError:
+        return "unknown"
+    dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True, check=False).stdout
+    commit = out.stdout.strip() if out.returncode == 0 else "no commit yet"
+    return commit + (" (with uncommitted changes)" if dirty.strip() else "")
+
+
+def machine() -> str:
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    return (f"- machine: {_cpu_model()}, {cores} cores available, {_memory_gib()} RAM, no GPU, "
+            f"Python {platform.python_version()}\n- generated: {now}\n- git commit: {_git_commit()}")
+
+
+def sandbox_bench(script: Path) -> str:
+    if not script.exists():
+        return f"`{script}` is not present; no sandbox throughput was measured."
+    run = subprocess.run([sys.executable, str(script), "--json"], capture_output=True, text=True, check=False,
+                         timeout=600)
+    if run.returncode != 0:
+        return f"`{script} --json` failed (exit {run.returncode}): {run.stderr.strip()[-300:]}"
+    try:
+        data = json.loads(run.stdout)
+    except json.JSONDecodeError:
+        return f"`{script} --json` did not print JSON."
+    return "```json\n" + json.dumps(data, indent=1)[:4000] + "\n```"
+
+
+# ---- report ----------------------------------------------------------------------------------------------
+
+
+def write_report(store: JsonCache, out: Path, bench: Path) -> None:
+    from evaluation.plots import compatibility_plot, demos_plot, per_action_plot
+
+    pre = (store.get("results", "preconditions") or {"rows": []})["rows"]
+    pol = store.get("results", "policy") or []
+    img = out.parent / "img"
+    img.mkdir(parents=True, exist_ok=True)
+    plots = [per_action_plot(pre, img), demos_plot(pre, img), compatibility_plot(pol, img)]
+    sections = [
+        "# Evaluation results\n",
+        "Generated by `precond eval all` (or `precond eval report` from the cache alone); do not edit by hand.",
+        "Definitions: `evaluation/metrics.py` (edge cases), points and argument domains: "
+        "`evaluation/domains.py`.\n",
+        machine(),
+        "\n## Precondition inference (macro over actions; SGD = mean of its 4 domains)\n",
+        main_table(pre),
+        "\nALFWorld is valid_unseen (134 trajectories). `alfworld`: two-argument actions scored on the "
+        "tuples the simulator offered in each state; `alfworld-trajectory`: on every tuple offered anywhere "
+        "in the trajectory (stricter).\n",
+        "## Per domain\n",
+        domain_table(pre),
+        *[f"\n### Per action: {d}\n\n{action_table(pre, d)}" for d in dict.fromkeys(r["domain"] for r in pre)
+          if action_table(pre, d)],
+        "\n## Policy (SGD next-action prediction)\n",
+        _policy_overall(pol) if pol else "No policy run cached yet (`precond eval policy`).",
+        "\n" + (policy_table(pol) if pol else ""),
+        "\n## Speed\n",
+        f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
+        speed_table(pre),
+        "\nNext-action latency: see p50/p95 columns of the policy table.\n",
+        "### Sandbox throughput\n",
+        sandbox_bench(bench),
+        "\n## Plots\n",
+        *[f"![{p.stem}](img/{p.name})" for p in plots if p is not None],
+        "",
+    ]
+    out.write_text("\n".join(sections), encoding="utf-8")

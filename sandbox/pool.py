@@ -1,0 +1,201 @@
+"""Warm fork servers (``_child.py``) and the pool that hands them to threads.
+
+A server that does not answer in time, dies, or breaks the protocol is killed with its whole process
+group and replaced; the caller gets SandboxCrashed. Only this module talks to server processes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import select
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Collection, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from sandbox.types import SandboxCrashed, SandboxError
+
+log = logging.getLogger(__name__)
+
+CHILD_SCRIPT = Path(__file__).with_name("_child.py")
+START_TIMEOUT_S = 30.0
+READ_CHUNK = 1 << 20
+
+
+class ServerGone(Exception):
+    """The server broke the protocol, died or missed its deadline; it must be replaced."""
+
+
+class ForkServer:
+    """One server process and its two pipes. Not thread-safe: the pool lends it to one thread at a time."""
+
+    def __init__(self, limits: Mapping[str, float | int], allowed_imports: Collection[str]) -> None:
+        request_read, self._request = os.pipe()
+        self._response, response_write = os.pipe()
+        config = json.dumps({"allowed_imports": sorted(allowed_imports), "limits": dict(limits)})
+        try:
+            self.process = subprocess.Popen(
+                [sys.executable, "-I", str(CHILD_SCRIPT), str(request_read), str(response_write), config],
+                pass_fds=(request_read, response_write), stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+                close_fds=True,
+            )
+        finally:
+            os.close(request_read)
+            os.close(response_write)
+        self._buffer = bytearray()
+        self._hello: dict[str, Any] | None = None
+
+    def ready(self) -> dict[str, Any]:
+        """Wait for the server's hello once; tells whether network isolation worked."""
+        if self._hello is None:
+            hello = json.loads(self._read_line(time.monotonic() + START_TIMEOUT_S))
+            if hello.get("status") != "hello":
+                raise ServerGone("fork server did not start")
+            self._hello = hello
+            if not hello.get("network_isolated"):
+                log.warning("sandbox without network isolation: %s", hello.get("detail"))
+        return self._hello
+
+    def request(self, message: dict[str, Any], wait_s: float) -> tuple[dict[str, Any], bytes]:
+        """Send one request; return the header and the raw child result."""
+        deadline = time.monotonic() + wait_s
+        self.ready()
+        self._write(json.dumps(message, ensure_ascii=True).encode("ascii") + b"\n", deadline)
+        header = json.loads(self._read_line(deadline))
+        if not isinstance(header, dict):
+            raise ServerGone("malformed header")
+        if header.get("status") != "ok":
+            return header, b""
+        size = int(header["size"])
+        payload = self._read_exact(size + 1, deadline)
+        return header, payload[:size]
+
+    def kill(self) -> None:
+        try:
+            os.killpg(self.process.pid, signal.SIGKILL)
+        except OSError:
+            pass
+        self.process.wait()
+        for fd in (self._request, self._response):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+    def _write(self, data: bytes, deadline: float) -> None:
+        view = memoryview(data)
+        while view:
+            self._wait(self._request, deadline, write=True)
+            try:
+                view = view[os.write(self._request, view):]
+            except OSError as exc:
+                raise ServerGone(f"request pipe: {exc}") from exc
+
+    def _read_line(self, deadline: float) -> bytes:
+        while True:
+            end = self._buffer.find(b"\n")
+            if end >= 0:
+                line = bytes(self._buffer[:end])
+                del self._buffer[: end + 1]
+                return line
+            self._fill(deadline)
+
+    def _read_exact(self, size: int, deadline: float) -> bytes:
+        while len(self._buffer) < size:
+            self._fill(deadline)
+        data = bytes(self._buffer[:size])
+        del self._buffer[:size]
+        return data
+
+    def _fill(self, deadline: float) -> None:
+        self._wait(self._response, deadline, write=False)
+        data = os.read(self._response, READ_CHUNK)
+        if not data:
+            raise ServerGone("fork server closed its pipe")
+        self._buffer += data
+
+    @staticmethod
+    def _wait(fd: int, deadline: float, write: bool) -> None:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            raise ServerGone("fork server missed its deadline")
+        watched = [fd]
+        ready = select.select([], watched, [], remaining)[1] if write else select.select(watched, [], [],
+                                                                                          remaining)[0]
+        if not ready:
+            raise ServerGone("fork server missed its deadline")
+
+
+class ServerPool:
+    """N warm servers; a thread borrows one per call, so N calls run at once."""
+
+    def __init__(self, size: int, limits: Mapping[str, float | int], allowed_imports: Collection[str]) -> None:
+        if size < 1:
+            raise ValueError("workers must be at least 1")
+        self._limits = dict(limits)
+        self._allowed = frozenset(allowed_imports)
+        self._idle: queue.Queue[ForkServer] = queue.Queue()
+        self._all: set[ForkServer] = set()
+        self._lock = threading.Lock()
+        self._closed = False
+        for _ in range(size):
+            self._idle.put(self._start())
+
+    def _start(self) -> ForkServer:
+        server = ForkServer(self._limits, self._allowed)
+        with self._lock:
+            self._all.add(server)
+        log.debug("started fork server pid %d", server.process.pid)
+        return server
+
+    def _discard(self, server: ForkServer) -> None:
+        server.kill()
+        with self._lock:
+            self._all.discard(server)
+
+    @contextmanager
+    def server(self) -> Iterator[ForkServer]:
+        """Lend a server; a server that failed is replaced rather than returned."""
+        if self._closed:
+            raise SandboxError("sandbox is closed")
+        server = self._idle.get()
+        try:
+            yield server
+        except ServerGone as exc:
+            log.warning("fork server pid %d replaced: %s", server.process.pid, exc)
+            self._discard(server)
+            server = self._start()
+            raise SandboxCrashed(str(exc)) from None
+        except BaseException:
+            self._discard(server)
+            server = self._start()
+            raise
+        finally:
+            if self._closed:
+                self._discard(server)
+            else:
+                self._idle.put(server)
+
+    def call(self, message: dict[str, Any], wait_s: float) -> tuple[dict[str, Any], bytes]:
+        with self.server() as server:
+            try:
+                return server.request(message, wait_s)
+            except (OSError, ValueError, KeyError) as exc:
+                raise ServerGone(f"protocol error: {exc}") from exc
+
+    def close(self) -> None:
+        self._closed = True
+        with self._lock:
+            servers = list(self._all)
+            self._all.clear()
+        for server in servers:
+            server.kill()

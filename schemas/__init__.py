@@ -1,0 +1,1 @@
+"""Request/response bodies shared by the CLI, the gateway and the worker (one place, one truth)."""

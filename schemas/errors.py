@@ -1,0 +1,46 @@
+"""Errors that carry a user-facing meaning (type, field) from wherever they arise to the API's one error shape."""
+
+from __future__ import annotations
+
+
+class PrecondError(Exception):
+    """An error the caller can act on; `kind` and `field` end up verbatim in the API's error body."""
+
+    kind = "error"
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.message = message
+        self.field = field
+
+
+class InvalidInput(PrecondError):
+    """The request is well-formed JSON but its content cannot be used (HTTP 422)."""
+
+    kind = "invalid_input"
+
+
+class InvalidProgram(InvalidInput):
+    """A spec, demonstration or history does not parse or raises when run."""
+
+    kind = "invalid_program"
+
+
+class UnknownAction(InvalidInput):
+    kind = "unknown_action"
+
+
+class ResourceLimit(PrecondError):
+    """Untrusted code hit a sandbox limit (time, memory, output...)."""
+
+    kind = "resource_limit"
+
+
+class ModelUnavailable(PrecondError):
+    kind = "model_unavailable"
+
+
+class Cancelled(PrecondError):
+    """The client cancelled the job; raised between phases and between decode steps."""
+
+    kind = "cancelled"

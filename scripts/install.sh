@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Install everything the service, its worker and its tests need into ./.venv (idempotent).
+# The Dockerfiles run this same script, so the images are built exactly as the tests are run.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PYTHON=${PYTHON:-python3}
+EXTRAS=${PRECOND_EXTRAS:-model,eval,dev}
+
+if [ ! -x .venv/bin/python ]; then
+  "$PYTHON" -m venv .venv
+fi
+. .venv/bin/activate
+python -m pip install --quiet --upgrade pip
+# torch first and pinned: an unpinned torch pulls several GB of CUDA packages. TORCH_INDEX names a CPU
+# wheel index where no local wheel is configured (the Dockerfile sets it).
+python -m pip install --quiet "torch==2.13.0" ${TORCH_INDEX:+--extra-index-url "$TORCH_INDEX"}
+python -m pip install --quiet -e ".[${EXTRAS}]"
+
+# Redis is needed by the service and its tests; install the server where none is on PATH.
+if ! command -v redis-server >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    apt-get update -qq && apt-get install -y -qq redis-server >/dev/null
+  else
+    echo "warning: redis-server not found; install it (e.g. apt-get install redis-server)" >&2
+  fi
+fi

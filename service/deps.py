@@ -1,0 +1,31 @@
+"""What a request handler needs from the app, built once in the lifespan and handed out by dependency."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Annotated
+
+from arq.connections import ArqRedis
+from fastapi import Depends, Request
+
+from service.cache import ResultCache
+from service.metrics import Metrics
+from service.queue import JobQueue
+from service.settings import Settings
+
+
+@dataclass(frozen=True)
+class Services:
+    settings: Settings
+    redis: ArqRedis
+    cache: ResultCache
+    queue: JobQueue
+    metrics: Metrics
+
+
+def _services(request: Request) -> Services:
+    services: Services = request.app.state.services
+    return services
+
+
+ServicesDep = Annotated[Services, Depends(_services)]

@@ -1,0 +1,110 @@
+"""Every failure leaves the gateway in one JSON shape, `ErrorResponse`, with the request id beside it.
+
+Clients of a queueing service see errors from three places (validation here, Redis, the engine in a
+worker); mapping them all in one module keeps the status codes consistent: bad input is always a 4xx.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
+from starlette.exceptions import HTTPException
+
+from schemas import errors as engine_errors
+from schemas.api import ErrorInfo, ErrorResponse
+
+_TYPE_BY_STATUS = {
+    400: "bad_request",
+    404: "not_found",
+    405: "method_not_allowed",
+    413: "body_too_large",
+    415: "unsupported_media_type",
+    429: "queue_full",
+    503: "unavailable",
+}
+
+
+class ServiceError(HTTPException):
+    """An HTTPException with a machine-readable type; FastAPI re-raises these untouched from body parsing."""
+
+    def __init__(
+        self, status: int, message: str, type_: str | None = None, headers: dict[str, str] | None = None
+    ) -> None:
+        super().__init__(status_code=status, detail=message, headers=headers)
+        self.type = type_ or _TYPE_BY_STATUS.get(status, "error")
+
+
+def request_id(request: Request) -> str:
+    return str(getattr(request.state, "request_id", ""))
+
+
+def error_response(
+    request: Request, status: int, info: ErrorInfo, headers: dict[str, str] | None = None
+) -> JSONResponse:
+    body = ErrorResponse(error=info, request_id=request_id(request))
+    return JSONResponse(body.model_dump(exclude_none=True), status_code=status, headers=headers)
+
+
+def status_for(info: ErrorInfo) -> int:
+    """HTTP status of a failed job: the engine's input errors are the client's (422), not ours (500)."""
+    for cls in _subclasses(engine_errors.PrecondError):
+        if cls.kind == info.type:
+            if issubclass(cls, engine_errors.ModelUnavailable):
+                return 503
+            if issubclass(cls, engine_errors.InvalidInput | engine_errors.ResourceLimit):
+                return 422
+    return 500
+
+
+def _subclasses(cls: type[engine_errors.PrecondError]) -> list[type[engine_errors.PrecondError]]:
+    found = [cls]
+    for sub in cls.__subclasses__():
+        found += _subclasses(sub)
+    return found
+
+
+def _field(loc: tuple[Any, ...]) -> str:
+    parts = [str(p) for p in loc]
+    return ".".join(parts[1:] if parts[:1] in (["body"], ["query"], ["path"]) else parts)
+
+
+async def _validation(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    first = exc.errors()[0]
+    info = ErrorInfo(
+        type="validation_error", message=str(first.get("msg", "invalid")), field=_field(first["loc"])
+    )
+    return error_response(request, 422, info)
+
+
+async def _http(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, HTTPException)
+    type_ = getattr(exc, "type", _TYPE_BY_STATUS.get(exc.status_code, "error"))
+    info = ErrorInfo(type=type_, message=str(exc.detail))
+    return error_response(request, exc.status_code, info, headers=dict(exc.headers or {}))
+
+
+def _redis_down(retry_after_s: int) -> Any:
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        info = ErrorInfo(type="unavailable", message=f"queue backend unreachable: {exc}")
+        return error_response(request, 503, info, headers={"Retry-After": str(retry_after_s)})
+
+    return handler
+
+
+async def _internal(request: Request, exc: Exception) -> JSONResponse:
+    info = ErrorInfo(type="internal", message="internal error; quote the request id when reporting it")
+    return error_response(request, 500, info)
+
+
+def install(app: FastAPI, retry_after_s: int) -> None:
+    app.add_exception_handler(RequestValidationError, _validation)
+    app.add_exception_handler(HTTPException, _http)
+    for exc in (RedisConnectionError, RedisTimeoutError):
+        app.add_exception_handler(exc, _redis_down(retry_after_s))
+    app.add_exception_handler(Exception, _internal)

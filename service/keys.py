@@ -1,0 +1,69 @@
+"""Names the gateway and the workers must agree on: queues, job ids and the Redis keys beside arq's own.
+
+A job id is `<kind>-<sha256>` of the normalised request, so the id names its queue (GET /jobs/{id} needs no
+lookup) and doubles as the cache key (identical requests share one job and one cached result).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from importlib import metadata
+from typing import Any, Final
+
+from schemas.api import JobKind
+
+PREFIX: Final = "precond"
+MODEL_QUEUE: Final = f"{PREFIX}:queue:model"
+CHECK_QUEUE: Final = f"{PREFIX}:queue:check"
+QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
+    "infer": MODEL_QUEUE,
+    "next-action": MODEL_QUEUE,
+    "check": CHECK_QUEUE,
+}
+JOB_FUNCTION: Final = "run_operation"
+STATS_KEY: Final = f"{PREFIX}:stats"
+WORKERS_PATTERN: Final = f"{PREFIX}:worker:*"
+
+_JOB_ID = re.compile(r"^(infer|next-action|check)-[0-9a-f]{64}$")
+
+
+def cache_key(job_id: str) -> str:
+    return f"{PREFIX}:cache:{job_id}"
+
+
+def progress_key(job_id: str) -> str:
+    return f"{PREFIX}:progress:{job_id}"
+
+
+def worker_key(worker_id: str) -> str:
+    return f"{PREFIX}:worker:{worker_id}"
+
+
+def kind_of(job_id: str) -> JobKind | None:
+    """The kind a job id names, or None for ids this service never hands out."""
+    match = _JOB_ID.match(job_id)
+    return match.group(1) if match else None  # type: ignore[return-value]
+
+
+def model_identity() -> str:
+    """What makes a model answer differ: its `MODEL_*` settings and the code version that loads them.
+
+    Read from the environment, not from worker.models, because the gateway must not import torch; compose
+    gives gateway and workers one environment block for this reason.
+    """
+    model_env = sorted((k, v) for k, v in os.environ.items() if k.startswith("MODEL_"))
+    return json.dumps([metadata.version("precondition-service"), model_env])
+
+
+def job_id(kind: JobKind, body: dict[str, Any], model: str | None) -> str:
+    """Hash of the canonical JSON of kind, body (defaults filled in) and, when the job uses it, the model."""
+    canonical = json.dumps(
+        {"kind": kind, "body": body, "model": model},
+        sort_keys=True,
+        separators=(",", ":"),
+        ensure_ascii=False,
+    )
+    return f"{kind}-{hashlib.sha256(canonical.encode()).hexdigest()}"

@@ -1,0 +1,63 @@
+"""Prometheus metrics of the gateway, plus the workers' counters that they keep in Redis.
+
+Workers are many short-lived processes without a scrape port of their own, so they add their job outcomes,
+phase durations and sandbox failures to one Redis hash; the gateway turns its latest read into metric
+families at scrape time. Each app gets its own registry so several apps (tests) can live in one process.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client.core import CounterMetricFamily, Metric, SummaryMetricFamily
+from prometheus_client.registry import Collector
+
+
+class WorkerStats(Collector):
+    """Holds the last snapshot of the workers' Redis hash; `collect` runs synchronously inside a scrape."""
+
+    def __init__(self) -> None:
+        self.snapshot: dict[str, float] = {}
+
+    def collect(self) -> Iterator[Metric]:
+        jobs = CounterMetricFamily("precond_jobs", "Jobs finished by workers.", labels=["kind", "outcome"])
+        phases = SummaryMetricFamily(
+            "precond_job_phase_seconds", "Time jobs spent per engine phase.", labels=["kind", "phase"]
+        )
+        sandbox = CounterMetricFamily("precond_sandbox_failures", "Jobs stopped by a sandbox limit.")
+        sandbox.add_metric([], self.snapshot.get("sandbox_failures", 0.0))
+        for field, value in sorted(self.snapshot.items()):
+            name, _, rest = field.partition(":")
+            if name == "jobs":
+                jobs.add_metric(rest.split(":", 1), value)
+            elif name == "phase_sum":
+                count = self.snapshot.get(f"phase_count:{rest}", 0.0)
+                phases.add_metric(rest.split(":", 1), count_value=int(count), sum_value=value)
+        yield from (jobs, phases, sandbox)
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.requests = Counter(
+            "precond_http_requests", "HTTP requests.", ["route", "method", "status"], registry=self.registry
+        )
+        self.latency = Histogram(
+            "precond_http_request_seconds",
+            "HTTP request latency, waiting for the job included.",
+            ["route", "method"],
+            buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60),
+            registry=self.registry,
+        )
+        self.cache = Counter(
+            "precond_cache", "Result cache lookups.", ["kind", "result"], registry=self.registry
+        )
+        self.queue_depth = Gauge(
+            "precond_queue_depth", "Jobs waiting per queue.", ["queue"], registry=self.registry
+        )
+        self.workers = Gauge(
+            "precond_workers", "Live workers (by heartbeat).", ["model_loaded"], registry=self.registry
+        )
+        self.worker_stats = WorkerStats()
+        self.registry.register(self.worker_stats)

@@ -1,0 +1,132 @@
+"""Submitting, watching and cancelling jobs on arq queues, and reading their state back as `JobStatus`.
+
+arq does the queueing (at-least-once delivery, `_job_id` de-duplication, abort); this module adds what arq
+leaves to its user: a bound on queue length, progress next to the job, and re-running an id whose last run
+was cancelled or crashed (arq would otherwise keep answering with that old result, see arq#485).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import time
+from typing import Any
+
+from arq.connections import ArqRedis
+from arq.constants import abort_jobs_ss, result_key_prefix
+from arq.jobs import Job, JobResult
+from arq.jobs import JobStatus as ArqStatus
+
+from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
+from service.cache import ResultCache
+from service.keys import JOB_FUNCTION, QUEUE_BY_KIND, kind_of, progress_key
+
+
+class QueueFull(Exception):
+    """The job's queue holds `max_jobs` already; the client should come back later (429)."""
+
+
+class JobQueue:
+    def __init__(self, redis: ArqRedis, cache: ResultCache, max_jobs: int) -> None:
+        self.redis = redis
+        self.cache = cache
+        self.max_jobs = max_jobs
+
+    def _job(self, job_id: str, kind: JobKind) -> Job:
+        return Job(job_id, self.redis, _queue_name=QUEUE_BY_KIND[kind])
+
+    async def depth(self, queue: str) -> int:
+        return int(await self.redis.zcard(queue))
+
+    async def submit(self, kind: JobKind, job_id: str, body: dict[str, Any]) -> None:
+        """Enqueue unless the same job exists: identical requests then share the one already there."""
+        job = self._job(job_id, kind)
+        queue = QUEUE_BY_KIND[kind]
+        if await self.depth(queue) >= self.max_jobs and await job.status() == ArqStatus.not_found:
+            raise QueueFull(queue)
+        enqueued = await self._enqueue(kind, job_id, body)
+        if enqueued is None and await self._last_run_unusable(job):
+            await self.redis.delete(result_key_prefix + job_id)
+            await self._enqueue(kind, job_id, body)
+
+    async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any]) -> Job | None:
+        await self.redis.zrem(abort_jobs_ss, job_id)
+        return await self.redis.enqueue_job(
+            JOB_FUNCTION, kind, body, _job_id=job_id, _queue_name=QUEUE_BY_KIND[kind]
+        )
+
+    async def _last_run_unusable(self, job: Job) -> bool:
+        info = await job.result_info()
+        return info is not None and _is_internal(info)
+
+    async def status(self, job_id: str) -> JobStatus | None:
+        kind = kind_of(job_id)
+        if kind is None:
+            return None
+        job = self._job(job_id, kind)
+        info = await job.result_info()
+        progress = await self._progress(job_id)
+        if info is not None:
+            state, result, error = _state(info)
+            return JobStatus(
+                id=job_id, kind=kind, status=state, progress=progress, result=result, error=error
+            )
+        arq_status = await job.status()
+        if arq_status == ArqStatus.not_found:
+            cached = await self.cache.get(job_id)
+            if cached is None:
+                return None
+            return JobStatus(
+                id=job_id, kind=kind, status="succeeded", progress=_done(progress), result=cached
+            )
+        running = arq_status == ArqStatus.in_progress
+        return JobStatus(id=job_id, kind=kind, status="running" if running else "queued", progress=progress)
+
+    async def wait(self, job_id: str, timeout_s: float, poll_s: float) -> JobStatus | None:
+        """The job's status once finished, or its current status when `timeout_s` runs out first."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            status = await self.status(job_id)
+            if status is None or status.status in ("succeeded", "failed", "cancelled"):
+                return status
+            if time.monotonic() >= deadline:
+                return status
+            await asyncio.sleep(poll_s)
+
+    async def cancel(self, job_id: str, confirm_s: float) -> JobStatus | None:
+        """Ask arq to abort a queued or running job; the worker's engine sees it via its cancel predicate.
+
+        Only existing unfinished jobs are aborted: an abort mark for an unknown id would stay in arq's abort
+        set and kill the next job that gets this id (arq#485).
+        """
+        status = await self.status(job_id)
+        if status is None or status.status not in ("queued", "running"):
+            return status
+        with contextlib.suppress(TimeoutError):
+            await self._job(job_id, status.kind).abort(timeout=confirm_s, poll_delay=confirm_s / 4)
+        return await self.status(job_id)
+
+    async def _progress(self, job_id: str) -> JobProgress:
+        raw = await self.redis.get(progress_key(job_id))
+        return JobProgress() if raw is None else JobProgress.model_validate(json.loads(raw))
+
+
+def _done(progress: JobProgress) -> JobProgress:
+    return JobProgress(phase="done", done=progress.total, total=progress.total)
+
+
+def _is_internal(info: JobResult) -> bool:
+    """Cancelled or crashed runs say nothing about the request, so they must not stand in for its result."""
+    return not info.success or info.result.get("error", {}).get("type") == "internal"
+
+
+def _state(info: JobResult) -> tuple[Any, dict[str, Any] | None, ErrorInfo | None]:
+    """arq's stored result as (state, result, error): workers return outcomes, arq stores their exceptions."""
+    if info.success:
+        outcome: dict[str, Any] = info.result
+        error = outcome.get("error")
+        return outcome["status"], outcome.get("result"), None if error is None else ErrorInfo(**error)
+    if isinstance(info.result, asyncio.CancelledError):
+        return "cancelled", None, ErrorInfo(type="cancelled", message="the job was cancelled")
+    return "failed", None, ErrorInfo(type="internal", message=f"job failed: {info.result!r}")

@@ -1,0 +1,55 @@
+"""Liveness, readiness and metrics, in the shapes orchestrators and Prometheus expect."""
+
+from __future__ import annotations
+
+import contextlib
+
+from fastapi import APIRouter
+from fastapi.responses import Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from redis.exceptions import RedisError
+
+from service.deps import Services, ServicesDep
+from service.errors import ServiceError
+from service.heartbeats import live_workers
+from service.keys import CHECK_QUEUE, MODEL_QUEUE, STATS_KEY
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/health")
+async def health() -> dict[str, str]:
+    """The process answers; says nothing about Redis or workers (that is /ready)."""
+    return {"status": "ok"}
+
+
+@router.get("/ready")
+async def ready(services: ServicesDep) -> dict[str, object]:
+    """Ready when Redis answers and a live worker has its model loaded."""
+    await services.redis.ping()
+    workers = await live_workers(services.redis)
+    loaded = sum(w.model_loaded for w in workers)
+    if not loaded:
+        raise ServiceError(
+            503, f"no worker with a loaded model ({len(workers)} live)", headers={"Retry-After": "5"}
+        )
+    return {"status": "ready", "workers": len(workers), "model_loaded": loaded}
+
+
+@router.get("/metrics", include_in_schema=False)
+async def metrics(services: ServicesDep) -> Response:
+    # Gateway metrics stay useful while Redis is down; the cluster gauges then keep their last value.
+    with contextlib.suppress(RedisError):
+        await _read_cluster_metrics(services)
+    return Response(generate_latest(services.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+async def _read_cluster_metrics(services: Services) -> None:
+    metrics = services.metrics
+    for queue in (MODEL_QUEUE, CHECK_QUEUE):
+        metrics.queue_depth.labels(queue).set(await services.queue.depth(queue))
+    workers = await live_workers(services.redis)
+    for loaded in (True, False):
+        metrics.workers.labels(str(loaded).lower()).set(sum(w.model_loaded == loaded for w in workers))
+    stats = await services.redis.hgetall(STATS_KEY)
+    metrics.worker_stats.snapshot = {k.decode(): float(v) for k, v in stats.items()}

@@ -1,0 +1,115 @@
+"""The three operations: each becomes a job (or a cache hit), answered within the client's wait bound."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Query, Request
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel
+
+from schemas.api import (
+    CheckRequest,
+    CheckResponse,
+    ErrorInfo,
+    ErrorResponse,
+    InferRequest,
+    InferResponse,
+    JobKind,
+    JobStatus,
+    NextActionRequest,
+    NextActionResponse,
+)
+from service import keys
+from service.deps import Services, ServicesDep
+from service.errors import ServiceError, error_response, status_for
+from service.examples import openapi_examples
+from service.queue import QueueFull
+
+router = APIRouter(tags=["operations"])
+
+Wait = Annotated[
+    float | None,
+    Query(
+        ge=0, description="Seconds to wait for the result before answering 202; capped by the server's bound."
+    ),
+]
+ERRORS: dict[int | str, dict[str, Any]] = {
+    202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
+    413: {"model": ErrorResponse, "description": "Body larger than the configured bound."},
+    422: {"model": ErrorResponse, "description": "Malformed body, or input the engine cannot use."},
+    429: {"model": ErrorResponse, "description": "Queue full; see Retry-After."},
+    503: {"model": ErrorResponse, "description": "Queue backend unreachable or model unavailable."},
+}
+
+
+@router.post("/infer-preconditions", response_model=InferResponse, responses=ERRORS)
+async def infer_preconditions(
+    body: Annotated[InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-model"))],
+    request: Request,
+    services: ServicesDep,
+    wait: Wait = None,
+) -> Response:
+    model = keys.model_identity() if "model" in body.options.generators else None
+    return await _answer(services, request, "infer", body, model, wait)
+
+
+@router.post("/next-action", response_model=NextActionResponse, responses=ERRORS)
+async def next_action(
+    body: Annotated[NextActionRequest, Body(openapi_examples=openapi_examples("next-action"))],
+    request: Request,
+    services: ServicesDep,
+    wait: Wait = None,
+) -> Response:
+    return await _answer(services, request, "next-action", body, keys.model_identity(), wait)
+
+
+@router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
+async def check_actions(
+    body: Annotated[CheckRequest, Body(openapi_examples=openapi_examples("check-actions"))],
+    request: Request,
+    services: ServicesDep,
+    wait: Wait = None,
+) -> Response:
+    return await _answer(services, request, "check", body, None, wait)
+
+
+async def _answer(
+    services: Services,
+    request: Request,
+    kind: JobKind,
+    body: BaseModel,
+    model: str | None,
+    wait: float | None,
+) -> Response:
+    payload = body.model_dump(mode="json")
+    job_id = keys.job_id(kind, payload, model)
+    cached = await services.cache.get(job_id)
+    services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
+    if cached is not None:
+        return JSONResponse(cached, headers={"X-Job-Id": job_id})
+    settings = services.settings
+    try:
+        await services.queue.submit(kind, job_id, payload)
+    except QueueFull as full:
+        raise ServiceError(
+            429, f"queue {full} is full", headers={"Retry-After": str(settings.retry_after_s)}
+        ) from None
+    timeout = settings.wait_max_s if wait is None else min(wait, settings.wait_max_s)
+    status = await services.queue.wait(job_id, timeout, settings.wait_poll_s)
+    if status is None:
+        raise ServiceError(503, "the job vanished from the queue backend", headers={"Retry-After": "1"})
+    return respond(request, status)
+
+
+def respond(request: Request, status: JobStatus) -> Response:
+    """200 with the result, the job's error with its status, or 202 pointing at the job while it runs."""
+    headers = {"X-Job-Id": status.id}
+    if status.status == "succeeded":
+        return JSONResponse(status.result, headers=headers)
+    if status.status in ("failed", "cancelled"):
+        error = status.error or ErrorInfo(type="internal", message="job failed")
+        code = 409 if status.status == "cancelled" else status_for(error)
+        return error_response(request, code, error, headers=headers)
+    headers["Location"] = f"/jobs/{status.id}"
+    return JSONResponse(status.model_dump(mode="json"), status_code=202, headers=headers)

@@ -1,0 +1,108 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from worker.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
+from worker.models.backend import PREFILL_CHUNK, CodeModel
+from worker.models.stopping import StopRule, statement_end, stop_index
+
+PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12
+SUFFIXES = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert", "user = USER()\n"]
+
+
+@pytest.fixture(scope="module")
+def tiny(tiny_model_dir: Path) -> CodeModel:
+    settings = ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", max_batch=4)
+    return load_code_model(settings)
+
+
+def reference_greedy(model: CodeModel, text: str, max_new_tokens: int, stop: StopRule) -> str:
+    """Plain greedy decoding of the whole prompt, recomputed from scratch at every step (no cache at all)."""
+    ids = model.tokenizer(text)["input_ids"]
+    generated: list[int] = []
+    for _ in range(max_new_tokens):
+        with torch.inference_mode():
+            logits = model.model(input_ids=torch.tensor([ids + generated])).logits[0, -1]
+        token = int(logits.argmax())
+        if token in model._stop_ids:
+            break
+        generated.append(token)
+    decoded = model.tokenizer.decode(generated)
+    cut = stop_index(decoded, stop)
+    return decoded if cut is None else decoded[:cut]
+
+
+def test_prefix_is_longer_than_one_prefill_chunk(tiny: CodeModel) -> None:
+    assert len(tiny.tokenizer(PREFIX)["input_ids"]) > 2 * PREFILL_CHUNK
+
+
+def test_n_completions_per_suffix(tiny: CodeModel) -> None:
+    result = tiny.complete(PREFIX, SUFFIXES, 5, Sampling(max_new_tokens=8), "line")
+    assert [len(completions) for completions in result] == [5, 5, 5]
+    assert all(isinstance(text, str) and "\n" not in text for texts in result for text in texts)
+
+
+def test_same_seed_same_samples(tiny: CodeModel) -> None:
+    sampling = Sampling(max_new_tokens=12, seed=7)
+    first = tiny.complete(PREFIX, SUFFIXES, 3, sampling, "statement")
+    tiny.complete("other prefix\n", SUFFIXES[:1], 2, Sampling(seed=1), "line")  # disturbs the kept cache
+    assert tiny.complete(PREFIX, SUFFIXES, 3, sampling, "statement") == first
+    assert tiny.complete(PREFIX, SUFFIXES, 3, Sampling(max_new_tokens=12, seed=8), "statement") != first
+
+
+def test_greedy_forces_one_sample(tiny: CodeModel) -> None:
+    sampling = Sampling(temperature=0, max_new_tokens=10)
+    result = tiny.complete(PREFIX, SUFFIXES, 4, sampling, "statement")
+    assert [len(completions) for completions in result] == [1, 1, 1]
+    assert tiny.complete(PREFIX, SUFFIXES, 4, sampling, "statement") == result
+
+
+@pytest.mark.parametrize("stop", ["line", "statement"])
+def test_cached_prefix_matches_plain_greedy_decode(tiny: CodeModel, stop: StopRule) -> None:
+    sampling = Sampling(temperature=0, max_new_tokens=24)
+    expected = [[reference_greedy(tiny, PREFIX + suffix, 24, stop)] for suffix in SUFFIXES]
+    assert tiny.complete(PREFIX, SUFFIXES, 1, sampling, stop) == expected
+    # Per-suffix calls reuse the kept prefix cache (cropped to a chunk boundary) and must agree too.
+    assert [tiny.complete(PREFIX, [suffix], 1, sampling, stop)[0] for suffix in SUFFIXES] == expected
+
+
+def test_empty_prefix_with_unequal_suffixes(tiny: CodeModel) -> None:
+    """Nothing shared: pad positions have no prefix to attend to, which must not poison the batch."""
+    suffixes = ["def f(x", "class USER:\n  def __init__(self):\n"]
+    sampling = Sampling(temperature=0, max_new_tokens=16)
+    expected = [[reference_greedy(tiny, suffix, 16, "line")] for suffix in suffixes]
+    assert tiny.complete("", suffixes, 1, sampling, "line") == expected
+
+
+def test_token_budget_bounds_the_output(tiny: CodeModel) -> None:
+    sampling = Sampling(temperature=0, max_new_tokens=2)
+    expected = [[reference_greedy(tiny, PREFIX + suffix, 2, "statement")] for suffix in SUFFIXES]
+    assert tiny.complete(PREFIX, SUFFIXES, 1, sampling, "statement") == expected
+
+
+def test_sampled_statements_are_cut_at_their_end(tiny: CodeModel) -> None:
+    result = tiny.complete(PREFIX, SUFFIXES, 6, Sampling(temperature=1.5, max_new_tokens=32), "statement")
+    assert all(statement_end(text) is None for texts in result for text in texts)
+
+
+def test_cancellation_between_steps(tiny: CodeModel) -> None:
+    calls: list[int] = []
+
+    def should_stop() -> bool:
+        calls.append(1)
+        return len(calls) > 2
+
+    with pytest.raises(GenerationCancelled):
+        tiny.complete(PREFIX, SUFFIXES, 2, Sampling(max_new_tokens=40), "statement", should_stop)
+
+
+def test_no_suffixes_no_work(tiny: CodeModel) -> None:
+    assert tiny.complete(PREFIX, [], 3, Sampling(), "line") == []
+
+
+def test_model_info(tiny: CodeModel, tiny_model_dir: Path) -> None:
+    assert tiny.info.name == tiny_model_dir.name
+    assert (tiny.info.device, tiny.info.dtype, tiny.info.sha256) == ("cpu", "float32", None)

@@ -1,0 +1,314 @@
+"""The paper's two procedures, in-process: precondition inference and verified next-action sampling.
+
+Everything untrusted (spec, demonstrations, model output) is executed only through the sandbox; this module
+decides what to run and how to read the answers. The model is loaded lazily, so model-free requests
+(`enumerate`, `check`) never pay for it.
+"""
+
+from __future__ import annotations
+
+import ast
+import threading
+import time
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, TypeVar
+
+from sandbox.types import (
+    CandidateResult,
+    EvaluateResult,
+    LimitExceeded,
+    ProgramError,
+    SandboxCrashed,
+    TraceResult,
+)
+from schemas.api import (
+    CallVerdict,
+    CandidateReport,
+    CheckRequest,
+    CheckResponse,
+    InferRequest,
+    InferResponse,
+    InferStats,
+    ModelInfo,
+    NextActionRequest,
+    NextActionResponse,
+    StageCounts,
+)
+from schemas.errors import Cancelled, InvalidProgram, ModelUnavailable, ResourceLimit, UnknownAction
+from worker import prompting
+from worker.enumeration import StateModel, enumerate_atoms
+from worker.next_action import NextActionPlanner
+from worker.parsing import parse_samples
+from worker.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank
+from worker.spec import Spec, parse_source, parse_spec, render_program, resolve_actions
+
+if TYPE_CHECKING:
+    from sandbox import Sandbox
+    from worker.models import CodeModel
+
+ProgressFn = Callable[[str, int, int], None]
+ModelLoader = Callable[[], "CodeModel"]
+T = TypeVar("T")
+
+SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
+
+
+def _no_progress(phase: str, done: int, total: int) -> None:
+    return None
+
+
+def _never() -> bool:
+    return False
+
+
+def sandbox_call(fn: Callable[..., T], *args: object) -> T:
+    """Turn the sandbox's errors about untrusted input into the API's user-facing errors."""
+    try:
+        return fn(*args)
+    except ProgramError as exc:
+        where = f"demonstrations[{exc.index}]" if exc.where == "demonstration" else SANDBOX_FIELDS.get(exc.where)
+        raise InvalidProgram(str(exc), field=where) from exc
+    except LimitExceeded as exc:
+        raise ResourceLimit(f"untrusted code exceeded the sandbox's {exc}") from exc
+    except SandboxCrashed as exc:
+        raise ResourceLimit(f"untrusted code crashed its sandbox process: {exc}") from exc
+
+
+@dataclass
+class Proposals:
+    """Candidate expressions per action with where they came from, deduplicated across generators."""
+
+    source: dict[str, dict[str, str]] = field(default_factory=dict)
+    counts: dict[str, StageCounts] = field(default_factory=dict)
+
+    def add(self, action: str, expressions: Sequence[str], origin: str, sampled: int) -> None:
+        known = self.source.setdefault(action, {})
+        counts = self.counts.setdefault(action, StageCounts())
+        counts.sampled += sampled
+        for expression in expressions:
+            known.setdefault(expression, origin)
+        counts.parsed = len(known)
+
+
+class Timer:
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def phase(self, name: str) -> Iterator[None]:
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - start, 4)
+
+
+class Engine:
+    def __init__(self, sandbox: Sandbox, model_loader: ModelLoader | None = None) -> None:
+        self._sandbox = sandbox
+        self._loader = model_loader
+        self._model: CodeModel | None = None
+        self._lock = threading.Lock()
+
+    @property
+    def model_loaded(self) -> bool:
+        return self._model is not None
+
+    def model(self) -> CodeModel:
+        """Load once, on first use; concurrent first uses wait for the same load."""
+        with self._lock:
+            if self._model is None:
+                if self._loader is None:
+                    raise ModelUnavailable("no code model is configured for this worker")
+                self._model = self._loader()
+            return self._model
+
+    # ---- precondition inference -------------------------------------------------------------------
+    def infer(
+        self,
+        request: InferRequest,
+        progress: ProgressFn = _no_progress,
+        cancelled: Callable[[], bool] = _never,
+    ) -> InferResponse:
+        timer = Timer()
+        spec = parse_spec(request.spec)
+        actions = resolve_actions(spec, request.actions)
+        demo_trees = [parse_source(d, f"demonstrations[{i}]") for i, d in enumerate(request.demonstrations)]
+        demos = list(request.demonstrations)
+        progress("trace", 0, 1)
+        with timer.phase("trace"):
+            trace = sandbox_call(self._sandbox.trace, spec.source, demos)
+        proposals = Proposals()
+        model_info: ModelInfo | None = None
+        if "model" in request.options.generators:
+            with timer.phase("generate"):
+                model_info = self._generate(spec, actions, request, proposals, progress, cancelled)
+        if "enumerate" in request.options.generators:
+            with timer.phase("enumerate"):
+                self._enumerate(spec, actions, demo_trees, trace, proposals)
+        self._check_cancel(cancelled)
+        progress("validate", 0, 1)
+        with timer.phase("validate"):
+            candidates = {a: list(proposals.source.get(a, {})) for a in actions}
+            evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
+        progress("rank", 0, 1)
+        with timer.phase("rank"):
+            kept, reports = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
+        preconditions = {a: [c.representative.expression for c in kept[a]] for a in actions}
+        program = render_program(spec, preconditions)
+        with timer.phase("verify"):
+            sandbox_call(self._sandbox.trace, program, demos)
+        total = StageCounts()
+        for counts in proposals.counts.values():
+            for name in StageCounts.model_fields:
+                setattr(total, name, getattr(total, name) + getattr(counts, name))
+        stats = InferStats(
+            actions={a: proposals.counts.get(a, StageCounts()) for a in actions}, total=total, seconds=timer.seconds
+        )
+        progress("done", 1, 1)
+        return InferResponse(
+            preconditions=preconditions, program=program, candidates=reports, stats=stats, model=model_info
+        )
+
+    def _generate(
+        self,
+        spec: Spec,
+        actions: list[str],
+        request: InferRequest,
+        proposals: Proposals,
+        progress: ProgressFn,
+        cancelled: Callable[[], bool],
+    ) -> ModelInfo:
+        from worker.models import Sampling
+
+        options = request.options
+        model = self.model()
+        windows = prompting.demo_windows(
+            len(request.demonstrations), options.prompts_per_action, options.demonstrations_per_prompt
+        )
+        suffixes = [prompting.inference_suffix(spec, a) for a in actions]
+        for index, window in enumerate(windows):
+            self._check_cancel(cancelled)
+            progress("generate", index, len(windows))
+            prefix = prompting.inference_prefix(spec, actions, [request.demonstrations[i] for i in window])
+            sampling = Sampling(options.temperature, options.top_p, options.max_new_tokens, options.seed + index)
+            samples = model.complete(prefix, suffixes, options.samples_per_prompt, sampling, "statement", cancelled)
+            for action, texts in zip(actions, samples, strict=True):
+                parsed = parse_samples(texts)
+                proposals.add(action, parsed.assertions, "model", parsed.sampled)
+        progress("generate", len(windows), len(windows))
+        return model.info
+
+    @staticmethod
+    def _enumerate(
+        spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals
+    ) -> None:
+        state = StateModel(spec, demo_trees)
+        for action in actions:
+            info = trace.actions[action]
+            atoms = enumerate_atoms(state, info, spec.methods[action].cls)
+            proposals.add(action, atoms, "enumerate", len(atoms))
+
+    def _rank(
+        self,
+        actions: list[str],
+        trace: TraceResult,
+        evaluated: EvaluateResult,
+        proposals: Proposals,
+        criterion: str,
+    ) -> tuple[dict[str, list[Cluster]], dict[str, list[CandidateReport]]]:
+        kept: dict[str, list[Cluster]] = {}
+        reports: dict[str, list[CandidateReport]] = {}
+        turns = _previous_turns(trace)
+        for action in actions:
+            results = evaluated.results.get(action, ())
+            points = evaluated.points.get(action, ())
+            origins = proposals.source.get(action, {})
+            valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
+                     for r in results if r.status == "valid"]
+            clusters = informative(cluster(valid), len(points))
+            evidence = ActionEvidence(points, trace.actions[action].occurrences, turns)
+            chosen = rank(criterion, clusters, evidence) if trace.actions[action].occurrences else []
+            kept[action] = chosen
+            counts = proposals.counts.setdefault(action, StageCounts())
+            counts.valid, counts.clusters, counts.kept = len(valid), len(clusters), len(chosen)
+            reports[action] = _reports(results, origins, clusters, chosen)
+        return kept, reports
+
+    # ---- next action (Algorithm 1) ------------------------------------------------------------------
+    def next_action(
+        self,
+        request: NextActionRequest,
+        progress: ProgressFn = _no_progress,
+        cancelled: Callable[[], bool] = _never,
+    ) -> NextActionResponse:
+        spec = parse_spec(request.spec)
+        _check_precondition_names(spec, request.preconditions)
+        parse_source(request.history, "history")
+        for i, demo in enumerate(request.demonstrations):
+            parse_source(demo, f"demonstrations[{i}]")
+        planner = NextActionPlanner(spec, request, self.model(), self._verify, cancelled)
+        actions = planner.run(progress)
+        return NextActionResponse(actions=actions, model=self.model().info)
+
+    def _verify(self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]) -> list[CallVerdict]:
+        verdicts = sandbox_call(self._sandbox.check, spec.source, preconditions, history, calls)
+        return [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
+                for v in verdicts]
+
+    # ---- check ------------------------------------------------------------------------------------
+    def check(self, request: CheckRequest) -> CheckResponse:
+        spec = parse_spec(request.spec)
+        _check_precondition_names(spec, request.preconditions)
+        parse_source(request.history, "history")
+        return CheckResponse(results=self._verify(spec, request.preconditions, request.history, request.calls))
+
+    @staticmethod
+    def _check_cancel(cancelled: Callable[[], bool]) -> None:
+        if cancelled():
+            raise Cancelled("job cancelled")
+
+
+def _check_precondition_names(spec: Spec, preconditions: dict[str, list[str]]) -> None:
+    for name in preconditions:
+        if name not in spec.methods:
+            raise UnknownAction(f"unknown action {name!r} in preconditions", field=f"preconditions.{name}")
+
+
+def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
+    """For each occurrence, the position just after the same class's previous action (or the start)."""
+    by_class: dict[tuple[int, str], list[int]] = {}
+    for name, info in trace.actions.items():
+        if not info.stub:
+            continue
+        cls = name.split(".", 1)[0]
+        for occ in info.occurrences:
+            by_class.setdefault((occ.demo, cls), []).append(occ.position)
+    previous: dict[tuple[int, int], int] = {}
+    for (demo, _cls), positions in by_class.items():
+        ordered = sorted(set(positions))
+        for before, position in zip([-1, *ordered], ordered, strict=False):
+            previous[(demo, position)] = before + 1
+    return previous
+
+
+def _reports(
+    results: Sequence[CandidateResult], origins: dict[str, str], clusters: list[Cluster], chosen: list[Cluster]
+) -> list[CandidateReport]:
+    cluster_of = {m.expression: i for i, c in enumerate(clusters) for m in c.members}
+    kept = {c.representative.expression for c in chosen}
+    out = []
+    for result in results:
+        out.append(CandidateReport(
+            assertion=result.expression,
+            source="enumerate" if origins.get(result.expression) == "enumerate" else "model",
+            valid=result.status == "valid",
+            cluster=cluster_of.get(result.expression),
+            support=result.satisfied.bit_count(),
+            kept=result.expression in kept,
+            reason=result.reason,
+        ))
+    return out
+

@@ -1,0 +1,352 @@
+"""Raw code completion with a shared prompt prefix: the engine's bottleneck, so built for throughput.
+
+Every precondition prompt of a domain shares a long prefix (observation functions and a demonstration,
+~700 tokens) and differs only in a short suffix (the action's `def` ending in `assert`). So:
+
+* the prefix goes through the model once; its key/value cache is copied for every row, never recomputed,
+  and kept between calls so that per-action calls with the same prefix reuse it too;
+* the n samples of a suffix, and the rows of several suffixes, are decoded as one batch;
+* the suffixes' tails are left-padded *between* the shared prefix and the tail, so every row ends at the
+  same column and one forward pass serves all of them (pads are masked out, positions are per row);
+* rows stop independently (end of line or statement, EOS, token budget) and finished rows leave the batch.
+
+Prefix and suffix are tokenised jointly and split at the longest common token prefix: tokenising them apart
+would put a token boundary before "assert" that the model never saw in training, and degrade completions.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from schemas.api import ModelInfo
+from schemas.errors import Cancelled
+from worker.models.settings import EMBEDDED, ModelSettings
+from worker.models.stopping import StopRule, stop_index
+from worker.models.store import (
+    EMBEDDED_NAME,
+    EMBEDDED_SHA256,
+    ModelStoreError,
+    embedded_model_dir,
+    gguf_model_dir,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CodeModel", "GenerationCancelled", "Sampling", "StopRule", "load_code_model"]
+
+PREFILL_CHUNK = 128
+"""The prefix is run in chunks at these fixed boundaries, so the cache a call reuses is bit-identical to the
+one it would compute itself: outputs never depend on what an earlier call left behind."""
+
+_TOP_K_FIRST = 256
+"""Top-p looks at the best 256 tokens first; only rows whose nucleus is wider pay for a full-vocab sort."""
+
+
+class GenerationCancelled(Cancelled):
+    """`should_stop` turned true between two decode steps."""
+
+    def __init__(self) -> None:
+        super().__init__("generation cancelled")
+
+
+@dataclass(frozen=True)
+class Sampling:
+    temperature: float = 0.8  # 0 => greedy (then n is forced to 1)
+    top_p: float = 0.95
+    max_new_tokens: int = 48
+    seed: int = 0
+
+    @property
+    def greedy(self) -> bool:
+        return self.temperature <= 0
+
+
+@dataclass
+class _PrefixCache:
+    """The key/value cache of `tokens`, computed in PREFILL_CHUNK chunks from position 0."""
+
+    tokens: tuple[int, ...] = ()
+    cache: Any = None
+
+
+@dataclass
+class _Row:
+    """One sequence being decoded: which suffix it continues and what it produced so far."""
+
+    suffix: int
+    tokens: list[int] = field(default_factory=list)
+    text: str | None = None
+
+
+def _common_prefix_length(a: Sequence[int], b: Sequence[int]) -> int:
+    n = min(len(a), len(b))
+    for i in range(n):
+        if a[i] != b[i]:
+            return i
+    return n
+
+
+def sample_next(logits: torch.Tensor, sampling: Sampling, generator: torch.Generator) -> torch.Tensor:
+    """Temperature and nucleus (top-p) sampling of one token per row; argmax when greedy."""
+    if sampling.greedy:
+        return logits.argmax(dim=-1)
+    probs = torch.softmax(logits.float() / sampling.temperature, dim=-1)
+    if sampling.top_p >= 1:
+        return torch.multinomial(probs, 1, generator=generator).squeeze(-1)
+    k = min(_TOP_K_FIRST, probs.shape[-1])
+    top_probs, top_ids = probs.topk(k, dim=-1)
+    if not bool((top_probs.sum(dim=-1) >= sampling.top_p).all()):
+        top_probs, top_ids = probs.sort(dim=-1, descending=True)
+    outside = top_probs.cumsum(dim=-1) - top_probs > sampling.top_p
+    top_probs = top_probs.masked_fill(outside, 0.0)
+    choice = torch.multinomial(top_probs, 1, generator=generator)
+    return top_ids.gather(-1, choice).squeeze(-1)
+
+
+class CodeModel:
+    """A causal code model behind `complete`; one call at a time (the cache it keeps is not shareable)."""
+
+    def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 16) -> None:
+        self.model = model
+        self.tokenizer = tokenizer
+        self.info = info
+        self.max_batch = max_batch
+        self.device = next(model.parameters()).device
+        self._stop_ids = self._end_token_ids()
+        self._prefix = _PrefixCache()
+        self._lock = threading.Lock()
+
+    def _end_token_ids(self) -> frozenset[int]:
+        """EOS from both tokenizer and generation config, and every special token: raw code has none."""
+        ids = set(self.tokenizer.all_special_ids)
+        config_eos = getattr(self.model.generation_config, "eos_token_id", None)
+        if isinstance(config_eos, int):
+            ids.add(config_eos)
+        elif config_eos:
+            ids.update(config_eos)
+        if self.tokenizer.eos_token_id is not None:
+            ids.add(self.tokenizer.eos_token_id)
+        return frozenset(ids)
+
+    def complete(
+        self,
+        prefix: str,
+        suffixes: Sequence[str],
+        n: int,
+        sampling: Sampling,
+        stop: StopRule,
+        should_stop: Callable[[], bool] | None = None,
+    ) -> list[list[str]]:
+        """For each suffix, n completions of prefix+suffix (the text after the suffix, cut before the stop).
+
+        Raises GenerationCancelled when `should_stop()` turns true (checked between decode steps).
+        """
+        if n < 1:
+            raise ValueError("n must be at least 1")
+        if not suffixes:
+            return []
+        n = 1 if sampling.greedy else n
+        with self._lock, torch.inference_mode():
+            prompts = [self._encode(prefix + suffix) for suffix in suffixes]
+            shared = min(
+                min(len(p) for p in prompts) - 1,
+                min(_common_prefix_length(prompts[0], p) for p in prompts),
+            )
+            prefix_cache = self._prefix_cache(tuple(prompts[0][:shared]))
+            generator = torch.Generator(device=self.device).manual_seed(sampling.seed)
+            rows = [_Row(suffix=i) for i in range(len(prompts)) for _ in range(n)]
+            for start in range(0, len(rows), self.max_batch):
+                batch = rows[start : start + self.max_batch]
+                tails = [prompts[row.suffix][shared:] for row in batch]
+                self._decode_batch(batch, tails, prefix_cache, sampling, stop, generator, should_stop)
+        results: list[list[str]] = [[] for _ in suffixes]
+        for row in rows:
+            results[row.suffix].append(row.text or "")
+        return results
+
+    def _encode(self, text: str) -> list[int]:
+        return list(self.tokenizer(text)["input_ids"])
+
+    def _forward(self, input_ids: torch.Tensor, attention_mask: torch.Tensor, position_ids: torch.Tensor,
+                 cache: Any) -> torch.Tensor:
+        """Last-position logits only: the vocabulary projection is a quarter of a 0.5B model's weights."""
+        out = self.model(
+            input_ids=input_ids,
+            attention_mask=attention_mask,
+            position_ids=position_ids,
+            past_key_values=cache,
+            use_cache=True,
+            logits_to_keep=1,
+        )
+        logits: torch.Tensor = out.logits[:, -1, :]
+        return logits
+
+    def _prefix_cache(self, tokens: tuple[int, ...]) -> _PrefixCache:
+        """The cache of `tokens`, reusing the kept one up to the last chunk boundary both share."""
+        from transformers import DynamicCache
+
+        kept = self._prefix
+        if kept.cache is not None and kept.tokens == tokens:
+            return kept
+        reuse = _common_prefix_length(kept.tokens, tokens) // PREFILL_CHUNK * PREFILL_CHUNK
+        if reuse > 0 and kept.cache is not None:
+            cache = copy.deepcopy(kept.cache)
+            if reuse < len(kept.tokens):
+                cache.crop(reuse - len(kept.tokens))
+        else:
+            reuse, cache = 0, DynamicCache(config=self.model.config)
+        for start in range(reuse, len(tokens), PREFILL_CHUNK):
+            chunk = torch.tensor([tokens[start : start + PREFILL_CHUNK]], device=self.device)
+            end = start + chunk.shape[1]
+            self.model(
+                input_ids=chunk,
+                attention_mask=torch.ones(1, end, dtype=torch.long, device=self.device),
+                position_ids=torch.arange(start, end, device=self.device)[None],
+                past_key_values=cache,
+                use_cache=True,
+                logits_to_keep=1,
+            )
+        self._prefix = _PrefixCache(tokens=tokens, cache=cache)
+        return self._prefix
+
+    def _prefill_tails(
+        self, tails: Sequence[Sequence[int]], prefix: _PrefixCache
+    ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Run the distinct tails once each, padded after the prefix; returns cache, logits, mask, positions.
+
+        Rows sharing a suffix get copies of that suffix's cache row and logits instead of recomputing it.
+        """
+        distinct = sorted(set(map(tuple, tails)))
+        source = torch.tensor([distinct.index(tuple(tail)) for tail in tails], device=self.device)
+        shared = len(prefix.tokens)
+        ids, tail_mask = self._left_pad(distinct)
+        mask = torch.cat([tail_mask.new_ones(len(distinct), shared), tail_mask], dim=1)
+        positions = (shared + tail_mask.cumsum(1) - 1).clamp(min=shared)
+        cache = copy.deepcopy(prefix.cache)
+        if shared:
+            cache.batch_repeat_interleave(len(distinct))
+        logits = self._forward(ids, mask, positions, cache)
+        cache.batch_select_indices(source)
+        return cache, logits[source], mask[source], positions[source, -1] + 1
+
+    def _left_pad(self, tails: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
+        pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
+        width = max(len(tail) for tail in tails)
+        ids = [[pad] * (width - len(tail)) + list(tail) for tail in tails]
+        mask = [[0] * (width - len(tail)) + [1] * len(tail) for tail in tails]
+        return torch.tensor(ids, device=self.device), torch.tensor(mask, device=self.device)
+
+    def _decode_batch(
+        self,
+        rows: Sequence[_Row],
+        tails: Sequence[Sequence[int]],
+        prefix: _PrefixCache,
+        sampling: Sampling,
+        stop: StopRule,
+        generator: torch.Generator,
+        should_stop: Callable[[], bool] | None,
+    ) -> None:
+        cache, logits, mask, positions = self._prefill_tails(tails, prefix)
+        active = list(rows)
+        for step in range(sampling.max_new_tokens):
+            next_ids = sample_next(logits, sampling, generator)
+            last_step = step == sampling.max_new_tokens - 1
+            tokens = next_ids.tolist()
+            keep = [i for i, row in enumerate(active) if not self._advance(row, tokens[i], stop, last_step)]
+            if not keep:
+                return
+            if should_stop is not None and should_stop():
+                raise GenerationCancelled()
+            if len(keep) < len(active):
+                index = torch.tensor(keep, device=self.device)
+                cache.batch_select_indices(index)
+                mask, positions, next_ids = mask[index], positions[index], next_ids[index]
+                active = [active[i] for i in keep]
+            mask = torch.cat([mask, mask.new_ones(len(active), 1)], dim=1)
+            logits = self._forward(next_ids[:, None], mask, positions[:, None], cache)
+            positions = positions + 1
+
+    def _advance(self, row: _Row, token: int, stop: StopRule, last_step: bool) -> bool:
+        """Append `token` to `row`; True (and `row.text` set) once the row is finished."""
+        ended = token in self._stop_ids
+        if not ended:
+            row.tokens.append(token)
+        text = self.tokenizer.decode(row.tokens)
+        cut = stop_index(text, stop)
+        if cut is not None:
+            row.text = text[:cut]
+        elif ended or last_step:
+            row.text = text
+        return row.text is not None
+
+
+_DTYPES = {
+    "bfloat16": torch.bfloat16,
+    "bf16": torch.bfloat16,
+    "float16": torch.float16,
+    "fp16": torch.float16,
+    "half": torch.float16,
+    "float32": torch.float32,
+    "fp32": torch.float32,
+    "float": torch.float32,
+}
+
+CPU_AUTO_DTYPE = torch.bfloat16
+"""Measured with bench/model_bench.py (AVX-512-BF16 CPU, 1 thread): bfloat16 prefills and decodes ~2-3x
+faster than float32, as decoding is memory-bound and bfloat16 halves the bytes read per token."""
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def resolve_dtype(name: str, device: torch.device) -> torch.dtype:
+    if name == "auto":
+        if device.type == "cuda":
+            return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+        return CPU_AUTO_DTYPE
+    try:
+        return _DTYPES[name.lower()]
+    except KeyError:
+        raise ValueError(f"unknown dtype {name!r}; use auto or one of {sorted(_DTYPES)}") from None
+
+
+def _weights_dir(settings: ModelSettings) -> tuple[Path, str, str | None]:
+    """Directory to load, display name, and the GGUF sha256 it came from (None for a plain HF directory)."""
+    if settings.path == EMBEDDED:
+        return embedded_model_dir(settings.cache_dir), EMBEDDED_NAME, EMBEDDED_SHA256
+    path = Path(settings.path).expanduser()
+    if path.suffix == ".gguf":
+        directory, sha256 = gguf_model_dir(path, settings.cache_dir)
+        return directory, path.stem, sha256
+    if not (path / "config.json").is_file():
+        raise ModelStoreError(f"MODEL_PATH {path} is neither a .gguf file nor a Hugging Face model directory")
+    return path, path.name, None
+
+
+def load_code_model(settings: ModelSettings) -> CodeModel:
+    """Load (converting a GGUF once) and place the model; sets torch's CPU thread count process-wide."""
+    from transformers import AutoModelForCausalLM, AutoTokenizer
+
+    torch.set_num_threads(settings.threads)
+    device = resolve_device(settings.device)
+    dtype = resolve_dtype(settings.dtype, device)
+    directory, name, sha256 = _weights_dir(settings)
+    tokenizer = AutoTokenizer.from_pretrained(directory)
+    model = AutoModelForCausalLM.from_pretrained(
+        directory, dtype=dtype, device_map=str(device) if device.type != "cpu" else None
+    )
+    model.eval()  # type: ignore[no-untyped-call]
+    info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=str(dtype).removeprefix("torch."))
+    logger.info("loaded %s on %s in %s", name, info.device, info.dtype)
+    return CodeModel(model, tokenizer, info, max_batch=settings.max_batch)

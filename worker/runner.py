@@ -1,0 +1,158 @@
+"""One worker process: arq workers for the model and check queues, model preload, heartbeats, draining.
+
+Both queues run in one process so a single `precond worker` serves everything, yet check jobs never wait
+behind model jobs: each queue has its own arq worker with its own concurrency. A worker survives Redis
+outages (it reconnects), and on SIGTERM stops taking jobs, lets running ones finish for `drain_s`, then
+hands the rest back to the queue (arq re-queues a job cancelled by shutdown).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import importlib
+import logging
+import os
+import signal
+import socket
+import uuid
+from collections.abc import Callable
+from typing import cast
+
+from arq import func
+from arq.connections import RedisSettings
+from arq.worker import Worker
+from redis.asyncio import Redis
+from redis.exceptions import RedisError
+
+from service.heartbeats import Heartbeat, beat
+from service.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, worker_key
+from service.settings import Settings, get_settings
+from worker.jobs import EngineLike, run_operation
+
+log = logging.getLogger("precond.worker")
+
+
+def build_engine() -> EngineLike:
+    """The production engine: sandboxed execution plus the configured code model, loaded on first use."""
+    from sandbox import Sandbox
+    from worker.engine import Engine
+    from worker.models import ModelSettings, load_code_model
+
+    model_settings = ModelSettings()
+    return cast(EngineLike, Engine(Sandbox(), lambda: load_code_model(model_settings)))
+
+
+def _load_factory(path: str) -> Callable[[], EngineLike]:
+    module, _, name = path.partition(":")
+    return cast(Callable[[], EngineLike], getattr(importlib.import_module(module), name))
+
+
+class WorkerProcess:
+    def __init__(self, settings: Settings, queues: list[str]) -> None:
+        self.settings = settings
+        self.queues = queues
+        self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        self.engine = _load_factory(settings.engine_factory)()
+        self.workers: dict[str, Worker] = {}
+        self.stopping = asyncio.Event()
+        self.model_error: str | None = None
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, self.drain, sig)
+        tasks = [asyncio.create_task(self._serve(queue)) for queue in self.queues]
+        heartbeat = asyncio.create_task(self._heartbeat())
+        if self.settings.preload_model and MODEL_QUEUE in self.queues:
+            tasks.append(asyncio.create_task(self._preload()))
+        await asyncio.gather(*tasks)
+        heartbeat.cancel()
+        await self._forget()
+
+    def drain(self, sig: signal.Signals) -> None:
+        log.info("%s: draining for up to %ss", sig.name, self.settings.drain_s)
+        self.stopping.set()
+        for worker in self.workers.values():
+            worker.handle_sig_wait_for_completion(sig)
+
+    def _arq_worker(self, queue: str) -> Worker:
+        s = self.settings
+        model = queue == MODEL_QUEUE
+        timeout = s.job_timeout_s if model else s.check_timeout_s
+        return Worker(
+            functions=[func(run_operation, name=JOB_FUNCTION, timeout=timeout)],
+            queue_name=queue,
+            redis_settings=RedisSettings.from_dsn(s.redis_dsn),
+            max_jobs=s.worker_concurrency if model else s.check_concurrency,
+            job_timeout=timeout,
+            keep_result=s.result_ttl_s,
+            max_tries=s.job_max_tries,
+            poll_delay=s.worker_poll_s,
+            allow_abort_jobs=True,
+            handle_signals=False,
+            job_completion_wait=s.drain_s,
+            health_check_interval=60,
+            ctx={"engine": self.engine, "settings": s},
+        )
+
+    async def _serve(self, queue: str) -> None:
+        """Run an arq worker on `queue` until drained, starting a new one after each Redis outage."""
+        while not self.stopping.is_set():
+            worker = self.workers[queue] = self._arq_worker(queue)
+            try:
+                await worker.async_run()
+            except asyncio.CancelledError:
+                pass  # arq cancels its main task when a drain completes
+            except (RedisError, OSError) as exc:
+                log.warning("queue %s: redis unavailable (%s); reconnecting", queue, exc)
+                await asyncio.sleep(1)
+            with contextlib.suppress(RedisError, OSError):
+                await worker.close()
+
+    async def _preload(self) -> None:
+        try:
+            await asyncio.to_thread(self.engine.model)
+        except Exception as exc:  # a broken model must not stop check jobs; the heartbeat reports it
+            log.exception("model failed to load")
+            self.model_error = f"{type(exc).__name__}: {exc}"
+
+    def _heartbeat_body(self) -> Heartbeat:
+        workers = self.workers.values()
+        return Heartbeat(
+            id=self.id,
+            host=socket.gethostname(),
+            pid=os.getpid(),
+            queues=self.queues,
+            model_loaded=self.engine.model_loaded,
+            model_error=self.model_error,
+            jobs_started=sum(
+                w.jobs_complete + w.jobs_failed + w.jobs_retried + len(w.tasks) for w in workers
+            ),
+            jobs_complete=sum(w.jobs_complete for w in workers),
+        )
+
+    async def _heartbeat(self) -> None:
+        redis = self._redis()
+        while True:
+            with contextlib.suppress(RedisError, OSError):
+                await beat(redis, self._heartbeat_body(), ttl_s=3 * self.settings.heartbeat_s)
+            await asyncio.sleep(self.settings.heartbeat_s)
+
+    async def _forget(self) -> None:
+        redis = self._redis()
+        with contextlib.suppress(RedisError, OSError):
+            await redis.delete(worker_key(self.id))
+        await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
+
+    def _redis(self) -> Redis[bytes]:
+        return Redis.from_url(self.settings.redis_dsn, socket_connect_timeout=2, socket_timeout=5)
+
+
+def run(settings: Settings, queues: list[str] | None = None) -> None:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    asyncio.run(WorkerProcess(settings, queues or [MODEL_QUEUE, CHECK_QUEUE]).run())
+
+
+if __name__ == "__main__":
+    run(get_settings())

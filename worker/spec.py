@@ -1,0 +1,143 @@
+"""Static reading of a user's program spec: which methods are actions, and the text the prompts are made of.
+
+Only `ast` is used here: the spec is untrusted, so it is parsed (never executed) in the worker; everything
+that runs it goes through the sandbox. Parsing errors become `InvalidProgram` with the line, so the gateway
+can answer 422 before any model time is spent.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+from schemas.errors import InvalidProgram, UnknownAction
+
+
+@dataclass(frozen=True)
+class Method:
+    cls: str
+    name: str
+    params: tuple[str, ...]
+    stub: bool
+    node: ast.FunctionDef
+
+    @property
+    def qualname(self) -> str:
+        return f"{self.cls}.{self.name}"
+
+
+@dataclass(frozen=True)
+class Spec:
+    source: str
+    tree: ast.Module
+    methods: dict[str, Method]
+
+    @property
+    def stub_actions(self) -> list[str]:
+        return [name for name, method in self.methods.items() if method.stub]
+
+
+def parse_source(source: str, field: str) -> ast.Module:
+    """Parse untrusted source, turning every failure (syntax, nesting too deep, NUL bytes) into a 422."""
+    try:
+        return ast.parse(source)
+    except SyntaxError as exc:
+        raise InvalidProgram(f"{field}, line {exc.lineno}: SyntaxError: {exc.msg}", field=field) from exc
+    except (ValueError, RecursionError, MemoryError) as exc:
+        raise InvalidProgram(f"{field}: cannot be parsed: {type(exc).__name__}", field=field) from exc
+
+
+def _is_stub(node: ast.FunctionDef) -> bool:
+    """A body of only `pass`, `...` or a docstring: the paper's action functions whose assertions are unknown."""
+    for stmt in node.body:
+        if isinstance(stmt, ast.Pass):
+            continue
+        if isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
+            continue
+        return False
+    return True
+
+
+def _methods_of(cls: ast.ClassDef) -> Iterable[Method]:
+    for node in cls.body:
+        if isinstance(node, ast.FunctionDef) and not node.name.startswith("__"):
+            args = [a.arg for a in node.args.args[1:]]
+            yield Method(cls.name, node.name, tuple(args), _is_stub(node), node)
+
+
+def parse_spec(source: str) -> Spec:
+    tree = parse_source(source, "spec")
+    methods: dict[str, Method] = {}
+    for node in tree.body:
+        if isinstance(node, ast.ClassDef):
+            for method in _methods_of(node):
+                methods[method.qualname] = method
+    if not methods:
+        raise InvalidProgram("spec: defines no class with methods, so there are no actions", field="spec")
+    return Spec(source, tree, methods)
+
+
+def resolve_actions(spec: Spec, requested: Sequence[str] | None) -> list[str]:
+    """Requested names must exist; by default every stub method is an action."""
+    if requested is None:
+        actions = spec.stub_actions
+        if not actions:
+            raise UnknownAction("spec has no stub methods (body only pass/.../docstring); name the actions", "actions")
+        return actions
+    for index, name in enumerate(requested):
+        if name not in spec.methods:
+            known = ", ".join(sorted(spec.methods)[:20])
+            raise UnknownAction(f"unknown action {name!r}; the spec defines: {known}", field=f"actions[{index}]")
+    return list(dict.fromkeys(requested))
+
+
+def observation_source(spec: Spec, actions: Iterable[str]) -> str:
+    """The spec without the action methods: the paper's observation function definitions F_O.
+
+    Action stubs are left out so the model is not primed with `pass` bodies next to the `assert` it completes.
+    """
+    excluded = {spec.methods[a].node for a in actions}
+    lines = spec.source.splitlines()
+    drop: set[int] = set()
+    for node in excluded:
+        start = node.decorator_list[0].lineno if node.decorator_list else node.lineno
+        drop.update(range(start - 1, (node.end_lineno or node.lineno)))
+    return "\n".join(line for i, line in enumerate(lines) if i not in drop).rstrip() + "\n"
+
+
+def action_header(spec: Spec, action: str) -> str:
+    """`class C:` context line plus `def a(self, ...):` and the `assert` keyword, as the paper prompts.
+
+    The spec's own indentation unit is kept, so the model continues the style it has just read.
+    """
+    method = spec.methods[action]
+    indent = " " * (method.node.col_offset or 4)
+    params = ", ".join(("self", *method.params))
+    return f"class {method.cls}:\n{indent}def {method.name}({params}):\n{indent}{indent}assert"
+
+
+def render_program(spec: Spec, preconditions: dict[str, list[str]]) -> str:
+    """The spec with each action's assertions written into its body, replacing a stub body."""
+    lines = spec.source.splitlines()
+    edits: list[tuple[int, int, list[str]]] = []
+    for action, assertions in preconditions.items():
+        if not assertions or action not in spec.methods:
+            continue
+        node = spec.methods[action].node
+        indent = " " * (node.col_offset + (node.col_offset or 4))
+        body = [f"{indent}assert {a}" for a in assertions]
+        first, last = node.body[0], node.body[-1]
+        stub = spec.methods[action].stub
+        if first.lineno == node.lineno:  # one-line `def f(self): ...`: split header and body
+            header = lines[node.lineno - 1]
+            cut = header.index(":", header.index(")")) + 1
+            rest = [] if stub else [indent + header[cut:].strip()]
+            edits.append((node.lineno - 1, node.lineno, [header[:cut], *body, *rest]))
+        elif stub:
+            edits.append((first.lineno - 1, last.end_lineno or last.lineno, body))
+        else:
+            edits.append((first.lineno - 1, first.lineno - 1, body))
+    for start, end, new in sorted(edits, reverse=True):
+        lines[start:end] = new
+    return "\n".join(lines) + "\n"
