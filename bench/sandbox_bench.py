@@ -75,7 +75,8 @@ def bench(domain_name: str, count: int, repeats: int) -> dict[str, float]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--domain", default="Restaurants_1")
     parser.add_argument("--candidates", type=int, default=500)
     parser.add_argument("--repeats", type=int, default=3)

@@ -1,4 +1,4 @@
-"""`precond eval preconditions|policy|report|all`: the evaluation harness (see evaluation/ and docs/results.md).
+"""`precond eval preconditions|policy|report|all`: the evaluation harness (evaluation/, docs/results.md).
 
 Everything expensive is cached under `--cache` (default `.eval-cache/`, gitignored), so every command can be
 interrupted and re-run, and `precond eval all` regenerates docs/results.md from whatever is cached plus the
@@ -16,7 +16,9 @@ import typer
 
 from evaluation.cache import DEFAULT_CACHE, JsonCache
 
-DataOption = Annotated[list[Path], typer.Option("--data", help="../shared/data/sgd or ../shared/data/alfworld; repeatable.")]
+DataOption = Annotated[
+    list[Path], typer.Option("--data", help="../shared/data/sgd or ../shared/data/alfworld; repeatable.")
+]
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
 DEFAULT_DATA = [Path("../shared/data/sgd"), Path("../shared/data/alfworld")]
 EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
@@ -33,11 +35,11 @@ def _engine(with_model: bool) -> Any:
     return build_engine(with_model=with_model)
 
 
-def _satisfaction(cache_dir: JsonCache) -> Any:
+def _sandbox() -> Any:
+    """Scoring runs every test trajectory of a domain in one call: more time than a request is allowed."""
     from sandbox import Limits, Sandbox
-    from evaluation.scoring import Satisfaction
 
-    return Satisfaction(Sandbox(Limits(**EVAL_LIMITS)), cache_dir)  # type: ignore[arg-type]
+    return Sandbox(Limits(**EVAL_LIMITS))  # type: ignore[arg-type]
 
 
 def _domains(data: list[Path], alfworld_modes: str) -> list[Any]:
@@ -50,7 +52,7 @@ def _domains(data: list[Path], alfworld_modes: str) -> list[Any]:
             for mode in modes:
                 if mode not in ARG_MODES:
                     raise typer.BadParameter(f"unknown ALFWorld argument mode {mode!r}; known: {ARG_MODES}")
-                out.extend(load_domains(path, mode))  # type: ignore[arg-type]
+                out.extend(load_domains(path, mode))
         else:
             out.extend(load_domains(path))
     return out
@@ -58,7 +60,7 @@ def _domains(data: list[Path], alfworld_modes: str) -> list[Any]:
 
 def preconditions(
     data: DataOption = DEFAULT_DATA,
-    configs: Annotated[str, typer.Option(help="Config names or grids (evaluation/configs.py), comma-separated.")]
+    configs: Annotated[str, typer.Option(help="Config names or grids (see evaluation/configs.py)")]
     = "no-model",
     alfworld_args: Annotated[str, typer.Option(help="ALFWorld argument domains: state, trajectory or both.")]
     = "state,trajectory",
@@ -73,8 +75,11 @@ def preconditions(
     store = JsonCache(cache_dir)
     chosen = expand(configs)
     needs_model = any(c.uses_model for c in chosen)
-    result = evaluate(_domains(data, alfworld_args), chosen, store, _satisfaction(store),
-                      lambda: _engine(needs_model).infer, force)
+    from evaluation.scoring import Satisfaction
+
+    sandbox = _sandbox()
+    result = evaluate(_domains(data, alfworld_args), chosen, store, Satisfaction(sandbox, store),
+                      lambda: _engine(needs_model).infer, force, sandbox)
     path = store_precondition_results(store, result)
     typer.echo(precondition_table(result["summary"]))
     typer.echo(f"\nper-domain and per-action results: {path}")
@@ -98,7 +103,7 @@ def policy(
 
     store = JsonCache(cache_dir)
     wanted = {d.strip() for d in domains.split(",") if d.strip()}
-    chosen = [d for d in _domains([data], "state") if d.benchmark == "sgd" and (not wanted or d.name in wanted)]
+    chosen = [d for d in _domains([data], "state") if not wanted or d.name in wanted]
     source = parse_config(inferred_from)
     engine = _engine(True)
     rows = []
@@ -135,7 +140,7 @@ def run_all(
     configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "default",
 ) -> None:
     """Score every precondition config (cached inferences are reused), then regenerate the report."""
-    preconditions(data=data, configs=configs, alfworld_args="state,trajectory", cache_dir=cache_dir, force=False)
+    preconditions(data=data, configs=configs, alfworld_args="state,trajectory", cache_dir=cache_dir)
     report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"))
 
 

@@ -5,7 +5,9 @@
     enumerate/subsumption            model+enumerate/recency/spp=4/dpp=2      model/recency/demos=4
 
 keys: `spp` samples per prompt, `ppa` prompts per action, `dpp` demonstrations per prompt, `seed`, and
-`demos` = how many of the domain's demonstrations the request gets (the first N; default all).
+`demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
+`maxrate` = re-rank the same inference's valid candidates with evaluation/ranking_probe.py (a measurement of
+a ranking change, not an engine option).
 Two names are baselines that run no inference: `always` (no precondition: every action always allowed)
 and `gt` (the ground truth; must score 1.0, a check of the scoring pipeline).
 """
@@ -25,8 +27,11 @@ DEMO_COUNTS = (1, 2, 4)
 GRIDS: dict[str, tuple[str, ...]] = {
     "baselines": BASELINES,
     "enumerate": ("enumerate/subsumption", "enumerate/recency"),
-    "enumerate-demos": tuple(f"enumerate/{r}/demos={n}" for r in ("subsumption", "recency") for n in DEMO_COUNTS),
+    "enumerate-demos": tuple(f"enumerate/{r}/demos={n}"
+                             for r in ("subsumption", "recency") for n in DEMO_COUNTS),
     "model": ("model/subsumption", "model/recency", "model+enumerate/subsumption", "model+enumerate/recency"),
+    "probe": ("enumerate/recency/maxrate=0.9", "enumerate/subsumption/maxrate=0.9",
+              "model+enumerate/recency/maxrate=0.9"),
     "model-ablation": ("model/recency/spp=2", "model/recency/spp=16", "model/recency/dpp=2",
                        "model/recency/demos=2"),
 }
@@ -42,6 +47,13 @@ class InferConfig:
     ranking: str = "subsumption"
     demos: int | None = None
     options: dict[str, Any] = field(default_factory=dict)
+    max_rate: float | None = None
+
+    @property
+    def base(self) -> InferConfig:
+        """The engine inference a probe re-ranks: the same name without its `maxrate=` part."""
+        name = "/".join(p for p in self.name.split("/") if not p.startswith("maxrate="))
+        return parse_config(name)
 
     @property
     def uses_model(self) -> bool:
@@ -56,7 +68,7 @@ def parse_config(name: str) -> InferConfig:
         return InferConfig(name, baseline=name)
     parts = name.split("/")
     if len(parts) < 2:
-        raise ValueError(f"config {name!r}: expected <generators>/<ranking>[/key=value...] or one of {BASELINES}")
+        raise ValueError(f"config {name!r}: expected <generators>/<ranking>[/key=value...] or {BASELINES}")
     generators = tuple(parts[0].split("+"))
     for g in generators:
         if g not in get_args(Generator):
@@ -65,15 +77,18 @@ def parse_config(name: str) -> InferConfig:
         raise ValueError(f"config {name!r}: unknown ranking {parts[1]!r}")
     options: dict[str, Any] = {}
     demos: int | None = None
+    max_rate: float | None = None
     for item in parts[2:]:
         key, _, value = item.partition("=")
-        if key == "demos":
+        if key == "maxrate":
+            max_rate = float(value)
+        elif key == "demos":
             demos = None if value == "all" else int(value)
         elif key in _KEYS:
             options[_KEYS[key]] = int(value)
         else:
-            raise ValueError(f"config {name!r}: unknown key {key!r} (known: demos, {', '.join(_KEYS)})")
-    config = InferConfig(name, None, generators, parts[1], demos, options)
+            raise ValueError(f"config {name!r}: unknown key {key!r} (known: demos, maxrate, {', '.join(_KEYS)})")
+    config = InferConfig(name, None, generators, parts[1], demos, options, max_rate)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs
     return config
 

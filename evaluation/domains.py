@@ -123,7 +123,8 @@ def _check_sgd_dialog(dialog: dict[str, Any]) -> None:
     """Positions are computed from `steps`; make sure the program has exactly one statement per step."""
     body = ast.parse(dialog["program"]).body
     if len(body) != SGD_SETUP_STATEMENTS + len(dialog["steps"]):
-        raise ValueError(f"dialog {dialog['dialogue_id']}: {len(body)} statements for {len(dialog['steps'])} steps")
+        steps = len(dialog["steps"])
+        raise ValueError(f"dialog {dialog['dialogue_id']}: {len(body)} statements for {steps} steps")
 
 
 def load_sgd(path: Path) -> Domain:
@@ -190,7 +191,7 @@ def alfworld_points(
     for offers, (_, step) in zip(per_state, states, strict=True):  # the executed action was offered too
         offers.setdefault(step["fn"], set()).add(tuple(step["args"]))
     union: dict[str, set[tuple[str, ...]]] = {}
-    for offers in per_state:
+    for offers in [*per_state, _offers(c for commands in admissible for c in commands)]:
         for action, args in offers.items():
             union.setdefault(action, set()).update(args)
     points: dict[str, list[Point]] = {}
@@ -206,7 +207,8 @@ def _agent_actions(spec: str) -> list[str]:
     """The Agent methods with stub bodies: the actions whose preconditions are inferred."""
     for node in ast.parse(spec).body:
         if isinstance(node, ast.ClassDef) and node.name == "Agent":
-            return [f.name for f in node.body if isinstance(f, ast.FunctionDef) and not f.name.startswith("__")
+            return [f.name for f in node.body
+                    if isinstance(f, ast.FunctionDef) and not f.name.startswith("__")
                     and all(isinstance(s, ast.Pass) for s in f.body)]
     raise ValueError("ALFWorld spec has no Agent class")
 
@@ -220,8 +222,9 @@ def load_alfworld(data_dir: Path, mode: ArgMode = "state", limit: int | None = N
     actions = _agent_actions(spec)
     points: dict[str, list[Point]] = {f"Agent.{a}": [] for a in actions}
     for index, trajectory in enumerate(trajectories):
-        for action, found in alfworld_points(trajectory, admissible[trajectory["id"]], index, actions, mode).items():
-            points[action].extend(found)
+        found = alfworld_points(trajectory, admissible[trajectory["id"]], index, actions, mode)
+        for action, more in found.items():
+            points[action].extend(more)
     gt_text = (data_dir / "alfworld_spec_gt.py").read_text(encoding="utf-8")
     return Domain(
         name="alfworld" if mode == "state" else f"alfworld-{mode}",

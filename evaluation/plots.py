@@ -10,7 +10,7 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402  (the backend must be chosen first)
+import matplotlib.pyplot as plt
 
 PER_ACTION = ("always", "enumerate/recency", "model+enumerate/recency")
 _DEMOS = re.compile(r"/demos=(\d+)")
@@ -48,7 +48,8 @@ def demos_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
         if row["domain"] == "alfworld-trajectory":
             continue
         base = _DEMOS.sub("", row["config"])
-        series.setdefault(f"{base} ({row['benchmark']})", {}).setdefault(row["n_demos"], []).append(row["macro"]["f1"])
+        line = series.setdefault(f"{base} ({row['benchmark']})", {})
+        line.setdefault(row["n_demos"], []).append(row["macro"]["f1"])
     series = {k: v for k, v in series.items() if len(v) > 1}
     if not series:
         return None

@@ -1,4 +1,4 @@
-"""`precond eval policy`: next-action prediction on SGD test dialogs (paper, "Precondition-aware Agent Policy").
+"""`precond eval policy`: next-action prediction on SGD test dialogs (the paper's section 4.3).
 
 At every system turn the history is the dialog so far and the policy predicts the turn's actions with one
 `NextActionRequest` (max_actions > 1). A turn with a service call is split where the environment answers
@@ -69,8 +69,9 @@ class PolicyConfig:
 
 def parse_policy_config(name: str) -> PolicyConfig:
     parts = name.split("/")
-    if len(parts) != 3 or parts[0] not in SOURCES or parts[1] not in USES or not parts[2].startswith("shots="):
-        raise ValueError(f"policy config {name!r}: expected <none|inferred|gt>/<plain|prompt|verify|both>/shots=N")
+    shots = parts[-1].startswith("shots=")
+    if len(parts) != 3 or parts[0] not in SOURCES or parts[1] not in USES or not shots:
+        raise ValueError(f"policy config {name!r}: expected <source>/<use>/shots=N, see evaluation/policy.py")
     if parts[0] == "none" and parts[1] != "plain":
         raise ValueError(f"policy config {name!r}: without preconditions only 'plain' makes sense")
     in_prompt, verify = USES[parts[1]]
@@ -119,7 +120,8 @@ def segments(dialog: dict[str, Any]) -> Iterator[Segment]:
                 cut = k + 1
 
 
-def _segment(lines: Sequence[str], steps: Sequence[dict[str, Any]], turn: int, start: int, end: int) -> Segment:
+def _segment(lines: Sequence[str], steps: Sequence[dict[str, Any]], turn: int, start: int, end: int
+             ) -> Segment:
     history = "\n".join(lines[: SGD_SETUP_STATEMENTS + start]) + "\n"
     reference = tuple(normalize_call(lines[SGD_SETUP_STATEMENTS + k]) for k in range(start, end)
                       if steps[k]["kind"] in ("system_act", "service_call"))
@@ -143,21 +145,50 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
             "compatible": _compatible(engine, domain, segment.history, predicted)}
 
 
+def receivers(history: str) -> dict[str, str]:
+    """`system = SYSTEM(user)` -> {"system": "SYSTEM"}: which class a predicted call's receiver is."""
+    found: dict[str, str] = {}
+    for node in ast.parse(history).body:
+        call = node.value if isinstance(node, ast.Assign) else None
+        if isinstance(node, ast.Assign) and isinstance(call, ast.Call) and isinstance(call.func, ast.Name):
+            found.update({t.id: call.func.id for t in node.targets if isinstance(t, ast.Name)})
+    return found
+
+
+def action_of(call: str, known: dict[str, str]) -> str | None:
+    """The qualified action a predicted line calls (`SYSTEM.INFORM`), or None when it is no single call."""
+    try:
+        node = ast.parse(call, mode="eval").body
+    except SyntaxError:
+        return None
+    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+            and isinstance(node.func.value, ast.Name)):
+        return None
+    return f"{known.get(node.func.value.id, '?')}.{node.func.attr}"
+
+
 def _compatible(engine: PolicyEngine, domain: Domain, history: str, calls: list[str]) -> list[bool]:
-    """Each predicted call judged by the GT in the segment's state (system acts do not change the state)."""
-    if not calls:
-        return []
+    """Each predicted call judged by the GT in the segment's state (system acts do not change the state).
+
+    Only calls of the domain's actions are judged; anything else the policy emitted (a user act, text) is
+    incompatible without asking the sandbox.
+    """
+    known = receivers(history)
+    judged = [c for c in calls if action_of(c, known) in domain.actions]
+    if not judged:
+        return [False] * len(calls)
     try:
         verdicts = engine.check(CheckRequest(spec=domain.spec, preconditions=domain.gt, history=history,
-                                             calls=calls)).results
+                                             calls=judged)).results
     except PrecondError:
         return [False] * len(calls)
-    return [v.allowed for v in verdicts]
+    allowed = iter(v.allowed for v in verdicts)
+    return [next(allowed) if action_of(c, known) in domain.actions else False for c in calls]
 
 
-def run_policy(engine: PolicyEngine, domain: Domain, config: PolicyConfig, preconditions: dict[str, list[str]],
-               dialogs: Sequence[dict[str, Any]], cache: JsonCache, max_turns: int | None,
-               seed: int = 0) -> list[dict[str, Any]]:
+def run_policy(engine: PolicyEngine, domain: Domain, config: PolicyConfig,
+               preconditions: dict[str, list[str]], dialogs: Sequence[dict[str, Any]], cache: JsonCache,
+               max_turns: int | None, seed: int = 0) -> list[dict[str, Any]]:
     """Every selected segment's prediction, from the cache when present; one cache file per dialog."""
     results: list[dict[str, Any]] = []
     for dialog in tqdm(dialogs, desc=f"{domain.name} {config.name}", unit="dialog", leave=False):

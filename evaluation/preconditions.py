@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from tqdm import tqdm
@@ -18,8 +18,10 @@ from tqdm import tqdm
 from evaluation.cache import JsonCache
 from evaluation.configs import InferConfig
 from evaluation.domains import Domain
-from evaluation.metrics import ActionScore, PRF, domain_macro, macro
+from evaluation.metrics import PRF, ActionScore, domain_macro, macro
+from evaluation.ranking_probe import rerank
 from evaluation.scoring import Satisfaction, score
+from sandbox import Sandbox
 from schemas.api import InferRequest, InferResponse
 from schemas.errors import PrecondError
 
@@ -35,12 +37,16 @@ class Inference:
     wall_s: float
     model: str | None
     error: str | None = None
+    valid: dict[str, list[str]] = field(default_factory=dict)  # for re-ranking probes without the model
+
+
+def demonstrations(domain: Domain, config: InferConfig) -> list[str]:
+    return list(domain.demonstrations[: config.demos] if config.demos else domain.demonstrations)
 
 
 def build_request(domain: Domain, config: InferConfig) -> InferRequest:
-    demos = list(domain.demonstrations[: config.demos] if config.demos else domain.demonstrations)
-    return InferRequest(spec=domain.spec, demonstrations=demos, actions=list(domain.actions),
-                        options=config.infer_options())
+    return InferRequest(spec=domain.spec, demonstrations=demonstrations(domain, config),
+                        actions=list(domain.actions), options=config.infer_options())
 
 
 def _run_engine(infer: InferFn, domain: Domain, config: InferConfig) -> Inference:
@@ -51,16 +57,19 @@ def _run_engine(infer: InferFn, domain: Domain, config: InferConfig) -> Inferenc
         return Inference({}, {}, time.perf_counter() - start, None, f"{exc.kind}: {exc.message}")
     wall = time.perf_counter() - start
     model = response.model.name if response.model else None
-    return Inference(response.preconditions, dict(response.stats.seconds), wall, model)
+    valid = {a: [c.assertion for c in reports if c.valid] for a, reports in response.candidates.items()}
+    return Inference(response.preconditions, dict(response.stats.seconds), wall, model, valid=valid)
 
 
 def infer(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callable[[], InferFn],
-          force: bool = False) -> Inference:
+          force: bool = False, sandbox: Sandbox | None = None) -> Inference:
     """Baselines need no engine; everything else is cached per (domain, config) unless `force`."""
     if config.baseline == "always":
         return Inference({}, {}, 0.0, None)
     if config.baseline == "gt":
         return Inference(dict(domain.gt), {}, 0.0, None)
+    if config.max_rate is not None:
+        return _probe(domain, config, cache, engine, sandbox)
     stored = None if force else cache.get("infer", domain.infer_as, config.name)
     if stored is not None:
         return Inference(**stored)
@@ -70,23 +79,40 @@ def infer(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callabl
     return result
 
 
+def _probe(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callable[[], InferFn],
+           sandbox: Sandbox | None) -> Inference:
+    """Re-rank the base inference's valid candidates (evaluation/ranking_probe.py); cheap, so not cached."""
+    if sandbox is None:
+        raise ValueError(f"{config.name}: a re-ranking probe needs the sandbox")
+    base = infer(domain, config.base, cache, engine)
+    if base.error is None and not base.valid:  # cached before candidates were kept: infer once more
+        base = infer(domain, config.base, cache, engine, force=True)
+    if base.error is not None:
+        return base
+    assert config.max_rate is not None
+    chosen = rerank(domain, demonstrations(domain, config), base.valid, sandbox, config.ranking, config.max_rate)
+    return replace(base, preconditions=chosen)
+
+
 def action_row(s: ActionScore) -> dict[str, Any]:
     prf = s.prf.as_dict() if s.prf else None
     return {"n_points": s.n_points, "n_pred": s.n_pred, "n_gt": s.n_gt, "n_both": s.n_both, "prf": prf}
 
 
-def evaluate(domains: Sequence[Domain], configs: Sequence[InferConfig], cache: JsonCache,
-             sat: Satisfaction, engine: Callable[[], InferFn], force: bool = False) -> dict[str, Any]:
+def evaluate(domains: Sequence[Domain], configs: Sequence[InferConfig], cache: JsonCache, sat: Satisfaction,
+             engine: Callable[[], InferFn], force: bool = False, sandbox: Sandbox | None = None
+             ) -> dict[str, Any]:
     """Every config on every domain; a row per (config, domain) plus the benchmark-level macro per config."""
     rows: list[dict[str, Any]] = []
     pairs = [(c, d) for c in configs for d in domains]
     for config, domain in tqdm(pairs, desc="preconditions", unit="run"):
-        result = infer(domain, config, cache, engine, force)
+        result = infer(domain, config, cache, engine, force, sandbox)
         row: dict[str, Any] = {"config": config.name, "domain": domain.name, "benchmark": domain.benchmark,
                                "uses_model": config.uses_model,
-                               "n_demos": min(config.demos or len(domain.demonstrations), len(domain.demonstrations)),
+                               "n_demos": len(demonstrations(domain, config)),
                                "seconds": result.seconds, "wall_s": result.wall_s, "model": result.model,
-                               "error": result.error, "preconditions": result.preconditions}
+                               "error": result.error, "preconditions": result.preconditions,
+                               "valid_candidates": sum(len(v) for v in result.valid.values())}
         if result.error is None:
             scores = score(domain, result.preconditions, sat)
             row["macro"] = domain_macro(scores).as_dict()

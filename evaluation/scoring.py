@@ -18,10 +18,10 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Protocol
 
-from sandbox.types import EvaluateResult, Point
 from evaluation.cache import JsonCache
 from evaluation.domains import Domain
 from evaluation.metrics import ActionScore, score_action
+from sandbox.types import EvaluateResult, Point
 
 CHUNK_TRAJECTORIES = 25
 Progress = Callable[[int], None]
@@ -70,7 +70,8 @@ class Satisfaction:
             computed = self._compute(domain, missing, progress)
             for action, found in computed.items():
                 known[action].update(found)
-                self.cache.put({e: format(b, "x") for e, b in known[action].items()}, "sat", domain.name, action)
+                stored = {e: format(b, "x") for e, b in known[action].items()}
+                self.cache.put(stored, "sat", domain.name, action)
         return {a: {e: known[a][e] for e in exprs} for a, exprs in expressions.items()}
 
     def _load(self, domain: Domain, action: str) -> dict[str, int]:

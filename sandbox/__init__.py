@@ -32,8 +32,8 @@ __all__ = [
     "Point",
     "Position",
     "ProgramError",
+    "Sandbox",
     "SandboxCrashed",
     "SandboxError",
-    "Sandbox",
     "TraceResult",
 ]

@@ -6,7 +6,8 @@ that untrusted code can reach. The server imports everything once (warm), then f
 request, so every request sees a pristine interpreter and a child that hit a limit is never reused.
 
 Wire format, both directions JSON (never pickle), on dedicated pipes (never fd 1/2):
-request line ``{"op", "payload"}`` (limits are fixed per server, from CONFIG_JSON); reply a header line ``{"status": "ok", "size": N}`` followed by N
+request line ``{"op", "payload"}`` (limits are fixed per server,
+from CONFIG_JSON); reply a header line ``{"status": "ok", "size": N}`` followed by N
 bytes of child result and a newline, or a header ``{"status": "limit"|"crash", ...}`` alone.
 """
 
@@ -16,6 +17,7 @@ import abc
 import ast
 import builtins
 import collections
+import contextlib
 import copy
 import ctypes
 import dataclasses
@@ -41,6 +43,7 @@ import types
 import typing
 import warnings
 
+# Referenced so that the whitelisted modules are loaded before the audit hook forbids new imports.
 _PRELOADED = (abc, copy, dataclasses, enum, functools, itertools, math, re, string, typing)
 
 NOBODY = 65534
@@ -160,10 +163,6 @@ def tupled(value: object) -> object:
     return value
 
 
-def args_key(args: object) -> str:
-    return json.dumps(jsonable(args), sort_keys=True)
-
-
 # --------------------------------------------------------------------------------- isolation: server
 
 
@@ -215,7 +214,7 @@ def _spend(budget: list[int], size: int) -> None:
 
 
 def make_audit_hook(root: str) -> typing.Callable[[str, tuple[object, ...]], None]:
-    """Audit hook: the boundary that still holds when untrusted code reaches real modules via introspection."""
+    """Audit hook: the boundary that still holds when untrusted code reaches real modules by introspection."""
     prefix = root.rstrip("/") + "/"
     loaded = sys.modules
 
@@ -398,7 +397,8 @@ def fail(where: str, index: int | None, line: int | None, exc: BaseException) ->
     if isinstance(exc, Failure):
         return exc
     if isinstance(exc, RecursionError):
-        return Failure({"kind": "limit", "limit": "recursion", "message": f"{where}: maximum recursion depth"})
+        message = f"{where}: maximum recursion depth"
+        return Failure({"kind": "limit", "limit": "recursion", "message": message})
     name, message = describe(exc)
     return Failure({"kind": "program", "where": where, "index": index, "line": line,
                     "exc_type": name, "message": message})
@@ -538,7 +538,6 @@ class Occurrence:
     line: int
     args: tuple[object, ...]
     state: object
-    copied: bool
 
 
 class Program:
@@ -583,7 +582,7 @@ class Program:
 
     def copy_variables(self) -> tuple[dict[str, object], dict[int, object]]:
         """Deep copy of the variables that keeps identity sharing; what cannot be copied is left out."""
-        variables, memo = self.variables(), {}
+        variables, memo = self.variables(), typing.cast(dict[int, object], {})
         try:
             return copy.deepcopy(variables, memo), memo
         except _FATAL:
@@ -605,19 +604,25 @@ class Program:
         self.memo = memo if direct else None
         return copied
 
-    def receiver_state(self, receiver: object) -> tuple[object, bool]:
+    def receiver_state(self, receiver: object) -> object:
         """State an assertion in the called method would see: the position snapshot when that is exact,
         else a copy taken now."""
         if self.calls_in_statement == 0 and self.memo is not None and id(receiver) in self.memo:
-            return self.memo[id(receiver)], False
+            return self.memo[id(receiver)]
         try:
-            return copy.deepcopy(receiver), True
+            return copy.deepcopy(receiver)
         except _FATAL:
             raise
         except BaseException:
-            return None, True
+            return None
 
-    def line(self) -> int:
+    def call_line(self) -> int:
+        """Line of the program that made the current call (inside loops too), for messages."""
+        frame = sys._getframe(2)
+        while frame is not None and frame.f_code.co_filename != self.FILE:
+            frame = frame.f_back  # type: ignore[assignment]
+        if frame is not None:
+            return frame.f_lineno
         return self.body[self.position].lineno if 0 <= self.position < len(self.body) else 0
 
     def instrument(self, wrap: typing.Callable[[Method, typing.Any, inspect.Signature], typing.Any]
@@ -723,8 +728,8 @@ def compile_assertion(expression: object, method: Method, filename: str) -> type
 
 @dataclasses.dataclass
 class Candidate:
-    expression: str
-    code: types.CodeType
+    """One compiled assertion: a function per demonstration (each has its own spec globals)."""
+
     pure: bool
     functions: list[typing.Any]
 
@@ -807,9 +812,9 @@ def _observe(spec: Spec, index: int, source: object, wanted: set[str],
 
     def on_call(method: Method, receiver: object, args: tuple[object, ...]) -> None:
         if method.qname in wanted:
-            state, copied = program.receiver_state(receiver)
+            state = program.receiver_state(receiver)
             occurrences[method.qname].append(
-                Occurrence(index, program.position, program.line(), args, state, copied))
+                Occurrence(index, program.position, program.call_line(), args, state))
 
     restore = program.instrument(recorder(program, on_call))
     program.run(snapshot=True)
@@ -880,7 +885,7 @@ def _judge(spec: Spec, programs: list[Observed], method: Method, expression: obj
         return {"status": "rejected", "reason": f"{name}: {message}"}
     tree = ast.parse(typing.cast(str, expression), mode="eval")
     functions = [eval(code, obs.globals) for obs in programs]
-    candidate = Candidate(typing.cast(str, expression), code, spec.purity.expression_is_pure(tree), functions)
+    candidate = Candidate(spec.purity.expression_is_pure(tree), functions)
     violation = first_violation(candidate, occurrences)
     return {"status": "valid" if violation is None else "invalid", "reason": violation,
             "satisfied": satisfied(candidate, points)}
@@ -950,7 +955,8 @@ def _verdict(spec: Spec, program: Program, guards: dict[str, list[tuple[str, typ
     state, _ = program.copy_variables()
     target, name = str(call.get("target")), str(call.get("method"))
     if target not in state:
-        return {"allowed": False, "violations": [], "error": f"NameError: name {clean(target, 100)!r} is not defined"}
+        error = f"NameError: name {clean(target, 100)!r} is not defined"
+        return {"allowed": False, "violations": [], "error": error}
     receiver = state[target]
     qname = _action_of(spec, program, receiver, name)
     if qname is None or qname not in signatures:
@@ -1144,10 +1150,8 @@ class Server:
                 os._exit(70)
         os.close(request_read)
         os.close(result_write)
-        try:
+        with contextlib.suppress(OSError):
             os.setpgid(pid, pid)
-        except OSError:
-            pass
         return Child(pid, request_write, result_read, workdir)
 
     def discard(self, child: Child) -> None:
@@ -1159,10 +1163,8 @@ class Server:
                 os.kill(child.pid, signal.SIGKILL)
             self.reap(child)
         for fd in (child.request, child.result):
-            try:
+            with contextlib.suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
         shutil.rmtree(child.workdir, ignore_errors=True)
 
     @staticmethod
@@ -1233,7 +1235,8 @@ class Server:
         status = child.status
         if os.WIFSIGNALED(status):
             sig = os.WTERMSIG(status)
-            if sig == signal.SIGXCPU or (sig == signal.SIGKILL and child.cpu_s >= float(self.limits["cpu_s"])):
+            over_cpu = child.cpu_s >= float(self.limits["cpu_s"])
+            if sig == signal.SIGXCPU or (sig == signal.SIGKILL and over_cpu):
                 return {"status": "limit", "limit": "cpu", "message": f"used {child.cpu_s:.1f} s of CPU"}, b""
             return {"status": "crash", "message": f"child killed by signal {sig}"}, b""
         code = os.waitstatus_to_exitcode(status)

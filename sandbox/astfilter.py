@@ -115,5 +115,6 @@ def _program_problem(source: str) -> tuple[int | None, str, str] | None:
         elif isinstance(node, ast.Name) and _dunder(node.id):
             name = node.id
         if name is not None:
-            return getattr(node, "lineno", None), "DisallowedConstruct", f"access to {clean(name, 80)!r} is not allowed"
+            message = f"access to {clean(name, 80)!r} is not allowed"
+            return getattr(node, "lineno", None), "DisallowedConstruct", message
     return None

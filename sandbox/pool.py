@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 from collections.abc import Collection, Iterator, Mapping
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -79,17 +79,21 @@ class ForkServer:
         payload = self._read_exact(size + 1, deadline)
         return header, payload[:size]
 
+    def shutdown(self, wait_s: float = 2.0) -> None:
+        """EOF on its request pipe lets the server kill its waiting child and remove its directory."""
+        with suppress(OSError):
+            os.close(self._request)
+        with suppress(subprocess.TimeoutExpired):
+            self.process.wait(wait_s)
+        self.kill()
+
     def kill(self) -> None:
-        try:
+        with suppress(OSError):
             os.killpg(self.process.pid, signal.SIGKILL)
-        except OSError:
-            pass
         self.process.wait()
         for fd in (self._request, self._response):
-            try:
+            with suppress(OSError):
                 os.close(fd)
-            except OSError:
-                pass
 
     def _write(self, data: bytes, deadline: float) -> None:
         view = memoryview(data)
@@ -138,7 +142,8 @@ class ForkServer:
 class ServerPool:
     """N warm servers; a thread borrows one per call, so N calls run at once."""
 
-    def __init__(self, size: int, limits: Mapping[str, float | int], allowed_imports: Collection[str]) -> None:
+    def __init__(self, size: int, limits: Mapping[str, float | int],
+                 allowed_imports: Collection[str]) -> None:
         if size < 1:
             raise ValueError("workers must be at least 1")
         self._limits = dict(limits)
@@ -181,7 +186,7 @@ class ServerPool:
             raise
         finally:
             if self._closed:
-                self._discard(server)
+                server.shutdown()
             else:
                 self._idle.put(server)
 
@@ -198,4 +203,4 @@ class ServerPool:
             servers = list(self._all)
             self._all.clear()
         for server in servers:
-            server.kill()
+            server.shutdown()

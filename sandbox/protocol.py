@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, TypeVar, cast
+from typing import Any, TypeVar
 
 from sandbox.astfilter import ProposedCall
 from sandbox.text import clean
@@ -52,12 +52,14 @@ def wire_args(args: Sequence[object]) -> list[object]:
 
 
 def wire_points(points: Mapping[str, Sequence[Point]]) -> dict[str, list[list[object]]]:
-    return {action: [[p.demo, p.position, wire_args(p.args)] for p in pts] for action, pts in points.items()}
+    return {action: [[p.demo, p.position, wire_args(p.args)] for p in pts]
+            for action, pts in points.items()}
 
 
 def wire_call(call: ProposedCall) -> dict[str, object]:
     return {"target": call.target, "method": call.method, "args": wire_args(call.args),
-            "kwargs": {k: wire_args(v) if isinstance(v, (list, tuple)) else v for k, v in call.kwargs.items()}}
+            "kwargs": {k: wire_args(v) if isinstance(v, (list, tuple)) else v
+                       for k, v in call.kwargs.items()}}
 
 
 def raise_for_header(header: Mapping[str, Any]) -> None:
@@ -158,9 +160,3 @@ def verdict(call: str, info: Mapping[str, Any]) -> CallVerdict:
         violations=tuple(clean(str(v), 4000) for v in violations),
         error=None if error is None else clean(str(error)),
     )
-
-
-def checked(value: object, kind: type[T]) -> T:
-    if not isinstance(value, kind):
-        raise TypeError(f"expected {kind.__name__}")
-    return cast(T, value)

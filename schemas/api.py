@@ -19,7 +19,7 @@ MAX_CALLS = 64
 MAX_CALL_CHARS = 1_000
 
 Generator = Literal["model", "enumerate"]
-Ranking = Literal["subsumption", "recency"]
+Ranking = Literal["subsumption", "recency", "marginal"]
 
 SourceText = Field(max_length=MAX_SOURCE_CHARS)
 

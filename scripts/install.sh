@@ -15,7 +15,7 @@ python -m pip install --quiet --upgrade pip
 # torch first and pinned: an unpinned torch pulls several GB of CUDA packages. TORCH_INDEX names a CPU
 # wheel index where no local wheel is configured (the Dockerfile sets it).
 python -m pip install --quiet "torch==2.13.0" ${TORCH_INDEX:+--extra-index-url "$TORCH_INDEX"}
-python -m pip install --quiet -e ".[${EXTRAS}]"
+python -m pip install --quiet --config-settings editable_mode=compat -e ".[${EXTRAS}]"
 
 # Redis is needed by the service and its tests; install the server where none is on PATH.
 if ! command -v redis-server >/dev/null 2>&1; then

@@ -253,7 +253,9 @@ class Engine:
         actions = planner.run(progress)
         return NextActionResponse(actions=actions, model=self.model().info)
 
-    def _verify(self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]) -> list[CallVerdict]:
+    def _verify(
+        self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]
+    ) -> list[CallVerdict]:
         verdicts = sandbox_call(self._sandbox.check, spec.source, preconditions, history, calls)
         return [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
                 for v in verdicts]
@@ -278,20 +280,26 @@ def _check_precondition_names(spec: Spec, preconditions: dict[str, list[str]]) -
 
 
 def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
-    """For each occurrence, the position just after the same class's previous action (or the start)."""
-    by_class: dict[tuple[int, str], list[int]] = {}
-    for name, info in trace.actions.items():
-        if not info.stub:
-            continue
-        cls = name.split(".", 1)[0]
-        for occ in info.occurrences:
-            by_class.setdefault((occ.demo, cls), []).append(occ.position)
-    previous: dict[tuple[int, int], int] = {}
-    for (demo, _cls), positions in by_class.items():
-        ordered = sorted(set(positions))
-        for before, position in zip([-1, *ordered], ordered, strict=False):
-            previous[(demo, position)] = before + 1
-    return previous
+    """For each occurrence, where the observations since the agent's previous turn begin.
+
+    A turn is a run of consecutive actions (an SGD system turn often holds several acts); going back from an
+    occurrence over its own turn and then over the observations before it finds the previous turn's end.
+    """
+    acting: dict[int, set[int]] = {}
+    for info in trace.actions.values():
+        if info.stub:
+            for occ in info.occurrences:
+                acting.setdefault(occ.demo, set()).add(occ.position)
+    starts: dict[tuple[int, int], int] = {}
+    for demo, positions in acting.items():
+        for position in positions:
+            k = position - 1
+            while k in positions:
+                k -= 1
+            while k >= 0 and k not in positions:
+                k -= 1
+            starts[(demo, position)] = k + 1
+    return starts
 
 
 def _reports(

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from sandbox.types import Point
 
 RECENCY_THRESHOLD = 0.5
+MIN_GAIN = 0.3
 
 
 @dataclass(frozen=True)
@@ -47,7 +48,7 @@ class ActionEvidence:
 
     points: Sequence[Point]
     occurrences: Sequence[Point]
-    previous_turn: Mapping[tuple[int, int], int]  # (demo, position) -> position of the agent's last action
+    previous_turn: Mapping[tuple[int, int], int]  # (demo, position) -> first observation since the agent's last turn
 
 
 def cluster(valid: Sequence[Candidate]) -> list[Cluster]:
@@ -74,29 +75,64 @@ def subsumption(clusters: Sequence[Cluster]) -> list[Cluster]:
     ]
 
 
-def trigger_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> float:
-    """Share of occurrences at which the condition was false somewhere since the agent's previous action."""
+def _false_between(c: Cluster, occ: Point, start: int, index: Mapping[Point, int]) -> bool:
+    for position in range(start, occ.position):
+        bit = index.get(Point(occ.demo, position, occ.args))
+        if bit is not None and not (c.satisfied >> bit) & 1:
+            return True
+    return False
+
+
+def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> float:
+    """Share of occurrences where the condition is not a mere phase.
+
+    At an occurrence a condition is a *phase* when it was false at some point earlier in the demonstration
+    but already true throughout the observations since the agent's previous turn. It is *enabling* when it
+    was false during those observations (they made it true), or *invariant* when it was never false before
+    (e.g. "the slot was not informed yet").
+    """
     if not evidence.occurrences:
         return 0.0
-    triggered = 0
+    enabling = 0
     for occ in evidence.occurrences:
-        start = evidence.previous_turn.get((occ.demo, occ.position), 0)
-        for position in range(start, occ.position):
-            bit = index.get(Point(occ.demo, position, occ.args))
-            if bit is not None and not (c.satisfied >> bit) & 1:
-                triggered += 1
-                break
-    return triggered / len(evidence.occurrences)
+        window = evidence.previous_turn.get((occ.demo, occ.position), 0)
+        if _false_between(c, occ, window, index) or not _false_between(c, occ, 0, index):
+            enabling += 1
+    return enabling / len(evidence.occurrences)
 
 
 def recency(clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
     minimal = subsumption(clusters)
     index = {point: bit for bit, point in enumerate(evidence.points)}
-    enabling = [c for c in minimal if trigger_rate(c, evidence, index) >= RECENCY_THRESHOLD]
-    return enabling or minimal
+    enabling = [c for c in minimal if enabling_rate(c, evidence, index) >= RECENCY_THRESHOLD]
+    return marginal(enabling, evidence) or marginal(minimal, evidence)
+
+
+def marginal(clusters: Sequence[Cluster], evidence: ActionEvidence, min_gain: float = MIN_GAIN) -> list[Cluster]:
+    """Subsumption-minimal clusters, added most-selective first while each still excludes at least
+    `min_gain` of the points that the conjunction so far allows.
+
+    A condition that only trims a few more points off an already tight conjunction is the kind that held at
+    every demonstrated occurrence by coincidence (`not requested_slot['price_range']`); leaving it out buys
+    recall on unseen dialogs for little precision.
+    """
+    remaining = list(subsumption(clusters))
+    allowed = (1 << len(evidence.points)) - 1
+    chosen: list[Cluster] = []
+    while remaining:
+        best = min(remaining, key=lambda c: ((allowed & c.satisfied).bit_count(), len(c.representative.expression)))
+        gain = 1 - (allowed & best.satisfied).bit_count() / max(allowed.bit_count(), 1)
+        if gain < min_gain:
+            break
+        chosen.append(best)
+        allowed &= best.satisfied
+        remaining.remove(best)
+    return chosen
 
 
 def rank(criterion: str, clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
     if criterion == "recency":
         return recency(clusters, evidence)
+    if criterion == "marginal":
+        return marginal(clusters, evidence)
     return subsumption(clusters)

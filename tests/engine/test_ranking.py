@@ -1,5 +1,5 @@
 from sandbox.types import Point
-from worker.ranking import ActionEvidence, Candidate, cluster, informative, rank, subsumption
+from worker.ranking import ActionEvidence, Candidate, cluster, enabling_rate, informative, rank, subsumption
 
 
 def c(expression: str, bits: str) -> Candidate:
@@ -23,19 +23,35 @@ def test_trivial_and_empty_sets_are_uninformative() -> None:
     assert [k.representative.expression for k in informative(clusters, 4)] == ["q"]
 
 
-def test_recency_prefers_conditions_made_true_since_the_last_action() -> None:
-    # one demo, positions 0..3, the action at position 3; the agent last acted at position 0.
-    points = [Point(0, p, ()) for p in range(4)]
-    evidence = ActionEvidence(points, [Point(0, 3, ())], {(0, 3): 1})
-    trigger = c("trigger", "1011")  # false at position 1, after the agent's last action: enables it
-    phase = c("phase", "0111")      # true ever since the agent last acted: describes the phase
+def _evidence() -> ActionEvidence:
+    # one demo, positions 0..9; the action occurs at 9; the agent's previous turn ended before position 7.
+    points = [Point(0, p, ()) for p in range(10)]
+    return ActionEvidence(points, [Point(0, 9, ())], {(0, 9): 7})
+
+
+def test_recency_prefers_conditions_made_true_since_the_last_turn() -> None:
+    trigger = c("trigger", "1111100001")  # false at 7..8, during the observations before the action
+    phase = c("phase", "0000111111")      # false early, true ever since before the last turn
     both = cluster([trigger, phase])
-    assert [k.representative.expression for k in rank("subsumption", both, evidence)] == ["trigger", "phase"]
-    assert [k.representative.expression for k in rank("recency", both, evidence)] == ["trigger"]
+    assert [k.representative.expression for k in rank("subsumption", both, _evidence())] == ["trigger", "phase"]
+    assert [k.representative.expression for k in rank("recency", both, _evidence())] == ["trigger"]
 
 
-def test_recency_falls_back_to_subsumption_when_nothing_was_triggered() -> None:
-    points = [Point(0, p, ()) for p in range(4)]
-    evidence = ActionEvidence(points, [Point(0, 3, ())], {(0, 3): 1})
-    phase = cluster([c("phase", "0111"), c("wider", "1111")])
-    assert [k.representative.expression for k in rank("recency", phase, evidence)] == ["phase"]
+def test_enabling_rate_tells_triggers_and_invariants_from_phases() -> None:
+    evidence = _evidence()
+    index = {p: bit for bit, p in enumerate(evidence.points)}
+    rates = {
+        name: enabling_rate(cluster([c(name, bits)])[0], evidence, index)
+        for name, bits in [("trigger", "1111100001"), ("never false before", "1111111111"),
+                           ("phase", "0000111111")]
+    }
+    assert rates == {"trigger": 1.0, "never false before": 1.0, "phase": 0.0}
+
+
+def test_marginal_stops_adding_conditions_that_trim_little() -> None:
+    tight = c("tight", "0000111111")
+    near_trivial = c("near trivial", "1111011111")  # incomparable with tight; trims 1 of the 6 points it allows
+    kept = rank("marginal", cluster([tight, near_trivial]), _evidence())
+    assert [k.representative.expression for k in kept] == ["tight"]
+    assert [k.representative.expression for k in rank("subsumption", cluster([tight, near_trivial]), _evidence())] \
+        == ["tight", "near trivial"]

@@ -106,3 +106,26 @@ def test_no_suffixes_no_work(tiny: CodeModel) -> None:
 def test_model_info(tiny: CodeModel, tiny_model_dir: Path) -> None:
     assert tiny.info.name == tiny_model_dir.name
     assert (tiny.info.device, tiny.info.dtype, tiny.info.sha256) == ("cpu", "float32", None)
+
+
+@pytest.mark.parametrize("max_batch", [1, 2])
+def test_refilled_batches_match_plain_greedy_decode(tiny: CodeModel, max_batch: int) -> None:
+    """Rows joining a running batch (other widths, padding in the middle) decode as if alone."""
+    refilling = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=max_batch)
+    sampling = Sampling(temperature=0, max_new_tokens=20)
+    expected = [[reference_greedy(tiny, PREFIX + suffix, 20, "line")] for suffix in SUFFIXES]
+    assert refilling.complete(PREFIX, SUFFIXES, 1, sampling, "line") == expected
+
+
+def test_samples_do_not_depend_on_batch_size_for_greedy(tiny: CodeModel) -> None:
+    sampling = Sampling(temperature=0, max_new_tokens=16)
+    small = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=2)
+    assert small.complete(PREFIX, SUFFIXES, 1, sampling, "statement") == tiny.complete(
+        PREFIX, SUFFIXES, 1, sampling, "statement"
+    )
+
+
+@pytest.mark.parametrize("bad", [{"temperature": -1.0}, {"top_p": 0.0}, {"max_new_tokens": 0}])
+def test_invalid_sampling_is_refused(bad: dict[str, float]) -> None:
+    with pytest.raises(ValueError, match="invalid sampling"):
+        Sampling(**bad)  # type: ignore[arg-type]

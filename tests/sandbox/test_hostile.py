@@ -7,7 +7,6 @@ import time
 from pathlib import Path
 
 import pytest
-
 from sandbox_helpers import FIND, SMALL
 
 from sandbox import LimitExceeded, ProgramError, Sandbox, SandboxCrashed, SandboxError
@@ -24,7 +23,7 @@ PROGRAMS = {
     "allocate_10gb": "x = bytearray(10 * 1024 ** 3)\n",
     "recursion": "def f():\n    return f()\nf()\n",
     "write_outside": f"open({str(OUTSIDE)!r}, 'w').write('x')\n",
-    "write_outside_getattr": FIND + f"fd = find('open')({str(OUTSIDE)!r}, 65)\n",
+    "write_outside_getattr": FIND + f"find('open')({str(OUTSIDE)!r}, 'w').write('x')\n",
     "read_passwd": "raise ValueError(open('/etc/passwd').read())\n",
     "read_passwd_getattr": FIND + "raise ValueError(find('open')('/etc/passwd').read())\n",
     "socket": "import socket\nsocket.create_connection(('127.0.0.1', 22))\n",
@@ -38,11 +37,12 @@ PROGRAMS = {
     "output_100mb": "print('x' * 100_000_000)\n",
     "non_utf8_output": "print('\\udcff\\udc80')\nraise ValueError('\\udcff bad \\x00')\n",
     "str_raises": "class E(Exception):\n    def __str__(self):\n        raise ValueError()\nraise E()\n",
-    "str_loops": "class E(Exception):\n    def __str__(self):\n        while True:\n            pass\nraise E()\n",
+    "str_loops": ("class E(Exception):\n    def __str__(self):\n        while True:\n            pass\n"
+                  "raise E()\n"),
 }
 
 CANDIDATES = {
-    "loop": "all(iter(int, 1))",
+    "loop": "any(iter(int, 1))",
     "allocate_10gb": "len([0] * (10 * 1024 ** 3))",
     "recursion": "(lambda f: f(f))(lambda f: f(f))",
     "read_passwd": "open('/etc/passwd').read()",

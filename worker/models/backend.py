@@ -5,7 +5,8 @@ Every precondition prompt of a domain shares a long prefix (observation function
 
 * the prefix goes through the model once; its key/value cache is copied for every row, never recomputed,
   and kept between calls so that per-action calls with the same prefix reuse it too;
-* the n samples of a suffix, and the rows of several suffixes, are decoded as one batch;
+* the n samples of a suffix, and the rows of several suffixes, are decoded as one batch, refilled from the
+  queue as rows finish (continuous batching) so the batch never drains to a few slow stragglers;
 * the suffixes' tails are left-padded *between* the shared prefix and the tail, so every row ends at the
   same column and one forward pass serves all of them (pads are masked out, positions are per row);
 * rows stop independently (end of line or statement, EOS, token budget) and finished rows leave the batch.
@@ -19,6 +20,7 @@ from __future__ import annotations
 import copy
 import logging
 import threading
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +30,8 @@ import torch
 
 from schemas.api import ModelInfo
 from schemas.errors import Cancelled
+from worker.models.attention import use_grouped_attention
+from worker.models.kvcache import GrowingLayer, growing_cache
 from worker.models.settings import EMBEDDED, ModelSettings
 from worker.models.stopping import StopRule, stop_index
 from worker.models.store import (
@@ -64,6 +68,10 @@ class Sampling:
     max_new_tokens: int = 48
     seed: int = 0
 
+    def __post_init__(self) -> None:
+        if self.temperature < 0 or not 0 < self.top_p <= 1 or self.max_new_tokens < 1:
+            raise ValueError(f"invalid sampling parameters {self}")
+
     @property
     def greedy(self) -> bool:
         return self.temperature <= 0
@@ -84,6 +92,52 @@ class _Row:
     suffix: int
     tokens: list[int] = field(default_factory=list)
     text: str | None = None
+
+
+@dataclass
+class _Batch:
+    """Rows decoded together; `mask` covers every cache column, `positions` are each row's next position."""
+
+    rows: list[_Row]
+    cache: Any
+    logits: torch.Tensor
+    mask: torch.Tensor
+    positions: torch.Tensor
+
+
+def _mergeable(cache: Any) -> bool:
+    """Rows can only join a running batch where every layer is a plain full-attention cache."""
+    return all(isinstance(layer, GrowingLayer) for layer in cache.layers)
+
+
+def _widen(tensor: torch.Tensor, width: int, after: int, dim: int) -> torch.Tensor:
+    """Insert zero (masked) columns after the shared prefix so that `tensor` spans `width` columns."""
+    missing = width - tensor.shape[dim]
+    if missing == 0:
+        return tensor
+    shape = list(tensor.shape)
+    shape[dim] = missing
+    head, tail = tensor.narrow(dim, 0, after), tensor.narrow(dim, after, tensor.shape[dim] - after)
+    return torch.cat([head, tensor.new_zeros(shape), tail], dim=dim)
+
+
+def _merge(running: _Batch, joining: _Batch, shared: int) -> _Batch:
+    """One batch of both: the shorter rows get padding columns between the prefix and their tails.
+
+    Attention order is by column and positions are per row, so masked columns in the middle change nothing.
+    """
+    width = max(running.mask.shape[1], joining.mask.shape[1])
+    for ours, theirs in zip(running.cache.layers, joining.cache.layers, strict=True):
+        for name in ("keys", "values"):
+            merged = [_widen(getattr(layer, name), width, shared, dim=-2) for layer in (ours, theirs)]
+            setattr(ours, name, torch.cat(merged, dim=0))
+    return _Batch(
+        rows=running.rows + joining.rows,
+        cache=running.cache,
+        logits=torch.cat([running.logits, joining.logits]),
+        mask=torch.cat([_widen(b.mask, width, shared, dim=1) for b in (running, joining)]),
+        positions=torch.cat([running.positions, joining.positions]),
+    )
 
 
 def _common_prefix_length(a: Sequence[int], b: Sequence[int]) -> int:
@@ -114,7 +168,7 @@ def sample_next(logits: torch.Tensor, sampling: Sampling, generator: torch.Gener
 class CodeModel:
     """A causal code model behind `complete`; one call at a time (the cache it keeps is not shareable)."""
 
-    def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 16) -> None:
+    def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 32) -> None:
         self.model = model
         self.tokenizer = tokenizer
         self.info = info
@@ -161,12 +215,9 @@ class CodeModel:
                 min(_common_prefix_length(prompts[0], p) for p in prompts),
             )
             prefix_cache = self._prefix_cache(tuple(prompts[0][:shared]))
-            generator = torch.Generator(device=self.device).manual_seed(sampling.seed)
             rows = [_Row(suffix=i) for i in range(len(prompts)) for _ in range(n)]
-            for start in range(0, len(rows), self.max_batch):
-                batch = rows[start : start + self.max_batch]
-                tails = [prompts[row.suffix][shared:] for row in batch]
-                self._decode_batch(batch, tails, prefix_cache, sampling, stop, generator, should_stop)
+            tails = [prompts[i][shared:] for i in range(len(prompts))]
+            self._run(rows, tails, prefix_cache, sampling, stop, should_stop)
         results: list[list[str]] = [[] for _ in suffixes]
         for row in rows:
             results[row.suffix].append(row.text or "")
@@ -191,8 +242,6 @@ class CodeModel:
 
     def _prefix_cache(self, tokens: tuple[int, ...]) -> _PrefixCache:
         """The cache of `tokens`, reusing the kept one up to the last chunk boundary both share."""
-        from transformers import DynamicCache
-
         kept = self._prefix
         if kept.cache is not None and kept.tokens == tokens:
             return kept
@@ -202,7 +251,7 @@ class CodeModel:
             if reuse < len(kept.tokens):
                 cache.crop(reuse - len(kept.tokens))
         else:
-            reuse, cache = 0, DynamicCache(config=self.model.config)
+            reuse, cache = 0, growing_cache(self.model.config)
         for start in range(reuse, len(tokens), PREFILL_CHUNK):
             chunk = torch.tensor([tokens[start : start + PREFILL_CHUNK]], device=self.device)
             end = start + chunk.shape[1]
@@ -217,10 +266,41 @@ class CodeModel:
         self._prefix = _PrefixCache(tokens=tokens, cache=cache)
         return self._prefix
 
-    def _prefill_tails(
-        self, tails: Sequence[Sequence[int]], prefix: _PrefixCache
-    ) -> tuple[Any, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Run the distinct tails once each, padded after the prefix; returns cache, logits, mask, positions.
+    def _run(
+        self,
+        rows: Sequence[_Row],
+        tails: Sequence[Sequence[int]],
+        prefix: _PrefixCache,
+        sampling: Sampling,
+        stop: StopRule,
+        should_stop: Callable[[], bool] | None,
+    ) -> None:
+        """Decode all rows with continuous batching: free slots are refilled from the queue as rows finish.
+
+        A batch drained to its few longest rows decodes at batch-1 speed (memory-bound, ~5 tokens/s on one
+        CPU core) while a full one shares each weight read across all rows; refilling keeps it full.
+        """
+        generator = torch.Generator(device=self.device).manual_seed(sampling.seed)
+        pending = deque(rows)
+        batch: _Batch | None = None
+        while pending or batch is not None:
+            free = self.max_batch - (len(batch.rows) if batch else 0)
+            if pending and (batch is None or (free >= self._refill_at and _mergeable(batch.cache))):
+                taken = [pending.popleft() for _ in range(min(free, len(pending)))]
+                fresh = self._start(taken, [tails[row.suffix] for row in taken], prefix)
+                batch = fresh if batch is None else _merge(batch, fresh, len(prefix.tokens))
+            if should_stop is not None and should_stop():
+                raise GenerationCancelled()
+            assert batch is not None
+            batch = self._step(batch, sampling, stop, generator)
+
+    @property
+    def _refill_at(self) -> int:
+        """Free slots worth a refill: each one costs a tail prefill and a copy of the batch's cache."""
+        return max(1, self.max_batch // 4)
+
+    def _start(self, rows: Sequence[_Row], tails: Sequence[Sequence[int]], prefix: _PrefixCache) -> _Batch:
+        """Run the distinct tails once each, padded after the prefix, ready to sample the first tokens.
 
         Rows sharing a suffix get copies of that suffix's cache row and logits instead of recomputing it.
         """
@@ -235,7 +315,7 @@ class CodeModel:
             cache.batch_repeat_interleave(len(distinct))
         logits = self._forward(ids, mask, positions, cache)
         cache.batch_select_indices(source)
-        return cache, logits[source], mask[source], positions[source, -1] + 1
+        return _Batch(list(rows), cache, logits[source], mask[source], positions[source, -1] + 1)
 
     def _left_pad(self, tails: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
         pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
@@ -244,37 +324,26 @@ class CodeModel:
         mask = [[0] * (width - len(tail)) + [1] * len(tail) for tail in tails]
         return torch.tensor(ids, device=self.device), torch.tensor(mask, device=self.device)
 
-    def _decode_batch(
-        self,
-        rows: Sequence[_Row],
-        tails: Sequence[Sequence[int]],
-        prefix: _PrefixCache,
-        sampling: Sampling,
-        stop: StopRule,
-        generator: torch.Generator,
-        should_stop: Callable[[], bool] | None,
-    ) -> None:
-        cache, logits, mask, positions = self._prefill_tails(tails, prefix)
-        active = list(rows)
-        for step in range(sampling.max_new_tokens):
-            next_ids = sample_next(logits, sampling, generator)
-            last_step = step == sampling.max_new_tokens - 1
-            tokens = next_ids.tolist()
-            keep = [i for i, row in enumerate(active) if not self._advance(row, tokens[i], stop, last_step)]
-            if not keep:
-                return
-            if should_stop is not None and should_stop():
-                raise GenerationCancelled()
-            if len(keep) < len(active):
-                index = torch.tensor(keep, device=self.device)
-                cache.batch_select_indices(index)
-                mask, positions, next_ids = mask[index], positions[index], next_ids[index]
-                active = [active[i] for i in keep]
-            mask = torch.cat([mask, mask.new_ones(len(active), 1)], dim=1)
-            logits = self._forward(next_ids[:, None], mask, positions[:, None], cache)
-            positions = positions + 1
+    def _step(
+        self, batch: _Batch, sampling: Sampling, stop: StopRule, generator: torch.Generator
+    ) -> _Batch | None:
+        """Sample one token per row, retire finished rows, and run the rest one position further."""
+        next_ids = sample_next(batch.logits, sampling, generator)
+        tokens = next_ids.tolist()
+        keep = [i for i, row in enumerate(batch.rows) if not self._advance(row, tokens[i], stop, sampling)]
+        if not keep:
+            return None
+        if len(keep) < len(batch.rows):
+            index = torch.tensor(keep, device=self.device)
+            batch.cache.batch_select_indices(index)
+            batch.rows = [batch.rows[i] for i in keep]
+            batch.mask, batch.positions, next_ids = batch.mask[index], batch.positions[index], next_ids[index]
+        batch.mask = torch.cat([batch.mask, batch.mask.new_ones(len(keep), 1)], dim=1)
+        batch.logits = self._forward(next_ids[:, None], batch.mask, batch.positions[:, None], batch.cache)
+        batch.positions = batch.positions + 1
+        return batch
 
-    def _advance(self, row: _Row, token: int, stop: StopRule, last_step: bool) -> bool:
+    def _advance(self, row: _Row, token: int, stop: StopRule, sampling: Sampling) -> bool:
         """Append `token` to `row`; True (and `row.text` set) once the row is finished."""
         ended = token in self._stop_ids
         if not ended:
@@ -283,7 +352,7 @@ class CodeModel:
         cut = stop_index(text, stop)
         if cut is not None:
             row.text = text[:cut]
-        elif ended or last_step:
+        elif ended or len(row.tokens) >= sampling.max_new_tokens:
             row.text = text
         return row.text is not None
 
@@ -347,6 +416,8 @@ def load_code_model(settings: ModelSettings) -> CodeModel:
         directory, dtype=dtype, device_map=str(device) if device.type != "cpu" else None
     )
     model.eval()  # type: ignore[no-untyped-call]
+    if device.type == "cpu":
+        use_grouped_attention(model)
     info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=str(dtype).removeprefix("torch."))
     logger.info("loaded %s on %s in %s", name, info.device, info.dtype)
     return CodeModel(model, tokenizer, info, max_batch=settings.max_batch)

@@ -37,4 +37,4 @@ class ModelSettings(BaseSettings):
     dtype: str = "auto"
     threads: int = Field(default=1, ge=1)
     cache_dir: Path = Field(default_factory=default_cache_dir)
-    max_batch: int = Field(default=16, ge=1, description="Most sequences decoded in one forward pass.")
+    max_batch: int = Field(default=32, ge=1, description="Most sequences decoded in one forward pass.")

@@ -1,0 +1,158 @@
+"""The engine against the real sandbox and real data (model-free paths, and Algorithm 1 with a scripted model)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from sandbox import Sandbox
+from schemas.api import CheckRequest, InferRequest, ModelInfo, NextActionRequest
+from schemas.errors import InvalidProgram, UnknownAction
+from worker.engine import Engine
+
+SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+@pytest.fixture(scope="module")
+def restaurants() -> dict[str, Any]:
+    data: dict[str, Any] = json.loads((SHARED / "sgd" / "Restaurants_1.json").read_text())
+    return data
+
+
+@pytest.fixture(scope="module")
+def engine() -> Iterator[Engine]:
+    with Sandbox(workers=2) as sandbox:
+        yield Engine(sandbox, None)
+
+
+def _infer(data: dict[str, Any], **options: Any) -> InferRequest:
+    return InferRequest(
+        spec=data["spec_program"],
+        demonstrations=[d["program"] for d in data["demos"]],
+        options={"generators": ["enumerate"], **options},
+    )
+
+
+@pytest.mark.parametrize("ranking", ["subsumption", "recency", "marginal"])
+def test_enumerate_infers_runnable_preconditions(engine: Engine, restaurants: dict[str, Any], ranking: str) -> None:
+    response = engine.infer(_infer(restaurants, ranking=ranking))
+    assert set(response.preconditions) == {f"SYSTEM.{a}" for a in restaurants["system_actions"]}
+    assert "self.user.requested_slot[slot]" in response.preconditions["SYSTEM.INFORM"]
+    assert response.preconditions["SYSTEM.GOODBYE"] == ["self.user.no_more"]
+    # the program with the kept assertions runs every demonstration (the engine verified it; check it again)
+    engine._sandbox.trace(response.program, [d["program"] for d in restaurants["demos"]])
+    counts = response.stats.total
+    assert counts.sampled >= counts.parsed >= counts.valid >= counts.clusters >= counts.kept > 0
+    kept = [c for cands in response.candidates.values() for c in cands if c.kept]
+    assert len(kept) == counts.kept and all(c.valid and c.cluster is not None for c in kept)
+    assert {"trace", "enumerate", "validate", "rank"} <= set(response.stats.seconds)
+
+
+def test_subsumption_is_at_least_as_tight_as_recall_aware_rankings(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    tight = engine.infer(_infer(restaurants, ranking="subsumption")).preconditions
+    loose = engine.infer(_infer(restaurants, ranking="recency")).preconditions
+    assert sum(map(len, tight.values())) >= sum(map(len, loose.values()))
+    for action, kept in loose.items():
+        assert set(kept) <= set(tight[action]), action
+
+
+def test_a_demonstration_that_raises_names_its_index_and_line(engine: Engine, restaurants: dict[str, Any]) -> None:
+    demos = [d["program"] for d in restaurants["demos"][:3]]
+    demos[1] = demos[1] + "system.DANCE()\n"
+    with pytest.raises(InvalidProgram) as err:
+        engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=demos,
+                                  options={"generators": ["enumerate"]}))
+    assert err.value.field == "demonstrations[1]"
+    assert f"line {demos[1].count(chr(10))}" in err.value.message and "AttributeError" in err.value.message
+
+
+def test_unknown_action_is_refused_before_any_work(engine: Engine, restaurants: dict[str, Any]) -> None:
+    request = _infer(restaurants).model_copy(update={"actions": ["SYSTEM.DANCE"]})
+    with pytest.raises(UnknownAction):
+        engine.infer(request)
+
+
+def _gt(data: dict[str, Any]) -> dict[str, list[str]]:
+    return {f"SYSTEM.{a}": list(asserts) for a, asserts in data["gt_preconditions"].items()}
+
+
+def test_check_reports_allowed_calls_and_violated_assertions(engine: Engine, restaurants: dict[str, Any]) -> None:
+    history = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')\nuser.INFORM('city')\n"
+    response = engine.check(CheckRequest(
+        spec=restaurants["spec_program"], preconditions=_gt(restaurants), history=history,
+        calls=["system.REQUEST('cuisine')", "system.REQUEST('city')", "system.FindRestaurants()"],
+    ))
+    verdicts = {r.call: r for r in response.results}
+    assert verdicts["system.REQUEST('cuisine')"].allowed
+    assert verdicts["system.REQUEST('city')"].violations == ["not self.user.informed_slot[slot]"]
+    assert verdicts["system.FindRestaurants()"].violations == ["self.user.informed_slot['cuisine']"]
+
+
+class ScriptedModel:
+    """A stand-in for the code model that answers from a script; the sandbox and Algorithm 1 are real."""
+
+    info = ModelInfo(name="scripted", device="cpu", dtype="none")
+
+    def __init__(self, greedy: str, samples: Sequence[str]) -> None:
+        self.greedy, self.samples = greedy, list(samples)
+        self.calls: list[tuple[int, float]] = []
+
+    def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: str,
+                 should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
+        self.calls.append((n, sampling.temperature))
+        if sampling.temperature == 0:
+            return [[self.greedy]]
+        return [self.samples[:n]]
+
+
+def _next(data: dict[str, Any], model: ScriptedModel, **options: Any) -> list[Any]:
+    history = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')\nuser.INFORM('city')\n"
+    with Sandbox(workers=1) as sandbox:
+        engine = Engine(sandbox, lambda: model)  # type: ignore[arg-type,return-value]
+        response = engine.next_action(NextActionRequest(
+            spec=data["spec_program"], preconditions=_gt(data), demonstrations=[data["demos"][0]["program"]],
+            history=history, options=options,
+        ))
+    return response.actions
+
+
+def test_greedy_prediction_that_holds_is_verified_at_once(restaurants: dict[str, Any]) -> None:
+    model = ScriptedModel("system.REQUEST('cuisine')", [])
+    [action] = _next(restaurants, model)
+    assert (action.call, action.verified, action.attempts, action.rejected) == (
+        "system.REQUEST('cuisine')", True, 1, [])
+    assert model.calls == [(1, 0.0)]
+
+
+def test_random_samples_replace_a_greedy_action_that_violates(restaurants: dict[str, Any]) -> None:
+    model = ScriptedModel("system.REQUEST('city')", ["user.INFORM('x')", "system.FindRestaurants()",
+                                                     "system.REQUEST('cuisine')", "system.GOODBYE()"])
+    [action] = _next(restaurants, model, max_attempts=5)
+    assert (action.call, action.verified, action.attempts) == ("system.REQUEST('cuisine')", True, 4)
+    assert [r.call for r in action.rejected] == ["system.REQUEST('city')", "user.INFORM('x')",
+                                                 "system.FindRestaurants()"]
+    assert action.rejected[0].violations == ["not self.user.informed_slot[slot]"]
+    assert action.rejected[1].reason == "USER.INFORM is not an action function"
+
+
+def test_nothing_verified_falls_back_to_greedy(restaurants: dict[str, Any]) -> None:
+    model = ScriptedModel("system.REQUEST('city')", ["system.GOODBYE()"] * 10)
+    [action] = _next(restaurants, model, max_attempts=3)
+    assert (action.call, action.verified, action.attempts, len(action.rejected)) == (
+        "system.REQUEST('city')", False, 3, 3)
+
+
+def test_a_turn_continues_until_the_model_hands_it_back(restaurants: dict[str, Any]) -> None:
+    model = ScriptedModel("system.REQUEST('cuisine')", [])
+    actions = _next(restaurants, model, max_actions=3)
+    # the scripted greedy repeats the same call; REQUEST('cuisine') stays allowed (cuisine not informed)
+    assert [a.call for a in actions] == ["system.REQUEST('cuisine')"] * 3
+    model = ScriptedModel("user.INFORM('cuisine')", ["system.REQUEST('cuisine')"])
+    actions = _next(restaurants, model, max_actions=3)
+    assert [(a.call, a.verified, a.attempts) for a in actions] == [("system.REQUEST('cuisine')", True, 2)]

@@ -1,0 +1,134 @@
+"""Each configurable limit, and the isolation of the process running untrusted code."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+from sandbox_helpers import FIND
+
+from sandbox import LimitExceeded, Limits, ProgramError, Sandbox
+from sandbox.pool import ForkServer
+
+SPEC = "class A:\n    def act(self, v):\n        pass\n"
+LOOP = "while True:\n    pass\n"
+
+
+def trace_demo(limits: Limits, demo: str) -> object:
+    with Sandbox(limits, workers=1) as sandbox:
+        return sandbox.trace(SPEC, [demo])
+
+
+def test_wall_clock_timeout() -> None:
+    start = time.monotonic()
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(timeout_s=1.0, cpu_s=30), LOOP)
+    assert caught.value.limit == "timeout"
+    assert time.monotonic() - start < 6
+
+
+def test_cpu_limit() -> None:
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(timeout_s=20.0, cpu_s=1), LOOP)
+    assert caught.value.limit == "cpu"
+
+
+def test_memory_limit() -> None:
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(memory_mb=300), "x = bytearray(400 * 1024 * 1024)\n")
+    assert caught.value.limit == "memory"
+    trace_demo(Limits(memory_mb=300), "x = bytearray(50 * 1024 * 1024)\n")
+
+
+def test_open_files_limit() -> None:
+    demo = FIND + "files = [find('open')(f'f{i}', 'w') for i in range(40)]\n"
+    trace_demo(Limits(open_files=64), demo)  # inside the private directory, files may be written
+    with pytest.raises(ProgramError) as caught:
+        trace_demo(Limits(open_files=16), demo)
+    assert "Too many open files" in caught.value.message
+
+
+def test_no_new_processes() -> None:
+    with pytest.raises(ProgramError) as caught:
+        trace_demo(Limits(), FIND + "find('fork')()\n")
+    assert caught.value.exc_type == "PermissionError"
+
+
+def test_output_limit() -> None:
+    trace_demo(Limits(output_bytes=1000), "print('x' * 500)\n")
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(output_bytes=1000), "print('x' * 2000)\n")
+    assert caught.value.limit == "output"
+
+
+def test_output_limit_cannot_be_swallowed() -> None:
+    demo = "try:\n    print('x' * 2000)\nexcept BaseException:\n    pass\n"
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(output_bytes=1000), demo)
+    assert caught.value.limit == "output"
+
+
+def test_result_limit() -> None:
+    demo = "a = A()\n" + "".join(f"a.act({'x' * 100!r} + '{i}')\n" for i in range(100))
+    trace_demo(Limits(), demo)
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(result_bytes=5000), demo)
+    assert caught.value.limit == "result"
+
+
+def test_recursion_limit() -> None:
+    demo = "def f(n):\n    return 0 if n == 0 else f(n - 1)\nf(150)\n"
+    trace_demo(Limits(recursion=400), demo)
+    with pytest.raises(LimitExceeded) as caught:
+        trace_demo(Limits(recursion=100), demo)
+    assert caught.value.limit == "recursion"
+
+
+def test_private_directory_is_removed(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    base = tmp_path / "base"
+    base.mkdir(mode=0o755)
+    tmp_path.chmod(0o755)
+    monkeypatch.setenv("TMPDIR", str(base))  # the server's tempfile honours it; other users share /tmp
+    demo = FIND + "find('open')('scratch.txt', 'w').write('x')\nimport os\n"
+    with Sandbox(Limits(), workers=1) as sandbox:
+        with pytest.raises(ProgramError):
+            sandbox.trace(SPEC, [demo])
+        sandbox.trace(SPEC, [FIND + "find('open')('scratch.txt', 'w').write('x')\n"])
+        time.sleep(0.5)
+        assert len(list(base.iterdir())) == 1  # the directory of the child waiting for the next call
+    assert list(base.iterdir()) == []
+
+
+def test_network_is_isolated() -> None:
+    server = ForkServer({"timeout_s": 5, "cpu_s": 5, "memory_mb": 512, "open_files": 64,
+                        "output_bytes": 1000, "result_bytes": 10_000, "recursion": 400}, ["collections"])
+    try:
+        assert server.ready()["network_isolated"] is True
+    finally:
+        server.kill()
+
+
+def test_limits_must_be_positive() -> None:
+    with pytest.raises(ValueError):
+        Sandbox(Limits(timeout_s=0))
+
+
+def test_killed_server_is_replaced() -> None:
+    with Sandbox(Limits(), workers=1) as sandbox:
+        sandbox.trace(SPEC, ["a = A()"])
+        for server in list(sandbox._pool._all):
+            server.process.kill()
+        with pytest.raises(Exception) as caught:
+            sandbox.trace(SPEC, ["a = A()"])
+        assert type(caught.value).__name__ == "SandboxCrashed"
+        assert sandbox.trace(SPEC, ["a = A()\na.act(1)"]).actions["A.act"].occurrences
+
+
+def test_concurrent_calls() -> None:
+    from concurrent.futures import ThreadPoolExecutor
+
+    with Sandbox(Limits(), workers=2) as sandbox, ThreadPoolExecutor(4) as pool:
+        demos = [f"a = A()\na.act({i})" for i in range(8)]
+        results = list(pool.map(lambda d: sandbox.trace(SPEC, [d]), demos))
+    assert [r.actions["A.act"].arg_values for r in results] == [((i,),) for i in range(8)]
