@@ -87,7 +87,8 @@ def parse_config(name: str) -> InferConfig:
         elif key in _KEYS:
             options[_KEYS[key]] = int(value)
         else:
-            raise ValueError(f"config {name!r}: unknown key {key!r} (known: demos, maxrate, {', '.join(_KEYS)})")
+            known = ", ".join(["demos", "maxrate", *_KEYS])
+            raise ValueError(f"config {name!r}: unknown key {key!r} (known: {known})")
     config = InferConfig(name, None, generators, parts[1], demos, options, max_rate)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs
     return config

@@ -11,6 +11,10 @@ Precondition compatibility is the share of predicted actions that the GROUND-TRU
 the state where they were predicted, checked with `Engine.check` (the sandbox). A prediction that is not a
 call of an action function counts as incompatible: a policy that emits garbage has not respected anything.
 
+When the engine refuses a request because the history itself violates the preconditions it was given
+(inferred preconditions that contradict the dialog), the refusal is counted (`engine_errors`) and that
+segment is predicted without preconditions, as a client would have to.
+
 Policy configurations, `<preconditions>/<use>/shots=N`:
   preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
   use:           plain (no precondition use) | prompt (written into the prompt's spec) |
@@ -138,10 +142,18 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
                                   verify=config.verify, seed=seed),
     )
     start = time.perf_counter()
-    response = engine.next_action(request)
+    error = None
+    try:
+        response = engine.next_action(request)
+    except PrecondError as exc:
+        # The engine runs the history under the preconditions; when inferred ones contradict what the dialog
+        # already did it refuses (422). Record that, and fall back to the policy without preconditions.
+        error = f"{exc.kind}: {exc.message}"
+        plain = request.options.model_copy(update={"preconditions_in_prompt": False, "verify": False})
+        response = engine.next_action(request.model_copy(update={"preconditions": {}, "options": plain}))
     seconds = time.perf_counter() - start
     predicted = [normalize_call(a.call) for a in response.actions]
-    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds,
+    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds, "error": error,
             "compatible": _compatible(engine, domain, segment.history, predicted)}
 
 
@@ -213,7 +225,8 @@ def summarize_policy(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
     scores = [turn_f1(p, ref) for p, ref in turns.values()]
     compatible = [c for r in results for c in r["compatible"]]
     latency = [r["seconds"] for r in results]
-    return {"turns": len(turns), "requests": len(results), "actions": len(compatible),
+    errors = sum(1 for r in results if r.get("error"))
+    return {"turns": len(turns), "requests": len(results), "actions": len(compatible), "engine_errors": errors,
             "f1": mean(s.f1 for s in scores), "precision": mean(s.precision for s in scores),
             "recall": mean(s.recall for s in scores),
             "compatibility": mean(1.0 if c else 0.0 for c in compatible),

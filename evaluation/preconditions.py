@@ -89,8 +89,8 @@ def _probe(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callab
         base = infer(domain, config.base, cache, engine, force=True)
     if base.error is not None:
         return base
-    assert config.max_rate is not None
-    chosen = rerank(domain, demonstrations(domain, config), base.valid, sandbox, config.ranking, config.max_rate)
+    rate = config.max_rate or 1.0
+    chosen = rerank(domain, demonstrations(domain, config), base.valid, sandbox, config.ranking, rate)
     return replace(base, preconditions=chosen)
 
 

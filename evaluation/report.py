@@ -122,9 +122,9 @@ def action_table(rows: Sequence[dict[str, Any]], domain: str) -> str:
 def policy_table(rows: Sequence[dict[str, Any]]) -> str:
     body = [[r["domain"], f"`{r['config']}`", str(r["turns"]),
              str(r["actions"]), _fmt(r["f1"]), _fmt(r["compatibility"]), f"{r['latency_p50_s']:.2f}",
-             f"{r['latency_p95_s']:.2f}"] for r in rows]
+             f"{r['latency_p95_s']:.2f}", f"{r.get('engine_errors', 0)}/{r['requests']}"] for r in rows]
     return _markdown(["domain", "config", "turns", "predicted actions", "turn F1", "GT compat.",
-                      "p50 s/request", "p95 s/request"], body)
+                      "p50 s/request", "p95 s/request", "refused requests"], body)
 
 
 def _policy_overall(rows: Sequence[dict[str, Any]]) -> str:

@@ -35,7 +35,7 @@ Preconditions = dict[str, list[str]]
 
 class InferOptions(_Body):
     generators: list[Generator] = Field(default=["model", "enumerate"], min_length=1, max_length=2)
-    ranking: Ranking = "subsumption"
+    ranking: Ranking = "recency"
     samples_per_prompt: int = Field(default=8, ge=1, le=64)
     prompts_per_action: int = Field(
         default=4, ge=1, le=MAX_DEMONSTRATIONS, description="How many demonstrations to vary across prompts."

@@ -15,6 +15,7 @@ from redis.asyncio import ConnectionPool
 
 from service import errors
 from service.cache import ResultCache
+from service.completions import Completions
 from service.deps import Services
 from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
@@ -38,9 +39,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         dsn = settings.redis_dsn
         redis = ArqRedis(ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
         cache = ResultCache(redis, settings.cache_ttl_s)
-        queue = JobQueue(redis, cache, settings.queue_max_jobs)
+        completions = Completions(dsn)
+        completions.start()
+        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs)
         app.state.services = Services(settings, redis, cache, queue, metrics)
         yield
+        await completions.close()
         await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 
     app = FastAPI(

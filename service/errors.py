@@ -98,8 +98,10 @@ def _redis_down(retry_after_s: int) -> Any:
 
 
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
+    # Starlette answers unhandled exceptions from its outermost middleware, outside RequestContext, so the
+    # request id header is set here: a 500 is exactly the response whose id the client must be able to quote.
     info = ErrorInfo(type="internal", message="internal error; quote the request id when reporting it")
-    return error_response(request, 500, info)
+    return error_response(request, 500, info, headers={"X-Request-Id": request_id(request)})
 
 
 def install(app: FastAPI, retry_after_s: int) -> None:

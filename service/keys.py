@@ -26,6 +26,7 @@ QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
 WORKERS_PATTERN: Final = f"{PREFIX}:worker:*"
+DONE_PREFIX: Final = f"{PREFIX}:done:"
 
 _JOB_ID = re.compile(r"^(infer|next-action|check)-[0-9a-f]{64}$")
 
@@ -36,6 +37,11 @@ def cache_key(job_id: str) -> str:
 
 def progress_key(job_id: str) -> str:
     return f"{PREFIX}:progress:{job_id}"
+
+
+def done_channel(job_id: str) -> str:
+    """Pub/sub channel on which a worker announces that the job's result is stored."""
+    return f"{DONE_PREFIX}{job_id}"
 
 
 def worker_key(worker_id: str) -> str:

@@ -20,7 +20,11 @@ from arq.jobs import JobStatus as ArqStatus
 
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.cache import ResultCache
+from service.completions import Completions
 from service.keys import JOB_FUNCTION, QUEUE_BY_KIND, kind_of, progress_key
+
+SAFETY_POLL_S = 1.0
+"""How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
 
 
 class QueueFull(Exception):
@@ -28,9 +32,10 @@ class QueueFull(Exception):
 
 
 class JobQueue:
-    def __init__(self, redis: ArqRedis, cache: ResultCache, max_jobs: int) -> None:
+    def __init__(self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int) -> None:
         self.redis = redis
         self.cache = cache
+        self.completions = completions
         self.max_jobs = max_jobs
 
     def _job(self, job_id: str, kind: JobKind) -> Job:
@@ -84,15 +89,23 @@ class JobQueue:
         return JobStatus(id=job_id, kind=kind, status="running" if running else "queued", progress=progress)
 
     async def wait(self, job_id: str, timeout_s: float, poll_s: float) -> JobStatus | None:
-        """The job's status once finished, or its current status when `timeout_s` runs out first."""
+        """The job's status once finished, or its current status when `timeout_s` runs out first.
+
+        Woken by the job's completion notice; polls every `poll_s` only while notices are unavailable.
+        """
         deadline = time.monotonic() + timeout_s
-        while True:
-            status = await self.status(job_id)
-            if status is None or status.status in ("succeeded", "failed", "cancelled"):
-                return status
-            if time.monotonic() >= deadline:
-                return status
-            await asyncio.sleep(poll_s)
+        with self.completions.watch(job_id) as announced:
+            while True:
+                announced.clear()  # before reading: a notice that lands after the read still wakes us
+                status = await self.status(job_id)
+                if status is None or status.status in ("succeeded", "failed", "cancelled"):
+                    return status
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return status
+                interval = SAFETY_POLL_S if self.completions.subscribed else poll_s
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(announced.wait(), min(remaining, interval))
 
     async def cancel(self, job_id: str, confirm_s: float) -> JobStatus | None:
         """Ask arq to abort a queued or running job; the worker's engine sees it via its cancel predicate.

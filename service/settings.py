@@ -32,7 +32,12 @@ class Settings(BaseSettings):
     wait_max_s: float = Field(
         default=30.0, ge=0, description="How long a POST waits for its job before 202; `?wait=` can lower it."
     )
-    wait_poll_s: float = Field(default=0.05, gt=0, description="How often a waiting request polls its job.")
+    wait_poll_s: float = Field(
+        default=0.05,
+        gt=0,
+        description="How often a waiting request polls its job while job-completion notices (Redis pub/sub) "
+        "are unavailable; with them it is woken when its job finishes.",
+    )
     cache_ttl_s: int = Field(default=7 * 24 * 3600, ge=1, description="Lifetime of a cached result.")
     result_ttl_s: int = Field(
         default=3600, ge=1, description="How long GET /jobs/{id} can see a finished job."
@@ -58,10 +63,6 @@ class Settings(BaseSettings):
     heartbeat_s: float = Field(default=2.0, gt=0, description="Worker heartbeat period; 3 missed = gone.")
     preload_model: bool = Field(
         default=True, description="Load the model when the worker starts (else lazily)."
-    )
-    engine_factory: str = Field(
-        default="worker.runner:build_engine",
-        description="`module:callable` returning the engine a worker runs; a seam for tests and plugins.",
     )
 
     @property

@@ -229,7 +229,7 @@ class Engine:
             valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
                      for r in results if r.status == "valid"]
             clusters = informative(cluster(valid), len(points))
-            evidence = ActionEvidence(points, trace.actions[action].occurrences, turns)
+            evidence = ActionEvidence(points, trace.actions[action].occurrences, turns, trace.actions[action].params)
             chosen = rank(criterion, clusters, evidence) if trace.actions[action].occurrences else []
             kept[action] = chosen
             counts = proposals.counts.setdefault(action, StageCounts())

@@ -12,7 +12,7 @@ import json
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any
 
 from pydantic import BaseModel
 from redis.asyncio import Redis
@@ -22,31 +22,10 @@ from schemas.errors import PrecondError, ResourceLimit
 from service.cache import ResultCache
 from service.keys import STATS_KEY, progress_key
 from service.settings import Settings
+from worker.engine import Engine
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
-
-
-class EngineLike(Protocol):
-    """What a worker needs of `worker.engine.Engine` (a protocol, so tests can hand in a stand-in)."""
-
-    @property
-    def model_loaded(self) -> bool: ...
-
-    def model(self) -> object: ...
-
-    def infer(
-        self, request: InferRequest, progress: ProgressFn | None = None, cancelled: CancelledFn | None = None
-    ) -> BaseModel: ...
-
-    def next_action(
-        self,
-        request: NextActionRequest,
-        progress: ProgressFn | None = None,
-        cancelled: CancelledFn | None = None,
-    ) -> BaseModel: ...
-
-    def check(self, request: CheckRequest) -> BaseModel: ...
 
 
 class ProgressReporter:
@@ -85,7 +64,7 @@ class ProgressReporter:
 
 
 def _operate(
-    engine: EngineLike, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
+    engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
 ) -> BaseModel:
     if kind == "infer":
         return engine.infer(InferRequest.model_validate(body), progress, cancelled)
@@ -95,7 +74,7 @@ def _operate(
 
 
 def _outcome(
-    engine: EngineLike, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
+    engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
 ) -> dict[str, Any]:
     """A finished job's outcome; input errors are outcomes too (the client's: 422), not crashes."""
     try:

@@ -4,20 +4,24 @@
 clusters. It is precise but keeps every condition that merely happened to hold at all demonstrated
 occurrences (the paper's INFORM example keeps `query_success`), which costs recall.
 
-`recency` is our recall-aware alternative: among the subsumption-minimal clusters it keeps those whose truth
-was *made* true by what happened since the agent last acted (false at some point after its previous action,
-true at the action), i.e. conditions that enable the action rather than describe the dialog's phase. When no
-cluster shows that pattern for an action it falls back to subsumption, so precision never drops to nothing.
+`recency` is our recall-aware criterion (the default, chosen on the SGD dev numbers in docs/results.md): of
+the subsumption-minimal clusters it keeps those that *enabled* at least one occurrence: made true by the
+observations since the agent's previous turn, or, for conditions on the action's own arguments, true since
+the episode began ("this slot was not informed yet"). Conditions that merely describe the episode's phase
+("a search has succeeded", "nothing was selected yet") are dropped.
+
+`marginal` is a simpler recall-aware alternative: minimal clusters, most selective first, each kept only while
+it still excludes `MIN_GAIN` of the points that the conjunction so far allows.
 """
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 from sandbox.types import Point
 
-RECENCY_THRESHOLD = 0.5
 MIN_GAIN = 0.3
 
 
@@ -49,6 +53,7 @@ class ActionEvidence:
     points: Sequence[Point]
     occurrences: Sequence[Point]
     previous_turn: Mapping[tuple[int, int], int]  # (demo, position) -> first observation since the agent's last turn
+    params: tuple[str, ...] = ()
 
 
 def cluster(valid: Sequence[Candidate]) -> list[Cluster]:
@@ -83,29 +88,43 @@ def _false_between(c: Cluster, occ: Point, start: int, index: Mapping[Point, int
     return False
 
 
-def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> float:
-    """Share of occurrences where the condition is not a mere phase.
+def _mentions(expression: str, names: Sequence[str]) -> bool:
+    try:
+        tree = ast.parse(expression, mode="eval")
+    except SyntaxError:
+        return False
+    return any(isinstance(node, ast.Name) and node.id in names for node in ast.walk(tree))
 
-    At an occurrence a condition is a *phase* when it was false at some point earlier in the demonstration
-    but already true throughout the observations since the agent's previous turn. It is *enabling* when it
-    was false during those observations (they made it true), or *invariant* when it was never false before
-    (e.g. "the slot was not informed yet").
+
+def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> float:
+    """Share of occurrences the condition enabled.
+
+    A condition on the action's own arguments (`requested_slot[slot]`, `inventory == obj`) is about this very
+    call, so it always counts. A global condition counts at an occurrence only when it was false during the
+    observations since the agent's previous turn, i.e. they made it true; otherwise it describes where the
+    episode is (a phase: "a search has succeeded", "nothing was selected yet"), which held at the demonstrated
+    occurrences by the episodes' usual order rather than by necessity.
     """
     if not evidence.occurrences:
         return 0.0
+    if any(_mentions(m.expression, evidence.params) for m in c.members):
+        return 1.0
     enabling = 0
     for occ in evidence.occurrences:
         window = evidence.previous_turn.get((occ.demo, occ.position), 0)
-        if _false_between(c, occ, window, index) or not _false_between(c, occ, 0, index):
+        if _false_between(c, occ, window, index):
             enabling += 1
     return enabling / len(evidence.occurrences)
 
 
 def recency(clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
-    minimal = subsumption(clusters)
+    """Subsumption-minimal clusters that enabled at least one demonstrated occurrence.
+
+    An action none of whose conditions ever enabled it keeps no precondition: what held at its occurrences
+    held by the episodes' order, and guessing there costs more recall than it buys precision.
+    """
     index = {point: bit for bit, point in enumerate(evidence.points)}
-    enabling = [c for c in minimal if enabling_rate(c, evidence, index) >= RECENCY_THRESHOLD]
-    return marginal(enabling, evidence) or marginal(minimal, evidence)
+    return [c for c in subsumption(clusters) if enabling_rate(c, evidence, index) > 0]
 
 
 def marginal(clusters: Sequence[Cluster], evidence: ActionEvidence, min_gain: float = MIN_GAIN) -> list[Cluster]:

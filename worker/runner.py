@@ -10,14 +10,12 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import importlib
 import logging
 import os
 import signal
 import socket
 import uuid
-from collections.abc import Callable
-from typing import cast
+from typing import Any
 
 from arq import func
 from arq.connections import RedisSettings
@@ -26,26 +24,12 @@ from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
 from service.heartbeats import Heartbeat, beat
-from service.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, worker_key
+from service.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
 from service.settings import Settings, get_settings
-from worker.jobs import EngineLike, run_operation
+from worker.factory import build_engine
+from worker.jobs import run_operation
 
 log = logging.getLogger("precond.worker")
-
-
-def build_engine() -> EngineLike:
-    """The production engine: sandboxed execution plus the configured code model, loaded on first use."""
-    from sandbox import Sandbox
-    from worker.engine import Engine
-    from worker.models import ModelSettings, load_code_model
-
-    model_settings = ModelSettings()
-    return cast(EngineLike, Engine(Sandbox(), lambda: load_code_model(model_settings)))
-
-
-def _load_factory(path: str) -> Callable[[], EngineLike]:
-    module, _, name = path.partition(":")
-    return cast(Callable[[], EngineLike], getattr(importlib.import_module(module), name))
 
 
 class WorkerProcess:
@@ -53,7 +37,7 @@ class WorkerProcess:
         self.settings = settings
         self.queues = queues
         self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
-        self.engine = _load_factory(settings.engine_factory)()
+        self.engine = build_engine(with_model=MODEL_QUEUE in queues)
         self.workers: dict[str, Worker] = {}
         self.stopping = asyncio.Event()
         self.model_error: str | None = None
@@ -94,6 +78,7 @@ class WorkerProcess:
             job_completion_wait=s.drain_s,
             health_check_interval=60,
             ctx={"engine": self.engine, "settings": s},
+            after_job_end=_announce,
         )
 
     async def _serve(self, queue: str) -> None:
@@ -147,6 +132,15 @@ class WorkerProcess:
 
     def _redis(self) -> Redis[bytes]:
         return Redis.from_url(self.settings.redis_dsn, socket_connect_timeout=2, socket_timeout=5)
+
+
+async def _announce(ctx: dict[str, Any]) -> None:
+    """Tell waiting gateways that the job's result is stored (arq calls this after recording it).
+
+    Advisory: a lost message only delays a waiter until its next fallback poll.
+    """
+    with contextlib.suppress(RedisError, OSError):
+        await ctx["redis"].publish(done_channel(ctx["job_id"]), b"1")
 
 
 def run(settings: Settings, queues: list[str] | None = None) -> None:

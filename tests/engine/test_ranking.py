@@ -29,7 +29,7 @@ def _evidence() -> ActionEvidence:
     return ActionEvidence(points, [Point(0, 9, ())], {(0, 9): 7})
 
 
-def test_recency_prefers_conditions_made_true_since_the_last_turn() -> None:
+def test_recency_keeps_only_enabling_conditions() -> None:
     trigger = c("trigger", "1111100001")  # false at 7..8, during the observations before the action
     phase = c("phase", "0000111111")      # false early, true ever since before the last turn
     both = cluster([trigger, phase])
@@ -37,15 +37,18 @@ def test_recency_prefers_conditions_made_true_since_the_last_turn() -> None:
     assert [k.representative.expression for k in rank("recency", both, _evidence())] == ["trigger"]
 
 
-def test_enabling_rate_tells_triggers_and_invariants_from_phases() -> None:
-    evidence = _evidence()
+def test_enabling_rate_tells_triggers_and_argument_invariants_from_phases() -> None:
+    evidence = ActionEvidence(_evidence().points, _evidence().occurrences, {(0, 9): 7}, params=("slot",))
     index = {p: bit for bit, p in enumerate(evidence.points)}
     rates = {
         name: enabling_rate(cluster([c(name, bits)])[0], evidence, index)
-        for name, bits in [("trigger", "1111100001"), ("never false before", "1111111111"),
+        for name, bits in [("made true since the last turn", "1111100001"),
+                           ("not self.informed[slot]", "1111111111"),   # about the argument, never false
+                           ("not self.selected", "1111111111"),         # global flag, never false: a phase
                            ("phase", "0000111111")]
     }
-    assert rates == {"trigger": 1.0, "never false before": 1.0, "phase": 0.0}
+    assert rates == {"made true since the last turn": 1.0, "not self.informed[slot]": 1.0,
+                     "not self.selected": 0.0, "phase": 0.0}
 
 
 def test_marginal_stops_adding_conditions_that_trim_little() -> None:

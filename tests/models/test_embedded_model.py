@@ -9,16 +9,20 @@ from pathlib import Path
 import pytest
 
 from worker.models import CodeModel, ModelSettings, Sampling, load_code_model
-from worker.models.store import EMBEDDED_SHA256
+from worker.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
 
 pytestmark = pytest.mark.model
 
 SGD = Path("/work/shared/data/sgd/Restaurants_1.json")
 
 
+def embedded_cache_dir() -> Path:
+    return ModelSettings().cache_dir
+
+
 @pytest.fixture(scope="module")
 def embedded() -> CodeModel:
-    return load_code_model(ModelSettings(threads=1))
+    return load_code_model(ModelSettings(device="cpu", threads=1, cache_dir=embedded_cache_dir()))
 
 
 def sgd_prompt() -> str:
@@ -54,3 +58,11 @@ def test_samples_mostly_parse(embedded: CodeModel) -> None:
 def test_model_info(embedded: CodeModel) -> None:
     assert embedded.info.sha256 == EMBEDDED_SHA256
     assert (embedded.info.device, embedded.info.dtype) == ("cpu", "bfloat16")
+
+
+def test_gguf_path_is_converted_once_by_hash(embedded: CodeModel, tmp_path: Path) -> None:
+    """A configured .gguf file is keyed by its sha256: the embedded file's bytes hit the embedded cache."""
+    gguf_file = tmp_path / "qwen-coder.gguf"
+    join_parts(find_embedded_parts(), gguf_file, EMBEDDED_SHA256)
+    model = load_code_model(ModelSettings(path=str(gguf_file), device="cpu", cache_dir=embedded_cache_dir()))
+    assert (model.info.name, model.info.sha256) == ("qwen-coder", EMBEDDED_SHA256)

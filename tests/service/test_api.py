@@ -1,4 +1,4 @@
-"""The HTTP contract end to end: gateway (uvicorn) → Redis (arq) → worker process → back."""
+"""The HTTP contract end to end: gateway (uvicorn) → Redis (arq) → worker process (real engine) → back."""
 
 from __future__ import annotations
 
@@ -6,8 +6,18 @@ import time
 from collections.abc import Iterator
 
 import httpx
+import redis
 
-from tests.service.conftest import SPEC, Stack, infer_body, wait_until
+from schemas.api import CheckRequest
+from service import keys
+from tests.service.stack import (
+    Stack,
+    check_body,
+    example,
+    infer_body,
+    slow_model_body,
+    wait_until,
+)
 
 
 def jobs_started(stack: Stack) -> int:
@@ -18,45 +28,81 @@ def test_infer_end_to_end_then_cache_hit_never_reaches_a_worker(stack: Stack, cl
     body = infer_body(seed=101)
     first = client.post("/infer-preconditions", json=body)
     assert first.status_code == 200, first.text
-    assert set(first.json()["preconditions"]) == {"SYSTEM.REQUEST"}
+    result = first.json()
+    assert "SYSTEM.REQUEST" in result["preconditions"]
+    assert "self.user.no_more" in result["preconditions"]["SYSTEM.GOODBYE"]  # the demos' rule, found for real
+    assert "assert self.user.no_more" in result["program"]
+    assert result["stats"]["total"]["valid"] > 0 and result["model"] is None
     wait_until(lambda: jobs_started(stack) >= 1, 5, "heartbeat to count the job")
     started = jobs_started(stack)
 
     second = client.post("/infer-preconditions", json=body)
     assert second.status_code == 200
-    assert second.json() == first.json()
+    assert second.json() == result
     assert second.headers["X-Job-Id"] == first.headers["X-Job-Id"]
     time.sleep(1.2)  # two heartbeats: a job the worker ran would show in its count by now
     assert jobs_started(stack) == started
     assert 'precond_cache_total{kind="infer",result="hit"} 1.0' in client.get("/metrics").text
 
 
+def test_unfinished_job_is_202_then_polled_to_its_result(client: httpx.Client) -> None:
+    accepted = client.post("/infer-preconditions", json=infer_body(seed=111), params={"wait": 0})
+    assert accepted.status_code == 202, accepted.text
+    location = accepted.headers["Location"]
+    assert location == f"/jobs/{accepted.headers['X-Job-Id']}"
+    wait_until(lambda: client.get(location).json()["status"] == "succeeded", 30, "the job to finish")
+    done = client.get(location).json()
+    assert done["progress"]["phase"] == "done"
+    assert "self.user.no_more" in done["result"]["preconditions"]["SYSTEM.GOODBYE"]
+
+
+def test_next_action_with_the_tiny_model_reports_its_rejections(client: httpx.Client) -> None:
+    body = example("next-action")
+    body["options"] = {"max_attempts": 3, "max_new_tokens": 16}
+    answer = client.post("/next-action", json=body, params={"wait": 60})
+    assert answer.status_code == 200, answer.text
+    (action,) = answer.json()["actions"]
+    # The tiny model writes noise: Algorithm 1 rejects every sample, and says why.
+    assert action["verified"] is False
+    assert action["attempts"] == 3 and len(action["rejected"]) == 3
+    assert all(rejection["reason"] for rejection in action["rejected"])
+    assert answer.json()["model"]["device"] == "cpu"
+
+
 def test_job_progress_poll_and_cancel(client: httpx.Client) -> None:
-    slow = infer_body(SPEC + "# slow: 20\n", seed=102)
+    slow = slow_model_body(seed=102)
     accepted = client.post("/infer-preconditions", json=slow, params={"wait": 0.3})
     assert accepted.status_code == 202
     location = accepted.headers["Location"]
     assert accepted.json()["status"] in ("queued", "running")
-    wait_until(lambda: client.get(location).json()["progress"]["phase"] == "generate", 5, "progress")
+    wait_until(lambda: client.get(location).json()["progress"]["phase"] == "generate", 20, "progress")
+    assert client.get(location).json()["status"] == "running"
     cancelled = client.delete(location)
     assert cancelled.status_code == 200
-    wait_until(lambda: client.get(location).json()["status"] == "cancelled", 5, "cancellation")
+    wait_until(lambda: client.get(location).json()["status"] == "cancelled", 10, "cancellation")
     assert client.post("/infer-preconditions", json=slow, params={"wait": 0}).status_code == 202  # runs again
     client.delete(location)
 
 
 def test_check_actions_does_not_queue_behind_model_jobs(client: httpx.Client) -> None:
-    slow = infer_body(SPEC + "# slow: 20\n", seed=103)
-    location = client.post("/infer-preconditions", json=slow, params={"wait": 0}).headers["Location"]
-    check = {
-        "spec": SPEC,
-        "history": "user = USER()\nsystem = SYSTEM(user)\n",
-        "calls": ["system.REQUEST('x')"],
+    location = client.post(
+        "/infer-preconditions", json=slow_model_body(seed=103), params={"wait": 0}
+    ).headers["Location"]
+    try:
+        wait_until(lambda: client.get(location).json()["status"] == "running", 20, "the model job to start")
+        answer = client.post("/check-actions", json=check_body(), params={"wait": 10})
+        assert answer.status_code == 200, answer.text
+        assert client.get(location).json()["status"] == "running"
+    finally:
+        client.delete(location)
+    find, inform = answer.json()["results"]
+    assert find == {
+        "call": "system.FindRestaurants()",
+        "allowed": False,
+        "violations": ["self.user.informed_slot['cuisine']"],
+        "error": None,
     }
-    answer = client.post("/check-actions", json=check, params={"wait": 5})
-    assert answer.status_code == 200, answer.text
-    assert answer.json()["results"][0]["allowed"] is True
-    client.delete(location)
+    assert inform["allowed"] is False and inform["violations"] == ["self.user.requested_slot[slot]"]
 
 
 def test_malformed_body_is_422_with_field_path(client: httpx.Client) -> None:
@@ -76,15 +122,31 @@ def test_malformed_body_is_422_with_field_path(client: httpx.Client) -> None:
 
 
 def test_spec_that_does_not_parse_is_422_with_line(client: httpx.Client) -> None:
-    answer = client.post("/infer-preconditions", json=infer_body("class A:\n  def f(self):\n    return (\n"))
+    answer = client.post("/infer-preconditions", json=infer_body(spec="class A:\n  def f(self):\n    return (\n"))
     assert answer.status_code == 422, answer.text
     error = answer.json()["error"]
-    assert error["field"] == "spec" and "line" in error["message"]
+    assert error == {
+        "type": "invalid_program",
+        "message": "spec, line 3: SyntaxError: '(' was never closed",
+        "field": "spec",
+    }
     assert answer.json()["request_id"] == answer.headers["X-Request-Id"]
 
 
+def test_demonstration_that_raises_is_422_naming_it_and_its_line(client: httpx.Client) -> None:
+    demos = example("infer-enumerate")["demonstrations"]
+    raising = "user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST('city')\nuser.NOPE()\n"
+    answer = client.post("/infer-preconditions", json=infer_body(demonstrations=[demos[0], raising]))
+    assert answer.status_code == 422, answer.text
+    assert answer.json()["error"] == {
+        "type": "invalid_program",
+        "message": "demonstration 1, line 4: AttributeError: 'USER' object has no attribute 'NOPE'",
+        "field": "demonstrations[1]",
+    }
+
+
 def test_unknown_action_is_422(client: httpx.Client) -> None:
-    answer = client.post("/infer-preconditions", json={**infer_body(), "actions": ["SYSTEM.NOPE"]})
+    answer = client.post("/infer-preconditions", json=infer_body(actions=["SYSTEM.NOPE"]))
     assert answer.status_code == 422
     assert answer.json()["error"]["type"] == "unknown_action"
     assert answer.json()["error"]["field"] == "actions[0]"
@@ -121,18 +183,34 @@ def test_hostile_bytes_are_4xx_not_500(client: httpx.Client) -> None:
 
 def test_full_queue_is_429_with_retry_after(client: httpx.Client) -> None:
     locations = []
-    for seed in range(200, 206):  # bound is 3 (queued + running); the worker takes one at a time
-        answer = client.post(
-            "/infer-preconditions", json=infer_body(SPEC + "# slow: 20\n", seed=seed), params={"wait": 0}
-        )
+    for seed in range(200, 206):  # bound is 3 (queued + running); the worker takes one model job at a time
+        answer = client.post("/infer-preconditions", json=slow_model_body(seed), params={"wait": 0})
         if answer.status_code == 429:
             break
         locations.append(answer.headers["Location"])
     assert answer.status_code == 429
+    assert len(locations) == 3
     assert int(answer.headers["Retry-After"]) > 0
     assert answer.json()["error"]["type"] == "queue_full"
     for location in locations:
         client.delete(location)
+
+
+def test_internal_error_is_500_with_the_request_id(stack: Stack, client: httpx.Client) -> None:
+    body = check_body("system.REQUEST('party_size')")
+    job_id = keys.job_id("check", CheckRequest.model_validate(body).model_dump(mode="json"), None)
+    corrupt: redis.Redis[bytes] = stack.redis.client()
+    corrupt.set(keys.cache_key(job_id), b"{not json")  # a fault the gateway does not expect
+    try:
+        answer = client.post("/check-actions", json=body, headers={"X-Request-Id": "req-500"})
+    finally:
+        corrupt.delete(keys.cache_key(job_id))
+    assert answer.status_code == 500
+    assert answer.headers["X-Request-Id"] == "req-500"
+    assert answer.json() == {
+        "error": {"type": "internal", "message": "internal error; quote the request id when reporting it"},
+        "request_id": "req-500",
+    }
 
 
 def test_unknown_job_is_404(client: httpx.Client) -> None:
@@ -145,13 +223,14 @@ def test_unknown_job_is_404(client: httpx.Client) -> None:
 
 def test_health_ready_metrics(client: httpx.Client) -> None:
     assert client.get("/health").json() == {"status": "ok"}
-    ready = client.get("/ready")
-    assert ready.status_code == 200 and ready.json()["model_loaded"] >= 1
+    wait_until(lambda: client.get("/ready").status_code == 200, 20, "the worker's model to load")
+    assert client.get("/ready").json()["model_loaded"] >= 1
     text = client.get("/metrics").text
     for name in (
         "precond_http_requests_total",
         "precond_queue_depth",
         "precond_jobs_total",
         "precond_workers",
+        "precond_job_phase_seconds",
     ):
         assert name in text
