@@ -137,10 +137,20 @@ def report(
 def run_all(
     data: DataOption = DEFAULT_DATA,
     cache_dir: CacheOption = DEFAULT_CACHE,
-    configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "default",
+    configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "default,probe",
 ) -> None:
-    """Score every precondition config (cached inferences are reused), then regenerate the report."""
-    preconditions(data=data, configs=configs, alfworld_args="state,trajectory", cache_dir=cache_dir)
+    """Re-score every config from the cache (model configs only if cached: no model is loaded), then report."""
+    from evaluation.configs import expand
+    from evaluation.preconditions import evaluate
+    from evaluation.report import store_precondition_results
+    from evaluation.scoring import Satisfaction
+
+    store = JsonCache(cache_dir)
+    known = ",".join(r["config"] for r in (store.get("results", "preconditions") or {"rows": []})["rows"])
+    sandbox = _sandbox()
+    result = evaluate(_domains(data, "state,trajectory"), expand(f"{configs},{known}"), store,
+                      Satisfaction(sandbox, store), lambda: _engine(False).infer, False, sandbox)
+    store_precondition_results(store, result)
     report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"))
 
 

@@ -32,7 +32,10 @@ TABLE_BENCHMARKS = (("sgd", "sgd"), ("alfworld", "alfworld"), ("alfworld-traject
 def store_precondition_results(store: JsonCache, result: dict[str, Any]) -> Path:
     old = store.get("results", "preconditions") or {"rows": []}
     rows = {(r["config"], r["domain"]): r for r in old["rows"]}
-    rows.update({(r["config"], r["domain"]): r for r in result["rows"]})
+    for row in result["rows"]:  # a failed re-run (e.g. no model now) never hides an earlier measurement
+        key = (row["config"], row["domain"])
+        if not row.get("error") or key not in rows or rows[key].get("error"):
+            rows[key] = row
     merged = list(rows.values())
     return store.put({"rows": merged, "summary": summarize(merged)}, "results", "preconditions")
 

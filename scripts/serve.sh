@@ -9,6 +9,6 @@ cat <<MSG
 Starting the service on http://127.0.0.1:${PORT} (first start converts the embedded model once, ~1 min).
 Try, once it answers /ready:
   curl -s -X POST "http://127.0.0.1:${PORT}/infer-preconditions?wait=60" \\
-       -H 'Content-Type: application/json' -d @examples/infer_restaurants_enumerate.json | python -m json.tool
+       -H 'Content-Type: application/json' -d @examples/infer-enumerate.json | python -m json.tool
 MSG
 exec precond serve --port "$PORT" "$@"

@@ -56,7 +56,15 @@ class Settings(BaseSettings):
         default=1, ge=1, description="Model jobs one worker process runs at once."
     )
     check_concurrency: int = Field(default=4, ge=1, description="check-actions jobs one worker runs at once.")
-    worker_poll_s: float = Field(default=0.1, gt=0, description="How often an idle worker polls its queues.")
+    worker_poll_s: float = Field(
+        default=0.1, gt=0, description="How often an idle worker polls the model queue (infer, next-action)."
+    )
+    check_poll_s: float = Field(
+        default=0.01,
+        gt=0,
+        description="How often an idle worker polls the check queue: a check job takes milliseconds, so "
+        "this wait is most of check-actions' latency (each poll is a few cheap Redis commands).",
+    )
     drain_s: int = Field(
         default=30, ge=0, description="On SIGTERM, how long a worker lets running jobs finish."
     )

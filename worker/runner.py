@@ -72,7 +72,7 @@ class WorkerProcess:
             job_timeout=timeout,
             keep_result=s.result_ttl_s,
             max_tries=s.job_max_tries,
-            poll_delay=s.worker_poll_s,
+            poll_delay=s.worker_poll_s if model else s.check_poll_s,
             allow_abort_jobs=True,
             handle_signals=False,
             job_completion_wait=s.drain_s,

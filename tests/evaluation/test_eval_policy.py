@@ -62,3 +62,10 @@ def test_only_calls_of_domain_actions_count_as_actions() -> None:
     assert action_of("system.INFORM('city')", known) == "SYSTEM.INFORM"
     assert action_of("user.NEGATE_INTENT()", known) == "USER.NEGATE_INTENT"
     assert action_of("hello there", known) is None
+
+
+def test_probe_config_reranks_its_base_inference() -> None:
+    config = parse_config("enumerate/recency/maxrate=0.9/demos=4")
+    assert config.max_rate == 0.9
+    assert config.base.name == "enumerate/recency/demos=4"
+    assert config.base.max_rate is None

@@ -1,0 +1,241 @@
+"""Service latency and throughput on loopback: own redis-server, uvicorn gateway, one `precond worker`.
+
+    python bench/service_bench.py                     # tiny random model (tests/tiny_model.py)
+    python bench/service_bench.py --model embedded    # the embedded code model (slow on CPU)
+    python bench/service_bench.py --json bench/service.json
+
+Measures
+  * cache-hit throughput: `wrk` (Debian package `wrk`) POSTing one cached check-actions body with a Lua
+    script; falls back to an httpx asyncio client when wrk is not installed (the table says which);
+  * check-actions latency, uncached: sequential requests whose calls differ, so every one is a new job;
+  * next-action latency through the gateway, uncached (a different seed per request).
+`--root DIR` runs gateway and worker from another checkout (e.g. `git archive HEAD | tar -x -C DIR`), to
+compare versions on the same machine; `--env K=V` passes settings (e.g. PRECOND_WORKER_POLL_S=0.02).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import shutil
+import signal
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if predicate():
+                return
+        except (OSError, httpx.HTTPError):
+            pass
+        time.sleep(0.1)
+    raise SystemExit(f"timed out waiting for {what}")
+
+
+@contextmanager
+def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
+    """Redis, gateway and one worker as child processes; yields the gateway's base URL."""
+    redis_port, http_port = free_port(), free_port()
+    env = {
+        **os.environ,
+        "REDIS_URL": f"redis://127.0.0.1:{redis_port}/0",
+        "PYTHONPATH": str(args.root),
+        "OMP_NUM_THREADS": "1",
+        "TOKENIZERS_PARALLELISM": "false",
+        "MODEL_THREADS": "1",
+    }
+    if args.model == "tiny":
+        sys.path.insert(0, str(ROOT))
+        from tests.tiny_model import build_tiny_model
+
+        env["MODEL_PATH"] = str(build_tiny_model(tmp / "tiny-model"))
+    else:
+        env["MODEL_PATH"] = args.model
+    env.update(kv.split("=", 1) for kv in args.env)
+    logs = (tmp / "stack.log").open("wb")
+    redis_server = shutil.which("redis-server") or "/usr/bin/redis-server"
+    argvs = [
+        [redis_server, "--port", str(redis_port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+         "--dir", str(tmp)],
+        [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--port", str(http_port),
+         "--log-level", "warning", "--no-access-log"],
+        [sys.executable, "-c", "from cli.main import app; app()", "worker"],
+    ]
+    processes: list[subprocess.Popen[bytes]] = []
+    try:
+        for argv in argvs:
+            processes.append(subprocess.Popen(argv, env=env, cwd=args.root, stdout=logs, stderr=subprocess.STDOUT))
+            if argv[0] == redis_server:
+                time.sleep(0.3)
+        base = f"http://127.0.0.1:{http_port}"
+        wait_until(lambda: httpx.get(f"{base}/ready", timeout=2).status_code == 200, 300, "a ready worker")
+        yield base
+    finally:
+        for process in reversed(processes):
+            process.send_signal(signal.SIGTERM)
+            try:
+                process.wait(15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+def percentile(samples: list[float], q: float) -> float:
+    ordered = sorted(samples)
+    return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
+
+
+def latencies(base: str, path: str, bodies: list[dict[str, Any]], warmup: int) -> dict[str, float]:
+    """Sequential POSTs; every body must be new to the cache. Milliseconds."""
+    seconds = []
+    with httpx.Client(base_url=base, timeout=300) as client:
+        for i, body in enumerate(bodies):
+            started = time.perf_counter()
+            answer = client.post(path, json=body, params={"wait": 300})
+            elapsed = time.perf_counter() - started
+            if answer.status_code != 200:
+                raise SystemExit(f"{path}: {answer.status_code} {answer.text[:300]}")
+            if i >= warmup:
+                seconds.append(elapsed)
+    ms = [s * 1000 for s in seconds]
+    return {"n": len(ms), "p50_ms": percentile(ms, 50), "p95_ms": percentile(ms, 95), "mean_ms": statistics.mean(ms)}
+
+
+WRK_LUA = """wrk.method = "POST"
+wrk.headers["Content-Type"] = "application/json"
+wrk.body = io.open("{body}"):read("*a")
+"""
+
+
+def cache_hits_wrk(base: str, body_file: Path, tmp: Path, args: argparse.Namespace) -> dict[str, Any]:
+    script = tmp / "post.lua"
+    script.write_text(WRK_LUA.format(body=body_file))
+    argv = ["wrk", f"-t{args.threads}", f"-c{args.connections}", f"-d{args.duration}s", "--latency", "-s",
+            str(script), f"{base}/check-actions"]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    result: dict[str, Any] = {"tool": f"wrk -t{args.threads} -c{args.connections} -d{args.duration}s"}
+    for line in out.splitlines():
+        words = line.split()
+        if line.startswith("Requests/sec:"):
+            result["requests_per_s"] = float(words[1])
+        elif words[:1] in (["50%"], ["90%"], ["99%"]):
+            result[f"p{words[0][:-1]}_ms"] = _ms(words[1])
+        elif "Non-2xx" in line or "Socket errors" in line:
+            result.setdefault("errors", []).append(line.strip())
+    return result
+
+
+def _ms(text: str) -> float:
+    for unit, factor in (("ms", 1.0), ("us", 0.001), ("s", 1000.0)):
+        if text.endswith(unit):
+            return float(text[: -len(unit)]) * factor
+    return float(text)
+
+
+def cache_hits_httpx(base: str, body: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+    async def run() -> tuple[int, list[float]]:
+        done, samples = 0, []
+        deadline = time.perf_counter() + args.duration
+        limits = httpx.Limits(max_connections=args.connections)
+        async with httpx.AsyncClient(base_url=base, limits=limits, timeout=30) as client:
+
+            async def loop() -> None:
+                nonlocal done
+                while time.perf_counter() < deadline:
+                    started = time.perf_counter()
+                    answer = await client.post("/check-actions", json=body)
+                    assert answer.status_code == 200, answer.text
+                    samples.append((time.perf_counter() - started) * 1000)
+                    done += 1
+
+            await asyncio.gather(*(loop() for _ in range(args.connections)))
+        return done, samples
+
+    done, samples = asyncio.run(run())
+    return {
+        "tool": f"httpx asyncio, {args.connections} connections, {args.duration}s (wrk not installed)",
+        "requests_per_s": done / args.duration,
+        "p50_ms": percentile(samples, 50),
+        "p99_ms": percentile(samples, 99),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", default="tiny", help='"tiny" (random test model), "embedded", or a path')
+    parser.add_argument("--root", type=Path, default=ROOT, help="checkout to run gateway and worker from")
+    parser.add_argument("--env", action="append", default=[], metavar="K=V", help="extra settings")
+    parser.add_argument("--check-n", type=int, default=200, help="uncached check-actions requests")
+    parser.add_argument("--next-n", type=int, default=30, help="uncached next-action requests")
+    parser.add_argument("--duration", type=int, default=10, help="seconds of cache-hit load")
+    parser.add_argument("--connections", type=int, default=32)
+    parser.add_argument("--threads", type=int, default=2, help="wrk threads")
+    parser.add_argument("--json", type=Path, help="also write the results here")
+    args = parser.parse_args()
+    args.root = args.root.resolve()
+
+    check = json.loads((EXAMPLES / "check-actions.json").read_text())
+    next_action = json.loads((EXAMPLES / "next-action.json").read_text())
+    results: dict[str, Any] = {"model": args.model, "root": str(args.root), "env": args.env, "cpus": os.cpu_count()}
+    with tempfile.TemporaryDirectory(prefix="service-bench-") as name, stack(args, Path(name)) as base:
+        tmp = Path(name)
+        # check-actions, uncached: one new call per request (a fresh job each time).
+        bodies = [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
+        results["check_actions_uncached"] = latencies(base, "/check-actions", bodies, warmup=5)
+        # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
+        bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
+        results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2)
+        # cache hits: the first check-actions body is cached by now.
+        body_file = tmp / "body.json"
+        body_file.write_text(json.dumps({**check, "calls": ["system.REQUEST('slot_0')"]}))
+        if shutil.which("wrk"):
+            results["cache_hit"] = cache_hits_wrk(base, body_file, tmp, args)
+        else:
+            results["cache_hit"] = cache_hits_httpx(base, json.loads(body_file.read_text()), args)
+        results["load_average"] = os.getloadavg()
+
+    rows = [
+        ("cache hit, check-actions", f"{results['cache_hit']['requests_per_s']:.0f} req/s",
+         f"p50 {results['cache_hit']['p50_ms']:.1f} ms, p99 {results['cache_hit'].get('p99_ms', 0):.1f} ms",
+         results["cache_hit"]["tool"]),
+    ]
+    for key, label in (("check_actions_uncached", "check-actions, uncached"),
+                       ("next_action_uncached", "next-action, uncached")):
+        r = results[key]
+        rows.append((label, f"p50 {r['p50_ms']:.1f} ms", f"p95 {r['p95_ms']:.1f} ms",
+                     f"n={r['n']} sequential, httpx"))
+    width = [max(len(row[i]) for row in rows) for i in range(4)]
+    print(f"model: {args.model}; root: {args.root}; env: {args.env or '-'}; load avg {results['load_average']}")
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, width, strict=True)))
+    if results["cache_hit"].get("errors"):
+        print("wrk:", "; ".join(results["cache_hit"]["errors"]))
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,5 @@
+"""`python -m cli`: the same as the `precond` console script."""
+
+from cli.main import app
+
+app()

@@ -1,0 +1,56 @@
+"""The `precond` console script as a user runs it: a real process, JSON on stdout, errors on stderr."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = ROOT / "examples"
+
+
+def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "cli", *args], input=stdin, capture_output=True, text=True, timeout=300, cwd=ROOT
+    )
+
+
+def test_infer_prints_preconditions_and_a_runnable_program() -> None:
+    result = precond("infer", str(EXAMPLES / "infer-enumerate.json"))
+    assert result.returncode == 0, result.stderr
+    body = json.loads(result.stdout)
+    assert "self.user.requested_slot[slot]" in body["preconditions"]["SYSTEM.INFORM"]
+    assert "assert self.user.no_more" in body["program"]
+    assert body["stats"]["total"]["kept"] > 0
+
+
+def test_check_reads_standard_input() -> None:
+    request = json.loads((EXAMPLES / "check-actions.json").read_text())
+    request["calls"].append("system.GOODBYE()")  # no precondition given for GOODBYE: allowed
+    result = precond("check", "-", stdin=json.dumps(request))
+    assert result.returncode == 0, result.stderr
+    verdicts = json.loads(result.stdout)["results"]
+    assert [v["call"] for v in verdicts] == request["calls"]
+    assert verdicts[-1]["allowed"] and not verdicts[0]["allowed"] and verdicts[0]["violations"]
+
+
+def test_bad_request_exits_2_naming_the_field() -> None:
+    bad = json.dumps({"spec": "class A:\n  def f(self): pass\n", "demonstrations": [], "options": {"sedd": 1}})
+    result = precond("infer", "-", stdin=bad)
+    assert result.returncode == 2
+    assert "demonstrations" in result.stderr and "sedd" in result.stderr and result.stdout == ""
+
+
+def test_program_error_exits_2_with_line() -> None:
+    request = json.loads((EXAMPLES / "infer-enumerate.json").read_text())
+    request["demonstrations"][0] += "system.DANCE()\n"
+    result = precond("infer", "-", stdin=json.dumps(request))
+    assert result.returncode == 2
+    assert "demonstrations[0]" in result.stderr and "AttributeError" in result.stderr
+
+
+def test_missing_file_is_a_clear_error() -> None:
+    result = precond("infer", "/nonexistent/request.json")
+    assert result.returncode == 2 and "cannot read" in result.stderr
