@@ -36,9 +36,9 @@ Preconditions = dict[str, list[str]]
 class InferOptions(_Body):
     generators: list[Generator] = Field(default=["model", "enumerate"], min_length=1, max_length=2)
     ranking: Ranking = "recency"
-    samples_per_prompt: int = Field(default=8, ge=1, le=64)
+    samples_per_prompt: int = Field(default=4, ge=1, le=64)
     prompts_per_action: int = Field(
-        default=4, ge=1, le=MAX_DEMONSTRATIONS, description="How many demonstrations to vary across prompts."
+        default=2, ge=1, le=MAX_DEMONSTRATIONS, description="How many demonstrations to vary across prompts."
     )
     demonstrations_per_prompt: int = Field(default=1, ge=1, le=10)
     temperature: float = Field(default=0.8, ge=0.0, le=2.0)

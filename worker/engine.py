@@ -41,7 +41,7 @@ from worker import prompting
 from worker.enumeration import StateModel, enumerate_atoms
 from worker.next_action import NextActionPlanner
 from worker.parsing import parse_samples
-from worker.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank
+from worker.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank, zero_shot
 from worker.spec import Spec, parse_source, parse_spec, render_program, resolve_actions
 
 if TYPE_CHECKING:
@@ -81,14 +81,20 @@ class Proposals:
     """Candidate expressions per action with where they came from, deduplicated across generators."""
 
     source: dict[str, dict[str, str]] = field(default_factory=dict)
+    votes: dict[str, dict[str, int]] = field(default_factory=dict)
     counts: dict[str, StageCounts] = field(default_factory=dict)
 
-    def add(self, action: str, expressions: Sequence[str], origin: str, sampled: int) -> None:
+    def add(
+        self, action: str, expressions: Sequence[str], origin: str, sampled: int, votes: dict[str, int] | None = None
+    ) -> None:
         known = self.source.setdefault(action, {})
         counts = self.counts.setdefault(action, StageCounts())
         counts.sampled += sampled
         for expression in expressions:
             known.setdefault(expression, origin)
+        tally = self.votes.setdefault(action, {})
+        for expression, n in (votes or {}).items():
+            tally[expression] = tally.get(expression, 0) + n
         counts.parsed = len(known)
 
 
@@ -197,7 +203,7 @@ class Engine:
             samples = model.complete(prefix, suffixes, options.samples_per_prompt, sampling, "statement", cancelled)
             for action, texts in zip(actions, samples, strict=True):
                 parsed = parse_samples(texts)
-                proposals.add(action, parsed.assertions, "model", parsed.sampled)
+                proposals.add(action, parsed.assertions, "model", parsed.sampled, parsed.votes)
         progress("generate", len(windows), len(windows))
         return model.info
 
@@ -230,7 +236,10 @@ class Engine:
                      for r in results if r.status == "valid"]
             clusters = informative(cluster(valid), len(points))
             evidence = ActionEvidence(points, trace.actions[action].occurrences, turns, trace.actions[action].params)
-            chosen = rank(criterion, clusters, evidence) if trace.actions[action].occurrences else []
+            if trace.actions[action].occurrences:
+                chosen = rank(criterion, clusters, evidence)
+            else:
+                chosen = zero_shot(valid, proposals.votes.get(action, {}))
             kept[action] = chosen
             counts = proposals.counts.setdefault(action, StageCounts())
             counts.valid, counts.clusters, counts.kept = len(valid), len(clusters), len(chosen)

@@ -18,6 +18,7 @@ MAX_TRIM = 40
 @dataclass
 class ParsedSamples:
     assertions: list[str] = field(default_factory=list)
+    votes: dict[str, int] = field(default_factory=dict)  # how many samples proposed each assertion
     sampled: int = 0
     syntax_errors: int = 0
 
@@ -75,7 +76,8 @@ def parse_samples(samples: Iterable[str]) -> ParsedSamples:
         if found is None:
             out.syntax_errors += 1
             continue
-        for expression in found:
+        for expression in dict.fromkeys(found):
+            out.votes[expression] = out.votes.get(expression, 0) + 1
             if expression not in seen:
                 seen.add(expression)
                 out.assertions.append(expression)

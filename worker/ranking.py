@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from sandbox.types import Point
 
 MIN_GAIN = 0.3
+MIN_VOTES = 2
 
 
 @dataclass(frozen=True)
@@ -147,6 +148,19 @@ def marginal(clusters: Sequence[Cluster], evidence: ActionEvidence, min_gain: fl
         allowed &= best.satisfied
         remaining.remove(best)
     return chosen
+
+
+def zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int]) -> list[Cluster]:
+    """An action never demonstrated has no evidence to rank by: every candidate is vacuously valid.
+
+    Then the code model's prior is all there is (the paper's zero-shot setting): keep its most-proposed
+    assertion, if more than one sample agreed on it.
+    """
+    proposed = [c for c in valid if votes.get(c.expression, 0) >= MIN_VOTES]
+    if not proposed:
+        return []
+    best = max(proposed, key=lambda c: (votes[c.expression], -len(c.expression)))
+    return [Cluster((best,))]
 
 
 def rank(criterion: str, clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:

@@ -22,3 +22,8 @@ def test_garbage_counts_as_syntax_error_and_duplicates_collapse() -> None:
     parsed = parse_samples([" a", " (a)", " ((", " b and a"])
     assert parsed.assertions == ["a", "b"]
     assert (parsed.sampled, parsed.syntax_errors) == (4, 1)
+
+
+def test_votes_count_samples_not_occurrences() -> None:
+    parsed = parse_samples([" a and a", " a", " b"])
+    assert parsed.votes == {"a": 2, "b": 1}

@@ -1,5 +1,14 @@
 from sandbox.types import Point
-from worker.ranking import ActionEvidence, Candidate, cluster, enabling_rate, informative, rank, subsumption
+from worker.ranking import (
+    ActionEvidence,
+    Candidate,
+    cluster,
+    enabling_rate,
+    informative,
+    rank,
+    subsumption,
+    zero_shot,
+)
 
 
 def c(expression: str, bits: str) -> Candidate:
@@ -58,3 +67,10 @@ def test_marginal_stops_adding_conditions_that_trim_little() -> None:
     assert [k.representative.expression for k in kept] == ["tight"]
     assert [k.representative.expression for k in rank("subsumption", cluster([tight, near_trivial]), _evidence())] \
         == ["tight", "near trivial"]
+
+
+def test_zero_shot_keeps_the_most_proposed_assertion_only_when_samples_agree() -> None:
+    valid = [c("self.env.get_property(recep, 'open')", "0"), c("False", "0"), c("recep", "0")]
+    votes = {"self.env.get_property(recep, 'open')": 3, "False": 1, "recep": 2}
+    assert [k.representative.expression for k in zero_shot(valid, votes)] == ["self.env.get_property(recep, 'open')"]
+    assert zero_shot(valid, {"False": 1}) == []
