@@ -137,7 +137,7 @@ def report(
 def run_all(
     data: DataOption = DEFAULT_DATA,
     cache_dir: CacheOption = DEFAULT_CACHE,
-    configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "default,probe",
+    configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "no-model,probe",
 ) -> None:
     """Re-score every config from the cache (model configs only if cached: no model is loaded), then report."""
     from evaluation.configs import expand

@@ -26,7 +26,7 @@ DEMO_COUNTS = (1, 2, 4)
 
 GRIDS: dict[str, tuple[str, ...]] = {
     "baselines": BASELINES,
-    "enumerate": ("enumerate/subsumption", "enumerate/recency"),
+    "enumerate": ("enumerate/subsumption", "enumerate/recency", "enumerate/marginal"),
     "enumerate-demos": tuple(f"enumerate/{r}/demos={n}"
                              for r in ("subsumption", "recency") for n in DEMO_COUNTS),
     "model": ("model/subsumption", "model/recency", "model+enumerate/subsumption", "model+enumerate/recency"),

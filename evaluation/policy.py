@@ -9,7 +9,9 @@ multisets of calls: turn F1 (`evaluation.metrics.turn_f1`), averaged over turns.
 
 Precondition compatibility is the share of predicted actions that the GROUND-TRUTH preconditions allow in
 the state where they were predicted, checked with `Engine.check` (the sandbox). A prediction that is not a
-call of an action function counts as incompatible: a policy that emits garbage has not respected anything.
+call of an action function (the engine returns the model's line as is when even its first line is no
+action, typically a `user.` act) counts as incompatible in `compatibility`; `compatibility_of_actions`
+leaves such lines out, i.e. it judges only what the policy proposed as a system action.
 
 When the engine refuses a request because the history itself violates the preconditions it was given
 (inferred preconditions that contradict the dialog), the refusal is counted (`engine_errors`) and that
@@ -153,8 +155,7 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
         response = engine.next_action(request.model_copy(update={"preconditions": {}, "options": plain}))
     seconds = time.perf_counter() - start
     predicted = [normalize_call(a.call) for a in response.actions]
-    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds, "error": error,
-            "compatible": _compatible(engine, domain, segment.history, predicted)}
+    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds, "error": error}
 
 
 def receivers(history: str) -> dict[str, str]:
@@ -201,7 +202,11 @@ def _compatible(engine: PolicyEngine, domain: Domain, history: str, calls: list[
 def run_policy(engine: PolicyEngine, domain: Domain, config: PolicyConfig,
                preconditions: dict[str, list[str]], dialogs: Sequence[dict[str, Any]], cache: JsonCache,
                max_turns: int | None, seed: int = 0) -> list[dict[str, Any]]:
-    """Every selected segment's prediction, from the cache when present; one cache file per dialog."""
+    """Every selected segment's prediction, from the cache when present; one cache file per dialog.
+
+    Compatibility is judged afresh on every run (a sandbox check is milliseconds), so a cached prediction is
+    never scored under an outdated rule or ground truth.
+    """
     results: list[dict[str, Any]] = []
     for dialog in tqdm(dialogs, desc=f"{domain.name} {config.name}", unit="dialog", leave=False):
         done: dict[str, Any] = cache.get("policy", domain.name, config.name, dialog["dialogue_id"]) or {}
@@ -211,7 +216,12 @@ def run_policy(engine: PolicyEngine, domain: Domain, config: PolicyConfig,
                 done[segment.key] = _predict(engine, domain, config, preconditions, segment, seed) | {
                     "turn": segment.turn}
                 cache.put(done, "policy", domain.name, config.name, dialog["dialogue_id"])
-            results.append(done[segment.key] | {"dialog": dialog["dialogue_id"]})
+            predicted = done[segment.key]["predicted"]
+            known = receivers(segment.history)
+            results.append(done[segment.key] | {
+                "dialog": dialog["dialogue_id"],
+                "compatible": _compatible(engine, domain, segment.history, predicted),
+                "is_action": [action_of(c, known) in domain.actions for c in predicted]})
     return results
 
 
@@ -224,10 +234,14 @@ def summarize_policy(results: Sequence[dict[str, Any]]) -> dict[str, Any]:
         reference.extend(r["reference"])
     scores = [turn_f1(p, ref) for p, ref in turns.values()]
     compatible = [c for r in results for c in r["compatible"]]
+    of_actions = [c for r in results for c, a in zip(r["compatible"], r.get("is_action", r["compatible"]),
+                                                       strict=True) if a]
     latency = [r["seconds"] for r in results]
     errors = sum(1 for r in results if r.get("error"))
     return {"turns": len(turns), "requests": len(results), "actions": len(compatible), "engine_errors": errors,
             "f1": mean(s.f1 for s in scores), "precision": mean(s.precision for s in scores),
             "recall": mean(s.recall for s in scores),
             "compatibility": mean(1.0 if c else 0.0 for c in compatible),
+            "compatibility_of_actions": mean(1.0 if c else 0.0 for c in of_actions),
+            "non_actions": len(compatible) - len(of_actions),
             "latency_p50_s": percentile(latency, 50), "latency_p95_s": percentile(latency, 95)}

@@ -79,8 +79,13 @@ def precondition_table(summary: Sequence[dict[str, Any]]) -> str:
     return _markdown(["config", "benchmark", "domains", "P", "R", "F1", "errors"], rows)
 
 
+def _measured(rows: Sequence[dict[str, Any]]) -> list[str]:
+    """Configs with at least one scored row, in first-seen order (error-only configs have nothing to show)."""
+    return list(dict.fromkeys(r["config"] for r in rows if "macro" in r))
+
+
 def main_table(rows: Sequence[dict[str, Any]]) -> str:
-    configs = list(dict.fromkeys(r["config"] for r in rows))
+    configs = _measured(rows)
     header = ["config"] + [f"{name} {m}" for name, _ in TABLE_BENCHMARKS for m in ("P", "R", "F1")]
     body = []
     for config in configs:
@@ -94,7 +99,7 @@ def main_table(rows: Sequence[dict[str, Any]]) -> str:
 
 def domain_table(rows: Sequence[dict[str, Any]]) -> str:
     domains = list(dict.fromkeys(r["domain"] for r in rows))
-    configs = list(dict.fromkeys(r["config"] for r in rows))
+    configs = _measured(rows)
     index = {(r["config"], r["domain"]): r for r in rows}
     body = []
     for config in configs:
@@ -124,10 +129,12 @@ def action_table(rows: Sequence[dict[str, Any]], domain: str) -> str:
 
 def policy_table(rows: Sequence[dict[str, Any]]) -> str:
     body = [[r["domain"], f"`{r['config']}`", str(r["turns"]),
-             str(r["actions"]), _fmt(r["f1"]), _fmt(r["compatibility"]), f"{r['latency_p50_s']:.2f}",
-             f"{r['latency_p95_s']:.2f}", f"{r.get('engine_errors', 0)}/{r['requests']}"] for r in rows]
-    return _markdown(["domain", "config", "turns", "predicted actions", "turn F1", "GT compat.",
-                      "p50 s/request", "p95 s/request", "refused requests"], body)
+             str(r["actions"]), _fmt(r["f1"]), _fmt(r["compatibility"]),
+             f"{_fmt(r.get('compatibility_of_actions'))} ({r.get('non_actions', 0)} non-actions)",
+             f"{r['latency_p50_s']:.2f}", f"{r['latency_p95_s']:.2f}",
+             f"{r.get('engine_errors', 0)}/{r['requests']}"] for r in rows]
+    return _markdown(["domain", "config", "turns", "predictions", "turn F1", "GT compat.",
+                      "GT compat. of system actions", "p50 s/request", "p95 s/request", "refused requests"], body)
 
 
 def _policy_overall(rows: Sequence[dict[str, Any]]) -> str:
@@ -146,7 +153,7 @@ def _policy_overall(rows: Sequence[dict[str, Any]]) -> str:
 
 def speed_table(rows: Sequence[dict[str, Any]]) -> str:
     chosen = [r for r in rows if r["domain"] == SPEED_DOMAIN and r.get("seconds")
-              and "demos=" not in r["config"]]
+              and "demos=" not in r["config"] and "maxrate=" not in r["config"]]
     phases = list(dict.fromkeys(p for r in chosen for p in r["seconds"]))
     body = [[f"`{r['config']}`", *(f"{r['seconds'].get(p, 0.0):.2f}" for p in phases), f"{r['wall_s']:.1f}"]
             for r in chosen]

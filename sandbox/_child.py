@@ -921,8 +921,8 @@ def job_check(payload: dict[str, typing.Any], ctx: Context) -> dict[str, object]
 
         return guarded
 
+    program.run()  # the history is what happened: preconditions judge only the proposed calls
     program.instrument(wrap)
-    program.run()
     return {"verdicts": [_verdict(spec, program, guards, signatures, call) for call in calls]}
 
 

@@ -19,6 +19,9 @@ BANNED_NAMES = frozenset({
     "__import__", "breakpoint", "input",
 })
 MAX_EXPRESSION_CHARS = 4000
+MAX_IDENTIFIER_CHARS = 100
+"""Longer names are refused: results carry action names (`Class.method`) bounded at 200 characters, and a
+name cut there would no longer match the spec's."""
 
 
 def _dunder(name: str) -> bool:
@@ -109,6 +112,10 @@ def _program_problem(source: str) -> tuple[int | None, str, str] | None:
     except (ValueError, MemoryError, RecursionError) as exc:
         return None, "SyntaxError", clean(str(exc))
     for node in ast.walk(tree):
+        long = _identifier(node)
+        if long is not None and len(long) > MAX_IDENTIFIER_CHARS:
+            message = f"identifier {clean(long, 40)!r} is longer than {MAX_IDENTIFIER_CHARS} characters"
+            return getattr(node, "lineno", None), "DisallowedConstruct", message
         name = None
         if isinstance(node, ast.Attribute) and _dunder(node.attr) and node.attr != "__init__":
             name = node.attr
@@ -117,4 +124,16 @@ def _program_problem(source: str) -> tuple[int | None, str, str] | None:
         if name is not None:
             message = f"access to {clean(name, 80)!r} is not allowed"
             return getattr(node, "lineno", None), "DisallowedConstruct", message
+    return None
+
+
+def _identifier(node: ast.AST) -> str | None:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        return node.attr
+    if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
+        return node.name
+    if isinstance(node, ast.arg):
+        return node.arg
     return None

@@ -43,10 +43,27 @@ def request_id(request: Request) -> str:
     return str(getattr(request.state, "request_id", ""))
 
 
+MAX_MESSAGE_CHARS = 1000
+MAX_FIELD_CHARS = 200
+
+
+def _cut(text: str, limit: int) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def bounded(info: ErrorInfo) -> ErrorInfo:
+    """Messages and fields cut to a bounded size: they may quote the input (an unknown 1 MB action name)."""
+    return ErrorInfo(
+        type=_cut(info.type, MAX_FIELD_CHARS),
+        message=_cut(info.message, MAX_MESSAGE_CHARS),
+        field=None if info.field is None else _cut(info.field, MAX_FIELD_CHARS),
+    )
+
+
 def error_response(
     request: Request, status: int, info: ErrorInfo, headers: dict[str, str] | None = None
 ) -> JSONResponse:
-    body = ErrorResponse(error=info, request_id=request_id(request))
+    body = ErrorResponse(error=bounded(info), request_id=request_id(request))
     return JSONResponse(body.model_dump(exclude_none=True), status_code=status, headers=headers)
 
 

@@ -14,17 +14,29 @@ import time
 from typing import Any
 
 from arq.connections import ArqRedis
-from arq.constants import abort_jobs_ss, result_key_prefix
+from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, result_key_prefix
 from arq.jobs import Job, JobResult
 from arq.jobs import JobStatus as ArqStatus
 
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.cache import ResultCache
 from service.completions import Completions
+from service.errors import bounded
 from service.keys import JOB_FUNCTION, QUEUE_BY_KIND, kind_of, progress_key
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
+
+
+_UNDO_OVER_BOUND = """
+local rank = redis.call('zrank', KEYS[1], ARGV[1])
+if rank and rank >= tonumber(ARGV[2]) and redis.call('exists', KEYS[3]) == 0 then
+  redis.call('zrem', KEYS[1], ARGV[1])
+  redis.call('del', KEYS[2])
+  return 1
+end
+return 0
+"""
 
 
 class QueueFull(Exception):
@@ -53,7 +65,19 @@ class JobQueue:
         enqueued = await self._enqueue(kind, job_id, body)
         if enqueued is None and await self._last_run_unusable(job):
             await self.redis.delete(result_key_prefix + job_id)
-            await self._enqueue(kind, job_id, body)
+            enqueued = await self._enqueue(kind, job_id, body)
+        if enqueued is not None and await self._over_bound(queue, job_id):
+            raise QueueFull(queue)
+
+    async def _over_bound(self, queue: str, job_id: str) -> bool:
+        """Take back a job that concurrent submissions pushed past the bound (the depth check above is not
+        atomic with the enqueue: 48 clients at once all saw a short queue). Jobs rank by enqueue time, so the
+        latest arrivals are the ones refused; a job a worker already started is left alone."""
+        undone = await self.redis.eval(  # type: ignore[no-untyped-call]
+            _UNDO_OVER_BOUND, 3, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
+            job_id, self.max_jobs,
+        )
+        return bool(undone)
 
     async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any]) -> Job | None:
         await self.redis.zrem(abort_jobs_ss, job_id)
@@ -139,7 +163,7 @@ def _state(info: JobResult) -> tuple[Any, dict[str, Any] | None, ErrorInfo | Non
     if info.success:
         outcome: dict[str, Any] = info.result
         error = outcome.get("error")
-        return outcome["status"], outcome.get("result"), None if error is None else ErrorInfo(**error)
+        return outcome["status"], outcome.get("result"), None if error is None else bounded(ErrorInfo(**error))
     if isinstance(info.result, asyncio.CancelledError):
         return "cancelled", None, ErrorInfo(type="cancelled", message="the job was cancelled")
-    return "failed", None, ErrorInfo(type="internal", message=f"job failed: {info.result!r}")
+    return "failed", None, bounded(ErrorInfo(type="internal", message=f"job failed: {info.result!r}"))

@@ -8,6 +8,7 @@ engine polls between steps.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import threading
 import time
@@ -16,6 +17,7 @@ from typing import Any
 
 from pydantic import BaseModel
 from redis.asyncio import Redis
+from redis.exceptions import RedisError
 
 from schemas.api import CheckRequest, InferRequest, JobKind, NextActionRequest
 from schemas.errors import PrecondError, ResourceLimit
@@ -102,9 +104,13 @@ async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]
         raise
     finally:
         reporter.finish_phase()
-    if outcome["status"] == "succeeded":
-        await ResultCache(redis, settings.cache_ttl_s).put(job_id, outcome["result"])
-    if outcome.pop("sandbox_limit", False):
-        await redis.hincrby(STATS_KEY, "sandbox_failures", 1)
-    await redis.hincrby(STATS_KEY, f"jobs:{kind}:{outcome['status']}", 1)
+    sandbox_limit = outcome.pop("sandbox_limit", False)
+    # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
+    # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
+    with contextlib.suppress(RedisError, OSError):
+        if outcome["status"] == "succeeded":
+            await ResultCache(redis, settings.cache_ttl_s).put(job_id, outcome["result"])
+        if sandbox_limit:
+            await redis.hincrby(STATS_KEY, "sandbox_failures", 1)
+        await redis.hincrby(STATS_KEY, f"jobs:{kind}:{outcome['status']}", 1)
     return dict(outcome)

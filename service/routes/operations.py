@@ -36,6 +36,7 @@ Wait = Annotated[
 ]
 ERRORS: dict[int | str, dict[str, Any]] = {
     202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
+    400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
     413: {"model": ErrorResponse, "description": "Body larger than the configured bound."},
     422: {"model": ErrorResponse, "description": "Malformed body, or input the engine cannot use."},
     429: {"model": ErrorResponse, "description": "Queue full; see Retry-After."},

@@ -156,3 +156,17 @@ def test_a_turn_continues_until_the_model_hands_it_back(restaurants: dict[str, A
     model = ScriptedModel("user.INFORM('cuisine')", ["system.REQUEST('cuisine')"])
     actions = _next(restaurants, model, max_actions=3)
     assert [(a.call, a.verified, a.attempts) for a in actions] == [("system.REQUEST('cuisine')", True, 2)]
+
+
+def test_a_history_that_broke_the_preconditions_is_still_a_valid_history(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    # what already happened is fact: REQUEST('city') after the user gave the city violates the GT rule,
+    # yet the next calls are judged on the state it left
+    history = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM('city')\nsystem.REQUEST('city')\n"
+    response = engine.check(CheckRequest(
+        spec=restaurants["spec_program"], preconditions=_gt(restaurants), history=history,
+        calls=["system.REQUEST('city')", "system.REQUEST('cuisine')"],
+    ))
+    assert [(r.allowed, r.violations) for r in response.results] == [
+        (False, ["not self.user.informed_slot[slot]"]), (True, [])]

@@ -14,7 +14,8 @@ import signal
 import statistics
 import subprocess
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -197,3 +198,34 @@ def median(values: list[float]) -> float:
 
 def sigkill(pid: int) -> None:
     os.kill(pid, signal.SIGKILL)
+
+
+# ---- stacks per scenario ------------------------------------------------------------------------------
+
+SETTINGS: dict[str, dict[str, str]] = {
+    # Re-runs of a killed worker's job come job timeout + 10 s after it started: keep the timeout short,
+    # far above a job's ~1 s. The queue bound must hold every job at once.
+    "crash": {"PRECOND_JOB_TIMEOUT_S": "5", "PRECOND_QUEUE_MAX_JOBS": "1000"},
+    "redis": {"PRECOND_JOB_TIMEOUT_S": "5", "PRECOND_QUEUE_MAX_JOBS": "1000", "PRECOND_RETRY_AFTER_S": "2"},
+    # Production body bound (4 MiB), sandbox limits as configured by SANDBOX_* (CI shortens them).
+    "hostile": {"PRECOND_MAX_BODY_BYTES": "4194304", "PRECOND_WAIT_MAX_S": "60"},
+    "fuzz": {"PRECOND_MAX_BODY_BYTES": "4194304", "PRECOND_WAIT_MAX_S": "2", "PRECOND_QUEUE_MAX_JOBS": "16"},
+    "overload": {"PRECOND_QUEUE_MAX_JOBS": "8", "PRECOND_JOB_TIMEOUT_S": "60"},
+    "shutdown-drain": {"PRECOND_DRAIN_S": "20", "PRECOND_JOB_TIMEOUT_S": "30"},
+    "shutdown-handback": {"PRECOND_DRAIN_S": "1", "PRECOND_JOB_TIMEOUT_S": "30"},
+}
+
+FAST_SANDBOX = {"SANDBOX_TIMEOUT_S": "2", "SANDBOX_CPU_S": "2"}
+"""CI: looping hostile programs cost their wall-clock limit each; production's is 10 s."""
+
+
+@contextmanager
+def scenario_stack(name: str, tmp: Path, model_dir: Path, persistent: bool = False,
+                   **overrides: str) -> Iterator[Stack]:
+    stack = build_stack(tmp, model_dir, persistent=persistent, **{**SETTINGS[name], **overrides})
+    try:
+        stack.start_gateway()
+        yield stack
+    finally:
+        stack.stop()
+        stack.redis.stop()

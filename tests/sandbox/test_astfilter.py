@@ -42,3 +42,11 @@ def test_check_program() -> None:
     with pytest.raises(ProgramError) as caught:
         check_program("def f(:\n", "spec")
     assert caught.value.exc_type == "SyntaxError" and caught.value.line == 1
+
+
+def test_huge_identifier_is_refused() -> None:
+    # Action names travel back from the sandbox bounded at 200 characters; a longer one would not match.
+    for source in (f"class {'A' * 101}:\n    pass\n", f"x = {'b' * 101}\n", f"def f({'c' * 101}):\n    pass\n"):
+        with pytest.raises(ProgramError, match="longer than 100 characters"):
+            check_program(source, "spec")
+    check_program(f"class {'A' * 100}:\n    pass\n", "spec")

@@ -1,0 +1,113 @@
+"""Reliability scenarios at full size (docs/reliability.md); tests/reliability/ runs the same code small.
+
+    python bench/reliability.py                          # every scenario, full size (~15 min on 2 cores)
+    python bench/reliability.py crash redis              # some of them
+    python bench/reliability.py --quick                  # the CI sizes
+    python bench/reliability.py --json bench/reliability.json
+
+Scenarios: crash (200 infer jobs, a worker SIGKILLed 6 times, then
+the same without kills), redis (SIGTERM and SIGKILL restart with the
+append-only file), hostile (the hostile corpus over HTTP, production sandbox limits), fuzz (schemathesis,
+all operations), overload (48 clients on one worker, queue bound 8), shutdown (SIGTERM mid-job, drain longer
+and shorter than the job). Each runs on its own redis-server + gateway + workers on free loopback ports,
+with the tiny random model of tests/tiny_model.py (model-free enumerate jobs do the real work).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from tests.reliability import scenarios  # noqa: E402
+from tests.reliability.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
+from tests.tiny_model import build_tiny_model  # noqa: E402
+
+FULL = {
+    "crash": {"jobs": 200, "kills": 6, "millions": 5},
+    "redis": {"jobs": 40, "millions": 5, "down_s": 5.0},
+    "fuzz": {"max_examples": 100},
+    "overload": {"clients": 48, "duration_s": 60.0, "millions": 5},
+    "shutdown": {"millions": 30},
+}
+QUICK = {
+    "crash": {"jobs": 40, "kills": 3, "millions": 3},
+    "redis": {"jobs": 12, "millions": 3, "down_s": 2.0},
+    "fuzz": {"max_examples": 8},
+    "overload": {"clients": 24, "duration_s": 12.0, "millions": 3},
+    "shutdown": {"millions": 30},
+}
+
+
+def run(name: str, size: dict[str, Any], tmp: Path, model: Path, quick: bool) -> Any:
+    sandbox = FAST_SANDBOX if quick else {}
+    where = tmp / name
+    where.mkdir()
+    if name == "crash":
+        with scenario_stack("crash", where, model) as stack:
+            figures = {"with_kills": scenarios.worker_crashes(stack, **size)}
+        if not quick:  # the same load without kills: the extra latency is the difference
+            (where / "baseline").mkdir()
+            with scenario_stack("crash", where / "baseline", model) as stack:
+                figures["baseline"] = scenarios.worker_crashes(stack, **{**size, "kills": 0})
+        return figures
+    if name == "redis":
+        figures = []
+        for kill in (False, True):
+            sub = where / ("kill" if kill else "term")
+            sub.mkdir()
+            with scenario_stack("redis", sub, model, persistent=True) as stack:
+                figures.append(scenarios.redis_restart(stack, kill=kill, **size))
+        return figures
+    if name == "hostile":
+        canaries = where / "canaries"
+        canaries.mkdir()
+        with scenario_stack("hostile", where, model, **sandbox) as stack:
+            return scenarios.hostile_input(stack, canaries)
+    if name == "fuzz":
+        with scenario_stack("fuzz", where, model, **FAST_SANDBOX) as stack:
+            return scenarios.fuzz(stack, seed=1, out=where / "schemathesis", **size)
+    if name == "overload":
+        with scenario_stack("overload", where, model) as stack:
+            return scenarios.overload(stack, **size)
+    if name == "shutdown":
+        figures = []
+        for covers in (True, False):
+            sub = where / ("drain" if covers else "handback")
+            sub.mkdir()
+            with scenario_stack("shutdown-drain" if covers else "shutdown-handback", sub, model) as stack:
+                figures.append(scenarios.graceful_shutdown(stack, drain_covers_job=covers, **size))
+        return figures
+    raise SystemExit(f"unknown scenario {name}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("names", nargs="*", default=["crash", "redis", "hostile", "fuzz", "overload", "shutdown"])
+    parser.add_argument("--quick", action="store_true", help="the CI sizes (and CI's short sandbox limits)")
+    parser.add_argument("--json", type=Path, help="write all figures here")
+    parser.add_argument("--keep", action="store_true", help="keep the temp dir (logs, schemathesis reports)")
+    args = parser.parse_args()
+    sizes = QUICK if args.quick else FULL
+    tmp = Path(tempfile.mkdtemp(prefix="reliability-"))
+    model = build_tiny_model(tmp / "tiny-model")
+    figures: dict[str, Any] = {}
+    for name in args.names:
+        figures[name] = run(name, sizes.get(name, {}), tmp, model, args.quick)
+        shown = figures[name]
+        if name == "hostile":
+            shown = {k: v for k, v in shown.items() if k != "results"}
+        print(f"== {name}\n{json.dumps(shown, indent=2)}", flush=True)
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2) + "\n")
+    print(f"logs and reports: {tmp}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,37 @@
+"""Workers SIGKILLed mid-job and SIGTERMed mid-job: no accepted job is lost, each id has one result."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tests.reliability import scenarios
+from tests.reliability.harness import scenario_stack
+
+
+def test_sigkilled_workers_lose_no_job(tmp_path: Path, tiny_model_dir: Path) -> None:
+    with scenario_stack("crash", tmp_path, tiny_model_dir) as stack:
+        figures = scenarios.worker_crashes(stack, jobs=40, kills=3, millions=3, deadline_s=150)
+    assert figures["lost"] == 0 and figures["succeeded"] == 40, figures
+    assert figures["distinct_ids"] == 40 and figures["duplicates_seen"] == 0, figures
+    assert figures["distinct_results"] == 1, figures  # every run of the rules gives the same answer
+    assert figures["kills"] == 3
+    assert figures["jobs_rerun"] >= 1, figures  # at least one kill hit a running job (a kill lands mid-job)
+    assert figures["executions_started"] == 40 + figures["jobs_rerun"], figures
+    assert figures["sandbox_servers_orphaned"] == 0, figures
+
+
+def test_sigterm_mid_job_finishes_it_within_the_drain(tmp_path: Path, tiny_model_dir: Path) -> None:
+    with scenario_stack("shutdown-drain", tmp_path, tiny_model_dir) as stack:
+        figures = scenarios.graceful_shutdown(stack, millions=30, drain_covers_job=True)
+    assert figures["worker_exit_code"] == 0, figures
+    assert figures["state_when_worker_exited"] == "succeeded" and figures["runs"] == 1, figures
+
+
+def test_sigterm_past_the_drain_hands_the_job_back(tmp_path: Path, tiny_model_dir: Path) -> None:
+    with scenario_stack("shutdown-handback", tmp_path, tiny_model_dir) as stack:
+        figures = scenarios.graceful_shutdown(stack, millions=30, drain_covers_job=False)
+    assert figures["worker_exit_code"] == 0, figures
+    assert figures["state_when_worker_exited"] == "queued", figures  # back in the queue, not stuck "running"
+    assert figures["final_state"] == "succeeded" and figures["runs"] == 2, figures
+    # Re-run at once by the next worker, not after the in-progress key's expiry (job timeout + 10 s).
+    assert figures["done_after_sigterm_s"] < figures["job_timeout_s"], figures
