@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Iterator, Sequence
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -13,14 +11,6 @@ from sandbox import Sandbox
 from schemas.api import CheckRequest, InferRequest, ModelInfo, NextActionRequest
 from schemas.errors import InvalidProgram, UnknownAction
 from worker.engine import Engine
-
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
-
-
-@pytest.fixture(scope="module")
-def restaurants() -> dict[str, Any]:
-    data: dict[str, Any] = json.loads((SHARED / "sgd" / "Restaurants_1.json").read_text())
-    return data
 
 
 @pytest.fixture(scope="module")

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -15,13 +13,8 @@ from worker.engine import Engine
 from worker.models import ModelSettings, load_code_model
 
 pytestmark = pytest.mark.model
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 
 
-@pytest.fixture(scope="module")
-def restaurants() -> dict[str, Any]:
-    data: dict[str, Any] = json.loads((SHARED / "sgd" / "Restaurants_1.json").read_text())
-    return data
 
 
 @pytest.fixture(scope="module")
