@@ -39,7 +39,7 @@ FULL = {
 QUICK = {
     "crash": {"jobs": 40, "kills": 3, "millions": 3},
     "redis": {"jobs": 12, "millions": 3, "down_s": 2.0},
-    "fuzz": {"max_examples": 8},
+    "fuzz": {"max_examples": 15},
     "overload": {"clients": 24, "duration_s": 12.0, "millions": 3},
     "shutdown": {"millions": 30},
 }

@@ -25,7 +25,10 @@ QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
 }
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
-WORKERS_PATTERN: Final = f"{PREFIX}:worker:*"
+WORKER_PREFIX: Final = f"{PREFIX}:worker:"
+WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
+RUNNING_KEY: Final = f"{PREFIX}:running"
+"""Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see service.heartbeats."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
 _JOB_ID = re.compile(r"^(infer|next-action|check)-[0-9a-f]{64}$")
@@ -45,7 +48,7 @@ def done_channel(job_id: str) -> str:
 
 
 def worker_key(worker_id: str) -> str:
-    return f"{PREFIX}:worker:{worker_id}"
+    return f"{WORKER_PREFIX}{worker_id}"
 
 
 def kind_of(job_id: str) -> JobKind | None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from pydantic import AliasChoices, Field
+from pydantic import AliasChoices, Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 DEFAULT_REDIS_URL = "redis://127.0.0.1:6379/0"
@@ -45,8 +45,8 @@ class Settings(BaseSettings):
     job_timeout_s: float = Field(
         default=900.0,
         gt=0,
-        description="Longest a model job may run. A job whose worker died is run again by another worker "
-        "this long plus 10 s after it started (arq's in-progress key expiry).",
+        description="Longest a model job may run. (A job whose worker died is handed to another worker "
+        "once the dead worker's heartbeat expires, not after this timeout.)",
     )
     check_timeout_s: float = Field(default=60.0, gt=0, description="Longest a check-actions job may run.")
     job_max_tries: int = Field(
@@ -68,10 +68,27 @@ class Settings(BaseSettings):
     drain_s: int = Field(
         default=30, ge=0, description="On SIGTERM, how long a worker lets running jobs finish."
     )
-    heartbeat_s: float = Field(default=2.0, gt=0, description="Worker heartbeat period; 3 missed = gone.")
+    heartbeat_s: float = Field(default=2.0, gt=0, description="Worker heartbeat period.")
+    heartbeat_ttl_s: float | None = Field(
+        default=None,
+        gt=0,
+        description="How long a worker's heartbeat lives: a worker silent this long is dead, and the jobs it "
+        "was running are handed to live workers at their next heartbeat. Unset: 3 × `PRECOND_HEARTBEAT_S`.",
+    )
     preload_model: bool = Field(
         default=True, description="Load the model when the worker starts (else lazily)."
     )
+
+    @model_validator(mode="after")
+    def _ttl_outlives_a_beat(self) -> Settings:
+        if self.heartbeat_ttl_s is not None and self.heartbeat_ttl_s <= self.heartbeat_s:
+            raise ValueError("PRECOND_HEARTBEAT_TTL_S must be longer than PRECOND_HEARTBEAT_S")
+        return self
+
+    @property
+    def heartbeat_lease_s(self) -> float:
+        """Effective heartbeat lifetime (`heartbeat_ttl_s`, or three beats)."""
+        return self.heartbeat_ttl_s or 3 * self.heartbeat_s
 
     @property
     def redis_dsn(self) -> str:

@@ -163,9 +163,10 @@ class Engine:
         with timer.phase("rank"):
             kept, reports = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
         preconditions = {a: [c.representative.expression for c in kept[a]] for a in actions}
-        program = render_program(spec, preconditions)
         with timer.phase("verify"):
-            sandbox_call(self._sandbox.trace, program, demos)
+            program = self._verified_program(spec, preconditions, demos, reports)
+        for action in actions:
+            proposals.counts[action].kept = len(preconditions[action])
         total = StageCounts()
         for counts in proposals.counts.values():
             for name in StageCounts.model_fields:
@@ -246,6 +247,47 @@ class Engine:
             reports[action] = _reports(results, origins, clusters, chosen)
         return kept, reports
 
+    def _verified_program(
+        self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str],
+        reports: dict[str, list[CandidateReport]],
+    ) -> str:
+        """The spec with the kept assertions, run on every demonstration; assertions that fail together are dropped.
+
+        Each assertion was validated alone, but together they can disagree: one action's assertion may change
+        the state another reads (subscripting a defaultdict inserts the key, so `len(d) == 1` later fails).
+        The assertion that fails is dropped (it is the one that read state its validation never saw) until
+        the program runs, and its report says why.
+        """
+        while True:
+            failure = self._failure(spec, preconditions, demos)
+            if failure is None:
+                return render_program(spec, preconditions)
+            action = _action_at(spec, demos[failure.index or 0], failure.line or 0, preconditions)
+            if failure.where != "demonstration" or action is None:
+                raise InvalidProgram(str(failure), field=f"demonstrations[{failure.index}]")
+            kept = preconditions[action]
+            culprit = next(
+                (i for i in reversed(range(len(kept)))
+                 if not _same_place(self._failure(spec, {**preconditions, action: kept[:i] + kept[i + 1:]}, demos),
+                                    failure)),
+                len(kept) - 1,
+            )
+            dropped = kept.pop(culprit)
+            for report in reports[action]:
+                if report.assertion == dropped:
+                    report.kept = False
+                    report.reason = (f"dropped: fails with the other kept assertions "
+                                     f"(demonstration {failure.index}, line {failure.line})")
+
+    def _failure(self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str]) -> ProgramError | None:
+        try:
+            sandbox_call(self._sandbox.trace, render_program(spec, preconditions), demos)
+        except InvalidProgram as exc:
+            if isinstance(exc.__cause__, ProgramError):
+                return exc.__cause__
+            raise
+        return None
+
     # ---- next action (Algorithm 1) ------------------------------------------------------------------
     def next_action(
         self,
@@ -286,6 +328,20 @@ def _check_precondition_names(spec: Spec, preconditions: dict[str, list[str]]) -
     for name in preconditions:
         if name not in spec.methods:
             raise UnknownAction(f"unknown action {name!r} in preconditions", field=f"preconditions.{name}")
+
+
+def _same_place(a: ProgramError | None, b: ProgramError) -> bool:
+    return a is not None and (a.where, a.index, a.line) == (b.where, b.index, b.line)
+
+
+def _action_at(spec: Spec, demo: str, line: int, preconditions: dict[str, list[str]]) -> str | None:
+    """The action with kept assertions called on a demonstration line (the one whose assertion failed)."""
+    lines = demo.splitlines()
+    text = lines[line - 1] if 0 < line <= len(lines) else ""
+    for action, assertions in preconditions.items():
+        if assertions and f".{spec.methods[action].name}(" in text:
+            return action
+    return None
 
 
 def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:

@@ -4,6 +4,11 @@ Both queues run in one process so a single `precond worker` serves everything, y
 behind model jobs: each queue has its own arq worker with its own concurrency. A worker survives Redis
 outages (it reconnects), and on SIGTERM stops taking jobs, lets running ones finish for `drain_s`, then
 hands the rest back to the queue (arq re-queues a job cancelled by shutdown).
+
+A SIGKILLed worker's jobs are handed back by the others: each job's claim in `precond:running` names the
+worker running it, and every heartbeat tick of every live worker re-queues the jobs of workers whose
+heartbeat has expired (service/heartbeats.py). A job this worker dropped itself (Redis went away while it
+ran, so arq could not record its end) is handed back on the first beat after Redis returns.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ from arq.worker import Worker
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
-from service.heartbeats import Heartbeat, beat
+from service.heartbeats import Heartbeat, beat, claim, new_claim, release
 from service.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
 from service.settings import Settings, get_settings
 from worker.factory import build_engine
@@ -39,6 +44,9 @@ class WorkerProcess:
         self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self.engine = build_engine(with_model=MODEL_QUEUE in queues)
         self.workers: dict[str, Worker] = {}
+        self.retired: list[Worker] = []  # arq workers ended by a Redis outage whose jobs may still be ending
+        self.claims: dict[str, str] = {}  # job id → this worker's claim on it, while its run lasts
+        self.dropped: dict[str, str] = {}  # claims of runs that ended unrecorded: to hand back at the next beat
         self.stopping = asyncio.Event()
         self.model_error: str | None = None
 
@@ -46,13 +54,16 @@ class WorkerProcess:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.drain, sig)
+        redis = self._redis()
+        with contextlib.suppress(RedisError, OSError):
+            await self._beat(redis)  # be alive before claiming any job: a claim without a heartbeat is dead
         tasks = [asyncio.create_task(self._serve(queue)) for queue in self.queues]
-        heartbeat = asyncio.create_task(self._heartbeat())
+        heartbeat = asyncio.create_task(self._heartbeat(redis))
         if self.settings.preload_model and MODEL_QUEUE in self.queues:
             tasks.append(asyncio.create_task(self._preload()))
         await asyncio.gather(*tasks)
         heartbeat.cancel()
-        await self._forget()
+        await self._forget(redis)
 
     def drain(self, sig: signal.Signals) -> None:
         log.info("%s: draining for up to %ss", sig.name, self.settings.drain_s)
@@ -78,7 +89,8 @@ class WorkerProcess:
             job_completion_wait=s.drain_s,
             health_check_interval=60,
             ctx={"engine": self.engine, "settings": s},
-            after_job_end=_announce,
+            on_job_start=self._claim,
+            after_job_end=self._job_ended,
         )
 
     async def _serve(self, queue: str) -> None:
@@ -91,6 +103,7 @@ class WorkerProcess:
                 pass  # arq cancels its main task when a drain completes
             except (RedisError, OSError) as exc:
                 log.warning("queue %s: redis unavailable (%s); reconnecting", queue, exc)
+                self.retired.append(worker)  # its running jobs are cancelled by close(), unrecorded
                 await asyncio.sleep(1)
             with contextlib.suppress(RedisError, OSError):
                 await worker.close()
@@ -117,15 +130,60 @@ class WorkerProcess:
             jobs_complete=sum(w.jobs_complete for w in workers),
         )
 
-    async def _heartbeat(self) -> None:
-        redis = self._redis()
-        while True:
-            with contextlib.suppress(RedisError, OSError):
-                await beat(redis, self._heartbeat_body(), ttl_s=3 * self.settings.heartbeat_s)
-            await asyncio.sleep(self.settings.heartbeat_s)
+    async def _claim(self, ctx: dict[str, Any]) -> None:
+        """arq's on_job_start (arq has set the job's in-progress key): claim the job under a fresh heartbeat.
 
-    async def _forget(self) -> None:
-        redis = self._redis()
+        If Redis refuses, the job still runs: the next beat re-registers it.
+        """
+        token = ctx["claim"] = self.claims[ctx["job_id"]] = new_claim(self.id)
+        with contextlib.suppress(RedisError, OSError):
+            await claim(ctx["redis"], self._heartbeat_body(), self.settings.heartbeat_lease_s, ctx["job_id"], token)
+
+    async def _job_ended(self, ctx: dict[str, Any]) -> None:
+        """arq's after_job_end (arq has recorded the end: result stored, or the job re-queued)."""
+        job_id, token = ctx["job_id"], ctx.get("claim")
+        if token and self.claims.get(job_id) == token:
+            del self.claims[job_id]
+        await _announce(ctx)
+        if token:
+            with contextlib.suppress(RedisError, OSError):
+                await release(ctx["redis"], job_id, token)
+
+    def _running(self) -> dict[str, str]:
+        """Claims of the runs going on now; claims of runs that ended unrecorded move to `dropped`."""
+        self.retired = [w for w in self.retired if any(not t.done() for t in w.tasks.values())]
+        live = {
+            job_id
+            for worker in [*self.workers.values(), *self.retired]
+            for job_id, task in worker.tasks.items()
+            if not task.done()
+        }
+        for job_id in [j for j in self.claims if j not in live]:
+            self.dropped[job_id] = self.claims.pop(job_id)
+        return dict(self.claims)
+
+    async def _beat(self, redis: Redis[bytes]) -> None:
+        running, dropped = self._running(), dict(self.dropped)
+        released = await beat(
+            redis, self._heartbeat_body(), self.settings.heartbeat_lease_s, running=running, dropped=dropped
+        )
+        for job_id, token in dropped.items():
+            if self.dropped.get(job_id) == token:
+                del self.dropped[job_id]
+        if released:
+            log.warning("handed back to the queue (their run is gone): %s", ", ".join(released))
+
+    async def _heartbeat(self, redis: Redis[bytes]) -> None:
+        while True:
+            await asyncio.sleep(self.settings.heartbeat_s)
+            try:
+                await self._beat(redis)
+            except (RedisError, OSError):
+                pass
+            except Exception:  # a heartbeat that stops makes this worker look dead: log, keep beating
+                log.exception("heartbeat failed")
+
+    async def _forget(self, redis: Redis[bytes]) -> None:
         with contextlib.suppress(RedisError, OSError):
             await redis.delete(worker_key(self.id))
         await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose

@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import pytest
 
 from sandbox import Sandbox
-from schemas.api import CheckRequest, InferRequest, ModelInfo, NextActionRequest
+from schemas.api import CandidateReport, CheckRequest, InferRequest, ModelInfo, NextActionRequest
 from schemas.errors import InvalidProgram, UnknownAction
+from tests.engine.conftest import SHARED
 from worker.engine import Engine
+from worker.spec import parse_spec
 
 
 @pytest.fixture(scope="module")
@@ -160,3 +163,23 @@ def test_a_history_that_broke_the_preconditions_is_still_a_valid_history(
     ))
     assert [(r.allowed, r.violations) for r in response.results] == [
         (False, ["not self.user.informed_slot[slot]"]), (True, [])]
+
+
+def test_assertions_that_fail_together_are_dropped_until_the_program_runs(engine: Engine) -> None:
+    # found with the model on Events_1: OFFER's assertion subscripts a defaultdict, inserting a key, so the
+    # INFORM_COUNT assertion `len(...) == 1`, valid on its own, fails in the combined program
+    events = json.loads((SHARED / "sgd" / "Events_1.json").read_text())
+    demos = [d["program"] for d in events["demos"]]
+    spec = parse_spec(events["spec_program"])
+    preconditions = {
+        "SYSTEM.OFFER": ["not self.user.informed_intent['BuyEventTickets']"],
+        "SYSTEM.INFORM_COUNT": ["len(self.user.informed_intent) == 1", "self.query_success"],
+    }
+    reports = {a: [CandidateReport(assertion=x, source="model", valid=True, support=1, kept=True) for x in xs]
+               for a, xs in preconditions.items()}
+    program = engine._verified_program(spec, preconditions, demos, reports)
+    assert preconditions["SYSTEM.INFORM_COUNT"] == ["self.query_success"]
+    assert preconditions["SYSTEM.OFFER"] == ["not self.user.informed_intent['BuyEventTickets']"]
+    dropped = reports["SYSTEM.INFORM_COUNT"][0]
+    assert not dropped.kept and dropped.reason and dropped.reason.startswith("dropped: fails with the other")
+    engine._sandbox.trace(program, demos)

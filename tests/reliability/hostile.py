@@ -74,6 +74,11 @@ def _nothing_verified(body: dict[str, Any]) -> str | None:
     return f"verified under a hostile history: {verified}" if verified else None
 
 
+def _none_allowed(body: dict[str, Any]) -> str | None:
+    allowed = [r for r in body.get("results", []) if r["allowed"]]
+    return f"allowed under a hostile precondition: {allowed}" if allowed else None
+
+
 def _all_disallowed(body: dict[str, Any]) -> str | None:
     bad = [r for r in body.get("results", []) if r["allowed"] or not r.get("error")]
     return f"allowed or unexplained: {bad}" if bad else None
@@ -99,9 +104,11 @@ def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
                       "json": _infer(infer_body(demonstrations=[_demo_with(code), DEMOS[1]])),
                       "expect": REJECTED})
     for name, expression in corpus.CANDIDATES.items():
-        body = check_body() | {"preconditions": {"SYSTEM.REQUEST": [expression]}}
+        # Preconditions judge proposed calls only: propose the action they guard.
+        body = check_body("system.REQUEST('city')") | {"preconditions": {"SYSTEM.REQUEST": [expression]}}
+        # A precondition that parses but cannot be evaluated is a violation: the call is refused (200).
         cases.append({"name": f"precondition:{name}", "method": post, "path": "/check-actions", "json": body,
-                      "expect": REJECTED})
+                      "expect": (200, 422), "check": _none_allowed})
     hostile_calls = [c.replace("a.", "system.") for c in corpus.CALLS[:-1]] + [
         "system.REQUEST(__import__('os').system('touch " + str(canary_dir / "call") + "'))",
         "system.REQUEST(" + "[" * 5000 + "]" * 5000 + ")",

@@ -53,8 +53,9 @@ def worker_crashes(stack: Stack, jobs: int, kills: int, millions: int, workers: 
                 continue
             victim = random.Random(len(killed)).choice(pids)
             forks = harness.children(victim)
+            held = harness.claims_of(stack.redis.client(), victim)
             harness.sigkill(victim)
-            killed.append({"pid": victim, "at": time.monotonic()})
+            killed.append({"pid": victim, "at": time.monotonic(), "jobs": held})
             orphans.extend(forks)
             stack.start_worker()
 
@@ -81,6 +82,9 @@ def worker_crashes(stack: Stack, jobs: int, kills: int, millions: int, workers: 
              if o["state"] == "succeeded"}
     rerun = [o for o in outcomes if tries.get(o["id"], 1) > 1]
     once = [o for o in outcomes if tries.get(o["id"], 1) == 1]
+    ended = {o["id"]: o.get("ended") for o in outcomes}
+    # How long after a kill each job its worker held was done (by another worker): the hand-back delay.
+    kill_to_done = [ended[job] - kill["at"] for kill in killed for job in kill["jobs"] if ended.get(job)]
     time.sleep(2)
     worker_stats = harness.stats(client)
     return {
@@ -97,6 +101,8 @@ def worker_crashes(stack: Stack, jobs: int, kills: int, millions: int, workers: 
         "executions_completed": int(worker_stats.get("jobs:infer:succeeded", 0)),
         "latency_first_run": harness.summary_ms([o["latency"] for o in once]),
         "latency_rerun": harness.summary_ms([o["latency"] for o in rerun]),
+        "runs_killed": sum(len(kill["jobs"]) for kill in killed),
+        "kill_to_done": harness.summary_ms(kill_to_done),
         "wall_s": round(wall, 1),
         "sandbox_servers_orphaned": sum(harness.alive(p) for p in orphans),
     }
