@@ -32,7 +32,7 @@ from worker.spec import parse_spec, resolve_actions
 
 logger = logging.getLogger("model_bench")
 
-SGD = Path("/work/shared/data/sgd/Restaurants_1.json")
+SGD = Path(__file__).resolve().parents[2] / "shared" / "data" / "sgd" / "Restaurants_1.json"
 PREFIX_TOKENS = 700
 DECODE_STEPS = 16
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from sandbox import Limits, Sandbox
 
-DATA = Path("/work/shared/data/sgd")
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sgd"
 ATOMS = (
     "self.user.requested_slot[slot]", "not self.user.requested_slot[slot]",
     "self.user.informed_slot[slot]", "not self.user.informed_slot[slot]", "self.query_success",

@@ -223,6 +223,9 @@ def sandbox_bench(script: Path, store: JsonCache) -> str:
 # ---- report ----------------------------------------------------------------------------------------------
 
 
+ANALYSIS = Path(__file__).with_name("analysis.md")
+
+
 def write_report(store: JsonCache, out: Path, bench: Path) -> None:
     from evaluation.plots import compatibility_plot, demos_plot, per_action_plot
 
@@ -255,6 +258,7 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         "\nNext-action latency: see p50/p95 columns of the policy table.\n",
         "### Sandbox throughput\n",
         sandbox_bench(bench, store),
+        "\n" + ANALYSIS.read_text(encoding="utf-8"),
         "\n## Plots\n",
         *[f"![{p.stem}](img/{p.name})" for p in plots if p is not None],
         "",

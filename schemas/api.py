@@ -34,8 +34,20 @@ Preconditions = dict[str, list[str]]
 
 
 class InferOptions(_Body):
-    generators: list[Generator] = Field(default=["model", "enumerate"], min_length=1, max_length=2)
-    ranking: Ranking = "recency"
+    generators: list[Generator] = Field(
+        default=["enumerate"],
+        min_length=1,
+        max_length=2,
+        description="Candidate generators. The default was chosen on the dev numbers (docs/results.md): "
+        "'enumerate' scores best on average and answers in about a second; add 'model' for the code model's "
+        "candidates (also the only source for actions no demonstration shows).",
+    )
+    ranking: Ranking = Field(
+        default="recency",
+        description="'subsumption' is the paper's eq. (hopt); 'recency' (default, best on the dev numbers) keeps "
+        "argument conditions and conditions made true since the agent's previous turn; 'marginal' keeps "
+        "conditions while they still exclude enough points.",
+    )
     samples_per_prompt: int = Field(default=4, ge=1, le=64)
     prompts_per_action: int = Field(
         default=2, ge=1, le=MAX_DEMONSTRATIONS, description="How many demonstrations to vary across prompts."
