@@ -101,14 +101,17 @@ def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, in
     """Share of occurrences the condition enabled.
 
     A condition on the action's own arguments (`requested_slot[slot]`, `inventory == obj`) is about this very
-    call, so it always counts. A global condition counts at an occurrence only when it was false during the
-    observations since the agent's previous turn, i.e. they made it true; otherwise it describes where the
-    episode is (a phase: "a search has succeeded", "nothing was selected yet"), which held at the demonstrated
-    occurrences by the episodes' usual order rather than by necessity.
+    call, so it always counts, provided the demonstrations call the action with different arguments: with a
+    single value the parameter is a constant in disguise, and the condition is judged like a global one.
+    A global condition counts at an occurrence only when it was false during the observations since the
+    agent's previous turn, i.e. they made it true; otherwise it describes where the episode is (a phase:
+    "a search has succeeded", "nothing was selected yet"), which held at the demonstrated occurrences by the
+    episodes' usual order rather than by necessity.
     """
     if not evidence.occurrences:
         return 0.0
-    if any(_mentions(m.expression, evidence.params) for m in c.members):
+    varied = len({occ.args for occ in evidence.occurrences}) > 1
+    if varied and any(_mentions(m.expression, evidence.params) for m in c.members):
         return 1.0
     enabling = 0
     for occ in evidence.occurrences:

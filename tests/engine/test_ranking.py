@@ -46,18 +46,31 @@ def test_recency_keeps_only_enabling_conditions() -> None:
     assert [k.representative.expression for k in rank("recency", both, _evidence())] == ["trigger"]
 
 
-def test_enabling_rate_tells_triggers_and_argument_invariants_from_phases() -> None:
-    evidence = ActionEvidence(_evidence().points, _evidence().occurrences, {(0, 9): 7}, params=("slot",))
+def _two_calls() -> ActionEvidence:
+    """Positions 0..9 for two argument values; the action is called with 'a' and with 'b' at position 9."""
+    points = [Point(0, p, (arg,)) for p in range(10) for arg in ("a", "b")]
+    occurrences = [Point(0, 9, ("a",)), Point(0, 9, ("b",))]
+    return ActionEvidence(points, occurrences, {(0, 9): 7}, params=("slot",))
+
+
+def _rate(evidence: ActionEvidence, name: str, bits: str) -> float:
+    """Bits per position, the same for both argument values."""
     index = {p: bit for bit, p in enumerate(evidence.points)}
-    rates = {
-        name: enabling_rate(cluster([c(name, bits)])[0], evidence, index)
-        for name, bits in [("made true since the last turn", "1111100001"),
-                           ("not self.informed[slot]", "1111111111"),   # about the argument, never false
-                           ("not self.selected", "1111111111"),         # global flag, never false: a phase
-                           ("phase", "0000111111")]
-    }
-    assert rates == {"made true since the last turn": 1.0, "not self.informed[slot]": 1.0,
-                     "not self.selected": 0.0, "phase": 0.0}
+    doubled = "".join(b * (len(evidence.points) // 10) for b in bits)
+    return enabling_rate(cluster([c(name, doubled)])[0], evidence, index)
+
+
+def test_enabling_rate_tells_triggers_and_argument_conditions_from_phases() -> None:
+    evidence = _two_calls()
+    assert _rate(evidence, "made true since the last turn", "1111100001") == 1.0
+    assert _rate(evidence, "not self.informed[slot]", "1111111111") == 1.0  # about the argument
+    assert _rate(evidence, "not self.selected", "1111111111") == 0.0        # global, never made true: a phase
+    assert _rate(evidence, "phase", "0000111111") == 0.0
+
+
+def test_a_parameter_seen_with_one_value_is_a_constant_in_disguise() -> None:
+    single = ActionEvidence(_two_calls().points, [Point(0, 9, ("a",))], {(0, 9): 7}, params=("slot",))
+    assert _rate(single, "not self.informed[slot]", "1111111111") == 0.0
 
 
 def test_marginal_stops_adding_conditions_that_trim_little() -> None:
