@@ -240,7 +240,7 @@ class Engine:
             if trace.actions[action].occurrences:
                 chosen = rank(criterion, clusters, evidence)
             else:
-                chosen = zero_shot(valid, proposals.votes.get(action, {}))
+                chosen = zero_shot(valid, proposals.votes.get(action, {}), trace.actions[action].params)
             kept[action] = chosen
             counts = proposals.counts.setdefault(action, StageCounts())
             counts.valid, counts.clusters, counts.kept = len(valid), len(clusters), len(chosen)

@@ -153,13 +153,15 @@ def marginal(clusters: Sequence[Cluster], evidence: ActionEvidence, min_gain: fl
     return chosen
 
 
-def zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int]) -> list[Cluster]:
+def zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Sequence[str]) -> list[Cluster]:
     """An action never demonstrated has no evidence to rank by: every candidate is vacuously valid.
 
     Then the code model's prior is all there is (the paper's zero-shot setting): keep its most-proposed
-    assertion, if more than one sample agreed on it.
+    assertion about the state or the arguments (`assert False` is a favourite of small models), if more than
+    one sample agreed on it.
     """
-    proposed = [c for c in valid if votes.get(c.expression, 0) >= MIN_VOTES]
+    names = ("self", *params)
+    proposed = [c for c in valid if votes.get(c.expression, 0) >= MIN_VOTES and _mentions(c.expression, names)]
     if not proposed:
         return []
     best = max(proposed, key=lambda c: (votes[c.expression], -len(c.expression)))

@@ -84,6 +84,7 @@ def test_marginal_stops_adding_conditions_that_trim_little() -> None:
 
 def test_zero_shot_keeps_the_most_proposed_assertion_only_when_samples_agree() -> None:
     valid = [c("self.env.get_property(recep, 'open')", "0"), c("False", "0"), c("recep", "0")]
-    votes = {"self.env.get_property(recep, 'open')": 3, "False": 1, "recep": 2}
-    assert [k.representative.expression for k in zero_shot(valid, votes)] == ["self.env.get_property(recep, 'open')"]
-    assert zero_shot(valid, {"False": 1}) == []
+    votes = {"self.env.get_property(recep, 'open')": 3, "False": 5, "recep": 2}
+    kept = zero_shot(valid, votes, ["recep"])
+    assert [k.representative.expression for k in kept] == ["self.env.get_property(recep, 'open')"]
+    assert zero_shot(valid, {"False": 9, "recep": 1}, ["recep"]) == []  # constants say nothing; 1 vote is noise
