@@ -34,7 +34,7 @@ def test_sigterm_mid_job_finishes_it_within_the_drain(tmp_path: Path, tiny_model
 
 def test_sigterm_past_the_drain_hands_the_job_back(tmp_path: Path, tiny_model_dir: Path) -> None:
     with scenario_stack("shutdown-handback", tmp_path, tiny_model_dir) as stack:
-        figures = scenarios.graceful_shutdown(stack, millions=30, drain_covers_job=False)
+        figures = scenarios.graceful_shutdown(stack, millions=90, drain_covers_job=False)
     assert figures["worker_exit_code"] == 0, figures
     assert figures["state_when_worker_exited"] == "queued", figures  # back in the queue, not stuck "running"
     assert figures["final_state"] == "succeeded" and figures["runs"] == 2, figures

@@ -205,6 +205,10 @@ def make_stack(tmp: Path, model_dir: Path, **settings: str) -> Stack:
         "OMP_NUM_THREADS": "1",
         "TOKENIZERS_PARALLELISM": "false",
         "SANDBOX_WORKERS": "2",
+        # the slow jobs of these tests are legal programs: generous limits keep a busy machine from
+        # turning them into limit errors (the limits themselves are tested in tests/sandbox)
+        "SANDBOX_TIMEOUT_S": "60",
+        "SANDBOX_CPU_S": "60",
         "PRECOND_HEARTBEAT_S": "0.5",
         "PRECOND_WORKER_POLL_S": "0.05",
         "PRECOND_WAIT_POLL_S": "0.02",

@@ -34,9 +34,9 @@ def own_stack(tmp_path: Path, tiny_model_dir: Path) -> Iterator[Stack]:
 def test_job_of_a_killed_worker_completes_on_another(own_stack: Stack) -> None:
     workers = {own_stack.start_worker().pid: "a", own_stack.start_worker().pid: "b"}
     redis = own_stack.redis.client()
-    # A real, slow job: its first demonstration sums 30 million numbers each time the sandbox runs it (trace,
-    # validate, verify), so it runs for a few seconds, far below the job timeout and the sandbox's limits.
-    body = heavy_infer_body(seed=1, millions=30)
+    # A real, slow job: its first demonstration sums 90 million numbers each time the sandbox runs it (trace,
+    # validate, verify), so it runs for several seconds, far below the job timeout and the sandbox's limits.
+    body = heavy_infer_body(seed=1, millions=90)
     with own_stack.http() as client:
         answer = client.post("/infer-preconditions", json=body, params={"wait": 0})
         location, job_id = answer.headers["Location"], answer.headers["X-Job-Id"]
