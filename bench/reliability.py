@@ -34,14 +34,14 @@ FULL = {
     "redis": {"jobs": 40, "millions": 5, "down_s": 5.0},
     "fuzz": {"max_examples": 100},
     "overload": {"clients": 48, "duration_s": 60.0, "millions": 5},
-    "shutdown": {"millions": 30},
+    "shutdown": {"millions": 90},
 }
 QUICK = {
     "crash": {"jobs": 40, "kills": 3, "millions": 3},
     "redis": {"jobs": 12, "millions": 3, "down_s": 2.0},
     "fuzz": {"max_examples": 15},
     "overload": {"clients": 24, "duration_s": 12.0, "millions": 3},
-    "shutdown": {"millions": 30},
+    "shutdown": {"millions": 90},
 }
 
 

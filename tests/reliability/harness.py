@@ -23,7 +23,7 @@ from typing import Any
 import httpx
 import redis
 
-from tests.service.stack import RedisServer, Stack, make_stack, wait_until
+from tests.service.stack import RedisServer, Stack, make_stack, serving, wait_until
 
 TERMINAL = ("succeeded", "failed", "cancelled")
 
@@ -228,10 +228,5 @@ FAST_SANDBOX = {"SANDBOX_TIMEOUT_S": "2", "SANDBOX_CPU_S": "2"}
 @contextmanager
 def scenario_stack(name: str, tmp: Path, model_dir: Path, persistent: bool = False,
                    **overrides: str) -> Iterator[Stack]:
-    stack = build_stack(tmp, model_dir, persistent=persistent, **{**SETTINGS[name], **overrides})
-    try:
-        stack.start_gateway()
+    with serving(build_stack(tmp, model_dir, persistent=persistent, **{**SETTINGS[name], **overrides})) as stack:
         yield stack
-    finally:
-        stack.stop()
-        stack.redis.stop()

@@ -8,7 +8,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.service.stack import Stack, make_stack
+from tests.service.stack import Stack, make_stack, serving
 
 
 @pytest.fixture(scope="module")
@@ -17,13 +17,8 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Ite
     stack = make_stack(
         tmp_path_factory.mktemp("stack"), tiny_model_dir, PRECOND_QUEUE_MAX_JOBS="3", PRECOND_JOB_TIMEOUT_S="120"
     )
-    try:
-        stack.start_gateway()
-        stack.start_worker()
+    with serving(stack, workers=1):
         yield stack
-    finally:
-        stack.stop()
-        stack.redis.stop()
 
 
 @pytest.fixture()

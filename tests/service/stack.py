@@ -18,7 +18,8 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -218,3 +219,16 @@ def make_stack(tmp: Path, model_dir: Path, **settings: str) -> Stack:
         **settings,
     }
     return Stack(server, env, tmp)
+
+
+@contextmanager
+def serving(stack: Stack, workers: int = 0) -> Iterator[Stack]:
+    """The gateway (and `workers` workers) up for the block; everything the stack started is stopped after."""
+    try:
+        stack.start_gateway()
+        for _ in range(workers):
+            stack.start_worker()
+        yield stack
+    finally:
+        stack.stop()
+        stack.redis.stop()

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from arq.jobs import deserialize_result
 
-from tests.service.stack import Stack, check_body, heavy_infer_body, make_stack, wait_until
+from tests.service.stack import Stack, check_body, heavy_infer_body, make_stack, serving, wait_until
 
 HANDBACK_BOUND_S = 15
 """A SIGKILLed worker's job must be done by another worker this soon after the kill. The job timeout is the
@@ -23,12 +23,8 @@ back once the dead worker's heartbeat expires (3 × 0.5 s here), then it runs ag
 def own_stack(tmp_path: Path, tiny_model_dir: Path) -> Iterator[Stack]:
     stack = make_stack(tmp_path, tiny_model_dir, PRECOND_RETRY_AFTER_S="2")
     assert "PRECOND_JOB_TIMEOUT_S" not in stack.env  # the default, long timeout
-    try:
-        stack.start_gateway()
+    with serving(stack):
         yield stack
-    finally:
-        stack.stop()
-        stack.redis.stop()
 
 
 def test_job_of_a_killed_worker_completes_on_another(own_stack: Stack) -> None:
