@@ -21,13 +21,12 @@ import json
 import os
 import shutil
 import signal
-import socket
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -36,24 +35,9 @@ import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
+sys.path.insert(0, str(ROOT))
 
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            if predicate():
-                return
-        except (OSError, httpx.HTTPError):
-            pass
-        time.sleep(0.1)
-    raise SystemExit(f"timed out waiting for {what}")
+from tests.service.stack import free_port, wait_until  # noqa: E402
 
 
 @contextmanager
@@ -69,7 +53,6 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
         "MODEL_THREADS": "1",
     }
     if args.model == "tiny":
-        sys.path.insert(0, str(ROOT))
         from tests.tiny_model import build_tiny_model
 
         env["MODEL_PATH"] = str(build_tiny_model(tmp / "tiny-model"))
