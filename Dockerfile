@@ -15,6 +15,9 @@ COPY pyproject.toml README.md* ./
 COPY scripts/install.sh scripts/install.sh
 COPY schemas schemas
 COPY service service
+COPY jobs jobs
+COPY engine engine
+COPY programs programs
 COPY worker worker
 COPY sandbox sandbox
 COPY cli cli

@@ -24,11 +24,11 @@ from typing import Any
 
 import torch
 
-from worker.models import CodeModel, ModelSettings, Sampling, load_code_model
-from worker.models.backend import PREFILL_CHUNK
-from worker.models.kvcache import growing_cache
-from worker.prompting import inference_prefix, inference_suffix
-from worker.spec import parse_spec, resolve_actions
+from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
+from engine.models.backend import PREFILL_CHUNK
+from engine.models.kvcache import growing_cache
+from engine.prompting import inference_prefix, inference_suffix
+from engine.spec import parse_spec, resolve_actions
 
 logger = logging.getLogger("model_bench")
 

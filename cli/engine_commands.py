@@ -70,7 +70,7 @@ def _run(call: Callable[..., BaseModel], request: BaseModel, with_progress: bool
 
 def infer(request: RequestFile) -> None:
     """Infer verified preconditions for the spec's actions from the demonstrations."""
-    from worker.factory import build_engine
+    from engine.factory import build_engine
 
     body = _load(request, InferRequest)
     engine = build_engine(with_model="model" in body.options.generators)
@@ -79,7 +79,7 @@ def infer(request: RequestFile) -> None:
 
 def next_action(request: RequestFile) -> None:
     """Predict the next action(s) after the history, verified against the preconditions (Algorithm 1)."""
-    from worker.factory import build_engine
+    from engine.factory import build_engine
 
     body = _load(request, NextActionRequest)
     _run(build_engine().next_action, body)
@@ -87,7 +87,7 @@ def next_action(request: RequestFile) -> None:
 
 def check(request: RequestFile) -> None:
     """Say for each proposed call whether the preconditions allow it after the history (no model)."""
-    from worker.factory import build_engine
+    from engine.factory import build_engine
 
     body = _load(request, CheckRequest)
     _run(build_engine(with_model=False).check, body, with_progress=False)

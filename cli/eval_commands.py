@@ -29,7 +29,7 @@ def _engine(with_model: bool) -> Any:
     """One engine per process; the model loads on its first use only."""
     import torch
 
-    from worker.factory import build_engine
+    from engine.factory import build_engine
 
     torch.set_num_threads(1)
     return build_engine(with_model=with_model)

@@ -57,7 +57,7 @@ MAX_ACTIONS = 5
 
 
 class PolicyEngine(Protocol):
-    """The two engine operations the policy evaluation uses (`worker.engine.Engine` satisfies it)."""
+    """The two engine operations the policy evaluation uses (`engine.engine.Engine` satisfies it)."""
 
     def next_action(self, request: NextActionRequest) -> NextActionResponse: ...
 

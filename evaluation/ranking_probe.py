@@ -1,6 +1,6 @@
 """A measurement, not a feature: how much F1 a discriminativeness cut in the ranking would buy.
 
-`worker.ranking.informative` drops clusters that hold at *every* demonstration point; subsumption then keeps
+`engine.ranking.informative` drops clusters that hold at *every* demonstration point; subsumption then keeps
 every minimal cluster. With the enumerator's thousands of atoms, many minimal clusters are conditions that
 hold almost everywhere in the demonstrations (`not self.user.requested_slot['price_range']`,
 `self.query_success is not None`) and were true at every occurrence by accident. Each one is conjoined
@@ -17,10 +17,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+from engine.engine import _previous_turns  # the engine's own evidence, so only the new rule differs
+from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, rank
 from evaluation.domains import Domain
 from sandbox import Sandbox
-from worker.engine import _previous_turns  # the engine's own evidence, so only the new rule differs
-from worker.ranking import ActionEvidence, Candidate, Cluster, cluster, rank
 
 
 def discriminative(clusters: Sequence[Cluster], n_points: int, max_rate: float) -> list[Cluster]:

@@ -60,7 +60,7 @@ def kind_of(job_id: str) -> JobKind | None:
 def model_identity() -> str:
     """What makes a model answer differ: its `MODEL_*` settings and the code version that loads them.
 
-    Read from the environment, not from worker.models, because the gateway must not import torch; compose
+    Read from the environment, not from engine.models, because the gateway must not import torch; compose
     gives gateway and workers one environment block for this reason.
     """
     model_env = sorted((k, v) for k, v in os.environ.items() if k.startswith("MODEL_"))

@@ -2,7 +2,7 @@
 
 The gateway and the worker share this class: a queue bound or a timeout that the two sides read differently
 would show up as jobs that time out on one side and run on the other. Model settings are not here: they are
-`MODEL_*` in `worker.models`, which the gateway must not import (it pulls in torch).
+`MODEL_*` in `engine.models`, which the gateway must not import (it pulls in torch).
 """
 
 from __future__ import annotations

@@ -19,12 +19,12 @@ from pydantic import BaseModel
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
+from engine.engine import Engine
 from schemas.api import CheckRequest, InferRequest, JobKind, NextActionRequest
 from schemas.errors import PrecondError, ResourceLimit
 from service.cache import ResultCache
 from service.keys import STATS_KEY, progress_key
 from service.settings import Settings
-from worker.engine import Engine
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]

@@ -28,10 +28,10 @@ from arq.worker import Worker
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
+from engine.factory import build_engine
 from service.heartbeats import Heartbeat, beat, claim, new_claim, release
 from service.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
 from service.settings import Settings, get_settings
-from worker.factory import build_engine
 from worker.jobs import run_operation
 
 log = logging.getLogger("precond.worker")

@@ -8,12 +8,12 @@ from typing import Any
 
 import pytest
 
+from engine.engine import Engine
+from engine.spec import parse_spec
 from sandbox import Sandbox
 from schemas.api import CandidateReport, CheckRequest, InferRequest, ModelInfo, NextActionRequest
 from schemas.errors import InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
-from worker.engine import Engine
-from worker.spec import parse_spec
 
 
 @pytest.fixture(scope="module")

@@ -7,10 +7,10 @@ from typing import Any
 
 import pytest
 
+from engine.engine import Engine
+from engine.models import ModelSettings, load_code_model
 from sandbox import Sandbox
 from schemas.api import InferRequest, NextActionRequest
-from worker.engine import Engine
-from worker.models import ModelSettings, load_code_model
 
 pytestmark = pytest.mark.model
 

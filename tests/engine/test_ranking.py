@@ -1,5 +1,4 @@
-from sandbox.types import Point
-from worker.ranking import (
+from engine.ranking import (
     ActionEvidence,
     Candidate,
     cluster,
@@ -9,6 +8,7 @@ from worker.ranking import (
     subsumption,
     zero_shot,
 )
+from sandbox.types import Point
 
 
 def c(expression: str, bits: str) -> Candidate:

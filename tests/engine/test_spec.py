@@ -3,8 +3,8 @@ from typing import Any
 
 import pytest
 
+from engine.spec import action_header, observation_source, parse_spec, render_program, resolve_actions
 from schemas.errors import InvalidProgram, UnknownAction
-from worker.spec import action_header, observation_source, parse_spec, render_program, resolve_actions
 
 
 def test_default_actions_are_the_stub_methods(restaurants: dict[str, Any]) -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from worker.models import CodeModel, ModelSettings, Sampling, load_code_model
-from worker.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
+from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
+from engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
 
 pytestmark = pytest.mark.model
 

@@ -5,9 +5,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from worker.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
-from worker.models.backend import PREFILL_CHUNK, CodeModel
-from worker.models.stopping import StopRule, statement_end, stop_index
+from engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
+from engine.models.backend import PREFILL_CHUNK, CodeModel
+from engine.models.stopping import StopRule, statement_end, stop_index
 
 PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12
 SUFFIXES = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert", "user = USER()\n"]

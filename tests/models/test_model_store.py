@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from worker.models import store
-from worker.models.store import EMBEDDED_SHA256, ModelStoreError, embedded_model_dir, find_embedded_parts
+from engine.models import store
+from engine.models.store import EMBEDDED_SHA256, ModelStoreError, embedded_model_dir, find_embedded_parts
 
 
 def test_parts_are_found_without_importing_them() -> None:

@@ -1,7 +1,7 @@
 """Real Redis, real worker processes and a real uvicorn gateway, each on free ports in temp dirs.
 
 Every piece runs as its own process so tests can stop Redis, SIGKILL a worker or restart things the way an
-operator would. Workers run the production engine (`worker.factory.build_engine`) with the real sandbox;
+operator would. Workers run the production engine (`engine.factory.build_engine`) with the real sandbox;
 their code model is the tiny random model of tests/tiny_model.py (`MODEL_PATH`), whose output is noise, so
 model jobs end in real rejections rather than in useful rules.
 

@@ -28,19 +28,19 @@ from typing import Any
 
 import torch
 
-from schemas.api import ModelInfo
-from schemas.errors import Cancelled
-from worker.models.attention import use_grouped_attention
-from worker.models.kvcache import GrowingLayer, growing_cache
-from worker.models.settings import EMBEDDED, ModelSettings
-from worker.models.stopping import StopRule, stop_index
-from worker.models.store import (
+from engine.models.attention import use_grouped_attention
+from engine.models.kvcache import GrowingLayer, growing_cache
+from engine.models.settings import EMBEDDED, ModelSettings
+from engine.models.stopping import StopRule, stop_index
+from engine.models.store import (
     EMBEDDED_NAME,
     EMBEDDED_SHA256,
     ModelStoreError,
     embedded_model_dir,
     gguf_model_dir,
 )
+from schemas.api import ModelInfo
+from schemas.errors import Cancelled
 
 logger = logging.getLogger(__name__)
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from engine.engine import Engine
 from sandbox import Limits, Sandbox
-from worker.engine import Engine
 
 
 class SandboxSettings(BaseSettings):
@@ -34,14 +34,14 @@ class SandboxSettings(BaseSettings):
 
 
 def build_engine(with_model: bool = True) -> Engine:
-    """The model is configured here but loaded on first use (`MODEL_*` settings, see worker.models)."""
+    """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models)."""
     settings = SandboxSettings()
     sandbox = Sandbox(settings.limits(), workers=settings.workers)
     if not with_model:
         return Engine(sandbox, None)
 
     def load() -> object:
-        from worker.models import ModelSettings, load_code_model
+        from engine.models import ModelSettings, load_code_model
 
         return load_code_model(ModelSettings())
 

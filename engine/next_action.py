@@ -13,13 +13,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from engine import prompting
+from engine.spec import Spec
 from schemas.api import CallVerdict, NextActionRequest, PredictedAction, Rejection
 from schemas.errors import Cancelled
-from worker import prompting
-from worker.spec import Spec
 
 if TYPE_CHECKING:
-    from worker.models import CodeModel
+    from engine.models import CodeModel
 
 VerifyFn = Callable[[Spec, dict[str, list[str]], str, list[str]], list[CallVerdict]]
 
@@ -106,7 +106,7 @@ class NextActionPlanner:
         return out
 
     def _sample(self, prompt: str, n: int, temperature: float, seed: int) -> list[Prediction]:
-        from worker.models import Sampling
+        from engine.models import Sampling
 
         sampling = Sampling(temperature, 0.95, self.options.max_new_tokens, seed)
         texts = self.model.complete(prompt, [""], n, sampling, "line", self.cancelled)[0]

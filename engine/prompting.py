@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from worker.spec import Spec, action_header, observation_source, render_program
+from engine.spec import Spec, action_header, observation_source, render_program
 
 
 def inference_prefix(spec: Spec, actions: Sequence[str], demonstrations: Sequence[str]) -> str:

@@ -13,8 +13,8 @@ from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+from engine.spec import Spec
 from sandbox.types import ActionInfo
-from worker.spec import Spec
 
 MAX_KEYS = 40
 MAX_CONSTANTS_PER_PARAM = 8

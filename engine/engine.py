@@ -15,6 +15,12 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, TypeVar
 
+from engine import prompting
+from engine.enumeration import StateModel, enumerate_atoms
+from engine.next_action import NextActionPlanner
+from engine.parsing import parse_samples
+from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank, zero_shot
+from engine.spec import Spec, parse_source, parse_spec, render_program, resolve_actions
 from sandbox.types import (
     CandidateResult,
     EvaluateResult,
@@ -37,16 +43,10 @@ from schemas.api import (
     StageCounts,
 )
 from schemas.errors import Cancelled, InvalidProgram, ModelUnavailable, ResourceLimit, UnknownAction
-from worker import prompting
-from worker.enumeration import StateModel, enumerate_atoms
-from worker.next_action import NextActionPlanner
-from worker.parsing import parse_samples
-from worker.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank, zero_shot
-from worker.spec import Spec, parse_source, parse_spec, render_program, resolve_actions
 
 if TYPE_CHECKING:
+    from engine.models import CodeModel
     from sandbox import Sandbox
-    from worker.models import CodeModel
 
 ProgressFn = Callable[[str, int, int], None]
 ModelLoader = Callable[[], "CodeModel"]
@@ -188,7 +188,7 @@ class Engine:
         progress: ProgressFn,
         cancelled: Callable[[], bool],
     ) -> ModelInfo:
-        from worker.models import Sampling
+        from engine.models import Sampling
 
         options = request.options
         model = self.model()
