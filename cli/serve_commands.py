@@ -7,7 +7,7 @@ from typing import Annotated
 
 import typer
 
-from service.settings import get_settings
+from jobs.settings import get_settings
 
 
 def serve(

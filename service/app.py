@@ -13,15 +13,16 @@ from arq.connections import ArqRedis
 from fastapi import FastAPI
 from redis.asyncio import ConnectionPool
 
+from jobs.cache import ResultCache
+from jobs.settings import Settings, get_settings
 from service import errors
-from service.cache import ResultCache
 from service.completions import Completions
 from service.deps import Services
 from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.queue import JobQueue
-from service.routes import health, jobs, operations
-from service.settings import Settings, get_settings
+from service.routes import health, operations
+from service.routes import jobs as job_routes
 
 DESCRIPTION = """Infer verified action preconditions from demonstrations with a code model, pick next actions
 that satisfy them, and check proposed actions against them ("Code Models are Zero-shot Precondition
@@ -50,7 +51,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app = FastAPI(
         title="Precondition reasoning service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
     )
-    for router in (operations.router, jobs.router, health.router):
+    for router in (operations.router, job_routes.router, health.router):
         app.include_router(router)
     errors.install(app, settings.retry_after_s)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)

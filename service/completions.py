@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from redis.asyncio import ConnectionPool, Redis
 from redis.exceptions import RedisError
 
-from service.keys import DONE_PREFIX
+from jobs.keys import DONE_PREFIX
 
 log = logging.getLogger("precond.gateway")
 

@@ -8,10 +8,10 @@ from typing import Annotated
 from arq.connections import ArqRedis
 from fastapi import Depends, Request
 
-from service.cache import ResultCache
+from jobs.cache import ResultCache
+from jobs.settings import Settings
 from service.metrics import Metrics
 from service.queue import JobQueue
-from service.settings import Settings
 
 
 @dataclass(frozen=True)

@@ -13,12 +13,14 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 from prometheus_client.core import CounterMetricFamily, Metric, SummaryMetricFamily
 from prometheus_client.registry import Collector
 
+from jobs.records import StatsSnapshot
+
 
 class WorkerStats(Collector):
     """Holds the last snapshot of the workers' Redis hash; `collect` runs synchronously inside a scrape."""
 
     def __init__(self) -> None:
-        self.snapshot: dict[str, float] = {}
+        self.snapshot = StatsSnapshot()
 
     def collect(self) -> Iterator[Metric]:
         jobs = CounterMetricFamily("precond_jobs", "Jobs finished by workers.", labels=["kind", "outcome"])
@@ -26,14 +28,13 @@ class WorkerStats(Collector):
             "precond_job_phase_seconds", "Time jobs spent per engine phase.", labels=["kind", "phase"]
         )
         sandbox = CounterMetricFamily("precond_sandbox_failures", "Jobs stopped by a sandbox limit.")
-        sandbox.add_metric([], self.snapshot.get("sandbox_failures", 0.0))
-        for field, value in sorted(self.snapshot.items()):
-            name, _, rest = field.partition(":")
-            if name == "jobs":
-                jobs.add_metric(rest.split(":", 1), value)
-            elif name == "phase_sum":
-                count = self.snapshot.get(f"phase_count:{rest}", 0.0)
-                phases.add_metric(rest.split(":", 1), count_value=int(count), sum_value=value)
+        snapshot = self.snapshot
+        sandbox.add_metric([], snapshot.sandbox_failures)
+        for labels, value in sorted(snapshot.jobs.items()):
+            jobs.add_metric(list(labels), value)
+        for labels, seconds in sorted(snapshot.phase_sum.items()):
+            count = int(snapshot.phase_count.get(labels, 0.0))
+            phases.add_metric(list(labels), count_value=count, sum_value=seconds)
         yield from (jobs, phases, sandbox)
 
 

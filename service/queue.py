@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import time
 from typing import Any
 
@@ -18,11 +17,12 @@ from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix,
 from arq.jobs import Job, JobResult
 from arq.jobs import JobStatus as ArqStatus
 
+from jobs.cache import ResultCache
+from jobs.keys import JOB_FUNCTION, QUEUE_BY_KIND, kind_of
+from jobs.records import Outcome, read_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
-from service.cache import ResultCache
 from service.completions import Completions
 from service.errors import bounded
-from service.keys import JOB_FUNCTION, QUEUE_BY_KIND, kind_of, progress_key
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
@@ -95,7 +95,7 @@ class JobQueue:
             return None
         job = self._job(job_id, kind)
         info = await job.result_info()
-        progress = await self._progress(job_id)
+        progress = await read_progress(self.redis, job_id)
         if info is not None:
             state, result, error = _state(info)
             return JobStatus(
@@ -144,10 +144,6 @@ class JobQueue:
             await self._job(job_id, status.kind).abort(timeout=confirm_s, poll_delay=confirm_s / 4)
         return await self.status(job_id)
 
-    async def _progress(self, job_id: str) -> JobProgress:
-        raw = await self.redis.get(progress_key(job_id))
-        return JobProgress() if raw is None else JobProgress.model_validate(json.loads(raw))
-
 
 def _done(progress: JobProgress) -> JobProgress:
     return JobProgress(phase="done", done=progress.total, total=progress.total)
@@ -155,15 +151,17 @@ def _done(progress: JobProgress) -> JobProgress:
 
 def _is_internal(info: JobResult) -> bool:
     """Cancelled or crashed runs say nothing about the request, so they must not stand in for its result."""
-    return not info.success or info.result.get("error", {}).get("type") == "internal"
+    if not info.success:
+        return True
+    error = Outcome.from_arq(info.result).error
+    return error is not None and error.type == "internal"
 
 
 def _state(info: JobResult) -> tuple[Any, dict[str, Any] | None, ErrorInfo | None]:
     """arq's stored result as (state, result, error): workers return outcomes, arq stores their exceptions."""
     if info.success:
-        outcome: dict[str, Any] = info.result
-        error = outcome.get("error")
-        return outcome["status"], outcome.get("result"), None if error is None else bounded(ErrorInfo(**error))
+        outcome = Outcome.from_arq(info.result)
+        return outcome.status, outcome.result, None if outcome.error is None else bounded(outcome.error)
     if isinstance(info.result, asyncio.CancelledError):
         return "cancelled", None, ErrorInfo(type="cancelled", message="the job was cancelled")
     return "failed", None, bounded(ErrorInfo(type="internal", message=f"job failed: {info.result!r}"))

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
-from service.settings import Settings
+from jobs.settings import Settings
 
 log = logging.getLogger("precond.serve")
 LOCAL_REDIS = ("127.0.0.1", 6379)

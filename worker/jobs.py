@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import threading
 import time
 from collections.abc import Callable
@@ -20,11 +19,11 @@ from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
 from engine.engine import Engine
-from schemas.api import CheckRequest, InferRequest, JobKind, NextActionRequest
+from jobs.cache import ResultCache
+from jobs.records import Outcome, record_job, record_phase, write_progress
+from jobs.settings import Settings
+from schemas.api import CheckRequest, ErrorInfo, InferRequest, JobKind, JobProgress, NextActionRequest
 from schemas.errors import PrecondError, ResourceLimit
-from service.cache import ResultCache
-from service.keys import STATS_KEY, progress_key
-from service.settings import Settings
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
@@ -48,17 +47,13 @@ class ProgressReporter:
         if phase != self.phase:
             self.finish_phase()
             self.phase, self.phase_started = phase, time.perf_counter()
-        body = json.dumps({"phase": phase, "done": done, "total": total})
-        self._submit(self.redis.set(progress_key(self.job_id), body, ex=self.ttl_s))
+        progress = JobProgress(phase=phase, done=done, total=total)
+        self._submit(write_progress(self.redis, self.job_id, progress, self.ttl_s))
 
     def finish_phase(self) -> None:
         if self.phase is None:
             return
-        field = f"{self.kind}:{self.phase}"
-        self._submit(
-            self.redis.hincrbyfloat(STATS_KEY, f"phase_sum:{field}", time.perf_counter() - self.phase_started)
-        )
-        self._submit(self.redis.hincrby(STATS_KEY, f"phase_count:{field}", 1))
+        self._submit(record_phase(self.redis, self.kind, self.phase, time.perf_counter() - self.phase_started))
         self.phase = None
 
     def _submit(self, coroutine: Any) -> None:
@@ -77,14 +72,14 @@ def _operate(
 
 def _outcome(
     engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
-) -> dict[str, Any]:
-    """A finished job's outcome; input errors are outcomes too (the client's: 422), not crashes."""
+) -> tuple[Outcome, bool]:
+    """A finished job's outcome, and whether a sandbox limit stopped it."""
     try:
         result = _operate(engine, kind, body, progress, cancelled)
     except PrecondError as exc:
-        error = {"type": exc.kind, "message": exc.message, "field": exc.field}
-        return {"status": "failed", "error": error, "sandbox_limit": isinstance(exc, ResourceLimit)}
-    return {"status": "succeeded", "result": result.model_dump(mode="json")}
+        error = ErrorInfo(type=exc.kind, message=exc.message, field=exc.field)
+        return Outcome(status="failed", error=error), isinstance(exc, ResourceLimit)
+    return Outcome(status="succeeded", result=result.model_dump(mode="json")), False
 
 
 async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]) -> dict[str, Any]:
@@ -97,20 +92,17 @@ async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]
     stop = threading.Event()
     future = loop.run_in_executor(None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set)
     try:
-        outcome = await asyncio.shield(future)
+        outcome, sandbox_limit = await asyncio.shield(future)
     except asyncio.CancelledError:
         stop.set()
         await asyncio.wait([future])
         raise
     finally:
         reporter.finish_phase()
-    sandbox_limit = outcome.pop("sandbox_limit", False)
     # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
     with contextlib.suppress(RedisError, OSError):
-        if outcome["status"] == "succeeded":
-            await ResultCache(redis, settings.cache_ttl_s).put(job_id, outcome["result"])
-        if sandbox_limit:
-            await redis.hincrby(STATS_KEY, "sandbox_failures", 1)
-        await redis.hincrby(STATS_KEY, f"jobs:{kind}:{outcome['status']}", 1)
-    return dict(outcome)
+        if outcome.result is not None:
+            await ResultCache(redis, settings.cache_ttl_s).put(job_id, outcome.result)
+        await record_job(redis, kind, outcome.status, sandbox_limit)
+    return outcome.to_arq()

@@ -7,7 +7,7 @@ hands the rest back to the queue (arq re-queues a job cancelled by shutdown).
 
 A SIGKILLed worker's jobs are handed back by the others: each job's claim in `precond:running` names the
 worker running it, and every heartbeat tick of every live worker re-queues the jobs of workers whose
-heartbeat has expired (service/heartbeats.py). A job this worker dropped itself (Redis went away while it
+heartbeat has expired (jobs/heartbeats.py). A job this worker dropped itself (Redis went away while it
 ran, so arq could not record its end) is handed back on the first beat after Redis returns.
 """
 
@@ -29,9 +29,9 @@ from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
 from engine.factory import build_engine
-from service.heartbeats import Heartbeat, beat, claim, new_claim, release
-from service.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
-from service.settings import Settings, get_settings
+from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
+from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
+from jobs.settings import Settings, get_settings
 from worker.jobs import run_operation
 
 log = logging.getLogger("precond.worker")

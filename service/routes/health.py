@@ -9,10 +9,11 @@ from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from redis.exceptions import RedisError
 
+from jobs.heartbeats import live_workers
+from jobs.keys import CHECK_QUEUE, MODEL_QUEUE
+from jobs.records import read_stats
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError
-from service.heartbeats import live_workers
-from service.keys import CHECK_QUEUE, MODEL_QUEUE, STATS_KEY
 
 router = APIRouter(tags=["health"])
 
@@ -51,5 +52,4 @@ async def _read_cluster_metrics(services: Services) -> None:
     workers = await live_workers(services.redis)
     for loaded in (True, False):
         metrics.workers.labels(str(loaded).lower()).set(sum(w.model_loaded == loaded for w in workers))
-    stats = await services.redis.hgetall(STATS_KEY)
-    metrics.worker_stats.snapshot = {k.decode(): float(v) for k, v in stats.items()}
+    metrics.worker_stats.snapshot = await read_stats(services.redis)

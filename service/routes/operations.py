@@ -8,6 +8,7 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 
+from jobs import keys
 from schemas.api import (
     CheckRequest,
     CheckResponse,
@@ -20,7 +21,6 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
 )
-from service import keys
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples

@@ -8,8 +8,8 @@ from collections.abc import Iterator
 import httpx
 import redis
 
+from jobs import keys
 from schemas.api import CheckRequest
-from service import keys
 from tests.service.stack import (
     Stack,
     check_body,

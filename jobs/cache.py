@@ -12,7 +12,7 @@ from typing import Any
 
 from redis.asyncio import Redis
 
-from service.keys import cache_key
+from jobs.keys import cache_key
 
 
 class ResultCache:

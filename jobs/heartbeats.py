@@ -34,7 +34,7 @@ from arq.constants import in_progress_key_prefix, result_key_prefix
 from pydantic import BaseModel
 from redis.asyncio import Redis
 
-from service.keys import RUNNING_KEY, WORKER_PREFIX, WORKERS_PATTERN, worker_key
+from jobs.keys import RUNNING_KEY, WORKER_PREFIX, WORKERS_PATTERN, worker_key
 
 
 class Heartbeat(BaseModel):

@@ -28,7 +28,7 @@ STATS_KEY: Final = f"{PREFIX}:stats"
 WORKER_PREFIX: Final = f"{PREFIX}:worker:"
 WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
 RUNNING_KEY: Final = f"{PREFIX}:running"
-"""Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see service.heartbeats."""
+"""Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
 _JOB_ID = re.compile(r"^(infer|next-action|check)-[0-9a-f]{64}$")

@@ -1,0 +1,90 @@
+"""What a worker writes and the gateway reads back, typed on both sides: outcomes, progress and stats.
+
+* `Outcome`: what a job returns to arq (stored as plain JSON-able data, so nothing but this module has to
+  agree on its shape); the gateway turns it into a `JobStatus`.
+* Progress: `JobProgress` (the API's own shape) as JSON under `progress_key(job id)`.
+* Stats: the workers' counters in one Redis hash (`STATS_KEY`), named by the functions here and read back
+  into a `StatsSnapshot` for /metrics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from pydantic import BaseModel
+from redis.asyncio import Redis
+
+from jobs.keys import STATS_KEY, progress_key
+from schemas.api import ErrorInfo, JobKind, JobProgress
+
+OutcomeState = Literal["succeeded", "failed"]
+
+
+class Outcome(BaseModel):
+    """A finished run: the response body, or the engine's user-facing error (an input error is an outcome
+    too, the client's: 422, not a crash)."""
+
+    status: OutcomeState
+    result: dict[str, Any] | None = None
+    error: ErrorInfo | None = None
+
+    def to_arq(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+    @classmethod
+    def from_arq(cls, stored: Any) -> Outcome:
+        return cls.model_validate(stored)
+
+
+# ---- progress -------------------------------------------------------------------------------------------
+
+
+async def write_progress(redis: Redis[bytes], job_id: str, progress: JobProgress, ttl_s: int) -> None:
+    await redis.set(progress_key(job_id), progress.model_dump_json(), ex=ttl_s)
+
+
+async def read_progress(redis: Redis[bytes], job_id: str) -> JobProgress:
+    raw = await redis.get(progress_key(job_id))
+    return JobProgress() if raw is None else JobProgress.model_validate_json(raw)
+
+
+# ---- stats ----------------------------------------------------------------------------------------------
+
+SANDBOX_FAILURES = "sandbox_failures"
+
+
+async def record_job(redis: Redis[bytes], kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> None:
+    """Count a finished job by kind and outcome (and whether a sandbox limit stopped it)."""
+    if sandbox_limit:
+        await redis.hincrby(STATS_KEY, SANDBOX_FAILURES, 1)
+    await redis.hincrby(STATS_KEY, f"jobs:{kind}:{status}", 1)
+
+
+async def record_phase(redis: Redis[bytes], kind: JobKind, phase: str, seconds: float) -> None:
+    """Add one engine phase's wall time to its kind's running sum and count."""
+    await redis.hincrbyfloat(STATS_KEY, f"phase_sum:{kind}:{phase}", seconds)
+    await redis.hincrby(STATS_KEY, f"phase_count:{kind}:{phase}", 1)
+
+
+@dataclass
+class StatsSnapshot:
+    jobs: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, outcome) -> count
+    phase_sum: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, phase) -> seconds
+    phase_count: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, phase) -> runs
+    sandbox_failures: float = 0.0
+
+
+async def read_stats(redis: Redis[bytes]) -> StatsSnapshot:
+    snapshot = StatsSnapshot()
+    for raw_name, raw_value in (await redis.hgetall(STATS_KEY)).items():
+        name, value = raw_name.decode(), float(raw_value)
+        if name == SANDBOX_FAILURES:
+            snapshot.sandbox_failures = value
+            continue
+        table, _, rest = name.partition(":")
+        kind, _, label = rest.partition(":")
+        target = {"jobs": snapshot.jobs, "phase_sum": snapshot.phase_sum, "phase_count": snapshot.phase_count}
+        if table in target:
+            target[table][(kind, label)] = value
+    return snapshot
