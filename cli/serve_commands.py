@@ -7,11 +7,11 @@ from typing import Annotated
 
 import typer
 
-from jobs.settings import get_settings
+from jobs.settings import get_gateway_settings, get_worker_settings
 
 
 def serve(
-    port: Annotated[int, typer.Option(help="Gateway port.")] = 8000,
+    port: Annotated[int | None, typer.Option(help="Gateway port [PORT, default 8000].")] = None,
     host: Annotated[str, typer.Option(help="Gateway bind address.")] = "127.0.0.1",
     workers: Annotated[int, typer.Option(min=1, help="Worker processes (each serves both queues).")] = 1,
     data_dir: Annotated[
@@ -21,7 +21,8 @@ def serve(
     """Run gateway, workers and, when REDIS_URL is unset and none answers locally, a redis-server."""
     from service.supervisor import Supervisor
 
-    raise typer.Exit(Supervisor(get_settings(), host, port, workers, data_dir).run())
+    port = get_gateway_settings().port if port is None else port
+    raise typer.Exit(Supervisor(get_worker_settings(), host, port, workers, data_dir).run())
 
 
 def worker(
@@ -36,7 +37,7 @@ def worker(
     from worker.runner import run
 
     overrides = {"worker_concurrency": concurrency, "check_concurrency": check_concurrency}
-    settings = get_settings().model_copy(update={k: v for k, v in overrides.items() if v is not None})
+    settings = get_worker_settings().model_copy(update={k: v for k, v in overrides.items() if v is not None})
     run(settings)
 
 

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import re
+from functools import lru_cache
 from importlib import metadata
 from typing import Any, Final
 
+from engine.settings import ModelSettings
 from schemas.api import JobKind
 
 PREFIX: Final = "precond"
@@ -57,13 +58,18 @@ def kind_of(job_id: str) -> JobKind | None:
     return match.group(1) if match else None  # type: ignore[return-value]
 
 
+@lru_cache(maxsize=1)
 def model_identity() -> str:
-    """What makes a model answer differ: its `MODEL_*` settings and the code version that loads them.
+    """What makes a model answer differ: the `MODEL_*` settings this deployment sets and the code version
+    that loads them, as `[version, [[variable, value], ...]]`.
 
-    Read from the environment, not from engine.models, because the gateway must not import torch; compose
-    gives gateway and workers one environment block for this reason.
+    `engine.settings` imports no torch, so the gateway reads the same class the workers load the model
+    with; compose gives gateway and workers one environment block for this reason.
     """
-    model_env = sorted((k, v) for k, v in os.environ.items() if k.startswith("MODEL_"))
+    settings = ModelSettings()
+    prefix = str(ModelSettings.model_config.get("env_prefix", ""))
+    explicit = settings.model_dump(mode="json", include=settings.model_fields_set)
+    model_env = sorted((f"{prefix}{name.upper()}", str(value)) for name, value in explicit.items())
     return json.dumps([metadata.version("precondition-service"), model_env])
 
 

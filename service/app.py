@@ -14,7 +14,7 @@ from fastapi import FastAPI
 from redis.asyncio import ConnectionPool
 
 from jobs.cache import ResultCache
-from jobs.settings import Settings, get_settings
+from jobs.settings import GatewaySettings, get_gateway_settings
 from service import errors
 from service.completions import Completions
 from service.deps import Services
@@ -30,8 +30,8 @@ Reasoners"). POSTs wait up to `?wait=` seconds; a job not finished by then answe
 /jobs/{id}`. Every error is `{"error": {"type", "message", "field"?}, "request_id"}`."""
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    settings = settings or get_settings()
+def create_app(settings: GatewaySettings | None = None) -> FastAPI:
+    settings = settings or get_gateway_settings()
     metrics = Metrics()
 
     @asynccontextmanager

@@ -9,14 +9,14 @@ from arq.connections import ArqRedis
 from fastapi import Depends, Request
 
 from jobs.cache import ResultCache
-from jobs.settings import Settings
+from jobs.settings import GatewaySettings
 from service.metrics import Metrics
 from service.queue import JobQueue
 
 
 @dataclass(frozen=True)
 class Services:
-    settings: Settings
+    settings: GatewaySettings
     redis: ArqRedis
     cache: ResultCache
     queue: JobQueue

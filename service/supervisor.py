@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
 
-from jobs.settings import Settings
+from jobs.settings import WorkerSettings
 
 log = logging.getLogger("precond.serve")
 LOCAL_REDIS = ("127.0.0.1", 6379)
@@ -73,7 +73,7 @@ def redis_child(data_dir: Path) -> Child:
 
 
 class Supervisor:
-    def __init__(self, settings: Settings, host: str, port: int, workers: int, data_dir: Path) -> None:
+    def __init__(self, settings: WorkerSettings, host: str, port: int, workers: int, data_dir: Path) -> None:
         self.settings = settings
         self.env = dict(os.environ)
         self.children: list[Child] = []

@@ -21,7 +21,7 @@ from redis.exceptions import RedisError
 from engine.engine import Engine
 from jobs.cache import ResultCache
 from jobs.records import Outcome, record_job, record_phase, write_progress
-from jobs.settings import Settings
+from jobs.settings import WorkerSettings
 from schemas.api import CheckRequest, ErrorInfo, InferRequest, JobKind, JobProgress, NextActionRequest
 from schemas.errors import PrecondError, ResourceLimit
 
@@ -84,7 +84,7 @@ def _outcome(
 
 async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]) -> dict[str, Any]:
     """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop."""
-    settings: Settings = ctx["settings"]
+    settings: WorkerSettings = ctx["settings"]
     redis: Redis[bytes] = ctx["redis"]
     job_id: str = ctx["job_id"]
     loop = asyncio.get_running_loop()

@@ -31,14 +31,14 @@ from redis.exceptions import RedisError
 from engine.factory import build_engine
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
 from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
-from jobs.settings import Settings, get_settings
+from jobs.settings import WorkerSettings, get_worker_settings
 from worker.jobs import run_operation
 
 log = logging.getLogger("precond.worker")
 
 
 class WorkerProcess:
-    def __init__(self, settings: Settings, queues: list[str]) -> None:
+    def __init__(self, settings: WorkerSettings, queues: list[str]) -> None:
         self.settings = settings
         self.queues = queues
         self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
@@ -201,10 +201,10 @@ async def _announce(ctx: dict[str, Any]) -> None:
         await ctx["redis"].publish(done_channel(ctx["job_id"]), b"1")
 
 
-def run(settings: Settings, queues: list[str] | None = None) -> None:
+def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     asyncio.run(WorkerProcess(settings, queues or [MODEL_QUEUE, CHECK_QUEUE]).run())
 
 
 if __name__ == "__main__":
-    run(get_settings())
+    run(get_worker_settings())

@@ -30,7 +30,6 @@ import torch
 
 from engine.models.attention import use_grouped_attention
 from engine.models.kvcache import GrowingLayer, growing_cache
-from engine.models.settings import EMBEDDED, ModelSettings
 from engine.models.stopping import StopRule, stop_index
 from engine.models.store import (
     EMBEDDED_NAME,
@@ -39,6 +38,7 @@ from engine.models.store import (
     embedded_model_dir,
     gguf_model_dir,
 )
+from engine.settings import EMBEDDED, ModelSettings
 from schemas.api import ModelInfo
 from schemas.errors import Cancelled
 

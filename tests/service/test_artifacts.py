@@ -13,29 +13,39 @@ import jsonschema
 import pytest
 import yaml
 
+from cli import export
 from schemas.api import CheckRequest, InferRequest, NextActionRequest
-from service import export
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 
 
 def test_gateway_never_imports_torch() -> None:
-    code = "import sys, service.app, service.export; service.app.create_app(); print('torch' in sys.modules)"
+    code = "import sys, service.app, cli.export; service.app.create_app(); print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
 
 def test_openapi_file_matches_app() -> None:
     assert (ROOT / "openapi" / "openapi.json").read_text() == export.openapi_text(), (
-        "run python -m service.export"
+        "run python -m cli.export"
     )
 
 
 def test_configuration_doc_matches_settings() -> None:
     assert (ROOT / "docs" / "configuration.md").read_text() == export.configuration_text(), (
-        "python -m service.export"
+        "python -m cli.export"
     )
+
+
+def test_every_setting_is_documented() -> None:
+    for _, cls, _ in export.SECTIONS:
+        for name, field in cls.model_fields.items():
+            assert field.description, f"{cls.__name__}.{name} needs a description for docs/configuration.md"
+    documented = export.configuration_text()
+    serve = (ROOT / "scripts" / "serve.sh").read_text()
+    for variable in re.findall(r"\$\{?([A-Z][A-Z0-9_]+)", serve):  # what serve.sh reads is a setting too
+        assert f"`{variable}`" in documented, variable
 
 
 @pytest.mark.parametrize(

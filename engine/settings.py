@@ -1,0 +1,80 @@
+"""The engine's two deployable parts, configured from the environment: the model (`MODEL_*`) and the
+sandbox (`SANDBOX_*`).
+
+Everything a deployment changes without a code change lives here: which weights (the embedded 0.5B model on
+a laptop, a mounted 7B model on a GPU host), where they run, how many CPU threads they may take, and the
+limits on untrusted code. This module imports neither torch nor the engine, so the gateway can read the
+model settings that are part of every job id (`jobs.keys.model_identity`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import fields
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from sandbox.types import Limits
+
+EMBEDDED = "embedded"
+
+
+def default_cache_dir() -> Path:
+    """Follow XDG so the converted weights survive reinstalls but stay out of the project tree."""
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg) if xdg else Path.home() / ".cache"
+    return base / "precond"
+
+
+class ModelSettings(BaseSettings):
+    """`path` is "embedded", a Hugging Face model directory, or a `.gguf` file.
+
+    `device` and `dtype` default to "auto": CUDA in bfloat16 when present, else CPU in the dtype that
+    generates fastest there. `threads` defaults to 1 because the worker usually shares its cores with the
+    sandbox and other jobs; oversubscribed cores make torch an order of magnitude slower.
+    """
+
+    model_config = SettingsConfigDict(env_prefix="MODEL_", extra="ignore")
+
+    path: str = Field(
+        default=EMBEDDED,
+        description="`embedded` (Qwen2.5-Coder-0.5B-Instruct from the `model` extra), a Hugging Face model "
+        "directory, or a `.gguf` file.",
+    )
+    device: str = Field(default="auto", description="`auto` (CUDA when present, else CPU), `cpu`, `cuda`, ...")
+    dtype: str = Field(
+        default="auto", description="`auto` (bfloat16 on CUDA, the fastest dtype on CPU) or a torch dtype name."
+    )
+    threads: int = Field(default=1, ge=1, description="CPU threads torch may use.")
+    cache_dir: Path = Field(
+        default_factory=default_cache_dir,
+        description="Where converted weights are kept. Unset: `$XDG_CACHE_HOME/precond` (`~/.cache/precond`).",
+    )
+    max_batch: int = Field(default=32, ge=1, description="Most sequences decoded in one forward pass.")
+
+
+_LIMITS = Limits()
+
+
+class SandboxSettings(BaseSettings):
+    """Limits on untrusted code, per sandbox call; one field per `sandbox.Limits` field, same defaults."""
+
+    model_config = SettingsConfigDict(env_prefix="SANDBOX_", extra="ignore")
+
+    workers: int = Field(default=2, ge=1, le=64, description="Warm fork servers (parallel sandbox calls).")
+    timeout_s: float = Field(default=_LIMITS.timeout_s, gt=0, description="Wall-clock limit per call.")
+    cpu_s: int = Field(default=_LIMITS.cpu_s, ge=1, description="CPU seconds per call.")
+    memory_mb: int = Field(default=_LIMITS.memory_mb, ge=64, description="Address-space limit per call.")
+    open_files: int = Field(default=_LIMITS.open_files, ge=8, description="Open file descriptors per call.")
+    output_bytes: int = Field(
+        default=_LIMITS.output_bytes, ge=1_000, description="Captured print output per call."
+    )
+    result_bytes: int = Field(
+        default=_LIMITS.result_bytes, ge=1_000, description="Largest answer a sandbox call may send back."
+    )
+    recursion: int = Field(default=_LIMITS.recursion, ge=50, description="Python recursion limit per call.")
+
+    def limits(self) -> Limits:
+        return Limits(**{f.name: getattr(self, f.name) for f in fields(Limits)})
