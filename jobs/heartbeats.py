@@ -45,7 +45,9 @@ class Heartbeat(BaseModel):
     model_loaded: bool
     model_error: str | None = None
     jobs_started: int = 0
+    """Runs this worker process started (each try of a job counts); never decreases."""
     jobs_complete: int = 0
+    """Runs that returned an outcome (a succeeded or a failed request); never decreases."""
 
 
 _BEAT = """

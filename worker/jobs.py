@@ -12,6 +12,7 @@ import contextlib
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import BaseModel
@@ -27,6 +28,15 @@ from schemas.errors import PrecondError, ResourceLimit
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
+
+
+@dataclass
+class JobCounts:
+    """The worker's own count of its runs, for its heartbeat: incremented when it starts a run (arq's
+    `on_job_start`) and when a run returns its outcome; never derived from arq's internals, never lower."""
+
+    started: int = 0
+    complete: int = 0
 
 
 class ProgressReporter:
@@ -105,4 +115,6 @@ async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]
         if outcome.result is not None:
             await ResultCache(redis, settings.cache_ttl_s).put(job_id, outcome.result)
         await record_job(redis, kind, outcome.status, sandbox_limit)
+    counts: JobCounts = ctx["counts"]
+    counts.complete += 1
     return outcome.to_arq()

@@ -32,7 +32,7 @@ from engine.factory import build_engine
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
 from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
 from jobs.settings import WorkerSettings, get_worker_settings
-from worker.jobs import run_operation
+from worker.jobs import JobCounts, run_operation
 
 log = logging.getLogger("precond.worker")
 
@@ -49,6 +49,7 @@ class WorkerProcess:
         self.dropped: dict[str, str] = {}  # claims of runs that ended unrecorded: to hand back at the next beat
         self.stopping = asyncio.Event()
         self.model_error: str | None = None
+        self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -88,7 +89,7 @@ class WorkerProcess:
             handle_signals=False,
             job_completion_wait=s.drain_s,
             health_check_interval=60,
-            ctx={"engine": self.engine, "settings": s},
+            ctx={"engine": self.engine, "settings": s, "counts": self.counts},
             on_job_start=self._claim,
             after_job_end=self._job_ended,
         )
@@ -116,7 +117,6 @@ class WorkerProcess:
             self.model_error = f"{type(exc).__name__}: {exc}"
 
     def _heartbeat_body(self) -> Heartbeat:
-        workers = self.workers.values()
         return Heartbeat(
             id=self.id,
             host=socket.gethostname(),
@@ -124,10 +124,8 @@ class WorkerProcess:
             queues=self.queues,
             model_loaded=self.engine.model_loaded,
             model_error=self.model_error,
-            jobs_started=sum(
-                w.jobs_complete + w.jobs_failed + w.jobs_retried + len(w.tasks) for w in workers
-            ),
-            jobs_complete=sum(w.jobs_complete for w in workers),
+            jobs_started=self.counts.started,
+            jobs_complete=self.counts.complete,
         )
 
     async def _claim(self, ctx: dict[str, Any]) -> None:
@@ -135,6 +133,7 @@ class WorkerProcess:
 
         If Redis refuses, the job still runs: the next beat re-registers it.
         """
+        self.counts.started += 1
         token = ctx["claim"] = self.claims[ctx["job_id"]] = new_claim(self.id)
         with contextlib.suppress(RedisError, OSError):
             await claim(ctx["redis"], self._heartbeat_body(), self.settings.heartbeat_lease_s, ctx["job_id"], token)
