@@ -14,6 +14,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 from engine.spec import Spec
+from programs import Method, Purity
 from sandbox.types import ActionInfo
 
 MAX_KEYS = 40
@@ -22,7 +23,6 @@ MAX_DEPTH = 2
 MAPPING_FACTORIES = {"defaultdict", "dict", "OrderedDict", "Counter"}
 SET_FACTORIES = {"set", "frozenset"}
 SEQUENCE_FACTORIES = {"list", "tuple", "deque"}
-MUTATORS = {"append", "add", "update", "pop", "clear", "remove", "discard", "setdefault", "extend", "insert"}
 
 
 @dataclass
@@ -53,29 +53,23 @@ def _self_attribute(target: ast.expr) -> str | None:
     return None
 
 
-def _is_pure_query(method: ast.FunctionDef) -> bool:
-    """Returns a value and writes nothing: safe and meaningful to call inside an assertion."""
-    returns = False
-    for node in ast.walk(method):
-        if isinstance(node, ast.Return) and node.value is not None:
-            returns = True
-        if isinstance(node, ast.Assign | ast.AugAssign | ast.AnnAssign | ast.Delete):
-            targets = node.targets if isinstance(node, ast.Assign | ast.Delete) else [node.target]
-            if any(isinstance(t, ast.Attribute | ast.Subscript) for t in targets):
-                return False
-        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in MUTATORS:
-            return False
-    return returns
+def _returns_value(method: ast.AST) -> bool:
+    return any(isinstance(node, ast.Return) and node.value is not None for node in ast.walk(method))
 
 
-def _class_shape(cls: ast.ClassDef) -> tuple[ClassShape, dict[str, int]]:
-    """Attribute kinds, plus which __init__ parameter (by position) each linked attribute comes from."""
+def _class_shape(cls: ast.ClassDef, methods: Iterable[Method], purity: Purity) -> tuple[ClassShape, dict[str, int]]:
+    """Attribute kinds, plus which __init__ parameter (by position) each linked attribute comes from.
+
+    Queries are the class's methods that return a value and write nothing (`programs.Purity`): safe and
+    meaningful to call inside an assertion.
+    """
     shape = ClassShape()
+    for query in methods:
+        if query.name not in purity.impure and _returns_value(query.node):
+            shape.queries[query.name] = query.positional
     from_param: dict[str, int] = {}
     for method in (n for n in cls.body if isinstance(n, ast.FunctionDef)):
         params = [a.arg for a in method.args.args[1:]]
-        if not method.name.startswith("__") and _is_pure_query(method):
-            shape.queries[method.name] = tuple(params)
         for node in ast.walk(method):
             if not isinstance(node, ast.Assign):
                 continue
@@ -111,7 +105,7 @@ class DemoFacts:
 def _read_demos(spec: Spec, demos: Iterable[ast.Module]) -> DemoFacts:
     facts = DemoFacts()
     classes = {m.cls for m in spec.methods.values()}
-    params_of = {(m.cls, m.name): m.params for m in spec.methods.values()}
+    params_of = {(m.cls, m.name): m.positional for m in spec.methods.values()}
     for module in demos:
         for node in ast.walk(module):
             if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
@@ -153,9 +147,11 @@ class StateModel:
         self.facts = _read_demos(spec, demos)
         self.shapes: dict[str, ClassShape] = {}
         self.mapping_keys: dict[tuple[str, str], list[object]] = {}
+        purity = Purity(spec.tree)
         for node in spec.tree.body:
             if isinstance(node, ast.ClassDef):
-                shape, from_param = _class_shape(node)
+                methods = [m for m in spec.methods.values() if m.cls == node.name]
+                shape, from_param = _class_shape(node, methods, purity)
                 self._link(node.name, shape, from_param)
                 self.shapes[node.name] = shape
                 self._collect_keys(node)

@@ -1,8 +1,9 @@
 """Static reading of a user's program spec: which methods are actions, and the text the prompts are made of.
 
 Only `ast` is used here: the spec is untrusted, so it is parsed (never executed) in the worker; everything
-that runs it goes through the sandbox. Parsing errors become `InvalidProgram` with the line, so the gateway
-can answer 422 before any model time is spent.
+that runs it goes through the sandbox. What a method, an action and a stub are is `programs.read_methods`'s
+answer, the one the sandbox and the evaluation use too. Parsing errors become `InvalidProgram` with the
+line, so the gateway can answer 422 before any model time is spent.
 """
 
 from __future__ import annotations
@@ -11,20 +12,8 @@ import ast
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
+from programs import Method, read_methods
 from schemas.errors import InvalidProgram, UnknownAction
-
-
-@dataclass(frozen=True)
-class Method:
-    cls: str
-    name: str
-    params: tuple[str, ...]
-    stub: bool
-    node: ast.FunctionDef
-
-    @property
-    def qualname(self) -> str:
-        return f"{self.cls}.{self.name}"
 
 
 @dataclass(frozen=True)
@@ -48,31 +37,9 @@ def parse_source(source: str, field: str) -> ast.Module:
         raise InvalidProgram(f"{field}: cannot be parsed: {type(exc).__name__}", field=field) from exc
 
 
-def _is_stub(node: ast.FunctionDef) -> bool:
-    """A body of only `pass`, `...` or a docstring: the paper's action functions whose assertions are unknown."""
-    for stmt in node.body:
-        if isinstance(stmt, ast.Pass):
-            continue
-        if isinstance(stmt, ast.Expr) and isinstance(stmt.value, ast.Constant):
-            continue
-        return False
-    return True
-
-
-def _methods_of(cls: ast.ClassDef) -> Iterable[Method]:
-    for node in cls.body:
-        if isinstance(node, ast.FunctionDef) and not node.name.startswith("__"):
-            args = [a.arg for a in node.args.args[1:]]
-            yield Method(cls.name, node.name, tuple(args), _is_stub(node), node)
-
-
 def parse_spec(source: str) -> Spec:
     tree = parse_source(source, "spec")
-    methods: dict[str, Method] = {}
-    for node in tree.body:
-        if isinstance(node, ast.ClassDef):
-            for method in _methods_of(node):
-                methods[method.qualname] = method
+    methods = read_methods(tree)
     if not methods:
         raise InvalidProgram("spec: defines no class with methods, so there are no actions", field="spec")
     return Spec(source, tree, methods)
@@ -113,7 +80,7 @@ def action_header(spec: Spec, action: str) -> str:
     """
     method = spec.methods[action]
     indent = " " * (method.node.col_offset or 4)
-    params = ", ".join(("self", *method.params))
+    params = ", ".join(("self", *method.signature))
     return f"class {method.cls}:\n{indent}def {method.name}({params}):\n{indent}{indent}assert"
 
 

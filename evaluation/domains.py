@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from programs import Method, main_body, read_methods
 from sandbox.types import Point
 
 ArgMode = Literal["state", "trajectory"]
@@ -96,13 +97,17 @@ def sgd_domain_files(data_dir: Path) -> list[Path]:
     return sorted(p for p in data_dir.glob("*.json") if p.is_file())
 
 
+def _methods(spec: str, cls: str) -> list[Method]:
+    """The methods of one spec class (static reading; the spec is data, never imported)."""
+    methods = [m for m in read_methods(ast.parse(spec)).values() if m.cls == cls]
+    if not methods:
+        raise ValueError(f"spec has no class {cls} with methods")
+    return methods
+
+
 def _method_params(spec: str, cls: str) -> dict[str, tuple[str, ...]]:
-    """Parameter names per method of one spec class (static reading; the spec is data, never imported)."""
-    for node in ast.parse(spec).body:
-        if isinstance(node, ast.ClassDef) and node.name == cls:
-            return {f.name: tuple(a.arg for a in f.args.args[1:])
-                    for f in node.body if isinstance(f, ast.FunctionDef)}
-    raise ValueError(f"spec has no class {cls}")
+    """Positional parameter names per method of one spec class."""
+    return {m.name: m.positional for m in _methods(spec, cls)}
 
 
 def _sgd_points(data: dict[str, Any], params: dict[str, tuple[str, ...]]) -> dict[str, list[Point]]:
@@ -121,7 +126,7 @@ def _sgd_points(data: dict[str, Any], params: dict[str, tuple[str, ...]]) -> dic
 
 def _check_sgd_dialog(dialog: dict[str, Any]) -> None:
     """Positions are computed from `steps`; make sure the program has exactly one statement per step."""
-    body = ast.parse(dialog["program"]).body
+    body = main_body(ast.parse(dialog["program"]))
     if len(body) != SGD_SETUP_STATEMENTS + len(dialog["steps"]):
         steps = len(dialog["steps"])
         raise ValueError(f"dialog {dialog['dialogue_id']}: {len(body)} statements for {steps} steps")
@@ -151,12 +156,10 @@ def load_sgd(path: Path) -> Domain:
 def gt_assertions(spec_gt: str, cls: str) -> dict[str, list[str]]:
     """`assert` expressions of each method of `cls`, in order (read statically from alfworld_spec_gt.py)."""
     out: dict[str, list[str]] = {}
-    for node in ast.parse(spec_gt).body:
-        if isinstance(node, ast.ClassDef) and node.name == cls:
-            for method in (f for f in node.body if isinstance(f, ast.FunctionDef)):
-                tests = [ast.unparse(s.test) for s in method.body if isinstance(s, ast.Assert)]
-                if tests:
-                    out[f"{cls}.{method.name}"] = tests
+    for method in _methods(spec_gt, cls):
+        tests = [ast.unparse(s.test) for s in method.node.body if isinstance(s, ast.Assert)]
+        if tests:
+            out[method.qualname] = tests
     return out
 
 
@@ -205,12 +208,7 @@ def alfworld_points(
 
 def _agent_actions(spec: str) -> list[str]:
     """The Agent methods with stub bodies: the actions whose preconditions are inferred."""
-    for node in ast.parse(spec).body:
-        if isinstance(node, ast.ClassDef) and node.name == "Agent":
-            return [f.name for f in node.body
-                    if isinstance(f, ast.FunctionDef) and not f.name.startswith("__")
-                    and all(isinstance(s, ast.Pass) for s in f.body)]
-    raise ValueError("ALFWorld spec has no Agent class")
+    return [m.name for m in _methods(spec, "Agent") if m.stub]
 
 
 def load_alfworld(data_dir: Path, mode: ArgMode = "state", limit: int | None = None) -> Domain:
