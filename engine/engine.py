@@ -10,7 +10,7 @@ from __future__ import annotations
 import ast
 import threading
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, TypeVar
@@ -82,20 +82,28 @@ class Proposals:
 
     source: dict[str, dict[str, str]] = field(default_factory=dict)
     votes: dict[str, dict[str, int]] = field(default_factory=dict)
-    counts: dict[str, StageCounts] = field(default_factory=dict)
+    sampled: dict[str, int] = field(default_factory=dict)
 
     def add(
         self, action: str, expressions: Sequence[str], origin: str, sampled: int, votes: dict[str, int] | None = None
     ) -> None:
         known = self.source.setdefault(action, {})
-        counts = self.counts.setdefault(action, StageCounts())
-        counts.sampled += sampled
+        self.sampled[action] = self.sampled.get(action, 0) + sampled
         for expression in expressions:
             known.setdefault(expression, origin)
         tally = self.votes.setdefault(action, {})
         for expression, n in (votes or {}).items():
             tally[expression] = tally.get(expression, 0) + n
-        counts.parsed = len(known)
+
+
+@dataclass(frozen=True)
+class Ranked:
+    """One action's candidates after validation and ranking: data that reports and counts are built from."""
+
+    results: Sequence[CandidateResult]
+    valid: list[Candidate]
+    clusters: list[Cluster]
+    chosen: list[Cluster]
 
 
 class Timer:
@@ -161,22 +169,15 @@ class Engine:
             evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            kept, reports = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
-        preconditions = {a: [c.representative.expression for c in kept[a]] for a in actions}
+            ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
+        chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         with timer.phase("verify"):
-            program = self._verified_program(spec, preconditions, demos, reports)
-        for action in actions:
-            proposals.counts[action].kept = len(preconditions[action])
-        total = StageCounts()
-        for counts in proposals.counts.values():
-            for name in StageCounts.model_fields:
-                setattr(total, name, getattr(total, name) + getattr(counts, name))
-        stats = InferStats(
-            actions={a: proposals.counts.get(a, StageCounts()) for a in actions}, total=total, seconds=timer.seconds
-        )
+            program, preconditions, dropped = self._verified_program(spec, chosen, demos)
+        response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds)
         progress("done", 1, 1)
         return InferResponse(
-            preconditions=preconditions, program=program, candidates=reports, stats=stats, model=model_info
+            preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
+            model=model_info,
         )
 
     def _generate(
@@ -218,16 +219,15 @@ class Engine:
             atoms = enumerate_atoms(state, info, spec.methods[action].cls)
             proposals.add(action, atoms, "enumerate", len(atoms))
 
+    @staticmethod
     def _rank(
-        self,
         actions: list[str],
         trace: TraceResult,
         evaluated: EvaluateResult,
         proposals: Proposals,
         criterion: str,
-    ) -> tuple[dict[str, list[Cluster]], dict[str, list[CandidateReport]]]:
-        kept: dict[str, list[Cluster]] = {}
-        reports: dict[str, list[CandidateReport]] = {}
+    ) -> dict[str, Ranked]:
+        ranked: dict[str, Ranked] = {}
         turns = _previous_turns(trace)
         for action in actions:
             results = evaluated.results.get(action, ())
@@ -241,27 +241,26 @@ class Engine:
                 chosen = rank(criterion, clusters, evidence)
             else:
                 chosen = zero_shot(valid, proposals.votes.get(action, {}), trace.actions[action].params)
-            kept[action] = chosen
-            counts = proposals.counts.setdefault(action, StageCounts())
-            counts.valid, counts.clusters, counts.kept = len(valid), len(clusters), len(chosen)
-            reports[action] = _reports(results, origins, clusters, chosen)
-        return kept, reports
+            ranked[action] = Ranked(results, valid, clusters, chosen)
+        return ranked
 
     def _verified_program(
-        self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str],
-        reports: dict[str, list[CandidateReport]],
-    ) -> str:
+        self, spec: Spec, chosen: dict[str, list[str]], demos: list[str]
+    ) -> tuple[str, dict[str, list[str]], dict[str, dict[str, str]]]:
         """The spec with the kept assertions, run on every demonstration; assertions that fail together are dropped.
 
         Each assertion was validated alone, but together they can disagree: one action's assertion may change
         the state another reads (subscripting a defaultdict inserts the key, so `len(d) == 1` later fails).
         The assertion that fails is dropped (it is the one that read state its validation never saw) until
-        the program runs, and its report says why.
+        the program runs. Returns the program, the preconditions it holds, and per action the dropped
+        assertions with the reason.
         """
+        preconditions = {action: list(kept) for action, kept in chosen.items()}
+        dropped: dict[str, dict[str, str]] = {}
         while True:
             failure = self._failure(spec, preconditions, demos)
             if failure is None:
-                return render_program(spec, preconditions)
+                return render_program(spec, preconditions), preconditions, dropped
             action = _action_at(spec, demos[failure.index or 0], failure.line or 0, preconditions)
             if failure.where != "demonstration" or action is None:
                 raise InvalidProgram(str(failure), field=f"demonstrations[{failure.index}]")
@@ -272,12 +271,9 @@ class Engine:
                                     failure)),
                 len(kept) - 1,
             )
-            dropped = kept.pop(culprit)
-            for report in reports[action]:
-                if report.assertion == dropped:
-                    report.kept = False
-                    report.reason = (f"dropped: fails with the other kept assertions "
-                                     f"(demonstration {failure.index}, line {failure.line})")
+            dropped.setdefault(action, {})[kept.pop(culprit)] = (
+                f"dropped: fails with the other kept assertions (demonstration {failure.index}, line {failure.line})"
+            )
 
     def _failure(self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str]) -> ProgramError | None:
         try:
@@ -367,21 +363,50 @@ def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
     return starts
 
 
+@dataclass(frozen=True)
+class _Report:
+    candidates: dict[str, list[CandidateReport]]
+    stats: InferStats
+
+
+def _response(
+    actions: Sequence[str],
+    proposals: Proposals,
+    ranked: Mapping[str, Ranked],
+    preconditions: Mapping[str, Sequence[str]],
+    dropped: Mapping[str, Mapping[str, str]],
+    seconds: dict[str, float],
+) -> _Report:
+    """Candidate reports and stage counts of an inference, built in one place from what the phases returned."""
+    candidates: dict[str, list[CandidateReport]] = {}
+    counts: dict[str, StageCounts] = {}
+    for action in actions:
+        r = ranked[action]
+        origins = proposals.source.get(action, {})
+        candidates[action] = _reports(r, origins, preconditions[action], dropped.get(action, {}))
+        counts[action] = StageCounts(
+            sampled=proposals.sampled.get(action, 0), parsed=len(origins), valid=len(r.valid),
+            clusters=len(r.clusters), kept=len(preconditions[action]),
+        )
+    total = StageCounts(**{
+        name: sum(getattr(c, name) for c in counts.values()) for name in StageCounts.model_fields
+    })
+    return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds))
+
+
 def _reports(
-    results: Sequence[CandidateResult], origins: dict[str, str], clusters: list[Cluster], chosen: list[Cluster]
+    ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str]
 ) -> list[CandidateReport]:
-    cluster_of = {m.expression: i for i, c in enumerate(clusters) for m in c.members}
-    kept = {c.representative.expression for c in chosen}
-    out = []
-    for result in results:
-        out.append(CandidateReport(
+    cluster_of = {m.expression: i for i, c in enumerate(ranked.clusters) for m in c.members}
+    return [
+        CandidateReport(
             assertion=result.expression,
             source="enumerate" if origins.get(result.expression) == "enumerate" else "model",
             valid=result.status == "valid",
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),
             kept=result.expression in kept,
-            reason=result.reason,
-        ))
-    return out
-
+            reason=dropped.get(result.expression, result.reason),
+        )
+        for result in ranked.results
+    ]

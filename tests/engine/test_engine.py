@@ -11,7 +11,7 @@ import pytest
 from engine.engine import Engine
 from engine.spec import parse_spec
 from sandbox import Sandbox
-from schemas.api import CandidateReport, CheckRequest, InferRequest, ModelInfo, NextActionRequest
+from schemas.api import CheckRequest, InferRequest, ModelInfo, NextActionRequest
 from schemas.errors import InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
 
@@ -175,11 +175,10 @@ def test_assertions_that_fail_together_are_dropped_until_the_program_runs(engine
         "SYSTEM.OFFER": ["not self.user.informed_intent['BuyEventTickets']"],
         "SYSTEM.INFORM_COUNT": ["len(self.user.informed_intent) == 1", "self.query_success"],
     }
-    reports = {a: [CandidateReport(assertion=x, source="model", valid=True, support=1, kept=True) for x in xs]
-               for a, xs in preconditions.items()}
-    program = engine._verified_program(spec, preconditions, demos, reports)
-    assert preconditions["SYSTEM.INFORM_COUNT"] == ["self.query_success"]
-    assert preconditions["SYSTEM.OFFER"] == ["not self.user.informed_intent['BuyEventTickets']"]
-    dropped = reports["SYSTEM.INFORM_COUNT"][0]
-    assert not dropped.kept and dropped.reason and dropped.reason.startswith("dropped: fails with the other")
+    program, kept, dropped = engine._verified_program(spec, preconditions, demos)
+    assert kept["SYSTEM.INFORM_COUNT"] == ["self.query_success"]
+    assert kept["SYSTEM.OFFER"] == ["not self.user.informed_intent['BuyEventTickets']"]
+    assert list(dropped) == ["SYSTEM.INFORM_COUNT"]
+    reason = dropped["SYSTEM.INFORM_COUNT"]["len(self.user.informed_intent) == 1"]
+    assert reason.startswith("dropped: fails with the other")
     engine._sandbox.trace(program, demos)
