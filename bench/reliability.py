@@ -10,7 +10,7 @@ the same without kills), redis (SIGTERM and SIGKILL restart with the
 append-only file), hostile (the hostile corpus over HTTP, production sandbox limits), fuzz (schemathesis,
 all operations), overload (48 clients on one worker, queue bound 8), shutdown (SIGTERM mid-job, drain longer
 and shorter than the job). Each runs on its own redis-server + gateway + workers on free loopback ports,
-with the tiny random model of tests/tiny_model.py (model-free enumerate jobs do the real work).
+with the tiny random model of stack/tiny_model.py (model-free enumerate jobs do the real work).
 """
 
 from __future__ import annotations
@@ -25,9 +25,9 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.reliability import scenarios  # noqa: E402
-from tests.reliability.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
-from tests.tiny_model import build_tiny_model  # noqa: E402
+from stack import scenarios  # noqa: E402
+from stack.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
+from stack.tiny_model import build_tiny_model  # noqa: E402
 
 FULL = {
     "crash": {"jobs": 200, "kills": 6, "millions": 5},

@@ -1,6 +1,6 @@
 """Service latency and throughput on loopback: own redis-server, uvicorn gateway, one `precond worker`.
 
-    python bench/service_bench.py                     # tiny random model (tests/tiny_model.py)
+    python bench/service_bench.py                     # tiny random model (stack/tiny_model.py)
     python bench/service_bench.py --model embedded    # the embedded code model (slow on CPU)
     python bench/service_bench.py --json bench/service.json
 
@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 sys.path.insert(0, str(ROOT))
 
-from tests.service.stack import free_port, wait_until  # noqa: E402
+from stack.local import free_port, wait_until  # noqa: E402
 
 
 @contextmanager
@@ -53,7 +53,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
         "MODEL_THREADS": "1",
     }
     if args.model == "tiny":
-        from tests.tiny_model import build_tiny_model
+        from stack.tiny_model import build_tiny_model
 
         env["MODEL_PATH"] = str(build_tiny_model(tmp / "tiny-model"))
     else:

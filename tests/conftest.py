@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from tests.tiny_model import build_tiny_model
+from stack.tiny_model import build_tiny_model
 
 # Two threads on two busy cores run torch ~10x slower than one.
 torch.set_num_threads(1)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from tests.reliability import scenarios
-from tests.reliability.harness import scenario_stack
+from stack import scenarios
+from stack.harness import scenario_stack
 
 
 def test_overload_is_429_and_cheap_paths_stay_fast(tmp_path: Path, tiny_model_dir: Path) -> None:

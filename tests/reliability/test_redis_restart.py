@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.reliability import scenarios
-from tests.reliability.harness import scenario_stack
+from stack import scenarios
+from stack.harness import scenario_stack
 
 
 @pytest.mark.parametrize("kill", [False, True], ids=["sigterm", "sigkill"])

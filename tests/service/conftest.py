@@ -8,7 +8,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.service.stack import Stack, make_stack, serving
+from stack.local import Stack, make_stack, serving
 
 
 @pytest.fixture(scope="module")

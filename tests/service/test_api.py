@@ -10,7 +10,7 @@ import redis
 
 from jobs import keys
 from schemas.api import CheckRequest
-from tests.service.stack import (
+from stack.local import (
     Stack,
     check_body,
     example,

@@ -6,6 +6,7 @@ tests/reliability/test_*.py run them small (CI), `python bench/reliability.py` r
 from __future__ import annotations
 
 import asyncio
+import functools
 import json
 import random
 import signal
@@ -14,14 +15,15 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import httpx
 
-from tests.reliability import harness
-from tests.reliability.hostile import hostile_requests
-from tests.service.stack import ROOT, Stack, check_body, heavy_infer_body, infer_body, wait_until
+from stack import harness
+from stack.hostile import hostile_requests
+from stack.local import ROOT, Stack, check_body, heavy_infer_body, infer_body, wait_until
 
 # ---- worker crashes ------------------------------------------------------------------------------------
 
@@ -67,7 +69,7 @@ def worker_crashes(stack: Stack, jobs: int, kills: int, millions: int, workers: 
         async with httpx.AsyncClient(base_url=stack.base_url, timeout=30) as http:
             deadline = time.monotonic() + deadline_s
             return await harness.bounded_gather(clients, [
-                (lambda b=b: harness.submit_and_follow(http, "/infer-preconditions", b, deadline))
+                functools.partial(harness.submit_and_follow, http, "/infer-preconditions", b, deadline)
                 for b in bodies
             ])
 
@@ -136,7 +138,7 @@ def redis_restart(stack: Stack, jobs: int, millions: int, down_s: float, kill: b
         else:
             stack.redis.stop()
         stopped = time.monotonic()
-        calls = {
+        calls: dict[str, Callable[[], httpx.Response]] = {
             "POST /check-actions": lambda: http.post("/check-actions", json=check_body("system.REQUEST('area')")),
             "POST /infer-preconditions": lambda: http.post("/infer-preconditions", json=infer_body(seed=7)),
             "GET /jobs/{id}": lambda: http.get(f"/jobs/{accepted[-1]}"),
@@ -201,7 +203,7 @@ def redis_restart(stack: Stack, jobs: int, millions: int, down_s: float, kill: b
 
 
 def hostile_input(stack: Stack, canary_dir: Path, concurrency: int = 4) -> dict[str, Any]:
-    """Every hostile request of tests/reliability/hostile.py over HTTP; the service must answer each with
+    """Every hostile request of stack/hostile.py over HTTP; the service must answer each with
     its expected status and a clear error, stay up, and write none of the canary files."""
     stack.start_worker()
     worker_pids = stack.worker_pids()
@@ -222,7 +224,7 @@ def hostile_input(stack: Stack, canary_dir: Path, concurrency: int = 4) -> dict[
 
     async def run() -> list[dict[str, Any]]:
         async with httpx.AsyncClient(base_url=stack.base_url, timeout=120) as http:
-            return await harness.bounded_gather(concurrency, [(lambda c=c: send(http, c)) for c in cases])
+            return await harness.bounded_gather(concurrency, [functools.partial(send, http, c) for c in cases])
 
     started = time.monotonic()
     results = asyncio.run(run())

@@ -2,7 +2,7 @@
 
 Everything runs for real on loopback: redis-server (append-only file on where a scenario needs
 persistence, as in docker-compose), the uvicorn gateway and `worker.runner` processes with the production
-engine and sandbox, started by tests/service/stack.py. Every scenario is a function that takes its size,
+engine and sandbox, started by stack/local.py. Every scenario is a function that takes its size,
 runs against a stack, and returns its figures as a dict; tests assert on them, the bench prints them.
 """
 
@@ -23,7 +23,7 @@ from typing import Any
 import httpx
 import redis
 
-from tests.service.stack import RedisServer, Stack, make_stack, serving, wait_until
+from stack.local import RedisServer, Stack, make_stack, serving, wait_until
 
 TERMINAL = ("succeeded", "failed", "cancelled")
 

@@ -31,7 +31,7 @@ def _tokenizer() -> PreTrainedTokenizerFast:
         vocab_size=400, special_tokens=[END], initial_alphabet=pre_tokenizers.ByteLevel.alphabet()
     )
     bpe.train_from_iterator(_CORPUS * 4, trainer=trainer)
-    return PreTrainedTokenizerFast(tokenizer_object=bpe, eos_token=END, pad_token=END)
+    return PreTrainedTokenizerFast(tokenizer_object=bpe, eos_token=END, pad_token=END)  # type: ignore[no-untyped-call]
 
 
 def build_tiny_model(directory: Path) -> Path:

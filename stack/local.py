@@ -2,7 +2,7 @@
 
 Every piece runs as its own process so tests can stop Redis, SIGKILL a worker or restart things the way an
 operator would. Workers run the production engine (`engine.factory.build_engine`) with the real sandbox;
-their code model is the tiny random model of tests/tiny_model.py (`MODEL_PATH`), whose output is noise, so
+their code model is the tiny random model of stack/tiny_model.py (`MODEL_PATH`), whose output is noise, so
 model jobs end in real rejections rather than in useful rules.
 
 Request bodies are the ones in examples/ (SGD Restaurants_1: its spec program and two demonstrations).
@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 import redis
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = {
     name: json.loads((ROOT / "examples" / f"{name}.json").read_text())
     for name in ("infer-enumerate", "infer-model", "next-action", "check-actions")
