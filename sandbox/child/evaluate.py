@@ -13,7 +13,7 @@ import typing
 
 from programs import Method
 
-from .runtime import Context, Occurrence, Program, Spec, load, recorder, rollback, undo_logging
+from .runtime import UNDO_LOG, UNDO_ON, Context, Occurrence, Program, Spec, load, recorder, rollback
 from .values import FATAL, Failure, clean, describe, jsonable, tupled
 
 
@@ -42,8 +42,13 @@ class Candidate:
 
 def holds(fn: typing.Any, state: object, args: tuple[object, ...], pure: bool) -> bool:
     """One evaluation; raises what the expression raises. Never lets it change `state` for later ones."""
-    with undo_logging():
+    UNDO_ON[0] = True  # inline, not a context manager: this runs once per candidate × point
+    try:
         return bool(fn(state if pure else copy.deepcopy(state), *args))
+    finally:
+        UNDO_ON[0] = False
+        if UNDO_LOG:
+            rollback()
 
 
 def satisfied(candidate: Candidate, points: list[tuple[int, object, tuple[object, ...]]]) -> str:

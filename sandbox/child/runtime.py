@@ -10,7 +10,6 @@ from __future__ import annotations
 import ast
 import builtins
 import collections
-import contextlib
 import copy
 import dataclasses
 import functools
@@ -100,7 +99,7 @@ def stack_depth() -> int:
 
 
 UNDO_LOG: list[tuple[dict[object, object], object]] = []
-_UNDO_ON = [False]
+UNDO_ON = [False]
 _DEFAULTDICT = collections.defaultdict
 
 
@@ -110,7 +109,7 @@ class UndoDefaultDict(_DEFAULTDICT):  # type: ignore[type-arg]
 
     def __missing__(self, key: object) -> object:
         value = _DEFAULTDICT.__missing__(self, key)
-        if _UNDO_ON[0]:
+        if UNDO_ON[0]:
             UNDO_LOG.append((self, key))
         return value
 
@@ -119,18 +118,6 @@ def rollback() -> None:
     for table, key in reversed(UNDO_LOG):
         dict.pop(table, key, None)
     UNDO_LOG.clear()
-
-
-@contextlib.contextmanager
-def undo_logging() -> typing.Iterator[None]:
-    """Insertions made by defaultdict reads inside the block are taken back when it ends."""
-    _UNDO_ON[0] = True
-    try:
-        yield
-    finally:
-        _UNDO_ON[0] = False
-        if UNDO_LOG:
-            rollback()
 
 
 def fail(where: str, index: int | None, line: int | None, exc: BaseException) -> Failure:
