@@ -116,3 +116,23 @@ def test_concurrent_calls() -> None:
         demos = [f"a = A()\na.act({i})" for i in range(8)]
         results = list(pool.map(lambda d: sandbox.trace(SPEC, [d]), demos))
     assert [r.actions["A.act"].arg_values for r in results] == [((i,),) for i in range(8)]
+
+
+def test_unicode_identifiers_are_valid_python() -> None:
+    spec = "class Dossier:\n    def __init__(self):\n        self.vérifié = False\n" \
+           "    def vérifier(self):\n        self.vérifié = True\n    def clôturer(self):\n        pass\n"
+    with Sandbox(Limits(), workers=1) as sandbox:
+        trace = sandbox.trace(spec, ["d = Dossier()\nd.vérifier()\nd.clôturer()\n"])
+        result = sandbox.evaluate(spec, ["d = Dossier()\nd.vérifier()\nd.clôturer()\n"],
+                                  {"Dossier.clôturer": ["self.vérifié"]})
+    assert trace.actions["Dossier.clôturer"].occurrences
+    assert result.results["Dossier.clôturer"][0].status == "valid"
+
+
+def test_a_limit_names_the_part_that_was_running() -> None:
+    demos = ["a = A()\n", "a = A()\nwhile True:\n    pass\n"]
+    with pytest.raises(LimitExceeded) as caught:
+        with Sandbox(Limits(timeout_s=5, cpu_s=1), workers=1) as sandbox:
+            sandbox.trace(SPEC, demos)
+    assert caught.value.limit in ("cpu", "timeout")
+    assert "demonstration 1" in str(caught.value)
