@@ -82,9 +82,10 @@ class Server:
             for line in self.requests:
                 header = json.loads(line)
                 body = self.requests.read(int(header["size"]))
-                reply, payload = self.call(spare, body)
+                reply, payload, last = self.call(spare, body)
                 reply["id"] = header["id"]
                 self.send(reply, payload)
+                self.discard(last)  # teardown and the next fork happen after the answer, off its latency
                 spare = self.fork_child()
         finally:
             self.discard(spare)
@@ -114,7 +115,7 @@ class Server:
         return Child(pid, request_write, result_read)
 
     def discard(self, child: Child) -> None:
-        """Kill (if still running), reap and close: nothing of the child outlives its request."""
+        """Kill (if still running), reap and close: nothing of the child outlives its request. Idempotent."""
         if child.status is None:
             try:
                 os.killpg(child.pid, signal.SIGKILL)
@@ -122,8 +123,10 @@ class Server:
                 os.kill(child.pid, signal.SIGKILL)
             self.reap(child)
         for fd in (child.request, child.result):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+            if fd >= 0:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        child.request = child.result = -1
 
     @staticmethod
     def reap(child: Child) -> None:
@@ -132,24 +135,26 @@ class Server:
 
     # ------------------------------------------------------------------------------------- one call
 
-    def call(self, first: Child, body: bytes) -> tuple[dict[str, object], bytes]:
+    def call(self, first: Child, body: bytes) -> tuple[dict[str, object], bytes, Child]:
+        """The reply to one request, and the last child used (still to be discarded)."""
         units: dict[int, dict[str, typing.Any]] = {}
         deadline = time.monotonic() + float(self.limits["timeout_s"])
         child, failures = first, 0
         while True:
             outcome = self.run(child, body, units, deadline)
-            self.discard(child)
             if outcome.kind == "end" and outcome.end is not None:
                 payload = json.dumps({"result": outcome.end, "units": {str(k): v for k, v in units.items()}})
-                return {"status": "ok", "size": len(payload)}, payload.encode("ascii")
+                return {"status": "ok", "size": len(payload)}, payload.encode("ascii"), child
+            self.discard(child)  # reaped: its exit status says what killed it
             blame = self.blame(outcome, child)
             if outcome.unit is None or blame is None:
-                return self.failure(outcome, child), b""
+                return self.failure(outcome, child), b"", child
             units[outcome.unit] = {"failed": blame}
             failures += 1
             if failures > int(self.limits["max_failed_units"]) or time.monotonic() >= deadline:
-                return {"status": "limit", "limit": "timeout" if time.monotonic() >= deadline else "cpu",
-                        "message": f"{failures} parts of this call exceeded their limits; the last: {blame}"}, b""
+                limit = "timeout" if time.monotonic() >= deadline else "cpu"
+                message = f"{failures} parts of this call exceeded their limits; the last: {blame}"
+                return {"status": "limit", "limit": limit, "message": message}, b"", child
             child = self.fork_child()
 
     def run(self, child: Child, body: bytes, units: dict[int, dict[str, typing.Any]], deadline: float) -> Outcome:
