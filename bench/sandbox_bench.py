@@ -3,7 +3,8 @@
     python bench/sandbox_bench.py [--domain Restaurants_1] [--candidates 500] [--json PATH]
 
 Reports candidate×point evaluations per second for `evaluate`, p50/p95 latency of a trivial `check`,
-and cold start (Sandbox() to first result).
+cold start (Sandbox() to first result), the cost of one call (a fresh confined child: p50 of a trivial
+`trace`), and the extra cost of one candidate that is not plain and so is judged in a child of its own.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import itertools
 import json
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -57,12 +59,12 @@ def bench(domain_name: str, count: int, repeats: int) -> dict[str, float]:
             best = min(best, time.perf_counter() - t0)
             evaluations = sum(len(result.points[a]) * len(r) for a, r in result.results.items())
         history = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')"
-        latencies = []
-        for _ in range(200):
-            t0 = time.perf_counter()
-            sandbox.check(spec, preconditions, history, ["system.REQUEST('city')"])
-            latencies.append(time.perf_counter() - t0)
-    latencies.sort()
+        latencies = timed(200, lambda: sandbox.check(spec, preconditions, history, ["system.REQUEST('city')"]))
+        calls = timed(100, lambda: sandbox.trace("class A:\n    pass\n", ["a = A()"]))
+        one = {"SYSTEM.REQUEST": ["not self.user.informed_slot[slot]"]}
+        plain = timed(20, lambda: sandbox.evaluate(spec, demos, one))
+        # Not plain (a name outside the vocabulary): judged in a child of its own.
+        alone = timed(20, lambda: sandbox.evaluate(spec, demos, dict(one, **{"SYSTEM.OFFER": ["bool(defaultdict)"]})))
     return {
         "candidates": float(sum(len(v) for v in chosen.values())),
         "evaluations": float(evaluations),
@@ -71,7 +73,19 @@ def bench(domain_name: str, count: int, repeats: int) -> dict[str, float]:
         "check_p50_ms": 1000 * statistics.median(latencies),
         "check_p95_ms": 1000 * latencies[int(0.95 * len(latencies)) - 1],
         "cold_start_ms": 1000 * cold,
+        "call_p50_ms": 1000 * statistics.median(calls),
+        "isolated_candidate_ms": 1000 * (statistics.median(alone) - statistics.median(plain)),
     }
+
+
+def timed(times: int, call: Callable[[], object]) -> list[float]:
+    """Sorted wall-clock seconds of `times` calls."""
+    latencies = []
+    for _ in range(times):
+        t0 = time.perf_counter()
+        call()
+        latencies.append(time.perf_counter() - t0)
+    return sorted(latencies)
 
 
 def main() -> None:

@@ -1,7 +1,8 @@
 """Isolated execution of untrusted programs and assertions for precondition reasoning.
 
 The worker never executes untrusted code itself: everything goes through `Sandbox`, which runs it in
-forked children of warm, stdlib-only fork servers under OS limits.
+forked children of warm, stdlib-only fork servers, each child confined by a seccomp allowlist and OS
+limits before any untrusted byte runs (docs/security.md says what holds at which level).
 """
 
 from sandbox.api import Sandbox
@@ -14,10 +15,12 @@ from sandbox.types import (
     LimitExceeded,
     Limits,
     Point,
+    PointGrid,
     Position,
     ProgramError,
     SandboxCrashed,
     SandboxError,
+    SandboxUnavailable,
     TraceResult,
 )
 
@@ -30,10 +33,12 @@ __all__ = [
     "LimitExceeded",
     "Limits",
     "Point",
+    "PointGrid",
     "Position",
     "ProgramError",
     "Sandbox",
     "SandboxCrashed",
     "SandboxError",
+    "SandboxUnavailable",
     "TraceResult",
 ]

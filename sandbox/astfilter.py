@@ -11,7 +11,7 @@ import ast
 from dataclasses import dataclass
 from functools import lru_cache
 
-from sandbox.text import clean
+from sandbox.child.values import clean
 from sandbox.types import ProgramError
 
 BANNED_NAMES = frozenset({

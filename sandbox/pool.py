@@ -1,4 +1,4 @@
-"""Warm fork servers (``_child.py``) and the pool that hands them to threads.
+"""Warm fork servers (``sandbox.child.server``) and the pool that hands them to threads.
 
 A server that does not answer in time, dies, or breaks the protocol is killed with its whole process
 group and replaced; the caller gets SandboxCrashed. Only this module talks to server processes.
@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import queue
+import secrets
 import select
 import signal
 import subprocess
@@ -21,13 +22,26 @@ from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
-from sandbox.types import SandboxCrashed, SandboxError
+from sandbox.types import SandboxCrashed, SandboxError, SandboxUnavailable
 
 log = logging.getLogger(__name__)
 
-CHILD_SCRIPT = Path(__file__).with_name("_child.py")
+PACKAGE_DIR = Path(__file__).resolve().parent
+ROOT_DIR = PACKAGE_DIR.parent  # where `programs`, the stdlib-only program reader, lives too
 START_TIMEOUT_S = 30.0
 READ_CHUNK = 1 << 20
+# `python -I -S`: no environment, no site-packages, no user paths. `sandbox` is registered as a bare
+# package so that `sandbox.child` loads without the worker-side modules of `sandbox/__init__.py`.
+BOOTSTRAP = (
+    "import sys, types\n"
+    "sys.path.insert(0, sys.argv[1])\n"
+    "package = types.ModuleType('sandbox')\n"
+    "package.__path__ = [sys.argv[2]]\n"
+    "sys.modules['sandbox'] = package\n"
+    "del sys.argv[1:3]\n"
+    "from sandbox.child.server import main\n"
+    "main()\n"
+)
 
 
 class ServerGone(Exception):
@@ -37,16 +51,20 @@ class ServerGone(Exception):
 class ForkServer:
     """One server process and its two pipes. Not thread-safe: the pool lends it to one thread at a time."""
 
-    def __init__(self, limits: Mapping[str, float | int], allowed_imports: Collection[str]) -> None:
+    def __init__(self, limits: Mapping[str, float | int], allowed_imports: Collection[str],
+                 seccomp: bytes | None, allow_unconfined: bool) -> None:
+        self._allow_unconfined = allow_unconfined
         request_read, self._request = os.pipe()
         self._response, response_write = os.pipe()
-        config = json.dumps({"allowed_imports": sorted(allowed_imports), "limits": dict(limits)})
+        config = json.dumps({"allowed_imports": sorted(allowed_imports), "limits": dict(limits),
+                             "seccomp": seccomp.hex() if seccomp is not None else None})
         try:
             self.process = subprocess.Popen(
-                [sys.executable, "-I", str(CHILD_SCRIPT), str(request_read), str(response_write), config],
+                [sys.executable, "-I", "-S", "-c", BOOTSTRAP, str(ROOT_DIR), str(PACKAGE_DIR),
+                 str(request_read), str(response_write), config],
                 pass_fds=(request_read, response_write), stdin=subprocess.DEVNULL,
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-                close_fds=True,
+                close_fds=True, env={}, cwd="/",
             )
         finally:
             os.close(request_read)
@@ -55,24 +73,32 @@ class ForkServer:
         self._hello: dict[str, Any] | None = None
 
     def ready(self) -> dict[str, Any]:
-        """Wait for the server's hello once; tells whether network isolation worked."""
+        """The server's hello, read once: whether its children are confined by the kernel policy."""
         if self._hello is None:
             hello = json.loads(self._read_line(time.monotonic() + START_TIMEOUT_S))
-            if hello.get("status") != "hello":
+            if not isinstance(hello, dict) or hello.get("status") != "hello":
                 raise ServerGone("fork server did not start")
+            if not hello.get("confined"):
+                reason = str(hello.get("reason"))
+                if not self._allow_unconfined:
+                    raise SandboxUnavailable(f"the kernel policy could not be set up: {reason}")
+                log.error("SANDBOX UNCONFINED (development setting): untrusted code runs without the "
+                          "kernel policy: %s", reason)
             self._hello = hello
-            if not hello.get("network_isolated"):
-                log.warning("sandbox without network isolation: %s", hello.get("detail"))
         return self._hello
 
     def request(self, message: dict[str, Any], wait_s: float) -> tuple[dict[str, Any], bytes]:
-        """Send one request; return the header and the raw child result."""
+        """Send one request; return the header and the raw result. A reply that does not carry this
+        request's id is never taken as its answer."""
         deadline = time.monotonic() + wait_s
         self.ready()
-        self._write(json.dumps(message, ensure_ascii=True).encode("ascii") + b"\n", deadline)
+        call_id = secrets.token_hex(16)
+        body = json.dumps(message, ensure_ascii=True).encode("ascii")
+        header_line = json.dumps({"id": call_id, "size": len(body)}).encode("ascii") + b"\n"
+        self._write(header_line + body, deadline)
         header = json.loads(self._read_line(deadline))
-        if not isinstance(header, dict):
-            raise ServerGone("malformed header")
+        if not isinstance(header, dict) or header.get("id") != call_id:
+            raise ServerGone("reply does not answer this request")
         if header.get("status") != "ok":
             return header, b""
         size = int(header["size"])
@@ -142,21 +168,28 @@ class ForkServer:
 class ServerPool:
     """N warm servers; a thread borrows one per call, so N calls run at once."""
 
-    def __init__(self, size: int, limits: Mapping[str, float | int],
-                 allowed_imports: Collection[str]) -> None:
+    def __init__(self, size: int, limits: Mapping[str, float | int], allowed_imports: Collection[str],
+                 seccomp: bytes | None, allow_unconfined: bool) -> None:
         if size < 1:
             raise ValueError("workers must be at least 1")
         self._limits = dict(limits)
         self._allowed = frozenset(allowed_imports)
+        self._seccomp, self._allow_unconfined = seccomp, allow_unconfined
         self._idle: queue.Queue[ForkServer] = queue.Queue()
         self._all: set[ForkServer] = set()
         self._lock = threading.Lock()
         self._closed = False
         for _ in range(size):
             self._idle.put(self._start())
+        try:
+            hellos = [server.ready() for server in self._all]  # every server checks its own children
+            self.hello = hellos[0]
+        except BaseException:
+            self.close()
+            raise
 
     def _start(self) -> ForkServer:
-        server = ForkServer(self._limits, self._allowed)
+        server = ForkServer(self._limits, self._allowed, self._seccomp, self._allow_unconfined)
         with self._lock:
             self._all.add(server)
         log.debug("started fork server pid %d", server.process.pid)

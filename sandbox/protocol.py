@@ -11,7 +11,7 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any, TypeVar
 
 from sandbox.astfilter import ProposedCall
-from sandbox.text import clean
+from sandbox.child.values import clean
 from sandbox.types import (
     ActionInfo,
     Args,
@@ -19,15 +19,17 @@ from sandbox.types import (
     CandidateResult,
     LimitExceeded,
     Point,
+    PointGrid,
     Position,
     ProgramError,
     SandboxCrashed,
     SandboxError,
+    SandboxUnavailable,
     TraceResult,
 )
 
 T = TypeVar("T")
-LIMIT_NAMES = frozenset({"timeout", "cpu", "memory", "output", "recursion", "result"})
+LIMIT_NAMES = frozenset({"timeout", "cpu", "memory", "output", "recursion", "result", "work"})
 
 
 def as_args(value: object) -> Args:
@@ -68,19 +70,23 @@ def raise_for_header(header: Mapping[str, Any]) -> None:
     message = clean(str(header.get("message", "")))
     if status == "limit":
         raise LimitExceeded(_limit_name(header.get("limit")), message)
+    if status == "unconfined":
+        raise SandboxUnavailable(message)
     if status != "ok":
         raise SandboxCrashed(message or f"unexpected status {clean(str(status), 40)}")
 
 
-def decode(payload: bytes, build: Callable[[dict[str, Any]], T]) -> T:
-    """Parse a child result; raise its structured error, or SandboxCrashed when it is malformed."""
+def decode(payload: bytes, build: Callable[[dict[str, Any], Mapping[int, Any]], T]) -> T:
+    """Parse a server reply (the child's final result and its units by index); raise the structured
+    error it carries, or SandboxCrashed when it is malformed."""
     try:
-        result = json.loads(payload)
-        if not isinstance(result, dict):
+        reply = json.loads(payload)
+        result, units = reply["result"], reply["units"]
+        if not isinstance(result, dict) or not isinstance(units, dict):
             raise TypeError("result is not an object")
         if "error" in result:
             raise _error(result["error"])
-        return build(result)
+        return build(result, {int(k): v for k, v in units.items()})
     except SandboxError:
         raise
     except (ValueError, TypeError, KeyError, AttributeError, RecursionError) as exc:
@@ -129,13 +135,14 @@ def trace_result(result: dict[str, Any]) -> TraceResult:
     return TraceResult(actions=actions, positions=positions)
 
 
-def default_points(info: Mapping[str, Any]) -> tuple[Point, ...]:
-    """The child sends positions × argument values; the product is built here to keep results small."""
-    values = [as_args(v) for v in info["arg_values"]]
-    return tuple(Point(int(d), int(p), v) for d, p in info["positions"] for v in values)
+def default_points(info: Mapping[str, Any]) -> PointGrid:
+    """The child sends positions and argument values; the product stays implicit."""
+    return PointGrid([(int(d), int(p)) for d, p in info["positions"]], [as_args(v) for v in info["arg_values"]])
 
 
 def candidate_result(expression: str, info: Mapping[str, Any]) -> CandidateResult:
+    if "failed" in info:
+        return CandidateResult(expression, "rejected", reason=clean(str(info["failed"])))
     status = info["status"]
     if status not in ("rejected", "invalid", "valid"):
         raise ValueError(f"unknown status {clean(str(status), 40)}")
@@ -150,6 +157,8 @@ def candidate_result(expression: str, info: Mapping[str, Any]) -> CandidateResul
 
 
 def verdict(call: str, info: Mapping[str, Any]) -> CallVerdict:
+    if "failed" in info:
+        return CallVerdict(call=call, allowed=False, error=clean(str(info["failed"])))
     error = info.get("error")
     violations = info.get("violations") or []
     if not isinstance(violations, list):
@@ -160,3 +169,11 @@ def verdict(call: str, info: Mapping[str, Any]) -> CallVerdict:
         violations=tuple(clean(str(v), 4000) for v in violations),
         error=None if error is None else clean(str(error)),
     )
+
+
+def combine(parts: Sequence[CallVerdict]) -> CallVerdict:
+    """One call judged by several children (plain and isolated preconditions): allowed only if all allow."""
+    errors = [p.error for p in parts if p.error]
+    return CallVerdict(call=parts[0].call, allowed=all(p.allowed for p in parts),
+                       violations=tuple(v for p in parts for v in p.violations),
+                       error="; ".join(dict.fromkeys(errors)) or None)

@@ -7,8 +7,9 @@ JSON is the only thing that crosses the process boundary.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, overload
 
 JSONScalar = str | int | float | bool | None
 Args = tuple[object, ...]
@@ -25,6 +26,9 @@ class Limits:
     output_bytes: int = 1_000_000
     result_bytes: int = 64_000_000
     recursion: int = 400
+    unit_cpu_s: float = 2.0  # one candidate or one proposed call; over it, that part fails alone
+    max_failed_units: int = 8  # parts that may fail on a limit before the whole call does
+    max_points: int = 2_000_000  # points (positions × argument tuples) of one action, judged per candidate
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,59 @@ class Point:
     demo: int
     position: int
     args: Args
+
+
+class PointGrid(Sequence[Point]):
+    """An action's default points, demonstration positions × argument tuples, without building the
+    product: a request that names thousands of argument values costs the worker two short lists, and
+    `index` answers in constant time."""
+
+    def __init__(self, positions: Sequence[tuple[int, int]], values: Sequence[Args]) -> None:
+        self._positions, self._values = tuple(positions), tuple(values)
+        self._position_index = {p: i for i, p in enumerate(self._positions)}
+        self._value_index = {v: i for i, v in enumerate(self._values)}
+
+    def __len__(self) -> int:
+        return len(self._positions) * len(self._values)
+
+    @overload
+    def __getitem__(self, k: int) -> Point: ...
+
+    @overload
+    def __getitem__(self, k: slice) -> Sequence[Point]: ...
+
+    def __getitem__(self, k: int | slice) -> Point | Sequence[Point]:
+        if isinstance(k, slice):
+            return [self[i] for i in range(*k.indices(len(self)))]
+        if k < 0:
+            k += len(self)
+        if not 0 <= k < len(self):
+            raise IndexError(k)
+        demo, position = self._positions[k // len(self._values)]
+        return Point(demo, position, self._values[k % len(self._values)])
+
+    def index(self, value: object, start: int = 0, stop: int | None = None) -> int:
+        if isinstance(value, Point):
+            p = self._position_index.get((value.demo, value.position))
+            v = self._value_index.get(value.args)
+            if p is not None and v is not None:
+                k = p * len(self._values) + v
+                if start <= k < (len(self) if stop is None else stop):
+                    return k
+        raise ValueError(f"{value!r} is not a point of this grid")
+
+    def __contains__(self, value: object) -> bool:
+        try:
+            self.index(value)
+        except ValueError:
+            return False
+        return True
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, Sequence) and len(self) == len(other)
+                and all(a == b for a, b in zip(self, other, strict=True)))
+
+    __hash__ = None  # type: ignore[assignment]
 
 
 @dataclass(frozen=True)
@@ -76,7 +133,7 @@ class CandidateResult:
 
 @dataclass(frozen=True)
 class EvaluateResult:
-    points: dict[str, tuple[Point, ...]]
+    points: dict[str, Sequence[Point]]
     results: dict[str, tuple[CandidateResult, ...]]
 
 
@@ -112,11 +169,15 @@ class ProgramError(SandboxError):
 class LimitExceeded(SandboxError):
     """Untrusted code hit a limit; the child that ran it is gone."""
 
-    limit: str  # "timeout" | "cpu" | "memory" | "output" | "recursion" | "result"
+    limit: str  # "timeout" | "cpu" | "memory" | "output" | "recursion" | "result" | "work"
     message: str
 
     def __str__(self) -> str:
         return f"{self.limit} limit exceeded: {self.message}"
+
+
+class SandboxUnavailable(SandboxError):
+    """The kernel policy could not be set up here, so no untrusted code is run (fail closed)."""
 
 
 class SandboxCrashed(SandboxError):

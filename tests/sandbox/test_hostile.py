@@ -89,10 +89,11 @@ def no_leftovers() -> None:
 @pytest.mark.parametrize("name", sorted(PROGRAMS))
 def test_hostile_program(small: Sandbox, name: str, role: str) -> None:
     start = time.monotonic()
-    with pytest.raises(STRUCTURED) as caught:
-        run_as(small, PROGRAMS[name], role)
+    try:  # refused by the kernel: some attempts raise, others (os.system) just get an error code back
+        text = repr(run_as(small, PROGRAMS[name], role))
+    except STRUCTURED as exc:
+        text = str(exc)
     assert time.monotonic() - start < SMALL.timeout_s + 5
-    text = str(caught.value)
     assert PASSWD_MARK not in text
     text.encode("utf-8")  # no lone surrogates reach the caller
     assert not OUTSIDE.exists()
@@ -140,7 +141,7 @@ def test_passwd_content_never_returned(small: Sandbox) -> None:
         assert PASSWD_MARK not in str(exc)
     else:
         assert PASSWD_MARK not in repr(result)
-        assert "not allowed" in repr(result.actions["A.act"].arg_values)
+        assert "Operation not permitted" in repr(result.actions["A.act"].arg_values)
 
 
 def test_error_messages_are_clean(small: Sandbox) -> None:

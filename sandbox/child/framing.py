@@ -1,0 +1,82 @@
+"""Frames between a child and its fork server, and between the server and the worker.
+
+Child → server: a stream of length-prefixed JSON frames (``%08x`` + body): ``phase`` (what runs now, for
+error messages), ``begin``/``unit`` around each independently judged part (one candidate, one proposed
+call), and one ``end``. The server trusts none of it: it checks order, indices and sizes, and keeps the
+units it already has when a child dies, so one runaway part fails alone.
+
+Server → worker: a header line ``{"id", "status", ...}`` echoing the request's id, then the body.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import typing
+
+LENGTH_CHARS = 8
+CHUNK = 1 << 20
+
+
+def write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def read_all(fd: int) -> bytes:
+    chunks = []
+    while chunk := os.read(fd, CHUNK):
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def encode_frame(frame: dict[str, object]) -> bytes:
+    body = json.dumps(frame).encode("ascii")
+    return b"%08x" % len(body) + body
+
+
+def split_frames(buffer: bytearray, cap: int) -> typing.Iterator[dict[str, typing.Any]]:
+    """Complete frames at the front of `buffer` (consumed); ValueError when the stream is malformed."""
+    while len(buffer) >= LENGTH_CHARS:
+        size = int(bytes(buffer[:LENGTH_CHARS]), 16)
+        if size > cap:
+            raise ValueError("frame larger than the result limit")
+        if len(buffer) < LENGTH_CHARS + size:
+            return
+        frame = json.loads(bytes(buffer[LENGTH_CHARS:LENGTH_CHARS + size]))
+        del buffer[:LENGTH_CHARS + size]
+        if not isinstance(frame, dict):
+            raise ValueError("frame is not an object")
+        yield frame
+
+
+class Reporter:
+    """The child's side of the stream; a budget keeps a hostile result from filling the server."""
+
+    def __init__(self, fd: int | None, cap: int) -> None:
+        self._fd, self._left = fd, cap
+
+    def _send(self, frame: dict[str, object]) -> None:
+        if self._fd is None:
+            return
+        data = encode_frame(frame)
+        self._left -= len(data)
+        if self._left < 0:
+            write_all(self._fd, encode_frame({"t": "end", "result": {"error": {
+                "kind": "limit", "limit": "result", "message": "result larger than the result limit"}}}))
+            os._exit(0)
+        write_all(self._fd, data)
+
+    def phase(self, where: str) -> None:
+        self._send({"t": "phase", "where": where})
+
+    def begin(self, unit: int, where: str) -> None:
+        self._send({"t": "begin", "unit": unit, "where": where})
+
+    def unit(self, unit: int, result: dict[str, object]) -> None:
+        self._send({"t": "unit", "unit": unit, "result": result})
+
+    def end(self, result: dict[str, object]) -> None:
+        self._send({"t": "end", "result": result})
+        self._fd = None

@@ -1,0 +1,64 @@
+"""Values that cross from untrusted code into results: errors, argument values and text, all bounded."""
+
+from __future__ import annotations
+
+MESSAGE_CHARS = 500
+
+
+class Failure(Exception):
+    """A structured error for the caller (bad program, limit), as opposed to a bug in the sandbox."""
+
+    def __init__(self, info: dict[str, object]) -> None:
+        super().__init__(info.get("message"))
+        self.info = info
+
+
+class OutputLimit(BaseException):
+    """Untrusted output went over its budget; BaseException so that `except Exception` cannot swallow it."""
+
+
+FATAL = (MemoryError, OutputLimit)
+
+
+def clean(text: str, limit: int = MESSAGE_CHARS) -> str:
+    """Make untrusted text safe for JSON/HTTP: no lone surrogates, bounded length."""
+    safe = text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return safe if len(safe) <= limit else safe[: limit - 3] + "..."
+
+
+def describe(exc: BaseException) -> tuple[str, str]:
+    """Type name and message of an untrusted exception; a `__str__` that raises gives no message."""
+    name = clean(type(exc).__name__, 100)
+    try:
+        message = str(exc)
+    except FATAL:
+        raise
+    except BaseException:
+        message = ""
+    if not isinstance(message, str):
+        message = ""
+    return name, clean(message)
+
+
+def jsonable(value: object) -> object:
+    """Argument values as JSON values; anything else travels as its (clean) repr."""
+    if value is None or isinstance(value, (bool, int, float)):
+        return value
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    try:
+        return clean(repr(value), 200)
+    except FATAL:
+        raise
+    except BaseException:
+        return clean(type(value).__name__, 100)
+
+
+def tupled(value: object) -> object:
+    """JSON arrays back into tuples, the form argument values have at the caller."""
+    if isinstance(value, list):
+        return tuple(tupled(v) for v in value)
+    return value
+

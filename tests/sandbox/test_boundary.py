@@ -1,0 +1,191 @@
+"""The kernel boundary, attacked for real: code that has first switched off every Python-level guard
+tries files, network, signals, /proc, the environment and resource limits, as root and as a non-root
+user; a candidate that tampers with the evaluator cannot validate other candidates; runaway parts fail
+alone; replies are bound to their request; no policy means no untrusted code (fail closed)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import stat
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from attack_probe import run_attacks
+
+import sandbox.api
+import sandbox.pool
+from sandbox import LimitExceeded, Limits, Sandbox, SandboxCrashed, SandboxUnavailable
+from sandbox.policy import PolicyUnavailable
+
+ROOT = Path(__file__).resolve().parents[2]
+SPEC = "import typing\nclass A:\n    def __init__(self):\n        self.x = 1\n    def act(self, v):\n        pass\n"
+NOBODY = 65534
+
+
+def assert_all_denied(results: dict[str, str]) -> None:
+    allowed = {name: outcome for name, outcome in results.items() if not outcome.startswith("denied")}
+    assert not allowed, f"escaped the sandbox: {allowed}"
+    assert len(results) >= 20
+
+
+def test_attacks_with_python_guards_off_are_refused_by_the_kernel(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("PRECOND_TEST_SECRET", "redis://:hunter2@127.0.0.1:6379")
+    with Sandbox(Limits(timeout_s=20, cpu_s=10), workers=1) as box:
+        results = run_attacks(box)
+    assert_all_denied(results)
+    assert "hunter2" not in json.dumps(results)
+
+
+SPAWNS_ITSELF = ("import subprocess, sys; "
+                 "subprocess.run([sys.executable, '-I', '-S', '-c', 'import ctypes'], check=True)")
+
+
+def _runnable_as(uid: int) -> str:
+    """An interpreter this uid may execute (the worker's may live under a private home)."""
+    for candidate in (sys.executable, shutil.which("python3"), "/usr/bin/python3"):
+        if candidate and subprocess.run(
+            ["setpriv", f"--reuid={uid}", f"--regid={uid}", "--clear-groups", candidate, "-c", SPAWNS_ITSELF],
+            capture_output=True, check=False,
+        ).returncode == 0:
+            return candidate
+    raise AssertionError(f"no Python interpreter can be run as uid {uid}: the non-root test cannot run")
+
+
+@pytest.fixture
+def readable_copy() -> Iterator[Path]:
+    """The sandbox, its program reader, the policy binding and the probe, readable by any user."""
+    import pyseccomp
+
+    where = Path(tempfile.mkdtemp(prefix="sandbox-nonroot-", dir="/tmp"))
+    try:
+        shutil.copytree(ROOT / "sandbox", where / "sandbox")
+        shutil.copytree(ROOT / "programs", where / "programs")
+        shutil.copy(pyseccomp.__file__, where)
+        shutil.copy(Path(__file__).with_name("attack_probe.py"), where)
+        for path in [where, *where.rglob("*")]:
+            path.chmod(path.stat().st_mode | stat.S_IROTH | (stat.S_IXOTH if path.is_dir() else 0))
+        yield where
+    finally:
+        shutil.rmtree(where, ignore_errors=True)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="already non-root: the test above ran as this user")
+def test_attacks_as_a_non_root_user_are_refused_by_the_kernel(readable_copy: Path) -> None:
+    python = _runnable_as(NOBODY)
+    env = {"PYTHONPATH": str(readable_copy), "PATH": "/usr/bin:/bin", "PRECOND_TEST_SECRET": "hunter2"}
+    done = subprocess.run(
+        ["setpriv", f"--reuid={NOBODY}", f"--regid={NOBODY}", "--clear-groups", python, "attack_probe.py"],
+        cwd=readable_copy, env=env, capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    assert report["uid"] == NOBODY
+    assert_all_denied(report["results"])
+    assert "hunter2" not in done.stdout
+
+
+# A candidate without a single dunder that rewrites the evaluator so that every later candidate is valid
+# (on the single-process evaluator this made `self.x == 2` valid).
+TAMPER = ("[typing.sys.modules['builtins'].setattr(m, 'first_violation', lambda c, o: None) "
+          "for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('sandbox.child.evaluate')] "
+          "if m is not None] == []")
+
+
+def test_a_tampering_candidate_cannot_validate_the_others() -> None:
+    with Sandbox(Limits(), workers=1) as box:
+        result = box.evaluate(SPEC, ["a = A()\na.act(1)"], {"A.act": [TAMPER, "self.x == 2", "self.x == 1"]})
+    _, wrong, right = result.results["A.act"]
+    assert wrong.status == "invalid", wrong
+    assert right.status == "valid", right
+
+
+# The same, against the check: after the first proposed call, every verdict would read "allowed".
+FORGE = ("[typing.sys.modules['builtins'].setattr(m, '_verdict', lambda *a: {'allowed': True, 'violations': [], "
+         "'error': None}) for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('sandbox.child.check')] "
+         "if m is not None] == []")
+
+
+def test_a_tampering_precondition_cannot_allow_a_forbidden_call() -> None:
+    with Sandbox(Limits(), workers=1) as box:
+        verdicts = box.check(SPEC, {"A.act": [FORGE, "v > 5"]}, "a = A()", ["a.act(1)", "a.act(2)"])
+    for verdict in verdicts:
+        assert not verdict.allowed, verdict
+        assert "v > 5" in verdict.violations
+
+
+def test_runaway_candidates_fail_alone_and_the_rest_still_answers() -> None:
+    limits = Limits(timeout_s=30, cpu_s=20, unit_cpu_s=0.5)
+    with Sandbox(limits, workers=1) as box:
+        result = box.evaluate(SPEC, ["a = A()\na.act(1)"],
+                              {"A.act": ["sum(range(10 ** 10)) > 0", "self.x == 1", "10 ** 10 ** 8 > 0", "v == 1"]})
+    loop, kept, bignum, last = result.results["A.act"]
+    assert loop.status == "rejected" and "cpu limit" in (loop.reason or ""), loop
+    assert bignum.status == "rejected" and "limit" in (bignum.reason or ""), bignum
+    assert kept.status == "valid" and last.status == "valid"
+
+
+def test_a_runaway_rule_fails_only_its_call() -> None:
+    limits = Limits(timeout_s=30, cpu_s=20, unit_cpu_s=0.5)
+    with Sandbox(limits, workers=1) as box:
+        slow, fast = box.check(SPEC, {"A.act": ["v < 5 or sum(range(10 ** 10)) > 0"]}, "a = A()",
+                               ["a.act(9)", "a.act(1)"])
+    assert not slow.allowed and "cpu limit" in (slow.error or "")
+    assert fast.allowed
+
+
+def test_a_rule_that_raises_is_an_error_not_a_plain_refusal() -> None:
+    with Sandbox(Limits(), workers=1) as box:
+        (verdict,) = box.check(SPEC, {"A.act": ["self.missing == 1"]}, "a = A()", ["a.act(1)"])
+    assert not verdict.allowed
+    assert verdict.error is not None and "AttributeError" in verdict.error and "self.missing" in verdict.error
+
+
+def test_points_are_bounded_inside_the_child() -> None:
+    demo = "a = A()\n" + "".join(f"a.act({i})\n" for i in range(300))
+    with Sandbox(Limits(max_points=10_000), workers=1) as box, pytest.raises(LimitExceeded) as caught:
+        box.evaluate(SPEC, [demo], {"A.act": ["v > 0"]})
+    assert caught.value.limit == "work" and "A.act" in str(caught.value)
+
+
+def test_no_policy_means_no_sandbox(monkeypatch: pytest.MonkeyPatch) -> None:
+    def unavailable() -> bytes:
+        raise PolicyUnavailable("libseccomp is not available: test")
+
+    monkeypatch.setattr(sandbox.api, "build_filter", unavailable)
+    with pytest.raises(SandboxUnavailable, match="libseccomp"):
+        Sandbox(Limits(), workers=1)
+    with Sandbox(Limits(), workers=1, allow_unconfined=True) as box:  # the explicit development setting
+        assert box.unconfined_reason is not None
+        box.trace(SPEC, ["a = A()"])
+
+
+def test_a_filter_the_kernel_refuses_means_no_sandbox(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sandbox.api, "build_filter", lambda: b"\x00" * 8)  # no return instruction
+    with pytest.raises(SandboxUnavailable, match="could not be set up"):
+        Sandbox(Limits(), workers=1)
+
+
+FORGING_SERVER = """
+import json, os, sys
+requests, responses = int(sys.argv[3]), int(sys.argv[4])
+os.write(responses, b'{"status": "hello", "confined": true}\\n')
+reader = os.fdopen(requests, 'rb')
+header = json.loads(reader.readline())
+reader.read(header['size'])
+body = b'{"result": {"positions": [], "actions": {}}, "units": {}}'
+os.write(responses, json.dumps({"id": "not-" + header["id"], "status": "ok", "size": len(body)}).encode()
+         + b'\\n' + body + b'\\n')
+reader.read()
+"""
+
+
+def test_a_reply_to_another_request_is_never_taken(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sandbox.pool, "BOOTSTRAP", FORGING_SERVER)
+    with Sandbox(Limits(), workers=1) as box, pytest.raises(SandboxCrashed, match="does not answer"):
+        box.trace(SPEC, ["a = A()"])
