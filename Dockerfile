@@ -5,10 +5,14 @@ FROM python:3.11-slim
 ARG TORCH_INDEX=https://download.pytorch.org/whl/cpu
 ENV TORCH_INDEX=${TORCH_INDEX} \
     PRECOND_EXTRAS=model \
+    PRECOND_INSTALL_REDIS=0 \
     PIP_NO_CACHE_DIR=1 \
     PYTHONUNBUFFERED=1 \
     PATH=/app/.venv/bin:$PATH \
     MODEL_CACHE_DIR=/models
+
+# libseccomp: the sandbox's kernel policy (the workers refuse untrusted code without it).
+RUN apt-get update && apt-get install -y --no-install-recommends libseccomp2 && rm -rf /var/lib/apt/lists/*
 
 WORKDIR /app
 COPY pyproject.toml README.md* ./

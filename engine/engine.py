@@ -27,6 +27,7 @@ from sandbox.types import (
     LimitExceeded,
     ProgramError,
     SandboxCrashed,
+    SandboxUnavailable,
     TraceResult,
 )
 from schemas.api import (
@@ -42,7 +43,14 @@ from schemas.api import (
     NextActionResponse,
     StageCounts,
 )
-from schemas.errors import Cancelled, InvalidProgram, ModelUnavailable, ResourceLimit, UnknownAction
+from schemas.errors import (
+    Cancelled,
+    InvalidProgram,
+    ModelUnavailable,
+    ResourceLimit,
+    SandboxFailure,
+    UnknownAction,
+)
 
 if TYPE_CHECKING:
     from engine.models import CodeModel
@@ -71,9 +79,10 @@ def sandbox_call(fn: Callable[..., T], *args: object) -> T:
         where = f"demonstrations[{exc.index}]" if exc.where == "demonstration" else SANDBOX_FIELDS.get(exc.where)
         raise InvalidProgram(str(exc), field=where) from exc
     except LimitExceeded as exc:
-        raise ResourceLimit(f"untrusted code exceeded the sandbox's {exc}") from exc
-    except SandboxCrashed as exc:
-        raise ResourceLimit(f"untrusted code crashed its sandbox process: {exc}") from exc
+        field = "demonstrations" if exc.limit == "work" else None  # points grow with demonstrations × arguments
+        raise ResourceLimit(f"untrusted code exceeded the sandbox's {exc}", field=field) from exc
+    except (SandboxCrashed, SandboxUnavailable) as exc:
+        raise SandboxFailure(f"the sandbox failed, not the request (try again): {exc}") from exc
 
 
 @dataclass
@@ -125,6 +134,10 @@ class Engine:
         self._loader = model_loader
         self._model: CodeModel | None = None
         self._lock = threading.Lock()
+
+    @property
+    def sandbox(self) -> Sandbox:
+        return self._sandbox
 
     @property
     def model_loaded(self) -> bool:

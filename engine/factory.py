@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from engine.engine import Engine
 from engine.settings import ModelSettings, SandboxSettings
-from sandbox import Sandbox
 
 
 def build_engine(with_model: bool = True) -> Engine:
-    """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models)."""
-    settings = SandboxSettings()
-    sandbox = Sandbox(settings.limits(), workers=settings.workers)
+    """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models).
+
+    Raises SandboxUnavailable where untrusted code cannot be confined: no engine runs without its sandbox.
+    """
+    sandbox = SandboxSettings().build()
     if not with_model:
         return Engine(sandbox, None)
 

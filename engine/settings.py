@@ -16,6 +16,7 @@ from pathlib import Path
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from sandbox import Sandbox
 from sandbox.types import Limits
 
 EMBEDDED = "embedded"
@@ -75,6 +76,28 @@ class SandboxSettings(BaseSettings):
         default=_LIMITS.result_bytes, ge=1_000, description="Largest answer a sandbox call may send back."
     )
     recursion: int = Field(default=_LIMITS.recursion, ge=50, description="Python recursion limit per call.")
+    unit_cpu_s: float = Field(
+        default=_LIMITS.unit_cpu_s, gt=0,
+        description="CPU seconds for one part of a call (a candidate, a proposed call); over it, that part "
+        "fails alone.",
+    )
+    max_failed_units: int = Field(
+        default=_LIMITS.max_failed_units, ge=0,
+        description="Parts of one call that may fail on a limit before the call does.",
+    )
+    max_points: int = Field(
+        default=_LIMITS.max_points, ge=1,
+        description="Most points (demonstration positions x argument tuples) of one action a call may judge.",
+    )
+    allow_unconfined: bool = Field(
+        default=False,
+        description="DEVELOPMENT ONLY: run untrusted code without the seccomp policy when it cannot be installed "
+        "(logged as an error, shown by /health and /ready). Off: such a worker refuses all work.",
+    )
 
     def limits(self) -> Limits:
         return Limits(**{f.name: getattr(self, f.name) for f in fields(Limits)})
+
+    def build(self) -> Sandbox:
+        """Raises SandboxUnavailable when the kernel policy cannot be set up (unless allowed)."""
+        return Sandbox(self.limits(), workers=self.workers, allow_unconfined=self.allow_unconfined)

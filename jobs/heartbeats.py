@@ -44,6 +44,9 @@ class Heartbeat(BaseModel):
     queues: list[str]
     model_loaded: bool
     model_error: str | None = None
+    sandbox: str = "confined"
+    """`confined`; `unconfined` (the development setting); `unavailable` (refuses all work)."""
+    sandbox_error: str | None = None
     jobs_started: int = 0
     """Runs this worker process started (each try of a job counts); never decreases."""
     jobs_complete: int = 0

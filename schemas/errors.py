@@ -40,6 +40,13 @@ class ModelUnavailable(PrecondError):
     kind = "model_unavailable"
 
 
+class SandboxFailure(PrecondError):
+    """The sandbox itself failed (its process ended without an answer, or untrusted code cannot be confined
+    here): the service's problem, not the request's (HTTP 503), and never kept as the request's result."""
+
+    kind = "sandbox_failure"
+
+
 class Cancelled(PrecondError):
     """The client cancelled the job; raised between phases and between decode steps."""
 

@@ -15,10 +15,20 @@ python -m pip install --quiet --upgrade pip
 # torch first and pinned: an unpinned torch pulls several GB of CUDA packages. TORCH_INDEX names a CPU
 # wheel index where no local wheel is configured (the Dockerfile sets it).
 python -m pip install --quiet "torch==2.13.0" ${TORCH_INDEX:+--extra-index-url "$TORCH_INDEX"}
-python -m pip install --quiet --config-settings editable_mode=compat -e ".[${EXTRAS}]"
+python -m pip install --quiet -e ".[${EXTRAS}]"
 
-# Redis is needed by the service and its tests; install the server where none is on PATH.
-if ! command -v redis-server >/dev/null 2>&1; then
+# The sandbox's kernel policy is built with libseccomp; without it no untrusted code runs (fail closed).
+if ! ldconfig -p 2>/dev/null | grep -q 'libseccomp\.so\.2'; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    apt-get update -qq && apt-get install -y -qq libseccomp2 >/dev/null
+  else
+    echo "warning: libseccomp2 not found; install it, or the sandbox refuses to run untrusted code" >&2
+  fi
+fi
+
+# Redis is needed by the service and its tests (not by an image whose Redis runs apart: PRECOND_INSTALL_REDIS=0);
+# install the server where none is on PATH.
+if [ "${PRECOND_INSTALL_REDIS:-1}" = 1 ] && ! command -v redis-server >/dev/null 2>&1; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     apt-get update -qq && apt-get install -y -qq redis-server >/dev/null
   else

@@ -71,7 +71,7 @@ def status_for(info: ErrorInfo) -> int:
     """HTTP status of a failed job: the engine's input errors are the client's (422), not ours (500)."""
     for cls in _subclasses(engine_errors.PrecondError):
         if cls.kind == info.type:
-            if issubclass(cls, engine_errors.ModelUnavailable):
+            if issubclass(cls, engine_errors.ModelUnavailable | engine_errors.SandboxFailure):
                 return 503
             if issubclass(cls, engine_errors.InvalidInput | engine_errors.ResourceLimit):
                 return 422

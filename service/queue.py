@@ -149,12 +149,16 @@ def _done(progress: JobProgress) -> JobProgress:
     return JobProgress(phase="done", done=progress.total, total=progress.total)
 
 
+NOT_REUSABLE = frozenset({"internal", "resource_limit", "sandbox_failure"})
+
+
 def _is_internal(info: JobResult) -> bool:
-    """Cancelled or crashed runs say nothing about the request, so they must not stand in for its result."""
+    """Cancelled or crashed runs, and runs stopped by a sandbox limit or a sandbox failure, say nothing
+    final about the request, so they must not stand in for its result: the next identical request runs."""
     if not info.success:
         return True
     error = Outcome.from_arq(info.result).error
-    return error is not None and error.type == "internal"
+    return error is not None and error.type in NOT_REUSABLE
 
 
 def _state(info: JobResult) -> tuple[Any, dict[str, Any] | None, ErrorInfo | None]:

@@ -28,10 +28,12 @@ from arq.worker import Worker
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
+from engine.engine import Engine
 from engine.factory import build_engine
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
 from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
 from jobs.settings import WorkerSettings, get_worker_settings
+from sandbox import SandboxUnavailable
 from worker.jobs import JobCounts, run_operation
 
 log = logging.getLogger("precond.worker")
@@ -42,7 +44,16 @@ class WorkerProcess:
         self.settings = settings
         self.queues = queues
         self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
-        self.engine = build_engine(with_model=MODEL_QUEUE in queues)
+        self.engine: Engine | None = None
+        self.sandbox, self.sandbox_error = "unavailable", None
+        try:
+            self.engine = build_engine(with_model=MODEL_QUEUE in queues)
+        except SandboxUnavailable as exc:  # fail closed: stay visible (heartbeat, /ready says why), take no job
+            log.error("untrusted code cannot be confined here, so this worker takes no job: %s", exc)
+            self.sandbox_error = str(exc)
+        else:
+            self.sandbox_error = self.engine.sandbox.unconfined_reason
+            self.sandbox = "confined" if self.sandbox_error is None else "unconfined"
         self.workers: dict[str, Worker] = {}
         self.retired: list[Worker] = []  # arq workers ended by a Redis outage whose jobs may still be ending
         self.claims: dict[str, str] = {}  # job id → this worker's claim on it, while its run lasts
@@ -58,9 +69,12 @@ class WorkerProcess:
         redis = self._redis()
         with contextlib.suppress(RedisError, OSError):
             await self._beat(redis)  # be alive before claiming any job: a claim without a heartbeat is dead
-        tasks = [asyncio.create_task(self._serve(queue)) for queue in self.queues]
+        tasks: list[asyncio.Task[Any]] = (
+            [asyncio.create_task(self.stopping.wait())] if self.engine is None
+            else [asyncio.create_task(self._serve(queue, self.engine)) for queue in self.queues]
+        )
         heartbeat = asyncio.create_task(self._heartbeat(redis))
-        if self.settings.preload_model and MODEL_QUEUE in self.queues:
+        if self.engine is not None and self.settings.preload_model and MODEL_QUEUE in self.queues:
             tasks.append(asyncio.create_task(self._preload()))
         await asyncio.gather(*tasks)
         heartbeat.cancel()
@@ -72,7 +86,7 @@ class WorkerProcess:
         for worker in self.workers.values():
             worker.handle_sig_wait_for_completion(sig)
 
-    def _arq_worker(self, queue: str) -> Worker:
+    def _arq_worker(self, queue: str, engine: Engine) -> Worker:
         s = self.settings
         model = queue == MODEL_QUEUE
         timeout = s.job_timeout_s if model else s.check_timeout_s
@@ -89,15 +103,15 @@ class WorkerProcess:
             handle_signals=False,
             job_completion_wait=s.drain_s,
             health_check_interval=60,
-            ctx={"engine": self.engine, "settings": s, "counts": self.counts},
+            ctx={"engine": engine, "settings": s, "counts": self.counts},
             on_job_start=self._claim,
             after_job_end=self._job_ended,
         )
 
-    async def _serve(self, queue: str) -> None:
+    async def _serve(self, queue: str, engine: Engine) -> None:
         """Run an arq worker on `queue` until drained, starting a new one after each Redis outage."""
         while not self.stopping.is_set():
-            worker = self.workers[queue] = self._arq_worker(queue)
+            worker = self.workers[queue] = self._arq_worker(queue, engine)
             try:
                 await worker.async_run()
             except asyncio.CancelledError:
@@ -110,6 +124,7 @@ class WorkerProcess:
                 await worker.close()
 
     async def _preload(self) -> None:
+        assert self.engine is not None
         try:
             await asyncio.to_thread(self.engine.model)
         except Exception as exc:  # a broken model must not stop check jobs; the heartbeat reports it
@@ -122,8 +137,10 @@ class WorkerProcess:
             host=socket.gethostname(),
             pid=os.getpid(),
             queues=self.queues,
-            model_loaded=self.engine.model_loaded,
+            model_loaded=self.engine is not None and self.engine.model_loaded,
             model_error=self.model_error,
+            sandbox=self.sandbox,
+            sandbox_error=self.sandbox_error,
             jobs_started=self.counts.started,
             jobs_complete=self.counts.complete,
         )

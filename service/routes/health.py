@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 
 from fastapi import APIRouter
@@ -16,25 +17,40 @@ from service.deps import Services, ServicesDep
 from service.errors import ServiceError
 
 router = APIRouter(tags=["health"])
+HEALTH_PEEK_S = 0.5
 
 
 @router.get("/health")
-async def health() -> dict[str, str]:
-    """The process answers; says nothing about Redis or workers (that is /ready)."""
-    return {"status": "ok"}
+async def health(services: ServicesDep) -> dict[str, str]:
+    """The process answers (whatever Redis does: that is /ready). It also says, when the workers' heartbeats
+    can be read at once, whether any of them runs untrusted code without the kernel policy."""
+    body = {"status": "ok", "sandbox": "unknown"}
+    with contextlib.suppress(RedisError, OSError, TimeoutError):
+        workers = await asyncio.wait_for(live_workers(services.redis), HEALTH_PEEK_S)
+        unconfined = [w.id for w in workers if w.sandbox == "unconfined"]
+        body["sandbox"] = (f"UNCONFINED on {', '.join(unconfined)} (SANDBOX_ALLOW_UNCONFINED: development only)"
+                           if unconfined else "confined")
+    return body
 
 
 @router.get("/ready")
 async def ready(services: ServicesDep) -> dict[str, object]:
-    """Ready when Redis answers and a live worker has its model loaded."""
+    """Ready when Redis answers and a live worker can confine untrusted code and has its model loaded."""
     await services.redis.ping()
     workers = await live_workers(services.redis)
-    loaded = sum(w.model_loaded for w in workers)
+    usable = [w for w in workers if w.sandbox != "unavailable"]
+    if workers and not usable:
+        reason = workers[0].sandbox_error or "unknown"
+        raise ServiceError(
+            503, f"no worker can confine untrusted code ({len(workers)} live): {reason}", headers={"Retry-After": "5"}
+        )
+    loaded = sum(w.model_loaded for w in usable)
     if not loaded:
         raise ServiceError(
             503, f"no worker with a loaded model ({len(workers)} live)", headers={"Retry-After": "5"}
         )
-    return {"status": "ready", "workers": len(workers), "model_loaded": loaded}
+    unconfined = sum(w.sandbox == "unconfined" for w in usable)
+    return {"status": "ready", "workers": len(workers), "model_loaded": loaded, "sandbox_unconfined": unconfined}
 
 
 @router.get("/metrics", include_in_schema=False)

@@ -131,8 +131,7 @@ def test_unicode_identifiers_are_valid_python() -> None:
 
 def test_a_limit_names_the_part_that_was_running() -> None:
     demos = ["a = A()\n", "a = A()\nwhile True:\n    pass\n"]
-    with pytest.raises(LimitExceeded) as caught:
-        with Sandbox(Limits(timeout_s=5, cpu_s=1), workers=1) as sandbox:
-            sandbox.trace(SPEC, demos)
+    with pytest.raises(LimitExceeded) as caught, Sandbox(Limits(timeout_s=5, cpu_s=1), workers=1) as sandbox:
+        sandbox.trace(SPEC, demos)
     assert caught.value.limit in ("cpu", "timeout")
     assert "demonstration 1" in str(caught.value)

@@ -97,3 +97,12 @@ def test_dockerfile_installs_with_the_tested_script() -> None:
     assert re.search(r'"torch==[0-9.]+"', script)
     extras = re.search(r"PRECOND_EXTRAS=(\S+)", dockerfile)
     assert extras and set(extras.group(1).split(",")) <= {"model", "eval", "dev"}
+
+
+def test_image_has_the_sandbox_policy_library_and_no_idle_redis() -> None:
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    assert re.search(r"^RUN apt-get .*install .*libseccomp2", dockerfile, flags=re.MULTILINE)
+    assert "PRECOND_INSTALL_REDIS=0" in dockerfile, "the image runs no redis-server; compose runs its own"
+    assert '"${PRECOND_INSTALL_REDIS:-1}" = 1' in (ROOT / "scripts" / "install.sh").read_text()
+    user = re.findall(r"^USER (\S+)", dockerfile, flags=re.MULTILINE)
+    assert user and user[-1] != "root", "workers run as a non-root user; the sandbox needs no privilege"
