@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import shutil
 import signal
 import socket
@@ -80,6 +81,8 @@ class Supervisor:
         if settings.redis_url is None and not answers(*LOCAL_REDIS):
             self.children.append(redis_child(data_dir))
         self.env["REDIS_URL"] = settings.redis_dsn
+        if settings.secret is None and settings.secret_file is None:  # one secret for the processes started here
+            self.env["PRECOND_SECRET"] = secrets.token_urlsafe(32)
         gateway = [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory"]
         self.children.append(Child("gateway", [*gateway, "--host", host, "--port", str(port)]))
         worker = [sys.executable, "-m", "worker.runner"]

@@ -216,6 +216,7 @@ def make_stack(tmp: Path, model_dir: Path, **settings: str) -> Stack:
         "PRECOND_DRAIN_S": "1",
         "PRECOND_MAX_BODY_BYTES": "65536",
         "PYTHONPATH": str(ROOT),
+        "PRECOND_SECRET": "stack-secret-for-tests",
         **settings,
     }
     return Stack(server, env, tmp)

@@ -38,7 +38,7 @@ def imports(package: str) -> list[tuple[str, str]]:
             if isinstance(node, ast.Import):
                 found += [(str(path.relative_to(ROOT)), alias.name) for alias in node.names]
             elif isinstance(node, ast.ImportFrom):
-                module = package if node.level else (node.module or "")
+                module = package if node.level else (node.module or "")  # relative: inside the package
                 found.append((str(path.relative_to(ROOT)), module))
     return found
 
@@ -71,3 +71,12 @@ def test_the_checker_sees_imports() -> None:
 def test_test_support_and_benchmarks_never_import_tests(directory: str) -> None:
     wrong = [f"{file}: {module}" for file, module in imports(directory) if module.split(".")[0] == "tests"]
     assert not wrong, f"{directory}/ must not import tests/ (shared helpers belong in stack/):\n" + "\n".join(wrong)
+
+
+def test_the_sandbox_child_is_stdlib_only_and_apart_from_the_worker_side() -> None:
+    """It runs under `python -I -S` with a bare `sandbox` package: no site-packages, no `sandbox/__init__`."""
+    outside = [
+        f"{file}: {module}" for file, module in imports("sandbox/child")
+        if module.split(".")[0] not in {*sys.stdlib_module_names, "programs", "__future__", "sandbox/child"}
+    ]
+    assert not outside, outside
