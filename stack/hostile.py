@@ -1,4 +1,4 @@
-"""Hostile requests for the API: the sandbox corpus (`SANDBOX_CORPUS`) in every role a client can
+"""Hostile requests for the API: the sandbox corpus (`stack.hostile_corpus`) in every role a client can
 put code in, plus hostile HTTP bodies. Each case says which statuses are acceptable.
 
 Roles: spec and demonstration (infer, enumerate only), history, precondition and proposed call
@@ -11,30 +11,12 @@ call is a verdict (`allowed: false` with the reason), not a request error; the c
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
-from functools import cache
 from pathlib import Path
 from typing import Any
 
-from stack.local import DEMOS, ROOT, SPEC, check_body, example, infer_body
-
-SANDBOX_CORPUS = ROOT / "tests" / "sandbox" / "test_hostile.py"
-"""The hostile programs, candidates and calls of the sandbox suite. That file belongs to the sandbox's tests,
-so it is read here as data, by path and only when hostile requests are built: nothing in this package
-imports from tests/."""
-
-
-@cache
-def sandbox_corpus() -> Any:
-    """The corpus module (`PROGRAMS`, `CANDIDATES`, `CALLS`, `OUTSIDE`)."""
-    sys.path.insert(0, str(SANDBOX_CORPUS.parent))  # for its own helper import
-    spec = importlib.util.spec_from_file_location("sandbox_hostile_corpus", SANDBOX_CORPUS)
-    assert spec is not None and spec.loader is not None, SANDBOX_CORPUS
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from stack import hostile_corpus as corpus
+from stack.local import DEMOS, SPEC, check_body, example, infer_body
 
 REJECTED = (422,)
 TOO_LARGE = (413,)
@@ -44,7 +26,6 @@ ANCHOR = "system = SYSTEM(user)\n"
 
 
 def _programs(canary_dir: Path) -> dict[str, str]:
-    corpus = sandbox_corpus()
     outside = str(corpus.OUTSIDE)
     canary = str(canary_dir / "pwned")
     programs = {name: code.replace(outside, canary) for name, code in corpus.PROGRAMS.items()}
@@ -101,12 +82,12 @@ def _all_disallowed(body: dict[str, Any]) -> str | None:
 
 
 def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
-    corpus = sandbox_corpus()
     cases: list[dict[str, Any]] = []
     post = "POST"
     history = example("check-actions")["history"]
 
-    programs = {name: (code, REJECTED) for name, code in _programs(canary_dir).items()}
+    programs = {name: (code, (200, 422) if name in corpus.REFUSED_QUIETLY else REJECTED)
+                for name, code in _programs(canary_dir).items()}
     for name, (code, expect) in {**programs, **_traps(canary_dir)}.items():
         cases.append({"name": f"spec:{name}", "method": post, "path": "/infer-preconditions",
                       "json": _infer(infer_body(spec=_spec_with(code))), "expect": expect})
@@ -116,10 +97,10 @@ def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
                   "json": _infer(infer_body(spec=SPEC + REPR_TRAP,
                                             demonstrations=[_demo_with("system.REQUEST(TRAP())\n"), DEMOS[1]])),
                   "expect": REJECTED})
-    for name, code in _programs(canary_dir).items():
+    for name, (code, expect) in programs.items():
         cases.append({"name": f"demonstration:{name}", "method": post, "path": "/infer-preconditions",
                       "json": _infer(infer_body(demonstrations=[_demo_with(code), DEMOS[1]])),
-                      "expect": REJECTED})
+                      "expect": expect})
     for name, expression in corpus.CANDIDATES.items():
         # Preconditions judge proposed calls only: propose the action they guard.
         body = check_body("system.REQUEST('city')") | {"preconditions": {"SYSTEM.REQUEST": [expression]}}

@@ -11,20 +11,6 @@ from sandbox import Limits
 DATA = Path(__file__).resolve().parents[3] / "shared" / "data"
 SMALL = Limits(timeout_s=3.0, cpu_s=2, memory_mb=512, output_bytes=100_000, recursion=200)
 
-# Reaches real modules through introspection without a literal dunder, to exercise the layers behind
-# the AST filter (restricted builtins, audit hook, OS limits).
-FIND = '''
-def find(name):
-    base = getattr(getattr((), '__cl' + 'ass__'), '__ba' + 'se__')
-    for c in getattr(base, '__subcl' + 'asses__')():
-        g = getattr(getattr(c, '__in' + 'it__'), '__glo' + 'bals__', None)
-        if isinstance(g, dict) and name in g:
-            return g[name]
-    raise LookupError(name)
-'''
-
-
-
 
 def sgd(domain: str) -> dict[str, Any]:
     return json.loads((DATA / "sgd" / f"{domain}.json").read_text())

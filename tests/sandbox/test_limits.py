@@ -5,11 +5,11 @@ from __future__ import annotations
 import time
 
 import pytest
-from sandbox_helpers import FIND
 
 from sandbox import LimitExceeded, Limits, ProgramError, Sandbox
 from sandbox.policy import build_filter
 from sandbox.pool import ForkServer
+from stack.hostile_corpus import FIND
 
 SPEC = "class A:\n    def act(self, v):\n        pass\n"
 LOOP = "while True:\n    pass\n"

@@ -222,7 +222,7 @@ def test_unknown_job_is_404(client: httpx.Client) -> None:
 
 
 def test_health_ready_metrics(client: httpx.Client) -> None:
-    assert client.get("/health").json() == {"status": "ok"}
+    assert client.get("/health").json() == {"status": "ok", "sandbox": "confined"}
     wait_until(lambda: client.get("/ready").status_code == 200, 20, "the worker's model to load")
     assert client.get("/ready").json()["model_loaded"] >= 1
     text = client.get("/metrics").text
