@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
 from typing import Annotated
 
@@ -17,12 +18,34 @@ def serve(
     data_dir: Annotated[
         Path, typer.Option(help="Data dir of the private redis-server, if one is started.")
     ] = Path("var/redis"),
+    no_auth: Annotated[
+        bool, typer.Option("--no-auth", help="Serve without API keys on a non-loopback address (anyone may call).")
+    ] = False,
 ) -> None:
-    """Run gateway, workers and, when REDIS_URL is unset and none answers locally, a redis-server."""
+    """Run gateway, workers and, when REDIS_URL is unset and none answers locally, a redis-server.
+
+    Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
+    other unless --no-auth says so.
+    """
     from service.supervisor import Supervisor
 
-    port = get_gateway_settings().port if port is None else port
+    settings = get_gateway_settings()
+    if settings.api_keys_file is None:
+        if not _loopback(host) and not no_auth:
+            typer.echo(f"error: refusing to serve on {host} without API keys: anyone who can reach it could use it. "
+                       "Make a key (precond keys create --tenant NAME --file keys.jsonl) and set "
+                       "PRECOND_API_KEYS_FILE, or pass --no-auth.", err=True)
+            raise typer.Exit(2)
+        typer.echo(f"note: no API keys: the API on {host} is open to anyone who can reach it", err=True)
+    port = settings.port if port is None else port
     raise typer.Exit(Supervisor(get_worker_settings(), host, port, workers, data_dir).run())
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def worker(

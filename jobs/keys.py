@@ -1,12 +1,15 @@
 """Names the gateway and the workers must agree on: queues, job ids and the Redis keys beside arq's own.
 
-A job id is `<kind>-<sha256>` of the normalised request, so the id names its queue (GET /jobs/{id} needs no
-lookup) and doubles as the cache key (identical requests share one job and one cached result).
+A job id is `<kind>-<tenant tag>-<digest>`: the kind names its queue (GET /jobs/{id} needs no lookup), the
+tenant tag names its owner (another tenant's GET or DELETE is a 404 without any lookup), and the digest is an
+HMAC, keyed by the deployment's secret, of the tenant and the normalised request, so identical requests of
+one tenant share one job and one cached result, and nobody without the secret can compute an id.
 """
 
 from __future__ import annotations
 
 import hashlib
+import hmac
 import json
 import re
 from functools import lru_cache
@@ -32,7 +35,8 @@ RUNNING_KEY: Final = f"{PREFIX}:running"
 """Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
-_JOB_ID = re.compile(r"^(infer|next-action|check)-[0-9a-f]{64}$")
+_JOB_ID = re.compile(r"^(infer|next-action|check)-([0-9a-f]{16})-[0-9a-f]{48}$")
+SHARED: Final = "shared"
 
 
 def cache_key(job_id: str) -> str:
@@ -58,6 +62,17 @@ def kind_of(job_id: str) -> JobKind | None:
     return match.group(1) if match else None  # type: ignore[return-value]
 
 
+def owner_of(job_id: str) -> str | None:
+    """The tenant tag a job id carries."""
+    match = _JOB_ID.match(job_id)
+    return match.group(2) if match else None
+
+
+def tenant_tag(secret: bytes, tenant: str) -> str:
+    """A tenant's name in ids and Redis keys: stable, fixed-length, and not the name itself."""
+    return hmac.new(secret, b"tenant\0" + tenant.encode(), hashlib.sha256).hexdigest()[:16]
+
+
 @lru_cache(maxsize=1)
 def model_identity() -> str:
     """What makes a model answer differ: the `MODEL_*` settings this deployment sets and the code version
@@ -73,12 +88,24 @@ def model_identity() -> str:
     return json.dumps([metadata.version("precondition-service"), model_env])
 
 
-def job_id(kind: JobKind, body: dict[str, Any], model: str | None) -> str:
-    """Hash of the canonical JSON of kind, body (defaults filled in) and, when the job uses it, the model."""
-    canonical = json.dumps(
-        {"kind": kind, "body": body, "model": model},
-        sort_keys=True,
-        separators=(",", ":"),
-        ensure_ascii=False,
-    )
-    return f"{kind}-{hashlib.sha256(canonical.encode()).hexdigest()}"
+def _canonical(kind: JobKind, body: dict[str, Any], model: str | None) -> bytes:
+    """Canonical JSON of kind, body (defaults filled in) and, when the job uses it, the model."""
+    return json.dumps(
+        {"kind": kind, "body": body, "model": model}, sort_keys=True, separators=(",", ":"), ensure_ascii=False
+    ).encode()
+
+
+def job_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes, tenant: str) -> str:
+    tag = tenant_tag(secret, tenant)
+    digest = hmac.new(secret, tag.encode() + b"\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
+    return f"{kind}-{tag}-{digest[:48]}"
+
+
+def cache_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes, tenant: str,
+             shared: bool) -> str:
+    """Where a result is cached: under its job id (each tenant's own), or, when the operator lets tenants
+    share results, under a digest of the request alone."""
+    if not shared:
+        return job_id(kind, body, model, secret, tenant)
+    digest = hmac.new(secret, b"shared\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
+    return f"{kind}-{SHARED}-{digest[:48]}"

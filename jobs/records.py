@@ -61,6 +61,12 @@ async def record_job(redis: Redis[bytes], kind: JobKind, status: OutcomeState, s
     await redis.hincrby(STATS_KEY, f"jobs:{kind}:{status}", 1)
 
 
+async def record_queue_time(redis: Redis[bytes], tenant_tag: str, kind: JobKind, seconds: float) -> None:
+    """How long a job waited before a worker started it, per tenant: fairness, as the operator sees it."""
+    await redis.hincrbyfloat(STATS_KEY, f"queue_sum:{tenant_tag}:{kind}", seconds)
+    await redis.hincrby(STATS_KEY, f"queue_count:{tenant_tag}:{kind}", 1)
+
+
 async def record_phase(redis: Redis[bytes], kind: JobKind, phase: str, seconds: float) -> None:
     """Add one engine phase's wall time to its kind's running sum and count."""
     await redis.hincrbyfloat(STATS_KEY, f"phase_sum:{kind}:{phase}", seconds)
@@ -72,6 +78,8 @@ class StatsSnapshot:
     jobs: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, outcome) -> count
     phase_sum: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, phase) -> seconds
     phase_count: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, phase) -> runs
+    queue_sum: dict[tuple[str, str], float] = field(default_factory=dict)  # (tenant tag, kind) -> seconds
+    queue_count: dict[tuple[str, str], float] = field(default_factory=dict)  # (tenant tag, kind) -> jobs
     sandbox_failures: float = 0.0
 
 
@@ -84,7 +92,8 @@ async def read_stats(redis: Redis[bytes]) -> StatsSnapshot:
             continue
         table, _, rest = name.partition(":")
         kind, _, label = rest.partition(":")
-        target = {"jobs": snapshot.jobs, "phase_sum": snapshot.phase_sum, "phase_count": snapshot.phase_count}
+        target = {"jobs": snapshot.jobs, "phase_sum": snapshot.phase_sum, "phase_count": snapshot.phase_count,
+                  "queue_sum": snapshot.queue_sum, "queue_count": snapshot.queue_count}
         if table in target:
             target[table][(kind, label)] = value
     return snapshot

@@ -94,6 +94,33 @@ class GatewaySettings(QueueSettings):
         description="How often a waiting request polls its job while job-completion notices (Redis pub/sub) "
         "are unavailable; with them it is woken when its job finishes.",
     )
+    api_keys_file: Path | None = Field(
+        default=None,
+        description="The API keys (JSON lines, hashed; `precond keys create|list|revoke`): every request but "
+        "/health, /ready and /metrics needs `Authorization: Bearer <key>`, and each key names its tenant. "
+        "Re-read when it changes. Unset: the API is open, every caller is the tenant `public`.",
+    )
+    require_auth: bool = Field(
+        default=False,
+        description="Refuse to start without a keys file holding at least one key (docker-compose sets it).",
+    )
+    share_cache: bool = Field(
+        default=False,
+        description="Let tenants share cached results of identical requests (each tenant's own by default).",
+    )
+    tenant_rate_per_s: float = Field(
+        default=50.0, gt=0, description="Requests per second one tenant may send (a token bucket, 429 above)."
+    )
+    tenant_burst: int = Field(default=100, ge=1, description="Requests one tenant may send at once.")
+    tenant_max_jobs: int = Field(
+        default=32, ge=1, description="Jobs one tenant may have queued or running at once (429 above)."
+    )
+    max_work_points: int = Field(
+        default=2_000_000,
+        ge=1,
+        description="Work budget of one request: demonstration steps x distinct argument tuples of its most "
+        "varied action (the points every candidate is judged at); 422 above, before anything is queued.",
+    )
 
 
 class WorkerSettings(QueueSettings):

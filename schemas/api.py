@@ -7,9 +7,9 @@ Size bounds are part of the contract: they turn hostile inputs into 422s before 
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 MAX_SOURCE_CHARS = 200_000
 MAX_DEMONSTRATIONS = 200
@@ -30,7 +30,17 @@ class _Body(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
 
-Preconditions = dict[str, list[str]]
+MAX_ACTIONS = 256
+MAX_ACTION_CHARS = 200
+Assertion = Annotated[str, StringConstraints(max_length=MAX_ASSERTION_CHARS)]
+Preconditions = Annotated[
+    dict[
+        Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)],
+        Annotated[list[Assertion], Field(max_length=MAX_ASSERTIONS_PER_ACTION)],
+    ],
+    Field(max_length=MAX_ACTIONS),
+]
+"""Action (`Class.method`) → assertions; every bound is enforced here, before any work is queued."""
 
 
 class InferOptions(_Body):
@@ -97,7 +107,7 @@ class ModelInfo(_Body):
 
 
 class InferResponse(_Body):
-    preconditions: Preconditions
+    preconditions: dict[str, list[str]]
     program: str
     candidates: dict[str, list[CandidateReport]]
     stats: InferStats

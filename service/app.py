@@ -6,6 +6,7 @@ from the workers, and run on machines without the model.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -16,14 +17,17 @@ from redis.asyncio import ConnectionPool
 from jobs.cache import ResultCache
 from jobs.settings import GatewaySettings, get_gateway_settings
 from service import errors
+from service.auth import KeyStore
 from service.completions import Completions
 from service.deps import Services
 from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.queue import JobQueue
+from service.quotas import Quotas
 from service.routes import health, operations
 from service.routes import jobs as job_routes
 
+log = logging.getLogger("precond.gateway")
 DESCRIPTION = """Infer verified action preconditions from demonstrations with a code model, pick next actions
 that satisfy them, and check proposed actions against them ("Code Models are Zero-shot Precondition
 Reasoners"). POSTs wait up to `?wait=` seconds; a job not finished by then answers 202 with `Location:
@@ -36,14 +40,18 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        # No connection is made here: the gateway starts (and answers 503) while Redis is down.
+        # Refuse to start without what makes tenants safe from each other; no Redis connection is made here:
+        # the gateway starts (and answers 503) while Redis is down.
+        secret = settings.secret_bytes()
+        keys = key_store(settings)
         dsn = settings.redis_dsn
         redis = ArqRedis(ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
         cache = ResultCache(redis, settings.cache_ttl_s)
         completions = Completions(dsn)
         completions.start()
-        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs)
-        app.state.services = Services(settings, redis, cache, queue, metrics)
+        quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs)
+        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, quotas)
+        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys)
         yield
         await completions.close()
         await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
@@ -57,3 +65,18 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContext, metrics=metrics)
     return app
+
+
+def key_store(settings: GatewaySettings) -> KeyStore | None:
+    if settings.api_keys_file is None:
+        if settings.require_auth:
+            raise SystemExit("PRECOND_REQUIRE_AUTH is set but PRECOND_API_KEYS_FILE is not: refusing to start open")
+        log.warning("no API keys (PRECOND_API_KEYS_FILE unset): the API is open to anyone who can reach it")
+        return None
+    try:
+        store = KeyStore(settings.api_keys_file)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f"PRECOND_API_KEYS_FILE={settings.api_keys_file}: {exc}") from exc
+    if settings.require_auth and not store.has_keys():
+        raise SystemExit(f"PRECOND_REQUIRE_AUTH is set and {settings.api_keys_file} holds no key")
+    return store

@@ -10,8 +10,10 @@ from fastapi import Depends, Request
 
 from jobs.cache import ResultCache
 from jobs.settings import GatewaySettings
+from service.auth import KeyStore
 from service.metrics import Metrics
 from service.queue import JobQueue
+from service.quotas import Quotas
 
 
 @dataclass(frozen=True)
@@ -21,6 +23,9 @@ class Services:
     cache: ResultCache
     queue: JobQueue
     metrics: Metrics
+    quotas: Quotas
+    secret: bytes
+    keys: KeyStore | None
 
 
 def _services(request: Request) -> Services:

@@ -20,6 +20,7 @@ from schemas.api import ErrorInfo, ErrorResponse
 
 _TYPE_BY_STATUS = {
     400: "bad_request",
+    401: "unauthorized",
     404: "not_found",
     405: "method_not_allowed",
     413: "body_too_large",
@@ -33,10 +34,12 @@ class ServiceError(HTTPException):
     """An HTTPException with a machine-readable type; FastAPI re-raises these untouched from body parsing."""
 
     def __init__(
-        self, status: int, message: str, type_: str | None = None, headers: dict[str, str] | None = None
+        self, status: int, message: str, type_: str | None = None, headers: dict[str, str] | None = None,
+        field: str | None = None,
     ) -> None:
         super().__init__(status_code=status, detail=message, headers=headers)
         self.type = type_ or _TYPE_BY_STATUS.get(status, "error")
+        self.field = field
 
 
 def request_id(request: Request) -> str:
@@ -102,7 +105,7 @@ async def _validation(request: Request, exc: Exception) -> JSONResponse:
 async def _http(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HTTPException)
     type_ = getattr(exc, "type", _TYPE_BY_STATUS.get(exc.status_code, "error"))
-    info = ErrorInfo(type=type_, message=str(exc.detail))
+    info = ErrorInfo(type=type_, message=str(exc.detail), field=getattr(exc, "field", None))
     return error_response(request, exc.status_code, info, headers=dict(exc.headers or {}))
 
 

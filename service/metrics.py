@@ -28,21 +28,32 @@ class WorkerStats(Collector):
             "precond_job_phase_seconds", "Time jobs spent per engine phase.", labels=["kind", "phase"]
         )
         sandbox = CounterMetricFamily("precond_sandbox_failures", "Jobs stopped by a sandbox limit.")
+        queued = SummaryMetricFamily(
+            "precond_queue_seconds", "Time jobs waited in the queue before a worker started them, by tenant "
+            "(its tag: the HMAC of its name, as in its job ids) and kind.", labels=["tenant", "kind"],
+        )
         snapshot = self.snapshot
+        for labels, seconds in sorted(snapshot.queue_sum.items()):
+            queued.add_metric(list(labels), count_value=int(snapshot.queue_count.get(labels, 0.0)), sum_value=seconds)
         sandbox.add_metric([], snapshot.sandbox_failures)
         for labels, value in sorted(snapshot.jobs.items()):
             jobs.add_metric(list(labels), value)
         for labels, seconds in sorted(snapshot.phase_sum.items()):
             count = int(snapshot.phase_count.get(labels, 0.0))
             phases.add_metric(list(labels), count_value=count, sum_value=seconds)
-        yield from (jobs, phases, sandbox)
+        yield from (jobs, phases, sandbox, queued)
 
 
 class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         self.requests = Counter(
-            "precond_http_requests", "HTTP requests.", ["route", "method", "status"], registry=self.registry
+            "precond_http_requests", "HTTP requests by tenant (`-`: not authenticated).",
+            ["route", "method", "status", "tenant"], registry=self.registry,
+        )
+        self.rejections = Counter(
+            "precond_rejections", "Requests refused before any work, by tenant and reason "
+            "(rate, jobs, queue, work).", ["tenant", "reason"], registry=self.registry,
         )
         self.latency = Histogram(
             "precond_http_request_seconds",

@@ -46,7 +46,8 @@ class RequestContext:
             await self.app(scope, receive, send_with_id)
         finally:
             route = getattr(scope.get("route"), "path", "unmatched")
-            self.metrics.requests.labels(route, scope["method"], str(status)).inc()
+            tenant = str(scope["state"].get("tenant", "-"))
+            self.metrics.requests.labels(route, scope["method"], str(status), tenant).inc()
             self.metrics.latency.labels(route, scope["method"]).observe(time.perf_counter() - started)
 
 

@@ -23,6 +23,7 @@ from jobs.records import Outcome, read_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions
 from service.errors import bounded
+from service.quotas import JOB_EXPIRY, Quotas
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
@@ -44,11 +45,13 @@ class QueueFull(Exception):
 
 
 class JobQueue:
-    def __init__(self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int) -> None:
+    def __init__(self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int,
+                 quotas: Quotas) -> None:
         self.redis = redis
         self.cache = cache
         self.completions = completions
         self.max_jobs = max_jobs
+        self.quotas = quotas
 
     def _job(self, job_id: str, kind: JobKind) -> Job:
         return Job(job_id, self.redis, _queue_name=QUEUE_BY_KIND[kind])
@@ -56,33 +59,40 @@ class JobQueue:
     async def depth(self, queue: str) -> int:
         return int(await self.redis.zcard(queue))
 
-    async def submit(self, kind: JobKind, job_id: str, body: dict[str, Any]) -> None:
-        """Enqueue unless the same job exists: identical requests then share the one already there."""
+    async def submit(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str) -> None:
+        """Enqueue unless the same job exists: identical requests then share the one already there. The
+        job's place in its queue is its tenant's fair start (service.quotas), and its result is cached
+        under `cache_key`."""
         job = self._job(job_id, kind)
         queue = QUEUE_BY_KIND[kind]
         if await self.depth(queue) >= self.max_jobs and await job.status() == ArqStatus.not_found:
             raise QueueFull(queue)
-        enqueued = await self._enqueue(kind, job_id, body)
+        enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key)
         if enqueued is None and await self._last_run_unusable(job):
             await self.redis.delete(result_key_prefix + job_id)
-            enqueued = await self._enqueue(kind, job_id, body)
+            enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key)
         if enqueued is not None and await self._over_bound(queue, job_id):
             raise QueueFull(queue)
 
     async def _over_bound(self, queue: str, job_id: str) -> bool:
         """Take back a job that concurrent submissions pushed past the bound (the depth check above is not
-        atomic with the enqueue: 48 clients at once all saw a short queue). Jobs rank by enqueue time, so the
-        latest arrivals are the ones refused; a job a worker already started is left alone."""
+        atomic with the enqueue: 48 clients at once all saw a short queue). Jobs rank by their fair start, so
+        the jobs refused are those of the tenants with the most queued; a job a worker already started is left
+        alone."""
         undone = await self.redis.eval(  # type: ignore[no-untyped-call]
             _UNDO_OVER_BOUND, 3, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
             job_id, self.max_jobs,
         )
         return bool(undone)
 
-    async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any]) -> Job | None:
+    async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str,
+                       cache_key: str) -> Job | None:
         await self.redis.zrem(abort_jobs_ss, job_id)
+        queue = QUEUE_BY_KIND[kind]
+        start = await self.quotas.fair_start(queue, tenant_tag)
         return await self.redis.enqueue_job(
-            JOB_FUNCTION, kind, body, _job_id=job_id, _queue_name=QUEUE_BY_KIND[kind]
+            JOB_FUNCTION, kind, body, cache_key, _job_id=job_id, _queue_name=queue, _defer_until=start,
+            _expires=JOB_EXPIRY,
         )
 
     async def _last_run_unusable(self, job: Job) -> bool:

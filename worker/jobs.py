@@ -92,8 +92,11 @@ def _outcome(
     return Outcome(status="succeeded", result=result.model_dump(mode="json")), False
 
 
-async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]) -> dict[str, Any]:
-    """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop."""
+async def run_operation(
+    ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], cache_key: str | None = None
+) -> dict[str, Any]:
+    """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop.
+    A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry)."""
     settings: WorkerSettings = ctx["settings"]
     redis: Redis[bytes] = ctx["redis"]
     job_id: str = ctx["job_id"]
@@ -113,7 +116,7 @@ async def run_operation(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any]
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
     with contextlib.suppress(RedisError, OSError):
         if outcome.result is not None:
-            await ResultCache(redis, settings.cache_ttl_s).put(job_id, outcome.result)
+            await ResultCache(redis, settings.cache_ttl_s).put(cache_key or job_id, outcome.result)
         await record_job(redis, kind, outcome.status, sandbox_limit)
     counts: JobCounts = ctx["counts"]
     counts.complete += 1

@@ -20,6 +20,7 @@ import os
 import signal
 import socket
 import uuid
+from datetime import UTC, datetime
 from typing import Any
 
 from arq import func
@@ -31,7 +32,8 @@ from redis.exceptions import RedisError
 from engine.engine import Engine
 from engine.factory import build_engine
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
-from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, worker_key
+from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, kind_of, owner_of, worker_key
+from jobs.records import record_queue_time
 from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
 from worker.jobs import JobCounts, run_operation
@@ -152,6 +154,11 @@ class WorkerProcess:
         """
         self.counts.started += 1
         token = ctx["claim"] = self.claims[ctx["job_id"]] = new_claim(self.id)
+        tag, kind = owner_of(ctx["job_id"]), kind_of(ctx["job_id"])
+        if tag is not None and kind is not None and ctx.get("job_try", 1) == 1:
+            waited = (datetime.now(UTC) - ctx["enqueue_time"]).total_seconds()
+            with contextlib.suppress(RedisError, OSError):
+                await record_queue_time(ctx["redis"], tag, kind, max(0.0, waited))
         with contextlib.suppress(RedisError, OSError):
             await claim(ctx["redis"], self._heartbeat_body(), self.settings.heartbeat_lease_s, ctx["job_id"], token)
 

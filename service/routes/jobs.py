@@ -6,18 +6,23 @@ from typing import Any
 
 from fastapi import APIRouter
 
+from jobs.keys import owner_of, tenant_tag
 from schemas.api import ErrorResponse, JobStatus
-from service.deps import ServicesDep
+from service.auth import Tenant
+from service.deps import Services, ServicesDep
 from service.errors import ServiceError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 NOT_FOUND: dict[int | str, dict[str, Any]] = {
-    404: {"model": ErrorResponse, "description": "No such job (or its result expired)."}
+    401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
+    404: {"model": ErrorResponse, "description": "No such job of yours (another tenant's job is not found either), "
+          "or its result expired."},
 }
 
 
 @router.get("/{job_id}", response_model=JobStatus, responses=NOT_FOUND)
-async def get_job(job_id: str, services: ServicesDep) -> JobStatus:
+async def get_job(job_id: str, services: ServicesDep, tenant: Tenant) -> JobStatus:
+    _own(job_id, services, tenant)
     status = await services.queue.status(job_id)
     if status is None:
         raise ServiceError(404, f"no job {job_id}")
@@ -25,9 +30,16 @@ async def get_job(job_id: str, services: ServicesDep) -> JobStatus:
 
 
 @router.delete("/{job_id}", response_model=JobStatus, responses=NOT_FOUND)
-async def cancel_job(job_id: str, services: ServicesDep) -> JobStatus:
+async def cancel_job(job_id: str, services: ServicesDep, tenant: Tenant) -> JobStatus:
     """Cancel a queued or running job; a finished job is returned unchanged."""
+    _own(job_id, services, tenant)
     status = await services.queue.cancel(job_id, confirm_s=min(2.0, services.settings.wait_max_s))
     if status is None:
         raise ServiceError(404, f"no job {job_id}")
     return status
+
+
+def _own(job_id: str, services: Services, tenant: str) -> None:
+    """Another tenant's job answers exactly as a job that does not exist."""
+    if owner_of(job_id) != tenant_tag(services.secret, tenant):
+        raise ServiceError(404, f"no job {job_id}")

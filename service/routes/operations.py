@@ -21,10 +21,13 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
 )
+from service.auth import Tenant
+from service.budget import OverBudget, check_work
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples
 from service.queue import QueueFull
+from service.quotas import Refusal
 
 router = APIRouter(tags=["operations"])
 
@@ -38,8 +41,12 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
     400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
     413: {"model": ErrorResponse, "description": "Body larger than the configured bound."},
-    422: {"model": ErrorResponse, "description": "Malformed body, or input the engine cannot use."},
-    429: {"model": ErrorResponse, "description": "Queue full; see Retry-After."},
+    401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
+    422: {"model": ErrorResponse,
+          "description": "Malformed body, input the engine cannot use, or over the work budget."},
+    429: {"model": ErrorResponse,
+          "description": "A limit: the tenant's request rate (`rate_limited`), its jobs queued or running "
+          "(`jobs_limited`), or the queue's length (`queue_full`); see Retry-After."},
     503: {"model": ErrorResponse, "description": "Queue backend unreachable or model unavailable."},
 }
 
@@ -49,10 +56,11 @@ async def infer_preconditions(
     body: Annotated[InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-model"))],
     request: Request,
     services: ServicesDep,
+    tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
     model = keys.model_identity() if "model" in body.options.generators else None
-    return await _answer(services, request, "infer", body, model, wait)
+    return await _answer(services, request, tenant, "infer", body, model, wait)
 
 
 @router.post("/next-action", response_model=NextActionResponse, responses=ERRORS)
@@ -60,9 +68,10 @@ async def next_action(
     body: Annotated[NextActionRequest, Body(openapi_examples=openapi_examples("next-action"))],
     request: Request,
     services: ServicesDep,
+    tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
-    return await _answer(services, request, "next-action", body, keys.model_identity(), wait)
+    return await _answer(services, request, tenant, "next-action", body, keys.model_identity(), wait)
 
 
 @router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
@@ -70,37 +79,59 @@ async def check_actions(
     body: Annotated[CheckRequest, Body(openapi_examples=openapi_examples("check-actions"))],
     request: Request,
     services: ServicesDep,
+    tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
-    return await _answer(services, request, "check", body, None, wait)
+    return await _answer(services, request, tenant, "check", body, None, wait)
 
 
 async def _answer(
     services: Services,
     request: Request,
+    tenant: str,
     kind: JobKind,
     body: BaseModel,
     model: str | None,
     wait: float | None,
 ) -> Response:
+    settings = services.settings
+    tag = keys.tenant_tag(services.secret, tenant)
+    await _refuse_over_limit(services, tenant, await services.quotas.take_request(tag, tenant))
+    try:
+        check_work(kind, body, settings.max_work_points)
+    except OverBudget as over:
+        services.metrics.rejections.labels(tenant, "work").inc()
+        raise ServiceError(422, str(over), "invalid_input", field=over.field) from None
     payload = body.model_dump(mode="json")
-    job_id = keys.job_id(kind, payload, model)
-    cached = await services.cache.get(job_id)
+    job_id = keys.job_id(kind, payload, model, services.secret, tenant)
+    cache_key = keys.cache_id(kind, payload, model, services.secret, tenant, settings.share_cache)
+    cached = await services.cache.get(cache_key)
     services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
     if cached is not None:
         return JSONResponse(cached, headers={"X-Job-Id": job_id})
-    settings = services.settings
+    await _refuse_over_limit(
+        services, tenant, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
+    )
     try:
-        await services.queue.submit(kind, job_id, payload)
+        await services.queue.submit(kind, job_id, payload, tag, cache_key)
     except QueueFull as full:
+        services.metrics.rejections.labels(tenant, "queue").inc()
         raise ServiceError(
-            429, f"queue {full} is full", headers={"Retry-After": str(settings.retry_after_s)}
+            429, f"queue limit: queue {full} is full", "queue_full",
+            headers={"Retry-After": str(settings.retry_after_s)},
         ) from None
     timeout = settings.wait_max_s if wait is None else min(wait, settings.wait_max_s)
     status = await services.queue.wait(job_id, timeout, settings.wait_poll_s)
     if status is None:
         raise ServiceError(503, "the job vanished from the queue backend", headers={"Retry-After": "1"})
     return respond(request, status)
+
+
+async def _refuse_over_limit(services: Services, tenant: str, refusal: Refusal | None) -> None:
+    if refusal is not None:
+        services.metrics.rejections.labels(tenant, refusal.limit).inc()
+        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
+                           headers={"Retry-After": str(refusal.retry_after_s)})
 
 
 def respond(request: Request, status: JobStatus) -> Response:

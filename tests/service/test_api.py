@@ -198,7 +198,8 @@ def test_full_queue_is_429_with_retry_after(client: httpx.Client) -> None:
 
 def test_internal_error_is_500_with_the_request_id(stack: Stack, client: httpx.Client) -> None:
     body = check_body("system.REQUEST('party_size')")
-    job_id = keys.job_id("check", CheckRequest.model_validate(body).model_dump(mode="json"), None)
+    payload = CheckRequest.model_validate(body).model_dump(mode="json")
+    job_id = keys.job_id("check", payload, None, stack.env["PRECOND_SECRET"].encode(), "public")
     corrupt: redis.Redis[bytes] = stack.redis.client()
     corrupt.set(keys.cache_key(job_id), b"{not json")  # a fault the gateway does not expect
     try:

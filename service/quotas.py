@@ -1,0 +1,136 @@
+"""Per-tenant limits and fair ordering, kept in Redis so that every gateway sees the same counts.
+
+- A token bucket per tenant bounds its request rate (`PRECOND_TENANT_RATE_PER_S`, `PRECOND_TENANT_BURST`).
+- A set per tenant of its unfinished jobs bounds how many it may have queued or running
+  (`PRECOND_TENANT_MAX_JOBS`); a job leaves the set once arq's job key is gone (done, failed or cancelled).
+- Fair ordering: arq serves a queue in score order, and a job's score here is its tenant's *virtual start
+  time*, not its arrival time: one more than the larger of the queue's head and the tenant's last job. A
+  tenant with 500 jobs queued has scores far ahead; another tenant's one job lands right behind the head,
+  so it waits for at most the jobs already running plus one. Scores count up from a fixed epoch long past,
+  so every job is due at once (arq treats a score as the time a job may start).
+
+Each rule is one Lua script: Redis runs it atomically, so concurrent requests cannot both take the last slot.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Final
+
+from arq.connections import ArqRedis
+from arq.constants import job_key_prefix
+
+from jobs.keys import PREFIX
+
+FAIR_EPOCH_MS: Final = 946_684_800_000  # 2000-01-01: every fair score is in the past, so due at once
+STATE_TTL_S: Final = 7 * 24 * 3600
+
+_TAKE_TOKEN = """
+local rate, burst, now = tonumber(ARGV[1]), tonumber(ARGV[2]), tonumber(ARGV[3])
+local state = redis.call('HMGET', KEYS[1], 'tokens', 'at')
+local tokens, at = tonumber(state[1]) or burst, tonumber(state[2]) or now
+tokens = math.min(burst, tokens + math.max(0, now - at) * rate)
+local allowed = 0
+if tokens >= 1 then
+  tokens = tokens - 1
+  allowed = 1
+end
+redis.call('HSET', KEYS[1], 'tokens', tokens, 'at', now)
+redis.call('EXPIRE', KEYS[1], math.ceil(burst / rate) + 60)
+return {allowed, tostring(tokens)}
+"""
+
+_ADMIT_JOB = """
+if redis.call('ZSCORE', KEYS[1], ARGV[1]) then
+  return -1
+end
+for _, id in ipairs(redis.call('ZRANGE', KEYS[1], 0, -1)) do
+  if redis.call('EXISTS', ARGV[3] .. id) == 0 then
+    redis.call('ZREM', KEYS[1], id)
+  end
+end
+local count = redis.call('ZCARD', KEYS[1])
+if count >= tonumber(ARGV[2]) then
+  return count
+end
+redis.call('ZADD', KEYS[1], ARGV[4], ARGV[1])
+redis.call('EXPIRE', KEYS[1], ARGV[5])
+return -1
+"""
+
+# Virtual time is the queue's head score; with nothing queued, the highest score handed out so far (all
+# of those jobs are done, so a tenant's old backlog gives it no head start and no debt).
+_FAIR_SCORE = """
+local head = redis.call('ZRANGE', KEYS[1], 0, 0, 'WITHSCORES')
+local highest = tonumber(redis.call('HGET', KEYS[2], '~max') or ARGV[2])
+local clock = highest
+if head[2] then
+  clock = tonumber(head[2])
+end
+local score = math.max(clock, tonumber(redis.call('HGET', KEYS[2], ARGV[1]) or 0)) + 1
+redis.call('HSET', KEYS[2], ARGV[1], score, '~max', math.max(highest, score))
+redis.call('EXPIRE', KEYS[2], ARGV[3])
+return score
+"""
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Which limit a request hit, for its 429."""
+
+    limit: str  # "rate" | "jobs"
+    message: str
+    retry_after_s: int
+
+
+def _rate_key(tag: str) -> str:
+    return f"{PREFIX}:tenant:{tag}:rate"
+
+
+def _jobs_key(tag: str) -> str:
+    return f"{PREFIX}:tenant:{tag}:jobs"
+
+
+def _fair_key(queue: str) -> str:
+    return f"{PREFIX}:fair:{queue}"
+
+
+class Quotas:
+    def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int) -> None:
+        self.redis, self.rate_per_s, self.burst, self.max_jobs = redis, rate_per_s, burst, max_jobs
+
+    async def take_request(self, tag: str, tenant: str) -> Refusal | None:
+        now = datetime.now(UTC).timestamp()
+        allowed, tokens = await self.redis.eval(  # type: ignore[no-untyped-call]
+            _TAKE_TOKEN, 1, _rate_key(tag), self.rate_per_s, self.burst, now
+        )
+        if allowed:
+            return None
+        wait = math.ceil((1 - float(tokens)) / self.rate_per_s)
+        return Refusal("rate", f"rate limit: tenant {tenant!r} may send {self.rate_per_s:g} requests/s "
+                               f"(bursts of {self.burst})", max(1, wait))
+
+    async def admit_job(self, tag: str, tenant: str, job_id: str, retry_after_s: int) -> Refusal | None:
+        """Count a new job against its tenant's cap; a job the tenant already has (identical request) is free."""
+        count = int(await self.redis.eval(  # type: ignore[no-untyped-call]
+            _ADMIT_JOB, 1, _jobs_key(tag), job_id, self.max_jobs, job_key_prefix,
+            datetime.now(UTC).timestamp(), STATE_TTL_S,
+        ))
+        if count < 0:
+            return None
+        return Refusal("jobs", f"job limit: tenant {tenant!r} has {count} jobs queued or running "
+                               f"(at most {self.max_jobs})", retry_after_s)
+
+    async def fair_start(self, queue: str, tag: str) -> datetime:
+        """The score to enqueue a tenant's next job with, as arq's `_defer_until`."""
+        score = int(await self.redis.eval(  # type: ignore[no-untyped-call]
+            _FAIR_SCORE, 2, queue, _fair_key(queue), tag, FAIR_EPOCH_MS, STATE_TTL_S
+        ))
+        return datetime.fromtimestamp(score / 1000, UTC)
+
+
+JOB_EXPIRY: Final = timedelta(days=1)
+"""How long a queued job may wait before arq drops it (arq's own default; passed explicitly because a past
+`_defer_until` would otherwise give it a negative lifetime)."""
