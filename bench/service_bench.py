@@ -4,11 +4,14 @@
     python bench/service_bench.py --model embedded    # the embedded code model (slow on CPU)
     python bench/service_bench.py --json bench/service.json
 
-Measures
+Every request carries an API key (two tenants, `quiet` and `flood`). Measures
   * cache-hit throughput: `wrk` (Debian package `wrk`) POSTing one cached check-actions body with a Lua
     script; falls back to an httpx asyncio client when wrk is not installed (the table says which);
   * check-actions latency, uncached: sequential requests whose calls differ, so every one is a new job;
-  * next-action latency through the gateway, uncached (a different seed per request).
+  * next-action latency through the gateway, uncached (a different seed per request);
+  * fairness: the quiet tenant's uncached check-actions latency alone, and while the other tenant has
+    `--flood` check-actions jobs queued (and how long those take to drain: what a first-come-first-served
+    queue would have made the quiet tenant wait).
 `--root DIR` runs gateway and worker from another checkout (e.g. `git archive HEAD | tar -x -C DIR`), to
 compare versions on the same machine; `--env K=V` passes settings (e.g. PRECOND_WORKER_POLL_S=0.02).
 """
@@ -39,6 +42,24 @@ sys.path.insert(0, str(ROOT))
 
 from stack.local import free_port, wait_until  # noqa: E402
 
+TENANTS = ("quiet", "flood")
+
+
+def make_keys(path: Path) -> dict[str, str]:
+    from service.auth import KeyRecord, digest, new_key, write_records
+
+    keys, records = {}, []
+    for tenant in TENANTS:
+        key_id, key = new_key()
+        keys[tenant] = key
+        records.append(KeyRecord(key_id, tenant, digest(key), time.strftime("%Y-%m-%dT%H:%M:%S+00:00")))
+    write_records(path, records)
+    return keys
+
+
+def auth(key: str) -> dict[str, str]:
+    return {"Authorization": f"Bearer {key}"}
+
 
 @contextmanager
 def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
@@ -46,6 +67,12 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
     redis_port, http_port = free_port(), free_port()
     env = {
         **os.environ,
+        "PRECOND_SECRET": "bench-secret",
+        "PRECOND_API_KEYS_FILE": str(tmp / "keys.jsonl"),
+        "PRECOND_TENANT_RATE_PER_S": "100000",
+        "PRECOND_TENANT_BURST": "100000",
+        "PRECOND_TENANT_MAX_JOBS": str(args.flood + 100),
+        "PRECOND_QUEUE_MAX_JOBS": str(args.flood + 100),
         "REDIS_URL": f"redis://127.0.0.1:{redis_port}/0",
         "PYTHONPATH": str(args.root),
         "OMP_NUM_THREADS": "1",
@@ -91,10 +118,10 @@ def percentile(samples: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, round(q / 100 * (len(ordered) - 1)))]
 
 
-def latencies(base: str, path: str, bodies: list[dict[str, Any]], warmup: int) -> dict[str, float]:
+def latencies(base: str, path: str, bodies: list[dict[str, Any]], warmup: int, key: str) -> dict[str, float]:
     """Sequential POSTs; every body must be new to the cache. Milliseconds."""
     seconds = []
-    with httpx.Client(base_url=base, timeout=300) as client:
+    with httpx.Client(base_url=base, timeout=300, headers=auth(key)) as client:
         for i, body in enumerate(bodies):
             started = time.perf_counter()
             answer = client.post(path, json=body, params={"wait": 300})
@@ -104,18 +131,41 @@ def latencies(base: str, path: str, bodies: list[dict[str, Any]], warmup: int) -
             if i >= warmup:
                 seconds.append(elapsed)
     ms = [s * 1000 for s in seconds]
-    return {"n": len(ms), "p50_ms": percentile(ms, 50), "p95_ms": percentile(ms, 95), "mean_ms": statistics.mean(ms)}
+    return {"n": len(ms), "p50_ms": percentile(ms, 50), "p95_ms": percentile(ms, 95), "p99_ms": percentile(ms, 99),
+            "mean_ms": statistics.mean(ms)}
+
+
+def fairness(base: str, check: dict[str, Any], keys: dict[str, str], args: argparse.Namespace) -> dict[str, Any]:
+    """The quiet tenant's latency alone, then behind `args.flood` queued jobs of the other tenant."""
+    def quiet(tag: str) -> dict[str, float]:
+        bodies = [{**check, "calls": [f"system.REQUEST('{tag}_{i}')"]} for i in range(args.fair_n + 2)]
+        return latencies(base, "/check-actions", bodies, warmup=2, key=keys["quiet"])
+
+    alone = quiet("alone")
+    with httpx.Client(base_url=base, timeout=60, headers=auth(keys["flood"])) as flood:
+        started = time.perf_counter()
+        for i in range(args.flood):
+            answer = flood.post("/check-actions", json={**check, "calls": [f"system.REQUEST('flood_{i}')"]},
+                                params={"wait": 0})
+            assert answer.status_code in (200, 202), answer.text
+        last = answer.headers["X-Job-Id"]
+        flooded = quiet("flooded")
+        wait_until(lambda: flood.get(f"/jobs/{last}").json()["status"] == "succeeded", 600, "the flood")
+        drained = time.perf_counter() - started
+    return {"flood_jobs": args.flood, "quiet_alone": alone, "quiet_during_flood": flooded,
+            "flood_drain_s": drained}
 
 
 WRK_LUA = """wrk.method = "POST"
 wrk.headers["Content-Type"] = "application/json"
+wrk.headers["Authorization"] = "Bearer {key}"
 wrk.body = io.open("{body}"):read("*a")
 """
 
 
-def cache_hits_wrk(base: str, body_file: Path, tmp: Path, args: argparse.Namespace) -> dict[str, Any]:
+def cache_hits_wrk(base: str, body_file: Path, tmp: Path, args: argparse.Namespace, key: str) -> dict[str, Any]:
     script = tmp / "post.lua"
-    script.write_text(WRK_LUA.format(body=body_file))
+    script.write_text(WRK_LUA.format(body=body_file, key=key))
     argv = ["wrk", f"-t{args.threads}", f"-c{args.connections}", f"-d{args.duration}s", "--latency", "-s",
             str(script), f"{base}/check-actions"]
     out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
@@ -138,12 +188,12 @@ def _ms(text: str) -> float:
     return float(text)
 
 
-def cache_hits_httpx(base: str, body: dict[str, Any], args: argparse.Namespace) -> dict[str, Any]:
+def cache_hits_httpx(base: str, body: dict[str, Any], args: argparse.Namespace, key: str) -> dict[str, Any]:
     async def run() -> tuple[int, list[float]]:
         done, samples = 0, []
         deadline = time.perf_counter() + args.duration
         limits = httpx.Limits(max_connections=args.connections)
-        async with httpx.AsyncClient(base_url=base, limits=limits, timeout=30) as client:
+        async with httpx.AsyncClient(base_url=base, limits=limits, timeout=30, headers=auth(key)) as client:
 
             async def loop() -> None:
                 nonlocal done
@@ -176,6 +226,8 @@ def main() -> None:
     parser.add_argument("--duration", type=int, default=10, help="seconds of cache-hit load")
     parser.add_argument("--connections", type=int, default=32)
     parser.add_argument("--threads", type=int, default=2, help="wrk threads")
+    parser.add_argument("--flood", type=int, default=500, help="jobs the flooding tenant queues at once")
+    parser.add_argument("--fair-n", type=int, default=50, help="the quiet tenant's requests, alone and flooded")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     args.root = args.root.resolve()
@@ -183,23 +235,34 @@ def main() -> None:
     check = json.loads((EXAMPLES / "check-actions.json").read_text())
     next_action = json.loads((EXAMPLES / "next-action.json").read_text())
     results: dict[str, Any] = {"model": args.model, "root": str(args.root), "env": args.env, "cpus": os.cpu_count()}
-    with tempfile.TemporaryDirectory(prefix="service-bench-") as name, stack(args, Path(name)) as base:
-        tmp = Path(name)
-        # check-actions, uncached: one new call per request (a fresh job each time).
-        bodies = [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
-        results["check_actions_uncached"] = latencies(base, "/check-actions", bodies, warmup=5)
-        # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
-        bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
-        results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2)
-        # cache hits: the first check-actions body is cached by now.
-        body_file = tmp / "body.json"
-        body_file.write_text(json.dumps({**check, "calls": ["system.REQUEST('slot_0')"]}))
-        if shutil.which("wrk"):
-            results["cache_hit"] = cache_hits_wrk(base, body_file, tmp, args)
-        else:
-            results["cache_hit"] = cache_hits_httpx(base, json.loads(body_file.read_text()), args)
-        results["load_average"] = os.getloadavg()
+    with tempfile.TemporaryDirectory(prefix="service-bench-") as name:
+        keys = make_keys(Path(name) / "keys.jsonl")
+        with stack(args, Path(name)) as base:
+            measure(base, Path(name), keys, check, next_action, args, results)
+    report(results, args)
 
+
+def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], next_action: dict[str, Any],
+            args: argparse.Namespace, results: dict[str, Any]) -> None:
+    key = keys["quiet"]
+    # check-actions, uncached: one new call per request (a fresh job each time).
+    bodies = [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
+    results["check_actions_uncached"] = latencies(base, "/check-actions", bodies, warmup=5, key=key)
+    # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
+    bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
+    results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
+    # cache hits: the first check-actions body is cached by now.
+    body_file = tmp / "body.json"
+    body_file.write_text(json.dumps({**check, "calls": ["system.REQUEST('slot_0')"]}))
+    if shutil.which("wrk"):
+        results["cache_hit"] = cache_hits_wrk(base, body_file, tmp, args, key)
+    else:
+        results["cache_hit"] = cache_hits_httpx(base, json.loads(body_file.read_text()), args, key)
+    results["fairness"] = fairness(base, check, keys, args)
+    results["load_average"] = os.getloadavg()
+
+
+def report(results: dict[str, Any], args: argparse.Namespace) -> None:
     rows = [
         ("cache hit, check-actions", f"{results['cache_hit']['requests_per_s']:.0f} req/s",
          f"p50 {results['cache_hit']['p50_ms']:.1f} ms, p99 {results['cache_hit'].get('p99_ms', 0):.1f} ms",
@@ -210,6 +273,12 @@ def main() -> None:
         r = results[key]
         rows.append((label, f"p50 {r['p50_ms']:.1f} ms", f"p95 {r['p95_ms']:.1f} ms",
                      f"n={r['n']} sequential, httpx"))
+    fair = results["fairness"]
+    for key, label in (("quiet_alone", "quiet tenant, alone"), ("quiet_during_flood", "quiet tenant, flooded")):
+        r = fair[key]
+        rows.append((label, f"p50 {r['p50_ms']:.1f} ms", f"p99 {r['p99_ms']:.1f} ms",
+                     f"n={r['n']} check-actions; {fair['flood_jobs']} flood jobs drained in "
+                     f"{fair['flood_drain_s']:.1f} s"))
     width = [max(len(row[i]) for row in rows) for i in range(4)]
     print(f"model: {args.model}; root: {args.root}; env: {args.env or '-'}; load avg {results['load_average']}")
     for row in rows:
