@@ -59,13 +59,16 @@ def _runnable_as(uid: int) -> str:
 
 @pytest.fixture
 def readable_copy() -> Iterator[Path]:
-    """The sandbox, its program reader, the policy binding and the probe, readable by any user."""
+    """The sandbox, its program reader, the policy binding, the corpus and the probe, readable by any user."""
     import pyseccomp
 
     where = Path(tempfile.mkdtemp(prefix="sandbox-nonroot-", dir="/tmp"))
     try:
         shutil.copytree(ROOT / "sandbox", where / "sandbox")
         shutil.copytree(ROOT / "programs", where / "programs")
+        (where / "stack").mkdir()
+        for name in ("__init__.py", "hostile_corpus.py"):
+            shutil.copy(ROOT / "stack" / name, where / "stack")
         shutil.copy(pyseccomp.__file__, where)
         shutil.copy(Path(__file__).with_name("attack_probe.py"), where)
         for path in [where, *where.rglob("*")]:

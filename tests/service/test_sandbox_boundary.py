@@ -11,21 +11,13 @@ from typing import Any
 import httpx
 import pytest
 
+from stack.hostile_corpus import FIND
 from stack.local import ROOT, Stack, check_body, make_stack, serving, wait_until
 
 SECRET = "hunter2-not-for-callers"
 FORGE = ("[typing.sys.modules['builtins'].setattr(m, '_verdict', lambda *a: {'allowed': True, 'violations': [], "
          "'error': None}) for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('sandbox.child.check')] "
          "if m is not None] == []")
-FIND = '''
-def find(name):
-    base = getattr(getattr((), '__cl' + 'ass__'), '__ba' + 'se__')
-    for c in getattr(base, '__subcl' + 'asses__')():
-        g = getattr(getattr(c, '__in' + 'it__'), '__glo' + 'bals__', None)
-        if isinstance(g, dict) and name in g:
-            return g[name]
-    raise LookupError(name)
-'''
 
 
 @pytest.fixture(scope="module")
