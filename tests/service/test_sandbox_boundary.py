@@ -83,3 +83,19 @@ def test_a_worker_that_cannot_confine_takes_no_job_and_says_why(unconfinable: St
 def test_health_says_whether_untrusted_code_runs_confined(stack: Stack) -> None:
     with httpx.Client(base_url=stack.base_url) as client:
         assert client.get("/health").json()["sandbox"] == "confined"
+
+
+def test_a_limit_failure_is_never_reused_as_the_requests_result(stack: Stack) -> None:
+    body = check_body()
+    body["history"] += "print('x' * 10_000_000)\n"  # over the output limit: the call fails on a limit
+    started = _jobs_started(stack)
+    with stack.http() as client:
+        first = client.post("/check-actions", json=body, params={"wait": 30})
+        second = client.post("/check-actions", json=body, params={"wait": 30})
+    assert first.status_code == second.status_code == 422
+    assert first.json()["error"]["type"] == "resource_limit" and "output" in first.json()["error"]["message"]
+    assert _jobs_started(stack) - started == 2  # the identical retry ran again instead of reading the failure
+
+
+def _jobs_started(stack: Stack) -> int:
+    return sum(int(str(beat["jobs_started"])) for beat in stack.heartbeats())
