@@ -51,6 +51,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
         "OMP_NUM_THREADS": "1",
         "TOKENIZERS_PARALLELISM": "false",
         "MODEL_THREADS": "1",
+        "PRECOND_SECRET": "service-bench-secret",
     }
     if args.model == "tiny":
         from stack.tiny_model import build_tiny_model
