@@ -30,7 +30,8 @@ COPY examples examples
 COPY docker docker
 RUN bash scripts/install.sh
 
-RUN useradd --create-home --uid 10001 precond && mkdir -p /models && chown precond /models
+# /secrets: where compose mounts the volume its `keys` service fills (an empty volume takes this ownership).
+RUN useradd --create-home --uid 10001 precond && mkdir -p /models /secrets && chown precond /models /secrets
 USER precond
 EXPOSE 8000
 CMD ["precond", "serve", "--host", "0.0.0.0", "--port", "8000"]

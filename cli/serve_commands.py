@@ -16,13 +16,20 @@ def serve(
     host: Annotated[str, typer.Option(help="Gateway bind address.")] = "127.0.0.1",
     workers: Annotated[int, typer.Option(min=1, help="Worker processes (each serves both queues).")] = 1,
     data_dir: Annotated[
-        Path, typer.Option(help="Data dir of the private redis-server, if one is started.")
+        Path, typer.Option(help="Data dir of the private queue redis-server, if one is started.")
     ] = Path("var/redis"),
     no_auth: Annotated[
         bool, typer.Option("--no-auth", help="Serve without API keys on a non-loopback address (anyone may call).")
     ] = False,
+    redis_maxmemory: Annotated[
+        str, typer.Option(help="maxmemory of the private queue Redis (noeviction: full means 503, never loss).")
+    ] = "512mb",
+    cache_maxmemory: Annotated[
+        str, typer.Option(help="maxmemory of the private cache Redis (allkeys-lru: evicts old results).")
+    ] = "256mb",
 ) -> None:
-    """Run gateway, workers and, when REDIS_URL is unset and none answers locally, a redis-server.
+    """Run gateway, workers and, when REDIS_URL is unset and none answers locally, two private redis-servers
+    (queue on 6379, cache on 6380; 127.0.0.1 only, with a random password per start).
 
     Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
     other unless --no-auth says so.
@@ -38,7 +45,11 @@ def serve(
             raise typer.Exit(2)
         typer.echo(f"note: no API keys: the API on {host} is open to anyone who can reach it", err=True)
     port = settings.port if port is None else port
-    raise typer.Exit(Supervisor(get_worker_settings(), host, port, workers, data_dir).run())
+    supervisor = Supervisor(
+        get_worker_settings(), host, port, workers, data_dir,
+        redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory,
+    )
+    raise typer.Exit(supervisor.run())
 
 
 def _loopback(host: str) -> bool:

@@ -9,6 +9,7 @@ import os
 import socket
 import sys
 import urllib.request
+from pathlib import Path
 
 
 def gateway() -> bool:
@@ -19,7 +20,10 @@ def gateway() -> bool:
 def worker() -> bool:
     import redis
 
-    client = redis.Redis.from_url(os.environ.get("REDIS_URL", "redis://127.0.0.1:6379/0"), socket_timeout=3)
+    password_file = os.environ.get("PRECOND_REDIS_PASSWORD_FILE")  # used when the URL carries no password
+    password = Path(password_file).read_text().strip() if password_file else None
+    url = os.environ.get("REDIS_URL", "redis://127.0.0.1:6379/0")
+    client = redis.Redis.from_url(url, password=password, socket_timeout=3)
     return bool(client.keys(f"precond:worker:{socket.gethostname()}-*"))
 
 

@@ -3,26 +3,74 @@
 Kept apart from arq's own result keys on purpose: arq's results expire with `result_ttl_s` and also record
 cancellations and crashes, while this cache holds successes only and lives `cache_ttl_s` (days). A hit is
 answered by the gateway alone; no worker sees it.
+
+It lives in the cache Redis (`PRECOND_CACHE_REDIS_URL`), which may evict under memory pressure
+(`allkeys-lru`): an evicted entry is a miss, and the job simply runs again.
+
+Every entry is signed: `v1.<hex HMAC-SHA256>.<result JSON>`, the HMAC keyed by the deployment secret
+(`PRECOND_SECRET`) over the cache key and the JSON. Whoever can write to the cache Redis but does not hold
+the secret cannot make the gateway answer with a result no worker computed: `get` treats an entry without a
+valid signature as a miss, deletes it and logs a warning.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import json
-from typing import Any
+import logging
+from typing import Any, Final
 
 from redis.asyncio import Redis
 
 from jobs.keys import cache_key
 
+log = logging.getLogger("precond.cache")
+
+VERSION: Final = b"v1"
+_DOMAIN: Final = b"precond-result-cache-v1\x00"
+
+
+def signature(secret: bytes, key: str, payload: bytes) -> bytes:
+    """Hex HMAC-SHA256 of an entry: the key is covered, so a valid entry cannot be replayed under another."""
+    message = _DOMAIN + key.encode() + b"\x00" + payload
+    return hmac.new(secret, message, hashlib.sha256).hexdigest().encode()
+
+
+def seal(secret: bytes, key: str, payload: bytes) -> bytes:
+    """The stored form of `payload` under `key`."""
+    return b".".join((VERSION, signature(secret, key, payload), payload))
+
+
+def unseal(secret: bytes, key: str, raw: bytes) -> bytes | None:
+    """The payload of a stored entry, or None when it is not one this deployment signed."""
+    version, _, rest = raw.partition(b".")
+    mac, _, payload = rest.partition(b".")
+    if version != VERSION or not hmac.compare_digest(mac, signature(secret, key, payload)):
+        return None
+    return payload
+
 
 class ResultCache:
-    def __init__(self, redis: Redis[bytes], ttl_s: int) -> None:
+    def __init__(self, redis: Redis[bytes], ttl_s: int, secret: bytes) -> None:
+        if not secret:
+            raise ValueError("the result cache needs the deployment secret")
         self.redis = redis
         self.ttl_s = ttl_s
+        self._secret = secret
 
     async def get(self, job_id: str) -> dict[str, Any] | None:
-        raw = await self.redis.get(cache_key(job_id))
-        return None if raw is None else dict(json.loads(raw))
+        key = cache_key(job_id)
+        raw = await self.redis.get(key)
+        if raw is None:
+            return None
+        payload = unseal(self._secret, key, raw)
+        if payload is None:
+            log.warning("cache entry %s is not signed by this deployment: ignored and deleted", key)
+            await self.redis.delete(key)
+            return None
+        return dict(json.loads(payload))
 
     async def put(self, job_id: str, result: dict[str, Any]) -> None:
-        await self.redis.set(cache_key(job_id), json.dumps(result), ex=self.ttl_s)
+        key = cache_key(job_id)
+        await self.redis.set(key, seal(self._secret, key, json.dumps(result).encode()), ex=self.ttl_s)

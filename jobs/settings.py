@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from urllib.parse import quote, urlsplit, urlunsplit
 
 from pydantic import AliasChoices, Field, SecretStr, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -26,8 +27,20 @@ class QueueSettings(BaseSettings):
     redis_url: str | None = Field(
         default=None,
         validation_alias=AliasChoices("REDIS_URL", "PRECOND_REDIS_URL"),
-        description="Redis for queue, cache, progress and heartbeats. Unset: 127.0.0.1:6379, and "
-        "`precond serve` starts a private redis-server if nothing answers there.",
+        description="The queue Redis: jobs, results, progress, heartbeats, claims and stats; everything a "
+        "client is still owed, so run it with `maxmemory-policy noeviction` (full: the gateway answers 503, "
+        "nothing accepted is lost). Unset: 127.0.0.1:6379, and `precond serve` starts private redis-servers "
+        "(queue and cache) if nothing answers there.",
+    )
+    cache_redis_url: str | None = Field(
+        default=None,
+        description="The cache Redis: result-cache entries only, so it may evict (`maxmemory` with "
+        "`allkeys-lru`). Unset: the queue Redis (`REDIS_URL`).",
+    )
+    redis_password_file: Path | None = Field(
+        default=None,
+        description="A file holding the Redis password (a mounted secret), used for `REDIS_URL` and "
+        "`PRECOND_CACHE_REDIS_URL` where the URL carries none.",
     )
     cache_ttl_s: int = Field(default=7 * 24 * 3600, ge=1, description="Lifetime of a cached result.")
     result_ttl_s: int = Field(
@@ -47,7 +60,27 @@ class QueueSettings(BaseSettings):
 
     @property
     def redis_dsn(self) -> str:
-        return self.redis_url or DEFAULT_REDIS_URL
+        """The queue Redis, with the password of `redis_password_file` when its URL has none."""
+        return self._with_password(self.redis_url or DEFAULT_REDIS_URL)
+
+    @property
+    def cache_redis_dsn(self) -> str:
+        """The cache Redis (the queue Redis unless `cache_redis_url` is set), password as for `redis_dsn`."""
+        return self._with_password(self.cache_redis_url) if self.cache_redis_url else self.redis_dsn
+
+    def _with_password(self, url: str) -> str:
+        parts = urlsplit(url)
+        if self.redis_password_file is None or parts.password:
+            return url
+        try:
+            password = self.redis_password_file.read_text().strip()
+        except OSError as exc:
+            raise MissingSecret(f"PRECOND_REDIS_PASSWORD_FILE={self.redis_password_file}: {exc.strerror}") from exc
+        if not password:
+            return url
+        user = quote(parts.username or "", safe="")
+        netloc = f"{user}:{quote(password, safe='')}@{parts.netloc.rpartition('@')[2]}"
+        return urlunsplit(parts._replace(netloc=netloc))
 
     def secret_bytes(self) -> bytes:
         """The deployment's secret; raises MissingSecret (a start-up error that names the setting)."""

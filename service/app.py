@@ -12,7 +12,7 @@ from contextlib import asynccontextmanager
 
 from arq.connections import ArqRedis
 from fastapi import FastAPI
-from redis.asyncio import ConnectionPool
+from redis.asyncio import ConnectionPool, Redis
 
 from jobs.cache import ResultCache
 from jobs.settings import GatewaySettings, get_gateway_settings
@@ -40,13 +40,21 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        # Refuse to start without what makes tenants safe from each other; no Redis connection is made here:
-        # the gateway starts (and answers 503) while Redis is down.
+        # Refuse to start without what keeps tenants apart (MissingSecret: job ids and cached results could not
+        # be signed; a required keys file that is missing). No Redis connection is made here: the gateway
+        # starts (and answers 503) while Redis is down.
         secret = settings.secret_bytes()
         keys = key_store(settings)
         dsn = settings.redis_dsn
         redis = ArqRedis(ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
-        cache = ResultCache(redis, settings.cache_ttl_s)
+        cache_redis: Redis[bytes] = redis
+        if settings.cache_redis_dsn != dsn:  # the cache Redis, which may evict; the queue Redis never does
+            cache_redis = Redis(
+                connection_pool=ConnectionPool.from_url(
+                    settings.cache_redis_dsn, socket_connect_timeout=2, socket_timeout=10
+                )
+            )
+        cache = ResultCache(cache_redis, settings.cache_ttl_s, secret)
         completions = Completions(dsn)
         completions.start()
         quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs)
@@ -54,7 +62,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys)
         yield
         await completions.close()
-        await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
+        for connection in {id(redis): redis, id(cache_redis): cache_redis}.values():
+            await connection.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 
     app = FastAPI(
         title="Precondition reasoning service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan

@@ -12,6 +12,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 from redis.exceptions import TimeoutError as RedisTimeoutError
 from starlette.exceptions import HTTPException
 
@@ -117,6 +118,17 @@ def _redis_down(retry_after_s: int) -> Any:
     return handler
 
 
+def _redis_full(retry_after_s: int) -> Any:
+    """The queue Redis reached its `maxmemory` (policy `noeviction`): it refuses writes rather than drop
+    queued jobs or owed results, so new work waits until results expire."""
+
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        info = ErrorInfo(type="unavailable", message="queue backend full; retry later")
+        return error_response(request, 503, info, headers={"Retry-After": str(retry_after_s)})
+
+    return handler
+
+
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
     # Starlette answers unhandled exceptions from its outermost middleware, outside RequestContext, so the
     # request id header is set here: a 500 is exactly the response whose id the client must be able to quote.
@@ -129,4 +141,5 @@ def install(app: FastAPI, retry_after_s: int) -> None:
     app.add_exception_handler(HTTPException, _http)
     for exc in (RedisConnectionError, RedisTimeoutError):
         app.add_exception_handler(exc, _redis_down(retry_after_s))
+    app.add_exception_handler(OutOfMemoryError, _redis_full(retry_after_s))
     app.add_exception_handler(Exception, _internal)

@@ -111,7 +111,7 @@ class JobQueue:
             return JobStatus(
                 id=job_id, kind=kind, status=state, progress=progress, result=result, error=error
             )
-        arq_status = await job.status()
+        arq_status = await self._arq_status(job_id, QUEUE_BY_KIND[kind])
         if arq_status == ArqStatus.not_found:
             cached = await self.cache.get(job_id)
             if cached is None:
@@ -121,6 +121,20 @@ class JobQueue:
             )
         running = arq_status == ArqStatus.in_progress
         return JobStatus(id=job_id, kind=kind, status="running" if running else "queued", progress=progress)
+
+    async def _arq_status(self, job_id: str, queue: str) -> ArqStatus:
+        """arq's `Job.status` without its MULTI: Redis refuses every command queued in a transaction while it
+        is over `maxmemory`, and a full queue Redis (noeviction) must still show clients their jobs."""
+        async with self.redis.pipeline(transaction=False) as pipe:
+            pipe.exists(result_key_prefix + job_id)
+            pipe.exists(in_progress_key_prefix + job_id)
+            pipe.zscore(queue, job_id)
+            complete, in_progress, score = await pipe.execute()
+        if complete:
+            return ArqStatus.complete
+        if in_progress:
+            return ArqStatus.in_progress
+        return ArqStatus.not_found if score is None else ArqStatus.queued
 
     async def wait(self, job_id: str, timeout_s: float, poll_s: float) -> JobStatus | None:
         """The job's status once finished, or its current status when `timeout_s` runs out first.

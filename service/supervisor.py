@@ -1,4 +1,4 @@
-"""`precond serve`: gateway, workers and (if needed) a private redis-server as one process tree.
+"""`precond serve`: gateway, workers and (if needed) private redis-servers as one process tree.
 
 For a single machine without an orchestrator. Children are restarted when they die, and all of them are
 stopped (SIGTERM, then SIGKILL after the drain period) when the supervisor gets SIGINT or SIGTERM. Only the
@@ -24,63 +24,134 @@ from jobs.settings import WorkerSettings
 
 log = logging.getLogger("precond.serve")
 LOCAL_REDIS = ("127.0.0.1", 6379)
+LOCAL_CACHE_PORT = 6380
 
 
 @dataclass
 class Child:
     name: str
     argv: list[str]
+    stdin: bytes | None = None
+    """Written to the child's stdin at each start, then closed (a redis-server's config: its password)."""
     process: subprocess.Popen[bytes] | None = None
     restarts: int = 0
     started: float = field(default=0.0)
 
     def start(self, env: dict[str, str]) -> None:
         log.info("starting %s: %s", self.name, " ".join(self.argv))
-        self.process = subprocess.Popen(self.argv, env=env)
+        self.process = subprocess.Popen(
+            self.argv, env=env, stdin=None if self.stdin is None else subprocess.PIPE
+        )
+        if self.stdin is not None and self.process.stdin is not None:
+            self.process.stdin.write(self.stdin)
+            self.process.stdin.close()
         self.started = time.monotonic()
 
     def exited(self) -> int | None:
         return None if self.process is None else self.process.poll()
 
 
-def answers(host: str, port: int) -> bool:
+def answers(host: str, port: int, password: str | None = None) -> bool:
+    """A Redis answers PING at host:port (after AUTH when a password is given).
+
+    A Redis that wants a password we do not have is an error, not "nothing there": starting our own on its
+    port would fail, and using it without the password would fail on every request.
+    """
+    auth = b"" if password is None else b"AUTH " + password.encode() + b"\r\n"
     try:
         with socket.create_connection((host, port), timeout=0.5) as conn:
-            conn.sendall(b"PING\r\n")
-            return conn.recv(16).startswith(b"+PONG")
+            conn.sendall(auth + b"PING\r\n")
+            reply = b""
+            while b"PONG" not in reply and not reply.startswith(b"-") and len(reply) < 256:
+                chunk = conn.recv(64)
+                if not chunk:
+                    break
+                reply += chunk
     except OSError:
         return False
-
-
-def redis_child(data_dir: Path) -> Child:
-    binary = shutil.which("redis-server")
-    if binary is None:
+    if reply.startswith(b"-NOAUTH") and password is None:
         raise SystemExit(
-            "REDIS_URL is unset, nothing answers at 127.0.0.1:6379, and redis-server is not installed"
+            f"a password-protected Redis answers at {host}:{port}: set REDIS_URL (and its password) to use it"
         )
-    data_dir.mkdir(parents=True, exist_ok=True)
-    argv = [
-        binary,
-        "--bind",
-        "127.0.0.1",
-        "--port",
-        str(LOCAL_REDIS[1]),
-        "--dir",
-        str(data_dir),
-        "--appendonly",
-        "yes",
-    ]
-    return Child("redis", argv)
+    return b"+PONG" in reply
+
+
+@dataclass(frozen=True)
+class PrivateRedis:
+    """One of the two redis-servers `precond serve` starts when REDIS_URL is unset and nothing answers:
+
+    * the queue Redis (jobs, results, progress, heartbeats): append-only file in `data_dir`, and
+      `maxmemory` with `noeviction`, so a full Redis refuses new work (503) instead of dropping accepted work;
+    * the cache Redis (result-cache entries only): no persistence, `maxmemory` with `allkeys-lru`.
+
+    Both bind 127.0.0.1 and require a password drawn at random for each start of `precond serve`; its
+    children get it through REDIS_URL and PRECOND_CACHE_REDIS_URL. The password reaches redis-server on its
+    stdin (as configuration), so it never shows in a process listing.
+    """
+
+    name: str
+    port: int
+    maxmemory: str
+    policy: str
+    data_dir: Path | None
+    password: str = field(default_factory=lambda: secrets.token_hex(32), repr=False)
+
+    @property
+    def url(self) -> str:
+        return f"redis://:{self.password}@{LOCAL_REDIS[0]}:{self.port}/0"
+
+    def child(self) -> Child:
+        binary = shutil.which("redis-server")
+        if binary is None:
+            raise SystemExit(
+                "REDIS_URL is unset, nothing answers at 127.0.0.1:6379, and redis-server is not installed"
+            )
+        argv = [binary, "-", "--bind", LOCAL_REDIS[0], "--port", str(self.port), "--protected-mode", "yes",
+                "--maxmemory", self.maxmemory, "--maxmemory-policy", self.policy]
+        if self.data_dir is None:
+            argv += ["--save", "", "--appendonly", "no"]
+        else:
+            self.data_dir.mkdir(parents=True, exist_ok=True)
+            argv += ["--dir", str(self.data_dir), "--appendonly", "yes"]
+        return Child(self.name, argv, stdin=f"requirepass {self.password}\n".encode())
+
+
+def private_redis(
+    data_dir: Path, ports: tuple[int, int], queue_maxmemory: str, cache_maxmemory: str
+) -> tuple[PrivateRedis, PrivateRedis]:
+    """The queue Redis and the cache Redis of `precond serve` (see PrivateRedis)."""
+    return (
+        PrivateRedis("redis", ports[0], queue_maxmemory, "noeviction", data_dir),
+        PrivateRedis("redis-cache", ports[1], cache_maxmemory, "allkeys-lru", None),
+    )
 
 
 class Supervisor:
-    def __init__(self, settings: WorkerSettings, host: str, port: int, workers: int, data_dir: Path) -> None:
+    def __init__(
+        self,
+        settings: WorkerSettings,
+        host: str,
+        port: int,
+        workers: int,
+        data_dir: Path,
+        redis_maxmemory: str = "512mb",
+        cache_maxmemory: str = "256mb",
+        redis_ports: tuple[int, int] = (LOCAL_REDIS[1], LOCAL_CACHE_PORT),
+    ) -> None:
         self.settings = settings
         self.env = dict(os.environ)
         self.children: list[Child] = []
-        if settings.redis_url is None and not answers(*LOCAL_REDIS):
-            self.children.append(redis_child(data_dir))
-        self.env["REDIS_URL"] = settings.redis_dsn
+        self.redis: tuple[PrivateRedis, ...] = ()
+        if settings.redis_url is None and not answers(LOCAL_REDIS[0], redis_ports[0]):
+            self.redis = private_redis(data_dir, redis_ports, redis_maxmemory, cache_maxmemory)
+            queue, cache = self.redis
+            self.children += [queue.child(), cache.child()]
+            self.env["REDIS_URL"] = queue.url
+            self.env.pop("PRECOND_REDIS_URL", None)
+            if settings.cache_redis_url is None:  # an operator's own cache Redis is kept, else ours is used
+                self.env["PRECOND_CACHE_REDIS_URL"] = cache.url
+        elif settings.redis_url is None:
+            self.env["REDIS_URL"] = settings.redis_dsn
         if settings.secret is None and settings.secret_file is None:  # one secret for the processes started here
             self.env["PRECOND_SECRET"] = secrets.token_urlsafe(32)
         gateway = [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory"]
@@ -92,21 +163,26 @@ class Supervisor:
     def run(self) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._stop)
-        for child in self.children:
+        redis = [c for c in self.children if c.name.startswith("redis")]
+        for child in redis:
             child.start(self.env)
-            if child.name == "redis":
-                self._wait_for_redis()
+        for server in self.redis:
+            self.wait_for_redis(server)
+        for child in self.children:
+            if child not in redis:
+                child.start(self.env)
         while not self.stopping:
             for child in self.children:
                 self._restart_if_dead(child)
             time.sleep(0.5)
         return self._shutdown()
 
-    def _wait_for_redis(self, timeout_s: float = 10) -> None:
+    @staticmethod
+    def wait_for_redis(server: PrivateRedis, timeout_s: float = 10) -> None:
         deadline = time.monotonic() + timeout_s
-        while not answers(*LOCAL_REDIS):
+        while not answers(LOCAL_REDIS[0], server.port, server.password):
             if time.monotonic() > deadline:
-                raise SystemExit("the private redis-server did not come up")
+                raise SystemExit(f"the private {server.name}-server did not come up")
             time.sleep(0.1)
 
     def _restart_if_dead(self, child: Child) -> None:
@@ -125,8 +201,8 @@ class Supervisor:
     def _shutdown(self) -> int:
         # Redis goes last: draining workers still hand their jobs back through it.
         for group in (
-            [c for c in self.children if c.name != "redis"],
-            [c for c in self.children if c.name == "redis"],
+            [c for c in self.children if not c.name.startswith("redis")],
+            [c for c in self.children if c.name.startswith("redis")],
         ):
             for child in group:
                 if child.process and child.exited() is None:

@@ -34,9 +34,7 @@ class PersistentRedis(RedisServer):
     `directory`, so a restart on the same directory replays the append-only file."""
 
     def start(self) -> None:
-        argv = ["/usr/bin/redis-server", "--port", str(self.port), "--bind", "127.0.0.1",
-                "--dir", str(self.directory), "--appendonly", "yes", "--save", ""]
-        self.process = subprocess.Popen(argv, stdout=subprocess.DEVNULL)
+        self.process = subprocess.Popen(self.argv(["--appendonly", "yes", "--save", ""]), stdout=subprocess.DEVNULL)
         wait_until(lambda: self.client().ping(), 10, "redis-server")
 
     def kill(self) -> None:
@@ -49,7 +47,8 @@ def build_stack(tmp: Path, model_dir: Path, persistent: bool = False, **settings
     stack = make_stack(tmp, model_dir, **settings)
     if persistent:
         stack.redis.stop()
-        server = PersistentRedis(tmp / "redis", port=stack.redis.port)
+        server = PersistentRedis(tmp / "redis", port=stack.redis.port, password=stack.redis.password,
+                                 config=stack.redis.config)
         server.directory.mkdir(exist_ok=True)
         server.start()
         stack.redis = server

@@ -106,27 +106,25 @@ class RedisServer:
     directory: Path
     port: int = field(default_factory=free_port)
     process: subprocess.Popen[bytes] | None = None
+    password: str | None = None
+    config: tuple[str, ...] = ()
+    """More redis-server options, e.g. `("--maxmemory", "2mb", "--maxmemory-policy", "allkeys-lru")`."""
 
     @property
     def url(self) -> str:
+        """Without the password: the stack hands it over in a file (`PRECOND_REDIS_PASSWORD_FILE`)."""
         return f"redis://127.0.0.1:{self.port}/0"
 
     def client(self) -> redis.Redis[bytes]:
-        return redis.Redis(port=self.port, socket_timeout=2)
+        return redis.Redis(port=self.port, password=self.password, socket_timeout=2)
+
+    def argv(self, persistence: list[str]) -> list[str]:
+        argv = ["/usr/bin/redis-server", "--port", str(self.port), "--bind", "127.0.0.1",
+                "--dir", str(self.directory), *persistence, *self.config]
+        return argv if self.password is None else [*argv, "--requirepass", self.password]
 
     def start(self) -> None:
-        argv = [
-            "/usr/bin/redis-server",
-            "--port",
-            str(self.port),
-            "--bind",
-            "127.0.0.1",
-            "--dir",
-            str(self.directory),
-        ]
-        self.process = subprocess.Popen(
-            [*argv, "--save", "", "--appendonly", "no"], stdout=subprocess.DEVNULL
-        )
+        self.process = subprocess.Popen(self.argv(["--save", "", "--appendonly", "no"]), stdout=subprocess.DEVNULL)
         wait_until(lambda: self.client().ping(), 10, "redis-server")
 
     def stop(self) -> None:
@@ -144,6 +142,8 @@ class Stack:
     logs: Path
     port: int = field(default_factory=free_port)
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
+    cache_redis: RedisServer | None = None
+    """A cache Redis of its own (`PRECOND_CACHE_REDIS_URL`); None: the cache shares the queue Redis."""
 
     @property
     def base_url(self) -> str:
@@ -195,12 +195,34 @@ class Stack:
                 process.kill()
 
 
-def make_stack(tmp: Path, model_dir: Path, **settings: str) -> Stack:
-    server = RedisServer(tmp)
+def make_stack(
+    tmp: Path,
+    model_dir: Path,
+    *,
+    redis_config: str = "",
+    cache_config: str | None = None,
+    password: str | None = "stack-redis-password",
+    **settings: str,
+) -> Stack:
+    """A stack on a fresh queue Redis (more redis-server options in `redis_config`, e.g. "--maxmemory 64mb"),
+    and on a cache Redis of its own when `cache_config` is given; with `password` (the default), both require
+    it and gateway and workers read it from a file, as in docker-compose."""
+    server = RedisServer(tmp, password=password, config=tuple(redis_config.split()))
     server.start()
+    cache = None
+    if cache_config is not None:
+        cache = RedisServer(tmp, password=password, config=tuple(cache_config.split()))
+        cache.start()
+    redis_env = {"REDIS_URL": server.url}
+    if cache is not None:
+        redis_env["PRECOND_CACHE_REDIS_URL"] = cache.url
+    if password is not None:
+        secret_file = tmp / "redis-password"
+        secret_file.write_text(password + "\n")
+        redis_env["PRECOND_REDIS_PASSWORD_FILE"] = str(secret_file)
     env = {
         **os.environ,
-        "REDIS_URL": server.url,
+        **redis_env,
         "MODEL_PATH": str(model_dir),
         "MODEL_THREADS": "1",
         "OMP_NUM_THREADS": "1",
@@ -219,7 +241,7 @@ def make_stack(tmp: Path, model_dir: Path, **settings: str) -> Stack:
         "PRECOND_SECRET": "stack-secret-for-tests",
         **settings,
     }
-    return Stack(server, env, tmp)
+    return Stack(server, env, tmp, cache_redis=cache)
 
 
 @contextmanager
@@ -233,3 +255,5 @@ def serving(stack: Stack, workers: int = 0) -> Iterator[Stack]:
     finally:
         stack.stop()
         stack.redis.stop()
+        if stack.cache_redis is not None:
+            stack.cache_redis.stop()

@@ -114,9 +114,12 @@ async def run_operation(
         reporter.finish_phase()
     # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
+    # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
+    cache: ResultCache = ctx["cache"]
+    if outcome.result is not None:
+        with contextlib.suppress(RedisError, OSError):
+            await cache.put(cache_key or job_id, outcome.result)
     with contextlib.suppress(RedisError, OSError):
-        if outcome.result is not None:
-            await ResultCache(redis, settings.cache_ttl_s).put(cache_key or job_id, outcome.result)
         await record_job(redis, kind, outcome.status, sandbox_limit)
     counts: JobCounts = ctx["counts"]
     counts.complete += 1

@@ -31,6 +31,7 @@ from redis.exceptions import RedisError
 
 from engine.engine import Engine
 from engine.factory import build_engine
+from jobs.cache import ResultCache
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
 from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, kind_of, owner_of, worker_key
 from jobs.records import record_queue_time
@@ -43,6 +44,7 @@ log = logging.getLogger("precond.worker")
 
 class WorkerProcess:
     def __init__(self, settings: WorkerSettings, queues: list[str]) -> None:
+        self.secret = settings.secret_bytes()  # MissingSecret: refuse to start, results could not be signed
         self.settings = settings
         self.queues = queues
         self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
@@ -63,12 +65,15 @@ class WorkerProcess:
         self.stopping = asyncio.Event()
         self.model_error: str | None = None
         self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
+        self.cache: ResultCache | None = None  # on the cache Redis, opened in run()
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.drain, sig)
         redis = self._redis()
+        cache_redis = redis if self.settings.cache_redis_dsn == self.settings.redis_dsn else self._redis(cache=True)
+        self.cache = ResultCache(cache_redis, self.settings.cache_ttl_s, self.secret)
         with contextlib.suppress(RedisError, OSError):
             await self._beat(redis)  # be alive before claiming any job: a claim without a heartbeat is dead
         tasks: list[asyncio.Task[Any]] = (
@@ -81,6 +86,8 @@ class WorkerProcess:
         await asyncio.gather(*tasks)
         heartbeat.cancel()
         await self._forget(redis)
+        if cache_redis is not redis:
+            await cache_redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 
     def drain(self, sig: signal.Signals) -> None:
         log.info("%s: draining for up to %ss", sig.name, self.settings.drain_s)
@@ -105,7 +112,7 @@ class WorkerProcess:
             handle_signals=False,
             job_completion_wait=s.drain_s,
             health_check_interval=60,
-            ctx={"engine": engine, "settings": s, "counts": self.counts},
+            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache},
             on_job_start=self._claim,
             after_job_end=self._job_ended,
         )
@@ -211,8 +218,9 @@ class WorkerProcess:
             await redis.delete(worker_key(self.id))
         await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 
-    def _redis(self) -> Redis[bytes]:
-        return Redis.from_url(self.settings.redis_dsn, socket_connect_timeout=2, socket_timeout=5)
+    def _redis(self, cache: bool = False) -> Redis[bytes]:
+        dsn = self.settings.cache_redis_dsn if cache else self.settings.redis_dsn
+        return Redis.from_url(dsn, socket_connect_timeout=2, socket_timeout=5)
 
 
 async def _announce(ctx: dict[str, Any]) -> None:

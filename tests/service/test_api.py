@@ -8,7 +8,7 @@ from collections.abc import Iterator
 import httpx
 import redis
 
-from jobs import keys
+from jobs import cache, keys
 from schemas.api import CheckRequest
 from stack.local import (
     Stack,
@@ -201,7 +201,9 @@ def test_internal_error_is_500_with_the_request_id(stack: Stack, client: httpx.C
     payload = CheckRequest.model_validate(body).model_dump(mode="json")
     job_id = keys.job_id("check", payload, None, stack.env["PRECOND_SECRET"].encode(), "public")
     corrupt: redis.Redis[bytes] = stack.redis.client()
-    corrupt.set(keys.cache_key(job_id), b"{not json")  # a fault the gateway does not expect
+    key = keys.cache_key(job_id)
+    # a fault the gateway does not expect: an entry signed with the deployment's secret that is not JSON
+    corrupt.set(key, cache.seal(stack.env["PRECOND_SECRET"].encode(), key, b"{not json"))
     try:
         answer = client.post("/check-actions", json=body, headers={"X-Request-Id": "req-500"})
     finally:

@@ -73,13 +73,22 @@ def test_compose_file_follows_the_compose_spec() -> None:
     jsonschema.Draft7Validator(schema).validate(_compose())
 
 
+def _command(service: dict[str, Any]) -> str:
+    command = service["command"]
+    return command if isinstance(command, str) else " ".join(command)
+
+
 def test_compose_invariants() -> None:
     services = _compose()["services"]
-    assert "--appendonly" in services["redis"]["command"]
+    assert "--appendonly yes" in _command(services["redis"])
     for name, service in services.items():
+        if name == "keys":  # the one-shot that writes the secrets: its dependents wait for it to finish
+            assert service["restart"] == "no"
+            continue
         assert "healthcheck" in service, name
-        for dependency in service.get("depends_on", {}).values():
-            assert dependency["condition"] == "service_healthy", name
+        for dependency_name, dependency in service.get("depends_on", {}).items():
+            expected = "service_completed_successfully" if dependency_name == "keys" else "service_healthy"
+            assert dependency["condition"] == expected, name
     for worker in ("worker", "worker-gpu"):
         assert "model-cache:/models" in services[worker]["volumes"]
     assert services["gateway"]["ports"] == ["8000:8000"]
@@ -106,3 +115,54 @@ def test_image_has_the_sandbox_policy_library_and_no_idle_redis() -> None:
     assert '"${PRECOND_INSTALL_REDIS:-1}" = 1' in (ROOT / "scripts" / "install.sh").read_text()
     user = re.findall(r"^USER (\S+)", dockerfile, flags=re.MULTILINE)
     assert user and user[-1] != "root", "workers run as a non-root user; the sandbox needs no privilege"
+
+
+REDIS_SERVICES = ("redis", "redis-cache")
+
+
+def test_compose_redis_is_closed_and_bounded() -> None:
+    """Both Redis require the password the `keys` service generates, are reachable only inside the compose
+    network, and are bounded: the queue Redis refuses writes when full (never evicts a queued job or an
+    owed result), the cache Redis evicts least recently used entries and keeps nothing on disk."""
+    compose = _compose()
+    services = compose["services"]
+    keys = services["keys"]
+    assert keys["image"] == services["gateway"]["image"]
+    assert "secrets:/secrets" in keys["volumes"]
+    generated = _command(keys)
+    assert "/secrets/redis-password" in generated and "/secrets/precond-secret" in generated
+    for name in REDIS_SERVICES:
+        service = services[name]
+        assert "ports" not in service and "expose" not in service, f"{name} must not be published"
+        assert service.get("network_mode") is None, name
+        assert "secrets:/secrets:ro" in service["volumes"], name
+        assert service["depends_on"]["keys"]["condition"] == "service_completed_successfully", name
+        command = _command(service)
+        assert "requirepass $$(cat /secrets/redis-password)" in command, name  # $$: compose's literal $
+        assert "/secrets/redis-password" in service["healthcheck"]["test"][1], name
+    queue, cache = (_command(services[name]) for name in REDIS_SERVICES)
+    assert "--maxmemory-policy noeviction" in queue and re.search(r"--maxmemory \d+[kmg]b", queue)
+    assert "--maxmemory-policy allkeys-lru" in cache and re.search(r"--maxmemory \d+[kmg]b", cache)
+    assert '--save ""' in cache and "--appendonly no" in cache
+    env = services["gateway"]["environment"]
+    assert env["REDIS_URL"] == "redis://redis:6379/0"  # the password comes from the file, not the URL
+    assert env["PRECOND_CACHE_REDIS_URL"] == "redis://redis-cache:6379/0"
+    assert env["PRECOND_REDIS_PASSWORD_FILE"] == "/secrets/redis-password"
+    assert env["PRECOND_SECRET_FILE"] == "/secrets/precond-secret"
+    for name in ("gateway", "worker", "worker-gpu"):
+        assert "secrets:/secrets:ro" in services[name]["volumes"], name
+        for dependency in ("keys", *REDIS_SERVICES):
+            assert dependency in services[name]["depends_on"], name
+    assert "secrets" in compose["volumes"]
+
+
+def test_keys_script_writes_each_secret_once(tmp_path: Path) -> None:
+    files = [tmp_path / "secrets" / "redis-password", tmp_path / "secrets" / "precond-secret"]
+    script = [sys.executable, str(ROOT / "docker" / "keys.py"), *map(str, files)]
+    first = subprocess.run(script, capture_output=True, text=True, check=True).stdout
+    assert first.count("created") == 2
+    values = [f.read_text() for f in files]
+    assert len(set(values)) == 2 and all(len(v.strip()) == 64 for v in values)
+    assert all(f.stat().st_mode & 0o777 == 0o600 for f in files)
+    again = subprocess.run(script, capture_output=True, text=True, check=True).stdout
+    assert again.count("kept") == 2 and [f.read_text() for f in files] == values
