@@ -166,3 +166,23 @@ def test_keys_script_writes_each_secret_once(tmp_path: Path) -> None:
     assert all(f.stat().st_mode & 0o777 == 0o600 for f in files)
     again = subprocess.run(script, capture_output=True, text=True, check=True).stdout
     assert again.count("kept") == 2 and [f.read_text() for f in files] == values
+
+
+def test_compose_never_serves_an_open_api() -> None:
+    services = _compose()["services"]
+    environment = services["gateway"]["environment"]
+    assert environment["PRECOND_REQUIRE_AUTH"] == "true"
+    assert environment["PRECOND_API_KEYS_FILE"].startswith("/secrets/")
+    keys = _command(services["keys"])
+    assert f"precond keys create --tenant default --file {environment['PRECOND_API_KEYS_FILE']} --if-none" in keys
+
+
+def test_gateway_refuses_to_start_open_when_auth_is_required(tmp_path: Path) -> None:
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "PRECOND_SECRET": "s", "PRECOND_REQUIRE_AUTH": "true",
+           "PRECOND_API_KEYS_FILE": str(tmp_path / "empty.jsonl")}
+    (tmp_path / "empty.jsonl").write_text("")
+    code = ("import asyncio, service.app as a\nasync def main():\n"
+            "    async with a.create_app().router.lifespan_context(None):\n        pass\nasyncio.run(main())")
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60,
+                          check=False)
+    assert done.returncode != 0 and "holds no key" in done.stderr
