@@ -217,7 +217,8 @@ def _forgeries(stack: Stack, key: str, real: dict[str, Any]) -> dict[str, bytes]
 
 def test_a_forged_cache_entry_is_never_served(stack: Stack) -> None:
     body = check_body("system.REQUEST('party_size')", "system.INFORM('price')")
-    job_id = keys.job_id("check", CheckRequest.model_validate(body).model_dump(mode="json"), None)
+    payload = CheckRequest.model_validate(body).model_dump(mode="json")
+    job_id = keys.job_id("check", payload, None, secret(stack), "public")
     key = keys.cache_key(job_id)
     queue, cached = queue_redis(stack), cache_redis(stack)
     with stack.http() as client, worker(stack):
@@ -263,7 +264,7 @@ def test_every_key_expires_or_is_bounded(stack: Stack) -> None:
         assert queue.hlen(keys.RUNNING_KEY) <= 5  # at most one claim per job the one worker runs (1 + 4)
         for field in queue.hkeys(keys.STATS_KEY):
             table = field.decode().split(":")[0]
-            assert table in ("jobs", "phase_sum", "phase_count", "sandbox_failures"), field
+            assert table in ("jobs", "phase_sum", "phase_count", "queue_sum", "queue_count", "sandbox_failures"), field
         cache_keys = [key.decode() for key in cache_redis(stack).scan_iter(count=1000)]
         assert cache_keys
         for name in cache_keys:
