@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -54,3 +55,14 @@ def test_program_error_exits_2_with_line() -> None:
 def test_missing_file_is_a_clear_error() -> None:
     result = precond("infer", "/nonexistent/request.json")
     assert result.returncode == 2 and "cannot read" in result.stderr
+
+
+def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> None:
+    missing = tmp_path / "no-data"
+    result = subprocess.run(
+        [sys.executable, "-m", "cli", "eval", "preconditions", "--cache", str(tmp_path / "cache")],
+        capture_output=True, text=True, timeout=300, cwd=ROOT, env={**os.environ, "PRECOND_DATA_DIR": str(missing)},
+    )
+    assert result.returncode == 2, result.stderr
+    assert str(missing / "sgd") in result.stderr and "PRECOND_DATA_DIR" in result.stderr
+    assert "Traceback" not in result.stderr
