@@ -42,7 +42,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         cache = ResultCache(redis, settings.cache_ttl_s)
         completions = Completions(dsn)
         completions.start()
-        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs)
+        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, settings.result_ttl_s)
         app.state.services = Services(settings, redis, cache, queue, metrics)
         yield
         await completions.close()

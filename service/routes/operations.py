@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
@@ -9,6 +10,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 
 from jobs import keys
+from programs import checks
 from schemas.api import (
     CheckRequest,
     CheckResponse,
@@ -75,6 +77,30 @@ async def check_actions(
     return await _answer(services, request, "check", body, None, wait)
 
 
+INLINE_CHECK_CHARS = 100_000
+"""Programs up to this size are parsed on the event loop (well under a millisecond); larger ones in a thread."""
+
+
+def _programs_problem(body: BaseModel) -> checks.Problem | None:
+    """Every program of the request parsed (never run) before anything is queued: 422 now, not a failed job
+    after the wait in the queue."""
+    try:
+        if isinstance(body, InferRequest):
+            checks.check_infer(body.spec, body.demonstrations, body.actions)
+        elif isinstance(body, NextActionRequest):
+            checks.check_next_action(body.spec, body.preconditions, body.demonstrations, body.history)
+        elif isinstance(body, CheckRequest):
+            checks.check_check(body.spec, body.preconditions, body.history)
+    except checks.ProgramProblem as exc:
+        return exc.problem
+    return None
+
+
+def _program_chars(body: BaseModel) -> int:
+    texts = [getattr(body, "spec", ""), getattr(body, "history", ""), *getattr(body, "demonstrations", [])]
+    return sum(len(text) for text in texts)
+
+
 async def _answer(
     services: Services,
     request: Request,
@@ -83,6 +109,12 @@ async def _answer(
     model: str | None,
     wait: float | None,
 ) -> Response:
+    if _program_chars(body) <= INLINE_CHECK_CHARS:
+        problem = _programs_problem(body)
+    else:
+        problem = await asyncio.to_thread(_programs_problem, body)
+    if problem is not None:
+        return error_response(request, 422, ErrorInfo(type=problem.type, message=problem.message, field=problem.field))
     payload = body.model_dump(mode="json")
     job_id = keys.job_id(kind, payload, model)
     cached = await services.cache.get(job_id)
