@@ -40,6 +40,8 @@ WORKER_PREFIX: Final = f"{PREFIX}:worker:"
 WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
 RUNNING_KEY: Final = f"{PREFIX}:running"
 """Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
+UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
+"""Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
 _JOB_ID = re.compile(r"^(infer|next-action|check)-[0-9a-f]{64}$")
