@@ -66,3 +66,20 @@ def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> Non
     assert result.returncode == 2, result.stderr
     assert str(missing / "sgd") in result.stderr and "PRECOND_DATA_DIR" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_serve_prints_one_line_when_ready(tmp_path: Path, tiny_model_dir: Path) -> None:
+    from stack.local import free_port, make_stack
+
+    stack = make_stack(tmp_path, tiny_model_dir)
+    port = free_port()
+    process = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port)], env=stack.env, cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        assert process.stdout is not None
+        line = next(out for out in process.stdout if not out.startswith("INFO:"))  # uvicorn's access log
+        assert line == f"precond: ready at http://127.0.0.1:{port} (GET /ready answers 200)\n"
+    finally:
+        process.terminate()
+        process.wait(60)
+        stack.redis.stop()
