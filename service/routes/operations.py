@@ -53,6 +53,9 @@ async def infer_preconditions(
     services: ServicesDep,
     wait: Wait = None,
 ) -> Response:
+    """Verified preconditions per action. Demonstrations none of which calls an action are refused (422); an
+    action no demonstration calls is listed in `warnings` ("no occurrence"), never a silent empty rule.
+    `generators: ["enumerate"]` runs on the model-free queue, never behind model jobs."""
     model = keys.model_identity() if "model" in body.options.generators else None
     return await _answer(services, request, "infer", body, model, wait)
 
@@ -64,6 +67,9 @@ async def next_action(
     services: ServicesDep,
     wait: Wait = None,
 ) -> Response:
+    """The next action(s), verified against the preconditions (the paper's Algorithm 1). A call is always a
+    call of an action; when no attempt passes, `call` is null with every attempt in `rejected`, unless
+    `options.fallback` is "greedy"."""
     return await _answer(services, request, "next-action", body, keys.model_identity(), wait)
 
 
@@ -74,6 +80,9 @@ async def check_actions(
     services: ServicesDep,
     wait: Wait = None,
 ) -> Response:
+    """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
+    ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
+    and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
     return await _answer(services, request, "check", body, None, wait)
 
 
