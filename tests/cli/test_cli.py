@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -75,11 +76,14 @@ def test_serve_prints_one_line_when_ready(tmp_path: Path, tiny_model_dir: Path) 
     port = free_port()
     process = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port)], env=stack.env, cwd=ROOT,
                                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    guard = threading.Timer(240, process.terminate)  # a supervisor that never says so fails, not hangs
+    guard.start()
     try:
         assert process.stdout is not None
-        line = next(out for out in process.stdout if not out.startswith("INFO:"))  # uvicorn's access log
+        line = next((out for out in process.stdout if not out.startswith("INFO:")), "")  # uvicorn's access log
         assert line == f"precond: ready at http://127.0.0.1:{port} (GET /ready answers 200)\n"
     finally:
+        guard.cancel()
         process.terminate()
         process.wait(60)
         stack.redis.stop()
