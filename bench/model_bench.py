@@ -29,10 +29,10 @@ from engine.models.backend import PREFILL_CHUNK
 from engine.models.kvcache import growing_cache
 from engine.prompting import inference_prefix, inference_suffix
 from engine.spec import parse_spec, resolve_actions
+from evaluation.settings import data_path
 
 logger = logging.getLogger("model_bench")
 
-SGD = Path(__file__).resolve().parents[2] / "shared" / "data" / "sgd" / "Restaurants_1.json"
 PREFIX_TOKENS = 700
 DECODE_STEPS = 16
 
@@ -45,7 +45,7 @@ def timed(action: Callable[[], Any]) -> tuple[float, Any]:
 
 def domain_prompts(demos: int) -> tuple[str, list[str]]:
     """The engine's prompt for Restaurants_1: spec and demonstrations only, never the `gt_*` fields."""
-    data = json.loads(SGD.read_text())
+    data = json.loads(data_path("sgd", "Restaurants_1.json").read_text())
     spec = parse_spec(data["spec_program"])
     actions = resolve_actions(spec, None)
     prefix = inference_prefix(spec, actions, [demo["program"] for demo in data["demos"][:demos]])

@@ -1,4 +1,6 @@
-"""Throughput and latency of the sandbox on shared SGD data (a benchmark, not a test).
+"""Throughput and latency of the sandbox on the SGD development data (a benchmark, not a test).
+
+Reads sgd/ of PRECOND_DATA_DIR (default ../shared/data).
 
     python bench/sandbox_bench.py [--domain Restaurants_1] [--candidates 500] [--json PATH]
 
@@ -18,9 +20,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from evaluation.settings import data_path
 from sandbox import Limits, Sandbox
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "sgd"
 ATOMS = (
     "self.user.requested_slot[slot]", "not self.user.requested_slot[slot]",
     "self.user.informed_slot[slot]", "not self.user.informed_slot[slot]", "self.query_success",
@@ -43,7 +45,7 @@ def candidates(domain: dict[str, Any], count: int) -> dict[str, list[str]]:
 
 
 def bench(domain_name: str, count: int, repeats: int) -> dict[str, float]:
-    domain = json.loads((DATA / f"{domain_name}.json").read_text())
+    domain = json.loads(data_path("sgd", f"{domain_name}.json").read_text())
     spec, demos = domain["spec_program"], [d["program"] for d in domain["demos"]]
     preconditions = {f"SYSTEM.{a}": e for a, e in domain["gt_preconditions"].items()}
     chosen = candidates(domain, count)

@@ -17,10 +17,11 @@ import typer
 from evaluation.cache import DEFAULT_CACHE, JsonCache
 
 DataOption = Annotated[
-    list[Path], typer.Option("--data", help="../shared/data/sgd or ../shared/data/alfworld; repeatable.")
+    list[Path] | None,
+    typer.Option("--data", help="Data directories (default: sgd/ and alfworld/ of PRECOND_DATA_DIR, else "
+                 "../shared/data); repeatable."),
 ]
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
-DEFAULT_DATA = [Path("../shared/data/sgd"), Path("../shared/data/alfworld")]
 EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
 
 
@@ -42,9 +43,27 @@ def _sandbox() -> Any:
     return Sandbox(Limits(**EVAL_LIMITS))  # type: ignore[arg-type]
 
 
-def _domains(data: list[Path], alfworld_modes: str) -> list[Any]:
+def _data(data: list[Path] | None, *names: str) -> list[Path]:
+    """The given directories, or the named ones under the data directory; a missing one stops the command
+    with a message naming the path and the setting (PRECOND_DATA_DIR)."""
+    from evaluation.settings import DataMissing, DataSettings, missing_message
+
+    try:
+        if not data:
+            return [DataSettings().path(name) for name in names]
+        for path in data:
+            if not path.exists():
+                raise DataMissing(missing_message(path))
+    except DataMissing as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
+    return data
+
+
+def _domains(data: list[Path] | None, alfworld_modes: str) -> list[Any]:
     from evaluation.domains import ARG_MODES, load_domains
 
+    data = _data(data, "sgd", "alfworld")
     modes = [m.strip() for m in alfworld_modes.split(",") if m.strip()]
     out = []
     for path in data:
@@ -59,7 +78,7 @@ def _domains(data: list[Path], alfworld_modes: str) -> list[Any]:
 
 
 def preconditions(
-    data: DataOption = DEFAULT_DATA,
+    data: DataOption = None,
     configs: Annotated[str, typer.Option(help="Config names or grids (see evaluation/configs.py)")]
     = "no-model",
     alfworld_args: Annotated[str, typer.Option(help="ALFWorld argument domains: state, trajectory or both.")]
@@ -86,7 +105,8 @@ def preconditions(
 
 
 def policy(
-    data: Annotated[Path, typer.Option("--data", help="The SGD data directory.")] = DEFAULT_DATA[0],
+    data: Annotated[Path | None, typer.Option("--data", help="The SGD data directory (default: sgd/ of the "
+                                                 "data directory, PRECOND_DATA_DIR).")] = None,
     configs: Annotated[str, typer.Option(help="Policy configs or grids (evaluation/policy.py).")] = "default",
     domains: Annotated[str, typer.Option(help="SGD services, comma-separated; empty: all.")] = "",
     dialogs: Annotated[int, typer.Option(help="First N test dialogs per domain.")] = 2,
@@ -101,6 +121,7 @@ def policy(
     from evaluation.preconditions import infer
     from evaluation.report import policy_table, store_policy_results
 
+    (data,) = _data([data] if data else None, "sgd")
     store = JsonCache(cache_dir)
     wanted = {d.strip() for d in domains.split(",") if d.strip()}
     chosen = [d for d in _domains([data], "state") if not wanted or d.name in wanted]
@@ -135,7 +156,7 @@ def report(
 
 
 def run_all(
-    data: DataOption = DEFAULT_DATA,
+    data: DataOption = None,
     cache_dir: CacheOption = DEFAULT_CACHE,
     configs: Annotated[str, typer.Option(help="Precondition configs to (re)score.")] = "no-model,probe",
 ) -> None:
@@ -155,7 +176,7 @@ def run_all(
 
 
 def register(app: typer.Typer) -> None:
-    group = typer.Typer(help="Evaluate precondition inference and the policy on the shared data.",
+    group = typer.Typer(help="Evaluate precondition inference and the policy on the development data.",
                         no_args_is_help=True)
     group.command("preconditions")(preconditions)
     group.command("policy")(policy)

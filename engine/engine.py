@@ -20,12 +20,14 @@ from engine.enumeration import StateModel, enumerate_atoms
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
 from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank, zero_shot
-from engine.spec import Spec, parse_source, parse_spec, render_program, resolve_actions
+from engine.spec import Spec, as_error, check_preconditions, parse_source, parse_spec, render_program, resolve_actions
+from programs import checks
 from sandbox.types import (
     CandidateResult,
     EvaluateResult,
     LimitExceeded,
     ProgramError,
+    SandboxCancelled,
     SandboxCrashed,
     SandboxUnavailable,
     TraceResult,
@@ -49,7 +51,6 @@ from schemas.errors import (
     ModelUnavailable,
     ResourceLimit,
     SandboxFailure,
-    UnknownAction,
 )
 
 if TYPE_CHECKING:
@@ -81,6 +82,8 @@ def sandbox_call(fn: Callable[..., T], *args: object) -> T:
     except LimitExceeded as exc:
         field = "demonstrations" if exc.limit == "work" else None  # points grow with demonstrations × arguments
         raise ResourceLimit(f"untrusted code exceeded the sandbox's {exc}", field=field) from exc
+    except SandboxCancelled as exc:
+        raise Cancelled("job cancelled") from exc
     except (SandboxCrashed, SandboxUnavailable) as exc:
         raise SandboxFailure(f"the sandbox failed, not the request (try again): {exc}") from exc
 
@@ -159,6 +162,10 @@ class Engine:
         progress: ProgressFn = _no_progress,
         cancelled: Callable[[], bool] = _never,
     ) -> InferResponse:
+        with self._sandbox.cancel_when(cancelled):
+            return self._infer(request, progress, cancelled)
+
+    def _infer(self, request: InferRequest, progress: ProgressFn, cancelled: Callable[[], bool]) -> InferResponse:
         timer = Timer()
         spec = parse_spec(request.spec)
         actions = resolve_actions(spec, request.actions)
@@ -167,6 +174,7 @@ class Engine:
         progress("trace", 0, 1)
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos)
+        warnings = _no_evidence(actions, trace, request.options.generators)
         proposals = Proposals()
         model_info: ModelInfo | None = None
         if "model" in request.options.generators:
@@ -190,7 +198,7 @@ class Engine:
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
-            model=model_info,
+            model=model_info, warnings=warnings,
         )
 
     def _generate(
@@ -305,12 +313,13 @@ class Engine:
         cancelled: Callable[[], bool] = _never,
     ) -> NextActionResponse:
         spec = parse_spec(request.spec)
-        _check_precondition_names(spec, request.preconditions)
+        check_preconditions(spec, request.preconditions)
         parse_source(request.history, "history")
         for i, demo in enumerate(request.demonstrations):
             parse_source(demo, f"demonstrations[{i}]")
         planner = NextActionPlanner(spec, request, self.model(), self._verify, cancelled)
-        actions = planner.run(progress)
+        with self._sandbox.cancel_when(cancelled):
+            actions = planner.run(progress)
         return NextActionResponse(actions=actions, model=self.model().info)
 
     def _verify(
@@ -323,7 +332,7 @@ class Engine:
     # ---- check ------------------------------------------------------------------------------------
     def check(self, request: CheckRequest) -> CheckResponse:
         spec = parse_spec(request.spec)
-        _check_precondition_names(spec, request.preconditions)
+        check_preconditions(spec, request.preconditions)
         parse_source(request.history, "history")
         return CheckResponse(results=self._verify(spec, request.preconditions, request.history, request.calls))
 
@@ -333,10 +342,19 @@ class Engine:
             raise Cancelled("job cancelled")
 
 
-def _check_precondition_names(spec: Spec, preconditions: dict[str, list[str]]) -> None:
-    for name in preconditions:
-        if name not in spec.methods:
-            raise UnknownAction(f"unknown action {name!r} in preconditions", field=f"preconditions.{name}")
+def _no_evidence(actions: Sequence[str], trace: TraceResult, generators: Sequence[str]) -> dict[str, str]:
+    """Per action no demonstration calls, why its rule rests on no evidence; no such action at all: 422."""
+    missing = [a for a in actions if not trace.actions[a].occurrences]
+    if len(missing) == len(actions):
+        raise as_error(checks.no_occurrence_problem(list(actions), trace_count(trace)))
+    fallback = ("its rule is the code model's zero-shot guess (kept only when several samples agree), not "
+                "learned from demonstrations" if "model" in generators
+                else "no rule can be learned for it, so its rule is empty: every call of it is allowed")
+    return {a: f"no occurrence: no demonstration calls {a}; {fallback}" for a in missing}
+
+
+def trace_count(trace: TraceResult) -> int:
+    return len(trace.positions)
 
 
 def _same_place(a: ProgramError | None, b: ProgramError) -> bool:

@@ -1,7 +1,11 @@
 """The paper's Algorithm 1, "Sample Next Action with Verification", for one or several actions in a turn.
 
 Greedy first; if its program fails the preconditions, random samples until one runs, up to `max_attempts`;
-otherwise fall back to greedy with `verified: false`. The random samples are drawn as one batch and verified
+otherwise "no verified action" (`call: null`, with every rejected attempt and why), or, only when the caller
+asked for it (`options.fallback: "greedy"`), the greedy call with `verified: false`. A line that is not a
+call of one of the agent's actions (a user act, free text) is never returned as an action.
+
+The random samples are drawn as one batch and verified
 in one sandbox call, then read in order: the same outcome as drawing them one at a time, at a fraction of
 the cost.
 """
@@ -21,6 +25,7 @@ from schemas.errors import Cancelled
 if TYPE_CHECKING:
     from engine.models import CodeModel
 
+NO_ACTION = "no action: the model's line is not a call of an action function"
 VerifyFn = Callable[[Spec, dict[str, list[str]], str, list[str]], list[CallVerdict]]
 
 
@@ -101,6 +106,8 @@ class NextActionPlanner:
             if predicted is None:
                 break
             out.append(predicted)
+            if predicted.call is None:
+                break  # no action to continue the turn from
             history = append_line(history, predicted.call)
         progress("done", len(out), len(out))
         return out
@@ -125,9 +132,11 @@ class NextActionPlanner:
             return None  # the model hands the turn back: no further action this turn
         tried = [greedy]
         if not self.options.verify:
-            verdicts = self._check(history, [greedy.call] if greedy.call else [])
-            allowed = bool(verdicts) and verdicts[0].allowed
-            return PredictedAction(call=greedy.call or greedy.text, verified=allowed, attempts=1)
+            if greedy.call is None:
+                return PredictedAction(call=None, verified=False, attempts=1, reason=NO_ACTION,
+                                       rejected=[Rejection(call=greedy.text, reason=greedy.reason)])
+            verdicts = self._check(history, [greedy.call])
+            return PredictedAction(call=greedy.call, verified=verdicts[0].allowed, attempts=1)
         verdicts = self._verdicts(history, tried)
         if not verdicts[0].allowed and self.options.max_attempts > 1:
             more = self._sample(prompt, self.options.max_attempts - 1, self.options.temperature,
@@ -140,8 +149,12 @@ class NextActionPlanner:
                 return PredictedAction(call=prediction.call, verified=True, attempts=attempt, rejected=rejected)
             rejected.append(Rejection(call=prediction.call or prediction.text, violations=verdict.violations,
                                       reason=verdict.error or prediction.reason or "violates the preconditions"))
-        return PredictedAction(call=greedy.call or greedy.text, verified=False, attempts=len(tried),
-                               rejected=rejected)
+        if self.options.fallback == "greedy" and greedy.call is not None:
+            return PredictedAction(call=greedy.call, verified=False, attempts=len(tried), rejected=rejected,
+                                   reason="fallback: the greedy call, which does not satisfy the preconditions")
+        return PredictedAction(call=None, verified=False, attempts=len(tried), rejected=rejected,
+                               reason=f"no verified action: none of the {len(tried)} attempts is a call of an "
+                               "action that satisfies the preconditions (see rejected)")
 
     def _verdicts(self, history: str, predictions: Sequence[Prediction]) -> list[CallVerdict]:
         """One sandbox call for all action calls; non-actions get a refusal without running anything."""

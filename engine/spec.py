@@ -12,8 +12,8 @@ import ast
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from programs import Method, read_methods
-from schemas.errors import InvalidProgram, UnknownAction
+from programs import Method, checks
+from schemas.errors import InvalidInput, InvalidProgram, UnknownAction
 
 
 @dataclass(frozen=True)
@@ -27,36 +27,44 @@ class Spec:
         return [name for name, method in self.methods.items() if method.stub]
 
 
+def as_error(exc: checks.ProgramProblem) -> InvalidInput:
+    """The API error of a static check's problem (the gateway answers the same one before queueing)."""
+    problem = exc.problem
+    cls = {checks.INVALID_PROGRAM: InvalidProgram, checks.UNKNOWN_ACTION: UnknownAction}.get(problem.type, InvalidInput)
+    return cls(problem.message, field=problem.field)
+
+
 def parse_source(source: str, field: str) -> ast.Module:
     """Parse untrusted source, turning every failure (syntax, nesting too deep, NUL bytes) into a 422."""
     try:
-        return ast.parse(source)
-    except SyntaxError as exc:
-        raise InvalidProgram(f"{field}, line {exc.lineno}: SyntaxError: {exc.msg}", field=field) from exc
-    except (ValueError, RecursionError, MemoryError) as exc:
-        raise InvalidProgram(f"{field}: cannot be parsed: {type(exc).__name__}", field=field) from exc
+        return checks.parse(source, field)
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
 
 
 def parse_spec(source: str) -> Spec:
-    tree = parse_source(source, "spec")
-    methods = read_methods(tree)
-    if not methods:
-        raise InvalidProgram("spec: defines no class with methods, so there are no actions", field="spec")
+    try:
+        tree, methods = checks.spec_methods(source)
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
     return Spec(source, tree, methods)
 
 
 def resolve_actions(spec: Spec, requested: Sequence[str] | None) -> list[str]:
-    """Requested names must exist; by default every stub method is an action."""
-    if requested is None:
-        actions = spec.stub_actions
-        if not actions:
-            raise UnknownAction("spec has no stub methods (body only pass/.../docstring); name the actions", "actions")
-        return actions
-    for index, name in enumerate(requested):
-        if name not in spec.methods:
-            known = ", ".join(sorted(spec.methods)[:20])
-            raise UnknownAction(f"unknown action {name!r}; the spec defines: {known}", field=f"actions[{index}]")
-    return list(dict.fromkeys(requested))
+    """Requested names must exist (an unknown one gets the closest known name); by default every stub
+    method is an action."""
+    try:
+        return checks.resolve_actions(spec.methods, requested)
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
+
+
+def check_preconditions(spec: Spec, preconditions: dict[str, list[str]]) -> None:
+    """Known action names (else the closest), and each rule one expression (`assert x` says to drop it)."""
+    try:
+        checks.check_preconditions(spec.methods, preconditions)
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
 
 
 def observation_source(spec: Spec, actions: Iterable[str]) -> str:

@@ -141,7 +141,7 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
         spec=domain.spec, preconditions=used, demonstrations=list(domain.demonstrations[: config.shots]),
         history=segment.history,
         options=NextActionOptions(max_actions=MAX_ACTIONS, preconditions_in_prompt=config.in_prompt,
-                                  verify=config.verify, seed=seed),
+                                  verify=config.verify, seed=seed, fallback="greedy"),
     )
     start = time.perf_counter()
     error = None
@@ -154,7 +154,9 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
         plain = request.options.model_copy(update={"preconditions_in_prompt": False, "verify": False})
         response = engine.next_action(request.model_copy(update={"preconditions": {}, "options": plain}))
     seconds = time.perf_counter() - start
-    predicted = [normalize_call(a.call) for a in response.actions]
+    # the paper's Algorithm 1 falls back to the greedy line; a line that is no action call counts as written
+    predicted = [normalize_call(a.call if a.call is not None else a.rejected[0].call if a.rejected else "")
+                 for a in response.actions]
     return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds, "error": error}
 
 

@@ -1,6 +1,6 @@
 """Write the request bodies in examples/ from the shared SGD Restaurants_1 data (no ground-truth fields).
 
-python examples/build.py [../shared/data/sgd/Restaurants_1.json]
+python examples/build.py [PATH]   # default: sgd/Restaurants_1.json of PRECOND_DATA_DIR (../shared/data)
 """
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-DEFAULT = HERE.parents[1] / "shared" / "data" / "sgd" / "Restaurants_1.json"
 # Hand-written, in the shape /infer-preconditions returns: an example, not the data set's ground truth.
 PRECONDITIONS = {
     "SYSTEM.FindRestaurants": ["self.user.informed_slot['city']", "self.user.informed_slot['cuisine']"],
@@ -56,4 +55,10 @@ def main(source: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else DEFAULT)
+    if len(sys.argv) > 1:
+        main(Path(sys.argv[1]))
+    else:
+        sys.path.insert(0, str(HERE.parent))
+        from evaluation.settings import data_path
+
+        main(data_path("sgd", "Restaurants_1.json"))

@@ -19,7 +19,14 @@ worker runs `_BEAT`, one Lua script (Redis runs it atomically, so two workers ne
    went away mid-job);
 4. for every other claim whose worker's heartbeat key has expired, and whose job is still in progress with
    no result, it deletes arq's in-progress key: the job is still in arq's queue, so the next poll of any
-   live worker runs it again (arq counts the try). Claims of finished jobs are dropped on the way.
+   live worker runs it again (arq counts the try). Claims of finished jobs are dropped on the way;
+5. it hands back jobs that were started but never claimed. arq sets a job's in-progress key when a worker
+   takes it, and the claim follows a few Redis round trips later (`on_job_start`); a worker SIGKILLed in
+   between leaves a started job that no claim names, which steps 1-4 never see, so it waited for arq's
+   in-progress expiry (job timeout + 10 s): under load that window is wide enough to be hit, and it is
+   how `test_sigkilled_workers_lose_no_job` lost a job. Such a job is noted (`precond:unclaimed`, with the
+   Redis time) by the first beat that sees it, and handed back by a beat a whole heartbeat lease later. A
+   live worker's unclaimed job is claimed long before that (its own next beat re-registers it, step 2).
 
 A live worker's jobs are never touched: its heartbeat key exists. The heartbeat runs on the worker's event
 loop and the engine in a thread (worker/jobs.py), so a long job does not stop the beats.
@@ -34,7 +41,7 @@ from arq.constants import in_progress_key_prefix, result_key_prefix
 from pydantic import BaseModel
 from redis.asyncio import Redis
 
-from jobs.keys import RUNNING_KEY, WORKER_PREFIX, WORKERS_PATTERN, worker_key
+from jobs.keys import QUEUES, RUNNING_KEY, UNCLAIMED_KEY, WORKER_PREFIX, WORKERS_PATTERN, worker_key
 
 
 class Heartbeat(BaseModel):
@@ -65,7 +72,9 @@ local function hand_back(job)
   redis.call('DEL', progress_prefix .. job)
   table.insert(released, job)
 end
-local i = 8
+local queues = {}
+for q = 1, tonumber(ARGV[8]) do queues[q] = ARGV[8 + q] end
+local i = 9 + #queues
 for _ = 1, tonumber(ARGV[7]) do  -- jobs this worker runs: re-register those whose claim Redis lost
   if unfinished(ARGV[i]) then redis.call('HSETNX', running, ARGV[i], ARGV[i + 1]) end
   i = i + 2
@@ -76,6 +85,28 @@ while i < #ARGV do  -- runs this worker dropped: hand their jobs back now
     redis.call('HDEL', running, ARGV[i])
   end
   i = i + 2
+end
+local unclaimed, lease = KEYS[3], tonumber(ARGV[3])
+local clock = redis.call('TIME')
+local now = tonumber(clock[1]) * 1000 + math.floor(tonumber(clock[2]) / 1000)
+local seen = {}
+for _, queue in ipairs(queues) do  -- step 5: started, never claimed
+  for _, job in ipairs(redis.call('ZRANGE', queue, 0, -1)) do
+    if unfinished(job) and redis.call('HEXISTS', running, job) == 0 then
+      seen[job] = true
+      local since = redis.call('HGET', unclaimed, job)
+      if not since then
+        redis.call('HSET', unclaimed, job, now)
+      elseif now - tonumber(since) >= lease then
+        hand_back(job)
+        redis.call('HDEL', unclaimed, job)
+        seen[job] = nil
+      end
+    end
+  end
+end
+for _, job in ipairs(redis.call('HKEYS', unclaimed)) do
+  if not seen[job] then redis.call('HDEL', unclaimed, job) end
 end
 local claims = redis.call('HGETALL', running)
 for j = 1, #claims, 2 do
@@ -124,10 +155,12 @@ async def beat(
         in_progress_key_prefix,
         result_key_prefix,
         len(running),
+        len(QUEUES),
+        *QUEUES,
         *_pairs(running),
         *_pairs(dropped),
     ]
-    released = await redis.eval(_BEAT, 2, worker_key(heartbeat.id), RUNNING_KEY, *args)  # type: ignore[no-untyped-call]
+    released = await redis.eval(_BEAT, 3, worker_key(heartbeat.id), RUNNING_KEY, UNCLAIMED_KEY, *args)  # type: ignore[no-untyped-call]
     return [job.decode() for job in released]
 
 

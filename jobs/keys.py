@@ -22,10 +22,20 @@ from schemas.api import JobKind
 PREFIX: Final = "precond"
 MODEL_QUEUE: Final = f"{PREFIX}:queue:model"
 CHECK_QUEUE: Final = f"{PREFIX}:queue:check"
+MODEL_FREE_QUEUE: Final = f"{PREFIX}:queue:model-free"
+"""Inference without the model (`options.generators == ["enumerate"]`): seconds, never behind model jobs,
+and apart from the millisecond check jobs, which it must not hold up either."""
+QUEUES: Final = (MODEL_QUEUE, MODEL_FREE_QUEUE, CHECK_QUEUE)
 QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
     "infer": MODEL_QUEUE,
     "next-action": MODEL_QUEUE,
     "check": CHECK_QUEUE,
+}
+"""The queue of each kind's model jobs; see `queue_for` for the routing by cost."""
+QUEUES_BY_KIND: Final[dict[JobKind, tuple[str, ...]]] = {
+    "infer": (MODEL_QUEUE, MODEL_FREE_QUEUE),
+    "next-action": (MODEL_QUEUE,),
+    "check": (CHECK_QUEUE,),
 }
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
@@ -33,6 +43,8 @@ WORKER_PREFIX: Final = f"{PREFIX}:worker:"
 WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
 RUNNING_KEY: Final = f"{PREFIX}:running"
 """Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
+UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
+"""Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
 _JOB_ID = re.compile(r"^(infer|next-action|check)-([0-9a-f]{16})-[0-9a-f]{48}$")
@@ -54,6 +66,14 @@ def done_channel(job_id: str) -> str:
 
 def worker_key(worker_id: str) -> str:
     return f"{WORKER_PREFIX}{worker_id}"
+
+
+def queue_for(kind: JobKind, body: dict[str, Any]) -> str:
+    """Route by cost: an inference that uses no model goes to the model-free queue, so it never waits for a
+    model job (minutes); everything else to its kind's queue."""
+    if kind == "infer" and "model" not in body.get("options", {}).get("generators", ["model"]):
+        return MODEL_FREE_QUEUE
+    return QUEUE_BY_KIND[kind]
 
 
 def kind_of(job_id: str) -> JobKind | None:

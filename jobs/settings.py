@@ -162,15 +162,18 @@ class WorkerSettings(QueueSettings):
     job_timeout_s: float = Field(
         default=900.0,
         gt=0,
-        description="Longest a model job may run. (A job whose worker died is handed to another worker "
-        "once the dead worker's heartbeat expires, not after this timeout.)",
+        description="Longest a model job or a model-free inference may run. (A job whose worker died is handed "
+        "to another worker once the dead worker's heartbeat expires, not after this timeout.)",
     )
     check_timeout_s: float = Field(default=60.0, gt=0, description="Longest a check-actions job may run.")
     job_max_tries: int = Field(
         default=3, ge=1, description="Runs of a job before it fails (worker deaths count)."
     )
     worker_concurrency: int = Field(
-        default=1, ge=1, description="Model jobs one worker process runs at once."
+        default=1,
+        ge=1,
+        description="Model jobs one worker process runs at once; as many model-free inferences (their own "
+        "queue, so they never wait behind model jobs) run beside them.",
     )
     check_concurrency: int = Field(default=4, ge=1, description="check-actions jobs one worker runs at once.")
     worker_poll_s: float = Field(

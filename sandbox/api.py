@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import ast
 import logging
-from collections.abc import Callable, Collection, Mapping, Sequence
+import threading
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from types import TracebackType
 from typing import Any, TypeVar
 
@@ -22,6 +24,7 @@ from sandbox.types import (
     Limits,
     Point,
     ProgramError,
+    SandboxCancelled,
     SandboxUnavailable,
     TraceResult,
 )
@@ -52,6 +55,7 @@ class Sandbox:
             if not allow_unconfined:
                 raise SandboxUnavailable(str(exc)) from exc
             seccomp = None
+        self._local = threading.local()
         self._pool = ServerPool(workers, to_wire(self.limits), allowed_imports, seccomp, allow_unconfined)
         if not self._pool.hello.get("confined"):
             self.unconfined_reason = str(self._pool.hello.get("reason"))
@@ -65,6 +69,17 @@ class Sandbox:
 
     def close(self) -> None:
         self._pool.close()
+
+    @contextmanager
+    def cancel_when(self, cancelled: Callable[[], bool]) -> Iterator[None]:
+        """Within the block, calls of this thread stop within ~0.1 s once `cancelled()` is true: the running
+        child is killed with its server (which is replaced) and the call raises SandboxCancelled."""
+        previous = getattr(self._local, "cancelled", None)
+        self._local.cancelled = cancelled
+        try:
+            yield
+        finally:
+            self._local.cancelled = previous
 
     def trace(self, spec: str, demonstrations: Sequence[str]) -> TraceResult:
         """Positions of every demonstration and, for every spec method, where it was called with what."""
@@ -145,7 +160,10 @@ class Sandbox:
 
     def _run(self, op: str, payload: dict[str, Any], build: Callable[[dict[str, Any], Mapping[int, Any]], T]) -> T:
         message = {"op": op, "payload": payload}
-        header, raw = self._pool.call(message, parent_deadline_s(self.limits))
+        cancelled = getattr(self._local, "cancelled", None)
+        if cancelled is not None and cancelled():
+            raise SandboxCancelled("cancelled")
+        header, raw = self._pool.call(message, parent_deadline_s(self.limits), cancelled)
         protocol.raise_for_header(header)
         return protocol.decode(raw, build)
 

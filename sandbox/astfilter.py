@@ -11,6 +11,7 @@ import ast
 from dataclasses import dataclass
 from functools import lru_cache
 
+from programs.checks import expression_hint
 from sandbox.child.values import clean
 from sandbox.types import ProgramError
 
@@ -43,7 +44,7 @@ def _expression_problem(text: str) -> str | None:
     try:
         tree = ast.parse(text, mode="eval")
     except SyntaxError as exc:
-        return f"not a single expression: {clean(str(exc.msg))}"
+        return f"not a single expression: {expression_hint(text) or clean(str(exc.msg))}"
     except (ValueError, MemoryError, RecursionError) as exc:  # null bytes, absurd nesting
         return f"not a single expression: {clean(str(exc))}"
     for node in ast.walk(tree):

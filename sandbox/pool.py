@@ -17,12 +17,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Collection, Iterator, Mapping
+from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
-from sandbox.types import SandboxCrashed, SandboxError, SandboxUnavailable
+from sandbox.types import SandboxCancelled, SandboxCrashed, SandboxError, SandboxUnavailable
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +44,16 @@ BOOTSTRAP = (
 )
 
 
+CANCEL_POLL_S = 0.1
+"""How often a call waiting on its server asks whether it was cancelled."""
+
+
 class ServerGone(Exception):
     """The server broke the protocol, died or missed its deadline; it must be replaced."""
+
+
+class CallCancelled(Exception):
+    """The caller cancelled while waiting; the server is mid-request and must be replaced."""
 
 
 class ForkServer:
@@ -71,6 +79,7 @@ class ForkServer:
             os.close(response_write)
         self._buffer = bytearray()
         self._hello: dict[str, Any] | None = None
+        self._cancelled: Callable[[], bool] | None = None
 
     def ready(self) -> dict[str, Any]:
         """The server's hello, read once: whether its children are confined by the kernel policy."""
@@ -87,9 +96,11 @@ class ForkServer:
             self._hello = hello
         return self._hello
 
-    def request(self, message: dict[str, Any], wait_s: float) -> tuple[dict[str, Any], bytes]:
+    def request(self, message: dict[str, Any], wait_s: float,
+                cancelled: Callable[[], bool] | None = None) -> tuple[dict[str, Any], bytes]:
         """Send one request; return the header and the raw result. A reply that does not carry this
-        request's id is never taken as its answer."""
+        request's id is never taken as its answer. `cancelled` is polled while waiting (CallCancelled)."""
+        self._cancelled = cancelled
         deadline = time.monotonic() + wait_s
         self.ready()
         call_id = secrets.token_hex(16)
@@ -153,16 +164,18 @@ class ForkServer:
             raise ServerGone("fork server closed its pipe")
         self._buffer += data
 
-    @staticmethod
-    def _wait(fd: int, deadline: float, write: bool) -> None:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            raise ServerGone("fork server missed its deadline")
-        watched = [fd]
-        ready = select.select([], watched, [], remaining)[1] if write else select.select(watched, [], [],
-                                                                                          remaining)[0]
-        if not ready:
-            raise ServerGone("fork server missed its deadline")
+    def _wait(self, fd: int, deadline: float, write: bool) -> None:
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise ServerGone("fork server missed its deadline")
+            if self._cancelled is not None and self._cancelled():
+                raise CallCancelled()
+            step = remaining if self._cancelled is None else min(remaining, CANCEL_POLL_S)
+            watched = [fd]
+            ready = select.select([], watched, [], step)[1] if write else select.select(watched, [], [], step)[0]
+            if ready:
+                return
 
 
 class ServerPool:
@@ -213,6 +226,10 @@ class ServerPool:
             self._discard(server)
             server = self._start()
             raise SandboxCrashed(str(exc)) from None
+        except CallCancelled:
+            self._discard(server)  # kills the server's process group: the running child goes with it
+            server = self._start()
+            raise SandboxCancelled("cancelled") from None
         except BaseException:
             self._discard(server)
             server = self._start()
@@ -223,10 +240,11 @@ class ServerPool:
             else:
                 self._idle.put(server)
 
-    def call(self, message: dict[str, Any], wait_s: float) -> tuple[dict[str, Any], bytes]:
+    def call(self, message: dict[str, Any], wait_s: float,
+             cancelled: Callable[[], bool] | None = None) -> tuple[dict[str, Any], bytes]:
         with self.server() as server:
             try:
-                return server.request(message, wait_s)
+                return server.request(message, wait_s, cancelled)
             except (OSError, ValueError, KeyError) as exc:
                 raise ServerGone(f"protocol error: {exc}") from exc
 

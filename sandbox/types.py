@@ -182,3 +182,8 @@ class SandboxUnavailable(SandboxError):
 
 class SandboxCrashed(SandboxError):
     """The child died without an answer (killed, segfault); it has been replaced."""
+
+
+class SandboxCancelled(SandboxError):
+    """The caller's cancel predicate turned true during a call: its server was killed (child included) and
+    replaced; the call has no result."""

@@ -68,11 +68,36 @@ class InferOptions(_Body):
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
 
 
+SPEC_DESCRIPTION = (
+    "The program spec: Python classes whose attributes summarise the history, observation methods, and "
+        "action methods (a stub body, `pass`/`...`/docstring, marks an action whose rule is unknown). Parsed, "
+        "never run, at the gateway; run only in the sandbox."
+)
+PRECONDITIONS_DESCRIPTION = (
+    "Rules per action (`Class.method`): Python expressions over `self` and the action's parameters, written "
+    "without `assert` (e.g. `self.user.informed_slot['city']`); a call is allowed when all hold. An action "
+    "not named here has no rule."
+)
+HISTORY_DESCRIPTION = (
+    "What happened so far, as a program over the spec: the statements creating the objects, then one call per "
+    "step (e.g. `user = USER()`, `system = SYSTEM(user)`, `user.INFORM('city')`)."
+)
+
+
 class InferRequest(_Body):
-    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS)
-    demonstrations: list[str] = Field(min_length=1, max_length=MAX_DEMONSTRATIONS)
-    actions: list[str] | None = Field(default=None, max_length=256)
-    options: InferOptions = Field(default_factory=InferOptions)
+    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+    demonstrations: list[str] = Field(
+        min_length=1,
+        max_length=MAX_DEMONSTRATIONS,
+        description="Demonstration trajectories, each a program over the spec. At least one must call one of "
+        "the actions: the rules are learned from the states in which they are called (422 otherwise).",
+    )
+    actions: list[str] | None = Field(
+        default=None,
+        max_length=256,
+        description="Actions (`Class.method`) to infer rules for; default: every stub method of the spec.",
+    )
+    options: InferOptions = Field(default_factory=InferOptions, description="How candidates are made and ranked.")
 
 
 class CandidateReport(_Body):
@@ -112,24 +137,47 @@ class InferResponse(_Body):
     candidates: dict[str, list[CandidateReport]]
     stats: InferStats
     model: ModelInfo | None = Field(default=None, description="None when no generator used a model.")
+    warnings: dict[str, str] = Field(
+        default_factory=dict,
+        description="Per action, why its rule is not backed by the demonstrations (e.g. `no occurrence`: no "
+        "demonstration calls it, so an empty rule there means no evidence, not 'always allowed'). Empty: every "
+        "action was seen.",
+    )
 
 
 class NextActionOptions(_Body):
     max_attempts: int = Field(default=5, ge=1, le=50)
     max_actions: int = Field(default=1, ge=1, le=20)
     preconditions_in_prompt: bool = False
-    verify: bool = Field(default=True, description="Algorithm 1's verified sampling; false: greedy only.")
+    verify: bool = Field(
+        default=True,
+        description="Algorithm 1's verified sampling; false: the greedy line only (still never a non-action).",
+    )
+    fallback: Literal["none", "greedy"] = Field(
+        default="none",
+        description="When no attempt passes: 'none' (default) answers `call: null` with the rejected attempts; "
+        "'greedy' answers the model's greedy call with `verified: false` (the paper's Algorithm 1), and only "
+        "when that line is a call of an action.",
+    )
     temperature: float = Field(default=0.8, ge=0.0, le=2.0)
     max_new_tokens: int = Field(default=32, ge=4, le=128)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
 
 
 class NextActionRequest(_Body):
-    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS)
-    preconditions: Preconditions = Field(default_factory=dict)
-    demonstrations: list[str] = Field(default_factory=list, max_length=MAX_DEMONSTRATIONS)
-    history: str = Field(max_length=MAX_SOURCE_CHARS)
-    options: NextActionOptions = Field(default_factory=NextActionOptions)
+    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+    preconditions: Preconditions = Field(
+        default_factory=dict, description=PRECONDITIONS_DESCRIPTION + " Predicted calls are verified against them."
+    )
+    demonstrations: list[str] = Field(
+        default_factory=list,
+        max_length=MAX_DEMONSTRATIONS,
+        description="Example trajectories shown to the model in its prompt (programs over the spec).",
+    )
+    history: str = Field(max_length=MAX_SOURCE_CHARS, description=HISTORY_DESCRIPTION)
+    options: NextActionOptions = Field(
+        default_factory=NextActionOptions, description="Sampling, verification and fallback."
+    )
 
 
 class Rejection(_Body):
@@ -139,10 +187,14 @@ class Rejection(_Body):
 
 
 class PredictedAction(_Body):
-    call: str
-    verified: bool
+    call: str | None = Field(
+        description="The action call; null: no verified action (every attempt is in `rejected`, `reason` says "
+        "why). Never a line that is not a call of an action."
+    )
+    verified: bool = Field(description="The call satisfies the preconditions after the history.")
     attempts: int
     rejected: list[Rejection] = Field(default_factory=list)
+    reason: str | None = Field(default=None, description="Why `call` is null, or why an unverified call is given.")
 
 
 class NextActionResponse(_Body):
@@ -151,17 +203,29 @@ class NextActionResponse(_Body):
 
 
 class CheckRequest(_Body):
-    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS)
-    preconditions: Preconditions = Field(default_factory=dict)
-    history: str = Field(max_length=MAX_SOURCE_CHARS)
-    calls: list[str] = Field(min_length=1, max_length=MAX_CALLS)
+    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+    preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
+    history: str = Field(max_length=MAX_SOURCE_CHARS, description=HISTORY_DESCRIPTION)
+    calls: list[str] = Field(
+        min_length=1,
+        max_length=MAX_CALLS,
+        description="Proposed calls, each judged on its own copy of the state after the history "
+        "(e.g. `system.REQUEST('cuisine')`).",
+    )
 
 
 class CallVerdict(_Body):
     call: str
-    allowed: bool
-    violations: list[str] = Field(default_factory=list)
-    error: str | None = Field(default=None, description="Exception raised by the call other than an assertion.")
+    allowed: bool = Field(
+        description="true only when the call ran with every rule holding; a rule or call that raises gives "
+        "false with `error` set (naming the rule and the exception), never a silent refusal or approval."
+    )
+    violations: list[str] = Field(default_factory=list, description="The rules that do not hold.")
+    error: str | None = Field(
+        default=None,
+        description="Why the call could not be judged normally: an exception raised by the call or by a rule "
+        "(named), or a call that is not a call of a spec method.",
+    )
 
 
 class CheckResponse(_Body):

@@ -7,7 +7,7 @@ cd "$(dirname "$0")/.."
 . .venv/bin/activate
 cat <<MSG
 Starting the service on http://127.0.0.1:${PORT:-8000} (first start converts the embedded model once, ~1 min).
-Try, once it answers /ready:
+It prints one line "precond: ready at ..." once /ready answers. Then try:
   curl -s -X POST "http://127.0.0.1:${PORT:-8000}/infer-preconditions?wait=60" \\
        -H 'Content-Type: application/json' -d @examples/infer-enumerate.json | python -m json.tool
 MSG

@@ -58,7 +58,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         completions = Completions(dsn)
         completions.start()
         quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs)
-        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, quotas)
+        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, quotas, settings.result_ttl_s)
         app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys)
         yield
         await completions.close()

@@ -15,7 +15,7 @@ from collections import defaultdict
 from pydantic import BaseModel
 
 from programs import main_body
-from schemas.api import InferRequest, JobKind, NextActionRequest
+from schemas.api import InferRequest, NextActionRequest
 
 
 class OverBudget(ValueError):
@@ -24,7 +24,7 @@ class OverBudget(ValueError):
         self.field = field
 
 
-def check_work(kind: JobKind, body: BaseModel, budget: int) -> None:
+def check_work(body: BaseModel, budget: int) -> None:
     if isinstance(body, InferRequest | NextActionRequest):
         _check_points(body.demonstrations, budget)
 

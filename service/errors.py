@@ -94,9 +94,24 @@ def _field(loc: tuple[Any, ...]) -> str:
     return ".".join(parts[1:] if parts[:1] in (["body"], ["query"], ["path"]) else parts)
 
 
+async def _json_error(request: Request, error: dict[str, Any]) -> ErrorInfo:
+    """A body that is not JSON: the field is the body, the message says what and where (line, column)."""
+    offset = error["loc"][1] if len(error["loc"]) > 1 and isinstance(error["loc"][1], int) else None
+    reason = str((error.get("ctx") or {}).get("error", "invalid JSON"))
+    where = ""
+    if offset is not None:
+        text = (await request.body()).decode("utf-8", errors="replace")[:offset]
+        line = text.count("\n") + 1
+        column = offset - (text.rfind("\n") + 1) + 1
+        where = f" at line {line}, column {column} (character {offset})"
+    return ErrorInfo(type="validation_error", message=f"body is not valid JSON: {reason}{where}", field="body")
+
+
 async def _validation(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, RequestValidationError)
     first = exc.errors()[0]
+    if first.get("type") == "json_invalid":
+        return error_response(request, 422, await _json_error(request, first))
     info = ErrorInfo(
         type="validation_error", message=str(first.get("msg", "invalid")), field=_field(first["loc"])
     )

@@ -13,12 +13,19 @@ import time
 from typing import Any
 
 from arq.connections import ArqRedis
-from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, result_key_prefix
-from arq.jobs import Job, JobResult
+from arq.constants import (
+    abort_jobs_ss,
+    in_progress_key_prefix,
+    job_key_prefix,
+    result_key_prefix,
+    retry_key_prefix,
+)
+from arq.jobs import Job, JobResult, serialize_result
 from arq.jobs import JobStatus as ArqStatus
+from redis.exceptions import RedisError
 
 from jobs.cache import ResultCache
-from jobs.keys import JOB_FUNCTION, QUEUE_BY_KIND, kind_of
+from jobs.keys import JOB_FUNCTION, QUEUE_BY_KIND, QUEUES_BY_KIND, done_channel, kind_of, queue_for
 from jobs.records import Outcome, read_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions
@@ -40,21 +47,59 @@ return 0
 """
 
 
+_CANCEL_QUEUED = """
+if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[5]) == 1 then return 0 end
+if redis.call('zrem', KEYS[1], ARGV[1]) == 0 then return 0 end
+redis.call('del', KEYS[2], KEYS[4])
+redis.call('zrem', KEYS[6], ARGV[1])
+redis.call('set', KEYS[3], ARGV[4], 'PX', ARGV[5])
+redis.call('set', KEYS[5], ARGV[2], 'PX', ARGV[3])
+return 1
+"""
+"""Cancel a job no worker has started, at once: out of its queue, its result `cancelled`. The in-progress key
+is set briefly to a guard value, so a worker that read the id from the queue just before cannot start it
+(arq WATCHes that key between reading the queue and claiming the job)."""
+
+_DROP_GUARD = """
+if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end
+return 0
+"""
+CANCEL_GUARD = b"cancelled"
+CANCEL_GUARD_MS = 2000
+
+
 class QueueFull(Exception):
     """The job's queue holds `max_jobs` already; the client should come back later (429)."""
 
 
 class JobQueue:
-    def __init__(self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int,
-                 quotas: Quotas) -> None:
+    def __init__(
+        self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int, quotas: Quotas,
+        result_ttl_s: int = 3600,
+    ) -> None:
         self.redis = redis
         self.cache = cache
         self.completions = completions
         self.max_jobs = max_jobs
         self.quotas = quotas
+        self.result_ttl_s = result_ttl_s
 
-    def _job(self, job_id: str, kind: JobKind) -> Job:
-        return Job(job_id, self.redis, _queue_name=QUEUE_BY_KIND[kind])
+    def _job(self, job_id: str, queue: str) -> Job:
+        return Job(job_id, self.redis, _queue_name=queue)
+
+    async def _queue_of(self, job_id: str, kind: JobKind) -> str:
+        """The queue holding the job (an inference goes to one of two, by cost); its kind's default when
+        it is in none (running or finished: arq needs the queue only to tell queued from unknown)."""
+        queues = QUEUES_BY_KIND[kind]
+        if len(queues) > 1:
+            async with self.redis.pipeline(transaction=False) as pipe:
+                for queue in queues:
+                    pipe.zscore(queue, job_id)
+                scores = await pipe.execute()
+            for queue, score in zip(queues, scores, strict=True):
+                if score is not None:
+                    return queue
+        return QUEUE_BY_KIND[kind]
 
     async def depth(self, queue: str) -> int:
         return int(await self.redis.zcard(queue))
@@ -63,13 +108,14 @@ class JobQueue:
         """Enqueue unless the same job exists: identical requests then share the one already there. The
         job's place in its queue is its tenant's fair start (service.quotas), and its result is cached
         under `cache_key`."""
-        job = self._job(job_id, kind)
-        queue = QUEUE_BY_KIND[kind]
+        queue = queue_for(kind, body)
+        job = self._job(job_id, queue)
         if await self.depth(queue) >= self.max_jobs and await job.status() == ArqStatus.not_found:
             raise QueueFull(queue)
         enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key)
         if enqueued is None and await self._last_run_unusable(job):
             await self.redis.delete(result_key_prefix + job_id)
+            await self.redis.eval(_DROP_GUARD, 1, in_progress_key_prefix + job_id, CANCEL_GUARD)  # type: ignore[no-untyped-call]
             enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key)
         if enqueued is not None and await self._over_bound(queue, job_id):
             raise QueueFull(queue)
@@ -88,7 +134,7 @@ class JobQueue:
     async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str,
                        cache_key: str) -> Job | None:
         await self.redis.zrem(abort_jobs_ss, job_id)
-        queue = QUEUE_BY_KIND[kind]
+        queue = queue_for(kind, body)
         start = await self.quotas.fair_start(queue, tenant_tag)
         return await self.redis.enqueue_job(
             JOB_FUNCTION, kind, body, cache_key, _job_id=job_id, _queue_name=queue, _defer_until=start,
@@ -103,7 +149,7 @@ class JobQueue:
         kind = kind_of(job_id)
         if kind is None:
             return None
-        job = self._job(job_id, kind)
+        job = self._job(job_id, await self._queue_of(job_id, kind))
         info = await job.result_info()
         progress = await read_progress(self.redis, job_id)
         if info is not None:
@@ -156,17 +202,40 @@ class JobQueue:
                     await asyncio.wait_for(announced.wait(), min(remaining, interval))
 
     async def cancel(self, job_id: str, confirm_s: float) -> JobStatus | None:
-        """Ask arq to abort a queued or running job; the worker's engine sees it via its cancel predicate.
+        """Cancel a queued or running job; the answer says `cancelled` once it took effect.
 
-        Only existing unfinished jobs are aborted: an abort mark for an unknown id would stay in arq's abort
-        set and kill the next job that gets this id (arq#485).
+        A queued job is taken out of its queue here, at once (a busy worker would see arq's abort mark only
+        when it next starts a job). A running one gets arq's abort: the worker cancels it, the engine stops at
+        its next check (between decode steps, and every sandbox call is interrupted), and arq records it;
+        this waits up to `confirm_s` for that. Only existing unfinished jobs are marked: an abort mark for an
+        unknown id would stay in arq's abort set and kill the next job that gets this id (arq#485).
         """
         status = await self.status(job_id)
         if status is None or status.status not in ("queued", "running"):
             return status
+        queue = await self._queue_of(job_id, status.kind)
+        if status.status == "queued" and await self._cancel_queued(job_id, status.kind, queue):
+            return await self.status(job_id)
+        job = self._job(job_id, queue)
         with contextlib.suppress(TimeoutError):
-            await self._job(job_id, status.kind).abort(timeout=confirm_s, poll_delay=confirm_s / 4)
+            await job.abort(timeout=confirm_s, poll_delay=min(0.1, confirm_s / 4))
         return await self.status(job_id)
+
+    async def _cancel_queued(self, job_id: str, kind: JobKind, queue: str) -> bool:
+        now = int(time.time() * 1000)
+        result = serialize_result(
+            JOB_FUNCTION, (kind,), {}, 0, now, False, asyncio.CancelledError(), now, now,
+            f"{job_id}:{JOB_FUNCTION}", queue, job_id,
+        )
+        done = await self.redis.eval(  # type: ignore[no-untyped-call]
+            _CANCEL_QUEUED, 6, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
+            retry_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
+            job_id, result, self.result_ttl_s * 1000, CANCEL_GUARD, CANCEL_GUARD_MS,
+        )
+        if done:
+            with contextlib.suppress(RedisError, OSError):
+                await self.redis.publish(done_channel(job_id), b"1")
+        return bool(done)
 
 
 def _done(progress: JobProgress) -> JobProgress:

@@ -16,6 +16,7 @@ import socket
 import subprocess
 import sys
 import time
+import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
@@ -74,6 +75,15 @@ def answers(host: str, port: int, password: str | None = None) -> bool:
             f"a password-protected Redis answers at {host}:{port}: set REDIS_URL (and its password) to use it"
         )
     return b"+PONG" in reply
+
+
+def is_ready(url: str) -> bool:
+    """The gateway's /ready answers 200: Redis up and a worker with its model loaded."""
+    try:
+        with urllib.request.urlopen(url, timeout=0.5) as answer:
+            return bool(answer.status == 200)
+    except (OSError, ValueError):
+        return False
 
 
 @dataclass(frozen=True)
@@ -159,6 +169,8 @@ class Supervisor:
         worker = [sys.executable, "-m", "worker.runner"]
         self.children += [Child(f"worker-{i}", worker) for i in range(workers)]
         self.stopping = False
+        self.ready_url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port}/ready"
+        self.announced = False
 
     def run(self) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -174,6 +186,9 @@ class Supervisor:
         while not self.stopping:
             for child in self.children:
                 self._restart_if_dead(child)
+            if not self.announced and is_ready(self.ready_url):
+                self.announced = True
+                print(f"precond: ready at {self.ready_url.removesuffix('/ready')} (GET /ready answers 200)", flush=True)
             time.sleep(0.5)
         return self._shutdown()
 

@@ -21,6 +21,7 @@ from typing import Any
 
 import httpx
 
+from jobs.keys import MODEL_FREE_QUEUE
 from stack import harness
 from stack.hostile import hostile_requests
 from stack.local import ROOT, Stack, check_body, heavy_infer_body, infer_body, wait_until
@@ -131,7 +132,7 @@ def redis_restart(stack: Stack, jobs: int, millions: int, down_s: float, kill: b
         wait_until(lambda: harness.stats(stack.redis.client()).get("jobs:infer:succeeded", 0) >= 1, 60,
                    "a first job to finish")
         client = stack.redis.client()
-        queued_at_stop = int(client.zcard("precond:queue:model"))
+        queued_at_stop = int(client.zcard(MODEL_FREE_QUEUE))
         if kill:
             time.sleep(1.1)  # appendfsync everysec: what was acknowledged more than a second ago is on disk
             stack.redis.kill()  # type: ignore[attr-defined]
@@ -161,7 +162,7 @@ def redis_restart(stack: Stack, jobs: int, millions: int, down_s: float, kill: b
         first_ok = time.monotonic() - restarted
         wait_until(lambda: http.get("/ready").status_code == 200, 60, "ready after restart")
         ready_after = time.monotonic() - restarted
-        queued_after = int(stack.redis.client().zcard("precond:queue:model"))
+        queued_after = int(stack.redis.client().zcard(MODEL_FREE_QUEUE))
 
     async def follow() -> list[dict[str, Any]]:
         async with httpx.AsyncClient(base_url=stack.base_url, timeout=30) as http:
@@ -429,7 +430,7 @@ def overload(stack: Stack, clients: int, duration_s: float, millions: int, wait_
                     if half and time.monotonic() >= half:
                         mid.update(gateway=harness.rss_kib(gateway), worker=harness.tree_rss_kib(worker))
                         half = 0
-                    max_depth = max(max_depth, int(client.zcard("precond:queue:model")))
+                    max_depth = max(max_depth, int(client.zcard(MODEL_FREE_QUEUE)))
                     sample()
                     await asyncio.sleep(0.5)
 

@@ -1,8 +1,9 @@
-"""One worker process: arq workers for the model and check queues, model preload, heartbeats, draining.
+"""One worker process: arq workers for the model, model-free and check queues, model preload, heartbeats,
+draining.
 
-Both queues run in one process so a single `precond worker` serves everything, yet check jobs never wait
-behind model jobs: each queue has its own arq worker with its own concurrency. A worker survives Redis
-outages (it reconnects), and on SIGTERM stops taking jobs, lets running ones finish for `drain_s`, then
+All queues run in one process so a single `precond worker` serves everything, yet check jobs and model-free
+inferences never wait behind model jobs: each queue has its own arq worker with its own concurrency. A worker
+survives Redis outages (it reconnects), and on SIGTERM stops taking jobs, lets running ones finish for `drain_s`, then
 hands the rest back to the queue (arq re-queues a job cancelled by shutdown).
 
 A SIGKILLed worker's jobs are handed back by the others: each job's claim in `precond:running` names the
@@ -33,7 +34,7 @@ from engine.engine import Engine
 from engine.factory import build_engine
 from jobs.cache import ResultCache
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
-from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, done_channel, kind_of, owner_of, worker_key
+from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, QUEUES, done_channel, kind_of, owner_of, worker_key
 from jobs.records import record_queue_time
 from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
@@ -98,12 +99,12 @@ class WorkerProcess:
     def _arq_worker(self, queue: str, engine: Engine) -> Worker:
         s = self.settings
         model = queue == MODEL_QUEUE
-        timeout = s.job_timeout_s if model else s.check_timeout_s
+        timeout = s.check_timeout_s if queue == CHECK_QUEUE else s.job_timeout_s
         return Worker(
             functions=[func(run_operation, name=JOB_FUNCTION, timeout=timeout)],
             queue_name=queue,
             redis_settings=RedisSettings.from_dsn(s.redis_dsn),
-            max_jobs=s.worker_concurrency if model else s.check_concurrency,
+            max_jobs=s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency,
             job_timeout=timeout,
             keep_result=s.result_ttl_s,
             max_tries=s.job_max_tries,
@@ -234,7 +235,7 @@ async def _announce(ctx: dict[str, Any]) -> None:
 
 def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    asyncio.run(WorkerProcess(settings, queues or [MODEL_QUEUE, CHECK_QUEUE]).run())
+    asyncio.run(WorkerProcess(settings, queues or list(QUEUES)).run())
 
 
 if __name__ == "__main__":

@@ -214,7 +214,7 @@ class CodeModel:
                 min(len(p) for p in prompts) - 1,
                 min(_common_prefix_length(prompts[0], p) for p in prompts),
             )
-            prefix_cache = self._prefix_cache(tuple(prompts[0][:shared]))
+            prefix_cache = self._prefix_cache(tuple(prompts[0][:shared]), should_stop)
             rows = [_Row(suffix=i) for i in range(len(prompts)) for _ in range(n)]
             tails = [prompts[i][shared:] for i in range(len(prompts))]
             self._run(rows, tails, prefix_cache, sampling, stop, should_stop)
@@ -240,7 +240,7 @@ class CodeModel:
         logits: torch.Tensor = out.logits[:, -1, :]
         return logits
 
-    def _prefix_cache(self, tokens: tuple[int, ...]) -> _PrefixCache:
+    def _prefix_cache(self, tokens: tuple[int, ...], should_stop: Callable[[], bool] | None = None) -> _PrefixCache:
         """The cache of `tokens`, reusing the kept one up to the last chunk boundary both share."""
         kept = self._prefix
         if kept.cache is not None and kept.tokens == tokens:
@@ -253,6 +253,8 @@ class CodeModel:
         else:
             reuse, cache = 0, growing_cache(self.model.config)
         for start in range(reuse, len(tokens), PREFILL_CHUNK):
+            if should_stop is not None and should_stop():
+                raise GenerationCancelled()  # a long prompt's prefill takes seconds on a CPU
             chunk = torch.tensor([tokens[start : start + PREFILL_CHUNK]], device=self.device)
             end = start + chunk.shape[1]
             self.model(

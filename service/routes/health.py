@@ -11,7 +11,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from redis.exceptions import RedisError
 
 from jobs.heartbeats import live_workers
-from jobs.keys import CHECK_QUEUE, MODEL_QUEUE
+from jobs.keys import QUEUES
 from jobs.records import read_stats
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError
@@ -63,7 +63,7 @@ async def metrics(services: ServicesDep) -> Response:
 
 async def _read_cluster_metrics(services: Services) -> None:
     metrics = services.metrics
-    for queue in (MODEL_QUEUE, CHECK_QUEUE):
+    for queue in QUEUES:
         metrics.queue_depth.labels(queue).set(await services.queue.depth(queue))
     workers = await live_workers(services.redis)
     for loaded in (True, False):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
@@ -9,6 +10,7 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 
 from jobs import keys
+from programs import checks
 from schemas.api import (
     CheckRequest,
     CheckResponse,
@@ -59,6 +61,9 @@ async def infer_preconditions(
     tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
+    """Verified preconditions per action. Demonstrations none of which calls an action are refused (422); an
+    action no demonstration calls is listed in `warnings` ("no occurrence"), never a silent empty rule.
+    `generators: ["enumerate"]` runs on the model-free queue, never behind model jobs."""
     model = keys.model_identity() if "model" in body.options.generators else None
     return await _answer(services, request, tenant, "infer", body, model, wait)
 
@@ -71,6 +76,9 @@ async def next_action(
     tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
+    """The next action(s), verified against the preconditions (the paper's Algorithm 1). A call is always a
+    call of an action; when no attempt passes, `call` is null with every attempt in `rejected`, unless
+    `options.fallback` is "greedy"."""
     return await _answer(services, request, tenant, "next-action", body, keys.model_identity(), wait)
 
 
@@ -82,7 +90,38 @@ async def check_actions(
     tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
+    """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
+    ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
+    and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
     return await _answer(services, request, tenant, "check", body, None, wait)
+
+
+INLINE_CHECK_CHARS = 100_000
+"""Programs up to this size are parsed on the event loop (well under a millisecond); larger ones in a thread."""
+
+
+def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem | None:
+    """Every program of the request parsed (never run) before anything is queued, and its work estimated:
+    422 now, not a failed job after the wait in the queue."""
+    try:
+        check_work(body, max_work_points)
+    except OverBudget as over:
+        return checks.Problem(type="work_budget", field=over.field, message=str(over))
+    try:
+        if isinstance(body, InferRequest):
+            checks.check_infer(body.spec, body.demonstrations, body.actions)
+        elif isinstance(body, NextActionRequest):
+            checks.check_next_action(body.spec, body.preconditions, body.demonstrations, body.history)
+        elif isinstance(body, CheckRequest):
+            checks.check_check(body.spec, body.preconditions, body.history)
+    except checks.ProgramProblem as exc:
+        return exc.problem
+    return None
+
+
+def _program_chars(body: BaseModel) -> int:
+    texts = [getattr(body, "spec", ""), getattr(body, "history", ""), *getattr(body, "demonstrations", [])]
+    return sum(len(text) for text in texts)
 
 
 async def _answer(
@@ -97,11 +136,15 @@ async def _answer(
     settings = services.settings
     tag = keys.tenant_tag(services.secret, tenant)
     await _refuse_over_limit(services, tenant, await services.quotas.take_request(tag, tenant))
-    try:
-        check_work(kind, body, settings.max_work_points)
-    except OverBudget as over:
-        services.metrics.rejections.labels(tenant, "work").inc()
-        raise ServiceError(422, str(over), "invalid_input", field=over.field) from None
+    if _program_chars(body) <= INLINE_CHECK_CHARS:
+        problem = _programs_problem(body, settings.max_work_points)
+    else:
+        problem = await asyncio.to_thread(_programs_problem, body, settings.max_work_points)
+    if problem is not None:
+        if problem.type == "work_budget":
+            services.metrics.rejections.labels(tenant, "work").inc()
+        info = ErrorInfo(type=problem.type, message=problem.message, field=problem.field)
+        return error_response(request, 422, info)
     payload = body.model_dump(mode="json")
     job_id = keys.job_id(kind, payload, model, services.secret, tenant)
     cache_key = keys.cache_id(kind, payload, model, services.secret, tenant, settings.share_cache)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -54,3 +56,34 @@ def test_program_error_exits_2_with_line() -> None:
 def test_missing_file_is_a_clear_error() -> None:
     result = precond("infer", "/nonexistent/request.json")
     assert result.returncode == 2 and "cannot read" in result.stderr
+
+
+def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> None:
+    missing = tmp_path / "no-data"
+    result = subprocess.run(
+        [sys.executable, "-m", "cli", "eval", "preconditions", "--cache", str(tmp_path / "cache")],
+        capture_output=True, text=True, timeout=300, cwd=ROOT, env={**os.environ, "PRECOND_DATA_DIR": str(missing)},
+    )
+    assert result.returncode == 2, result.stderr
+    assert str(missing / "sgd") in result.stderr and "PRECOND_DATA_DIR" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_serve_prints_one_line_when_ready(tmp_path: Path, tiny_model_dir: Path) -> None:
+    from stack.local import free_port, make_stack
+
+    stack = make_stack(tmp_path, tiny_model_dir)
+    port = free_port()
+    process = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port)], env=stack.env, cwd=ROOT,
+                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    guard = threading.Timer(240, process.terminate)  # a supervisor that never says so fails, not hangs
+    guard.start()
+    try:
+        assert process.stdout is not None
+        line = next((out for out in process.stdout if not out.startswith("INFO:")), "")  # uvicorn's access log
+        assert line == f"precond: ready at http://127.0.0.1:{port} (GET /ready answers 200)\n"
+    finally:
+        guard.cancel()
+        process.terminate()
+        process.wait(60)
+        stack.redis.stop()

@@ -1,4 +1,4 @@
-"""Shared data for the engine tests: read from ../shared (never copied into the project)."""
+"""Data for the engine tests: the repository's fixtures (tests/fixtures), a subset of the development data."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+SHARED = Path(__file__).resolve().parents[1] / "fixtures" / "data"
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from engine.engine import Engine
 from engine.spec import parse_spec
 from sandbox import Sandbox
 from schemas.api import CheckRequest, InferRequest, ModelInfo, NextActionRequest
-from schemas.errors import InvalidProgram, UnknownAction
+from schemas.errors import InvalidInput, InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
 
 
@@ -134,11 +134,25 @@ def test_random_samples_replace_a_greedy_action_that_violates(restaurants: dict[
     assert action.rejected[1].reason == "USER.INFORM is not an action function"
 
 
-def test_nothing_verified_falls_back_to_greedy(restaurants: dict[str, Any]) -> None:
+def test_nothing_verified_is_said_explicitly_not_answered_with_greedy(restaurants: dict[str, Any]) -> None:
     model = ScriptedModel("system.REQUEST('city')", ["system.GOODBYE()"] * 10)
     [action] = _next(restaurants, model, max_attempts=3)
-    assert (action.call, action.verified, action.attempts, len(action.rejected)) == (
-        "system.REQUEST('city')", False, 3, 3)
+    assert (action.call, action.verified, action.attempts, len(action.rejected)) == (None, False, 3, 3)
+    assert action.reason and action.reason.startswith("no verified action")
+    assert [r.call for r in action.rejected] == ["system.REQUEST('city')", "system.GOODBYE()", "system.GOODBYE()"]
+
+
+def test_greedy_fallback_only_when_asked_and_only_for_an_action(restaurants: dict[str, Any]) -> None:
+    model = ScriptedModel("system.REQUEST('city')", ["system.GOODBYE()"] * 10)
+    [action] = _next(restaurants, model, max_attempts=3, fallback="greedy")
+    assert (action.call, action.verified, action.attempts) == ("system.REQUEST('city')", False, 3)
+    # a user act (or any line that is no call of an action) is never returned as the action
+    model = ScriptedModel("user.INFORM('city')", ["system.GOODBYE()"] * 10)
+    [action] = _next(restaurants, model, max_attempts=3, fallback="greedy")
+    assert action.call is None and action.rejected[0].reason == "USER.INFORM is not an action function"
+    [action] = _next(restaurants, model, verify=False)
+    assert (action.call, action.verified) == (None, False)
+    assert action.rejected[0].call == "user.INFORM('city')"
 
 
 def test_a_turn_continues_until_the_model_hands_it_back(restaurants: dict[str, Any]) -> None:
@@ -182,3 +196,41 @@ def test_assertions_that_fail_together_are_dropped_until_the_program_runs(engine
     reason = dropped["SYSTEM.INFORM_COUNT"]["len(self.user.informed_intent) == 1"]
     assert reason.startswith("dropped: fails with the other")
     engine._sandbox.trace(program, demos)
+
+
+def test_no_demonstration_calling_an_action_is_refused(engine: Engine, restaurants: dict[str, Any]) -> None:
+    setup = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM('city')\n"
+    request = InferRequest(spec=restaurants["spec_program"], demonstrations=[setup, setup],
+                           options={"generators": ["enumerate"]})
+    with pytest.raises(InvalidInput) as err:
+        engine.infer(request)
+    assert err.value.field == "demonstrations" and "none of the 2 demonstrations calls" in err.value.message
+
+
+def test_an_action_without_occurrence_is_reported_not_silently_empty(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    demo = "user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST('city')\nuser.INFORM('city')\n"
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=[demo],
+                                         actions=["SYSTEM.REQUEST", "SYSTEM.GOODBYE"],
+                                         options={"generators": ["enumerate"]}))
+    assert set(response.warnings) == {"SYSTEM.GOODBYE"}
+    assert response.warnings["SYSTEM.GOODBYE"].startswith("no occurrence: no demonstration calls SYSTEM.GOODBYE")
+    assert response.preconditions["SYSTEM.GOODBYE"] == []
+
+
+def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: dict[str, Any]) -> None:
+    history = "user = USER()\nsystem = SYSTEM(user)\n"
+
+    def check(preconditions: dict[str, list[str]]) -> InvalidInput:
+        with pytest.raises(InvalidInput) as err:
+            engine.check(CheckRequest(spec=restaurants["spec_program"], preconditions=preconditions,
+                                      history=history, calls=["system.GOODBYE()"]))
+        return err.value
+
+    wrong = check({"SYSTEM.GOODBYE": ["self.user.no_more", "assert self.user.no_more"]})
+    assert wrong.field == "preconditions.SYSTEM.GOODBYE[1]"
+    assert "write the expression without `assert`" in wrong.message
+    unknown = check({"SYSTEM.GODBYE": ["self.user.no_more"]})
+    assert isinstance(unknown, UnknownAction) and unknown.field == "preconditions.SYSTEM.GODBYE"
+    assert "did you mean 'SYSTEM.GOODBYE'?" in unknown.message

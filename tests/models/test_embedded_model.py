@@ -13,7 +13,7 @@ from engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
 
 pytestmark = pytest.mark.model
 
-SGD = Path(__file__).resolve().parents[3] / "shared" / "data" / "sgd" / "Restaurants_1.json"
+SGD = Path(__file__).resolve().parents[1] / "fixtures" / "data" / "sgd" / "Restaurants_1.json"
 
 
 def embedded_cache_dir() -> Path:

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from stack import scenarios
+from arq.constants import in_progress_key_prefix
+
+from stack import harness, scenarios
 from stack.harness import scenario_stack
+from stack.local import infer_body, wait_until
 
 
 def test_sigkilled_workers_lose_no_job(tmp_path: Path, tiny_model_dir: Path) -> None:
@@ -40,3 +43,18 @@ def test_sigterm_past_the_drain_hands_the_job_back(tmp_path: Path, tiny_model_di
     assert figures["final_state"] == "succeeded" and figures["runs"] == 2, figures
     # Re-run at once by the next worker, not after the in-progress key's expiry (job timeout + 10 s).
     assert figures["done_after_sigterm_s"] < figures["job_timeout_s"], figures
+
+
+def test_a_job_started_but_never_claimed_is_handed_back(tmp_path: Path, tiny_model_dir: Path) -> None:
+    """A worker SIGKILLed after arq marked a job in progress and before it claimed the job (`on_job_start`)
+    left the job to arq's in-progress expiry (job timeout + 10 s): lost for the caller. The heartbeats see a
+    started job that no claim names and hand it back a lease later."""
+    with scenario_stack("crash", tmp_path, tiny_model_dir) as stack, stack.http() as http:
+        accepted = http.post("/infer-preconditions", json=infer_body(seed=50_000), params={"wait": 0})
+        assert accepted.status_code == 202, accepted.text
+        job_id = accepted.headers["X-Job-Id"]
+        # what the dead worker left: arq's in-progress mark (900 s), and no claim in precond:running
+        stack.redis.client().set(in_progress_key_prefix + job_id, b"1", px=900_000)
+        stack.start_worker()
+        wait_until(lambda: http.get(f"/jobs/{job_id}").json()["status"] == "succeeded", 60, "the job to be re-run")
+        assert harness.arq_job_tries(stack.redis.client(), [job_id])[job_id] == 1

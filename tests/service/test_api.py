@@ -237,3 +237,91 @@ def test_health_ready_metrics(client: httpx.Client) -> None:
         "precond_job_phase_seconds",
     ):
         assert name in text
+
+
+def test_programs_are_checked_at_the_gateway_before_any_queueing(client: httpx.Client) -> None:
+    demos = example("infer-enumerate")["demonstrations"]
+    broken = [demos[0], demos[1], "user = USER()\nsystem.REQUEST('city'\n"]
+    answer = client.post("/infer-preconditions", json=slow_model_body(seed=120) | {"demonstrations": broken},
+                         params={"wait": 0})  # a job would answer 202 here: the 422 comes before the queue
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["type"] == "invalid_program" and error["field"] == "demonstrations[2]"
+    assert error["message"].startswith("demonstrations[2], line 2: SyntaxError:")
+
+    body = example("next-action") | {"history": "user = USER(\n"}
+    answer = client.post("/next-action", json=body, params={"wait": 0})
+    assert answer.status_code == 422 and answer.json()["error"]["field"] == "history", answer.text
+
+    no_action = ["user = USER()\nsystem = SYSTEM(user)\nuser.INFORM('city')\n"] * 2
+    answer = client.post("/infer-preconditions", json=infer_body(seed=121, demonstrations=no_action),
+                         params={"wait": 0})
+    assert answer.status_code == 422, answer.text
+    assert answer.json()["error"]["field"] == "demonstrations"
+    assert "none of the 2 demonstrations calls any of the actions" in answer.json()["error"]["message"]
+
+
+def test_malformed_json_names_the_body_and_where(client: httpx.Client) -> None:
+    answer = client.post("/check-actions", content=b'{"spec": "x",\n  "history": oops}',
+                         headers={"Content-Type": "application/json"})
+    assert answer.status_code == 422
+    assert answer.json()["error"] == {
+        "type": "validation_error",
+        "message": "body is not valid JSON: Expecting value at line 2, column 14 (character 27)",
+        "field": "body",
+    }
+
+
+def test_rule_errors_say_how_to_fix_them(client: httpx.Client) -> None:
+    body = check_body()
+    body["preconditions"] = {"SYSTEM.INFORM": ["assert self.user.requested_slot[slot]"]}
+    answer = client.post("/check-actions", json=body)
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["field"] == "preconditions.SYSTEM.INFORM[0]"
+    assert "write the expression without `assert`" in error["message"]
+    body["preconditions"] = {"SYSTEM.INFROM": ["self.user.requested_slot[slot]"]}
+    error = client.post("/check-actions", json=body).json()["error"]
+    assert error["type"] == "unknown_action" and error["field"] == "preconditions.SYSTEM.INFROM"
+    assert "did you mean 'SYSTEM.INFORM'?" in error["message"]
+    answer = client.post("/infer-preconditions", json=infer_body(actions=["SYSTEM.REQEST"]))
+    assert "did you mean 'SYSTEM.REQUEST'?" in answer.json()["error"]["message"]
+
+
+def test_enumerate_inference_does_not_queue_behind_model_jobs(client: httpx.Client) -> None:
+    location = client.post(
+        "/infer-preconditions", json=slow_model_body(seed=130), params={"wait": 0}
+    ).headers["Location"]
+    try:
+        wait_until(lambda: client.get(location).json()["status"] == "running", 20, "the model job to start")
+        answer = client.post("/infer-preconditions", json=infer_body(seed=131), params={"wait": 20})
+        assert answer.status_code == 200, answer.text
+        assert "self.user.no_more" in answer.json()["preconditions"]["SYSTEM.GOODBYE"]
+        assert client.get(location).json()["status"] == "running"
+    finally:
+        client.delete(location)
+
+
+def test_cancel_takes_effect_queued_and_running_and_frees_the_worker(client: httpx.Client) -> None:
+    running = client.post("/infer-preconditions", json=slow_model_body(seed=140), params={"wait": 0})
+    queued = client.post("/infer-preconditions", json=slow_model_body(seed=141), params={"wait": 0})
+    running_at, queued_at = running.headers["Location"], queued.headers["Location"]
+    try:
+        wait_until(lambda: client.get(running_at).json()["status"] == "running", 20, "the model job to start")
+        assert client.get(queued_at).json()["status"] == "queued"  # the worker runs one model job at a time
+        answer = client.delete(queued_at)
+        assert answer.status_code == 200 and answer.json()["status"] == "cancelled", answer.text
+        assert client.get(queued_at).json()["status"] == "cancelled"
+        again = client.post("/infer-preconditions", json=slow_model_body(seed=141), params={"wait": 0})
+        assert again.status_code == 202 and again.json()["status"] == "queued"  # a new request runs it again
+        assert client.delete(queued_at).json()["status"] == "cancelled"
+
+        client.delete(running_at)
+        wait_until(lambda: client.get(running_at).json()["status"] == "cancelled", 30, "the running job to stop")
+    finally:
+        client.delete(queued_at)
+        client.delete(running_at)
+    small = slow_model_body(seed=142)
+    small["options"].update(samples_per_prompt=1, prompts_per_action=1, max_new_tokens=4)
+    answer = client.post("/infer-preconditions", json=small, params={"wait": 60})
+    assert answer.status_code == 200, answer.text  # the worker is free for the next job

@@ -1,0 +1,176 @@
+"""Static checks of a request's programs, run before any work is queued: parse only, never execute.
+
+The gateway answers 422 from these at once (naming the field, e.g. `demonstrations[2]`, and the line)
+instead of accepting a job that can only fail later; the engine runs the same checks, so the CLI and a
+job that reaches a worker say the same thing. Everything here is `ast` and the standard library.
+"""
+
+from __future__ import annotations
+
+import ast
+import difflib
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+from programs.spec import Method, read_methods
+
+INVALID_PROGRAM = "invalid_program"
+UNKNOWN_ACTION = "unknown_action"
+INVALID_INPUT = "invalid_input"
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Why a request cannot be used: `type` and `field` become the API's error type and field."""
+
+    type: str
+    field: str
+    message: str
+
+
+class ProgramProblem(Exception):
+    def __init__(self, problem: Problem) -> None:
+        super().__init__(problem.message)
+        self.problem = problem
+
+
+def parse(source: str, field: str) -> ast.Module:
+    """Parse untrusted source; every failure (syntax, nesting too deep, NUL bytes) is a ProgramProblem."""
+    try:
+        return ast.parse(source)
+    except SyntaxError as exc:
+        message = f"{field}, line {exc.lineno}: SyntaxError: {exc.msg}"
+        raise ProgramProblem(Problem(INVALID_PROGRAM, field, message)) from exc
+    except (ValueError, RecursionError, MemoryError) as exc:
+        message = f"{field}: cannot be parsed: {type(exc).__name__}"
+        raise ProgramProblem(Problem(INVALID_PROGRAM, field, message)) from exc
+
+
+def spec_methods(source: str) -> tuple[ast.Module, dict[str, Method]]:
+    tree = parse(source, "spec")
+    methods = read_methods(tree)
+    if not methods:
+        message = "spec: defines no class with methods, so there are no actions"
+        raise ProgramProblem(Problem(INVALID_PROGRAM, "spec", message))
+    return tree, methods
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """" (did you mean 'SYSTEM.REQUEST'?)" for the closest known name, or "" when none is close."""
+    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    if not close and "." not in name:  # `REQUEST` for `SYSTEM.REQUEST`: compare the method names
+        close = [k for k in known if k.rsplit(".", 1)[-1] == name][:1]
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def unknown_action(name: str, methods: Mapping[str, Method], field: str, where: str = "") -> ProgramProblem:
+    known = ", ".join(sorted(methods)[:20])
+    message = f"unknown action {name!r}{where}{did_you_mean(name, methods)}; the spec defines: {known}"
+    return ProgramProblem(Problem(UNKNOWN_ACTION, field, message))
+
+
+def resolve_actions(methods: Mapping[str, Method], requested: Sequence[str] | None) -> list[str]:
+    """Requested names must exist; by default every stub method is an action."""
+    if requested is None:
+        actions = [name for name, method in methods.items() if method.stub]
+        if not actions:
+            message = "spec has no stub methods (body only pass/.../docstring); name the actions"
+            raise ProgramProblem(Problem(UNKNOWN_ACTION, "actions", message))
+        return actions
+    for index, name in enumerate(requested):
+        if name not in methods:
+            raise unknown_action(name, methods, f"actions[{index}]")
+    return list(dict.fromkeys(requested))
+
+
+def expression_hint(text: str) -> str | None:
+    """A hint for a rule that is not an expression but is easily made one (`assert x` → `x`)."""
+    stripped = text.strip()
+    if stripped.startswith("assert") and stripped[6:7] in (" ", "(", "\t"):
+        return "write the expression without `assert` (e.g. `self.open`, not `assert self.open`)"
+    return None
+
+
+def expression_problem(text: str) -> str | None:
+    """Why a rule is not one Python expression, or None."""
+    try:
+        ast.parse(text, mode="eval")
+    except SyntaxError as exc:
+        hint = expression_hint(text)
+        return f"not a single expression: {hint or exc.msg}"
+    except (ValueError, RecursionError, MemoryError) as exc:
+        return f"not a single expression: cannot be parsed: {type(exc).__name__}"
+    return None
+
+
+def check_preconditions(methods: Mapping[str, Method], preconditions: Mapping[str, Sequence[str]]) -> None:
+    for name, expressions in preconditions.items():
+        if name not in methods:
+            raise unknown_action(name, methods, f"preconditions.{name}", " in preconditions")
+        for index, expression in enumerate(expressions):
+            problem = expression_problem(expression)
+            if problem is not None:
+                field = f"preconditions.{name}[{index}]"
+                raise ProgramProblem(Problem(INVALID_PROGRAM, field, f"{field}: {problem}"))
+
+
+def instance_classes(trees: Iterable[ast.Module], classes: set[str]) -> dict[str, str]:
+    """`system = SYSTEM(user)` → {"system": "SYSTEM"}: how a call's receiver maps to a spec class."""
+    found: dict[str, str] = {}
+    for tree in trees:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
+                func = node.value.func
+                if isinstance(func, ast.Name) and func.id in classes:
+                    found.update({t.id: func.id for t in node.targets if isinstance(t, ast.Name)})
+    return found
+
+
+def called_actions(trees: Sequence[ast.Module], methods: Mapping[str, Method], actions: Iterable[str]) -> set[str]:
+    """The actions some program calls, read statically. Lenient: a call on a receiver whose class is not
+    known from an assignment counts for every action of that method name (the sandbox's trace is exact)."""
+    wanted = set(actions)
+    receivers = instance_classes(trees, {m.cls for m in methods.values()})
+    by_name: dict[str, set[str]] = {}
+    for action in wanted:
+        by_name.setdefault(methods[action].name, set()).add(action)
+    found: set[str] = set()
+    for tree in trees:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in by_name:
+                receiver = node.func.value
+                cls = receivers.get(receiver.id) if isinstance(receiver, ast.Name) else None
+                matching = by_name[node.func.attr]
+                found |= matching if cls is None else {a for a in matching if methods[a].cls == cls}
+    return found
+
+
+def no_occurrence_problem(actions: Sequence[str], count: int) -> ProgramProblem:
+    names = ", ".join(actions[:10]) + (", ..." if len(actions) > 10 else "")
+    message = (f"demonstrations: none of the {count} demonstrations calls any of the actions ({names}), so "
+               "there is no evidence to infer a rule from; add demonstrations that call them")
+    return ProgramProblem(Problem(INVALID_INPUT, "demonstrations", message))
+
+
+def check_infer(spec: str, demonstrations: Sequence[str], actions: Sequence[str] | None) -> None:
+    """Everything an inference needs that can be seen without running it; raises ProgramProblem."""
+    _, methods = spec_methods(spec)
+    chosen = resolve_actions(methods, actions)
+    trees = [parse(d, f"demonstrations[{i}]") for i, d in enumerate(demonstrations)]
+    if not called_actions(trees, methods, chosen):
+        raise no_occurrence_problem(chosen, len(demonstrations))
+
+
+def check_next_action(spec: str, preconditions: Mapping[str, Sequence[str]], demonstrations: Sequence[str],
+                      history: str) -> None:
+    _, methods = spec_methods(spec)
+    check_preconditions(methods, preconditions)
+    for i, demonstration in enumerate(demonstrations):
+        parse(demonstration, f"demonstrations[{i}]")
+    parse(history, "history")
+
+
+def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: str) -> None:
+    _, methods = spec_methods(spec)
+    check_preconditions(methods, preconditions)
+    parse(history, "history")
