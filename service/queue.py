@@ -110,7 +110,7 @@ class JobQueue:
         under `cache_key`."""
         queue = queue_for(kind, body)
         job = self._job(job_id, queue)
-        if await self.depth(queue) >= self.max_jobs and await job.status() == ArqStatus.not_found:
+        if await self.depth(queue) >= self.max_jobs and await self._arq_status(job_id, queue) == ArqStatus.not_found:
             raise QueueFull(queue)
         enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key)
         if enqueued is None and await self._last_run_unusable(job):
@@ -149,15 +149,15 @@ class JobQueue:
         kind = kind_of(job_id)
         if kind is None:
             return None
-        job = self._job(job_id, await self._queue_of(job_id, kind))
-        info = await job.result_info()
+        queue = await self._queue_of(job_id, kind)
+        info = await self._job(job_id, queue).result_info()
         progress = await read_progress(self.redis, job_id)
         if info is not None:
             state, result, error = _state(info)
             return JobStatus(
                 id=job_id, kind=kind, status=state, progress=progress, result=result, error=error
             )
-        arq_status = await self._arq_status(job_id, QUEUE_BY_KIND[kind])
+        arq_status = await self._arq_status(job_id, queue)
         if arq_status == ArqStatus.not_found:
             cached = await self.cache.get(job_id)
             if cached is None:
