@@ -38,8 +38,7 @@ QUEUE_MAX_JOBS = 16
 RETRY_AFTER_S = "3"
 
 BOUNDED_KEYS = {
-    keys.MODEL_QUEUE: f"arq's queue of model jobs: at most PRECOND_QUEUE_MAX_JOBS ({QUEUE_MAX_JOBS}), else 429",
-    keys.CHECK_QUEUE: "arq's queue of check jobs: likewise",
+    **{queue: f"an arq queue: at most PRECOND_QUEUE_MAX_JOBS ({QUEUE_MAX_JOBS}) jobs" for queue in keys.QUEUES},
     keys.STATS_KEY: "the workers' counters: one field per kind × outcome and kind × engine phase",
     keys.RUNNING_KEY: "claims of running jobs: one per job a worker runs, removed at its end or by a beat",
     "arq:abort": "arq's abort marks: only for queued or running jobs, removed when the job ends or re-enqueues",
@@ -90,7 +89,8 @@ def forget_queued(stack: Stack, job_ids: list[str]) -> None:
     """Take this test's never-run jobs out of the queue, so the next test's worker does not run them."""
     client = queue_redis(stack)
     for job_id in job_ids:
-        client.zrem(keys.MODEL_QUEUE, job_id)
+        for queue in keys.QUEUES:
+            client.zrem(queue, job_id)
         client.delete(f"arq:job:{job_id}")
 
 
@@ -158,7 +158,8 @@ def test_flooding_the_cache_evicts_cache_entries_never_queued_or_owed_work(stack
             # the queue Redis lost nothing: no eviction, every queued job and the finished job's result are there
             assert queue.info()["evicted_keys"] == 0
             for job_id in queued:
-                assert queue.exists(f"arq:job:{job_id}") and queue.zscore(keys.MODEL_QUEUE, job_id) is not None
+                assert queue.exists(f"arq:job:{job_id}")
+                assert any(queue.zscore(name, job_id) is not None for name in keys.QUEUES)
                 assert client.get(f"/jobs/{job_id}").json()["status"] == "queued"
             assert queue.exists(f"arq:result:{finished}")
             status = client.get(f"/jobs/{finished}").json()
@@ -259,7 +260,7 @@ def test_every_key_expires_or_is_bounded(stack: Stack) -> None:
             if name in BOUNDED_KEYS:
                 continue
             assert queue.pttl(name) != -1, f"{name} never expires"  # -2: gone meanwhile (expired)
-        for name in (keys.MODEL_QUEUE, keys.CHECK_QUEUE):
+        for name in keys.QUEUES:
             assert queue.zcard(name) <= QUEUE_MAX_JOBS
         assert queue.hlen(keys.RUNNING_KEY) <= 5  # at most one claim per job the one worker runs (1 + 4)
         for field in queue.hkeys(keys.STATS_KEY):
