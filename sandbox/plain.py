@@ -4,7 +4,8 @@ Inside one child, an expression that can reach the interpreter's machinery (fram
 can rewrite the evaluator and so change other expressions' verdicts; the kernel cannot see that, because
 it is all one process. So the worker sends only *plain* expressions together: they read the state through
 attributes the spec itself defines, call a fixed set of side-effect-free builtins or the spec's own
-methods, and name nothing but `self`, the action's parameters and the spec's classes. Everything else is
+methods, and name nothing but `self`, the action's parameters and what the spec itself defines at its top
+level (classes, functions, constants; never an imported module). Everything else is
 judged alone, in a child of its own, where tampering can change nothing but its own verdict.
 
 This test runs in the worker, on text, before anything executes: untrusted code cannot switch it off.
@@ -46,7 +47,10 @@ class SpecVocabulary:
     """The names a plain expression may use, read from the spec's text."""
 
     attributes: frozenset[str]
-    classes: frozenset[str]
+    names: frozenset[str]
+    """Names a plain expression may use besides `self` and the parameters: the spec's classes, and its
+    top-level constants and functions (bound by assignment or `def`, never by `import`: a module is the way
+    into the interpreter's machinery)."""
 
 
 @lru_cache(maxsize=256)
@@ -55,6 +59,8 @@ def vocabulary(spec: str) -> SpecVocabulary:
         tree = ast.parse(spec)
     except (SyntaxError, ValueError, MemoryError, RecursionError):
         return SpecVocabulary(frozenset(), frozenset())
+    imported = {(a.asname or a.name).partition(".")[0] for node in tree.body
+                if isinstance(node, ast.Import | ast.ImportFrom) for a in node.names}
     attributes: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
@@ -68,8 +74,12 @@ def vocabulary(spec: str) -> SpecVocabulary:
                 elif isinstance(item, ast.Assign):
                     attributes.update(t.id for t in item.targets if isinstance(t, ast.Name))
     attributes = {a for a in attributes if not _introspection(a)}
-    classes = {n.name for n in tree.body if isinstance(n, ast.ClassDef)}
-    return SpecVocabulary(frozenset(attributes | BUILTIN_METHODS), frozenset(classes))
+    names = {n.name for n in tree.body if isinstance(n, ast.ClassDef | ast.FunctionDef)}
+    for node in tree.body:
+        targets = [node.target] if isinstance(node, ast.AnnAssign) else getattr(node, "targets", [])
+        names.update(t.id for target in targets for t in ast.walk(target) if isinstance(t, ast.Name))
+    names = {n for n in names - imported if not _introspection(n)}
+    return SpecVocabulary(frozenset(attributes | BUILTIN_METHODS), frozenset(names))
 
 
 def _introspection(name: str) -> bool:
@@ -83,7 +93,7 @@ def is_plain(expression: str, params: Collection[str], words: SpecVocabulary) ->
         return False
     bound = {t.id for c in ast.walk(tree) if isinstance(c, ast.comprehension)
              for t in ast.walk(c.target) if isinstance(t, ast.Name)}
-    names = {"self", *params, *bound, *SAFE_FUNCTIONS, *words.classes}
+    names = {"self", *params, *bound, *SAFE_FUNCTIONS, *words.names}
     for node in ast.walk(tree):
         if not isinstance(node, _PLAIN_NODES):
             return False
