@@ -19,7 +19,7 @@ from engine import prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
-from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank, zero_shot
+from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, explain, informative, rank, zero_shot
 from engine.spec import Spec, as_error, check_preconditions, parse_source, parse_spec, render_program, resolve_actions
 from programs import checks
 from sandbox.types import (
@@ -116,6 +116,8 @@ class Ranked:
     valid: list[Candidate]
     clusters: list[Cluster]
     chosen: list[Cluster]
+    reasons: Mapping[str, str] = field(default_factory=dict)
+    """Valid candidates: why ranking kept or dropped each (`ranking.explain`)."""
 
 
 class Timer:
@@ -262,7 +264,8 @@ class Engine:
                 chosen = rank(criterion, clusters, evidence)
             else:
                 chosen = zero_shot(valid, proposals.votes.get(action, {}), trace.actions[action].params)
-            ranked[action] = Ranked(results, valid, clusters, chosen)
+            reasons = explain(criterion, valid, clusters, chosen, evidence, proposals.votes.get(action, {}))
+            ranked[action] = Ranked(results, valid, clusters, chosen, reasons)
         return ranked
 
     def _verified_program(
@@ -437,7 +440,18 @@ def _reports(
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),
             kept=result.expression in kept,
-            reason=dropped.get(result.expression, result.reason),
+            reason=_reason(result, ranked.reasons, dropped),
         )
         for result in ranked.results
     ]
+
+
+def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:
+    """Every candidate's fate in words: dropped at verification, failed in the sandbox, or ranked."""
+    if result.expression in dropped:
+        return dropped[result.expression]
+    if result.status == "invalid":
+        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
+    if result.status == "rejected":
+        return f"rejected before judging: {result.reason or 'unknown reason'}"
+    return ranked.get(result.expression, "valid, but not considered by the ranking")

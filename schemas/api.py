@@ -107,7 +107,13 @@ class CandidateReport(_Body):
     cluster: int | None = None
     support: int = Field(description="|C_h|: demonstration points (position x arguments) where it holds.")
     kept: bool
-    reason: str | None = Field(default=None, description="Why a candidate was rejected or found invalid.")
+    reason: str | None = Field(
+        default=None,
+        description="Why it was kept or dropped, in words: 'violated at demonstration 3, line 12, ...', 'subsumed "
+        "by ...', 'held at every occurrence, but was already true before the user's last turn: looks like a "
+        "phase, not a requirement', 'zero-shot: never demonstrated, kept by model vote', 'kept: ...'. Set for "
+        "every candidate the engine reports.",
+    )
 
 
 class StageCounts(_Body):
