@@ -178,3 +178,8 @@ def test_a_bad_event_is_a_422_naming_its_index(acme: httpx.Client, event: dict[s
     assert answer.status_code == 422, answer.text
     error = answer.json()["error"]
     assert error["field"].startswith("history[3]") and words in error["message"], error
+
+
+def test_an_event_missing_its_act_names_its_index(acme: httpx.Client) -> None:
+    answer = acme.post("/check-actions", json=check_body() | {"history": [*EVENTS[:3], {"actor": "user"}]})
+    assert answer.status_code == 422 and answer.json()["error"]["field"] == "history[3].act", answer.text
