@@ -43,6 +43,8 @@ Wait = Annotated[
 ERRORS: dict[int | str, dict[str, Any]] = {
     202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
     400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
+    404: {"model": ErrorResponse, "description": "`precondition_set` names no set (or version) of yours; another "
+          "tenant's set is not found either."},
     413: {"model": ErrorResponse, "description": "Body larger than the configured bound."},
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
     422: {"model": ErrorResponse,
