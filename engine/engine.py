@@ -19,9 +19,10 @@ from engine import prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
-from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, informative, rank, zero_shot
+from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, explain, informative, rank, zero_shot
 from engine.spec import Spec, as_error, check_preconditions, parse_source, parse_spec, render_program, resolve_actions
 from programs import checks
+from programs.history import render as render_history
 from sandbox.types import (
     CandidateResult,
     EvaluateResult,
@@ -33,10 +34,13 @@ from sandbox.types import (
     TraceResult,
 )
 from schemas.api import (
+    MAX_CALL_CHARS,
+    Blocked,
     CallVerdict,
     CandidateReport,
     CheckRequest,
     CheckResponse,
+    HistoryEvent,
     InferRequest,
     InferResponse,
     InferStats,
@@ -44,9 +48,12 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
     StageCounts,
+    ValidateRequest,
+    ValidateResponse,
 )
 from schemas.errors import (
     Cancelled,
+    InvalidInput,
     InvalidProgram,
     ModelUnavailable,
     ResourceLimit,
@@ -116,6 +123,8 @@ class Ranked:
     valid: list[Candidate]
     clusters: list[Cluster]
     chosen: list[Cluster]
+    reasons: Mapping[str, str] = field(default_factory=dict)
+    """Valid candidates: why ranking kept or dropped each (`ranking.explain`)."""
 
 
 class Timer:
@@ -262,7 +271,8 @@ class Engine:
                 chosen = rank(criterion, clusters, evidence)
             else:
                 chosen = zero_shot(valid, proposals.votes.get(action, {}), trace.actions[action].params)
-            ranked[action] = Ranked(results, valid, clusters, chosen)
+            reasons = explain(criterion, valid, clusters, chosen, evidence, proposals.votes.get(action, {}))
+            ranked[action] = Ranked(results, valid, clusters, chosen, reasons)
         return ranked
 
     def _verified_program(
@@ -312,9 +322,9 @@ class Engine:
         progress: ProgressFn = _no_progress,
         cancelled: Callable[[], bool] = _never,
     ) -> NextActionResponse:
-        spec = parse_spec(request.spec)
+        spec = parse_spec(_spec_of(request))
         check_preconditions(spec, request.preconditions)
-        parse_source(request.history, "history")
+        request = request.model_copy(update={"history": history_program(spec.source, request.history)})
         for i, demo in enumerate(request.demonstrations):
             parse_source(demo, f"demonstrations[{i}]")
         planner = NextActionPlanner(spec, request, self.model(), self._verify, cancelled)
@@ -331,15 +341,67 @@ class Engine:
 
     # ---- check ------------------------------------------------------------------------------------
     def check(self, request: CheckRequest) -> CheckResponse:
+        spec = parse_spec(_spec_of(request))
+        check_preconditions(spec, request.preconditions)
+        history = history_program(spec.source, request.history)
+        return CheckResponse(results=self._verify(spec, request.preconditions, history, request.calls))
+
+    # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
+    def validate(self, request: ValidateRequest) -> ValidateResponse:
+        """Every demonstrated call each rule would have refused (demonstration, line), from where it holds."""
         spec = parse_spec(request.spec)
         check_preconditions(spec, request.preconditions)
-        parse_source(request.history, "history")
-        return CheckResponse(results=self._verify(spec, request.preconditions, request.history, request.calls))
+        demos = list(request.demonstrations)
+        for i, demo in enumerate(demos):
+            parse_source(demo, f"demonstrations[{i}]")
+        rules = {action: list(dict.fromkeys(r)) for action, r in request.preconditions.items() if r}
+        trace = sandbox_call(self._sandbox.trace, spec.source, demos)
+        evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, rules)
+        blocked: list[Blocked] = []
+        unjudged: dict[str, str] = {}
+        for action, expressions in rules.items():
+            points = evaluated.points.get(action, ())
+            results = {r.expression: r for r in evaluated.results.get(action, ())}
+            for rule in expressions:
+                result = results.get(rule)
+                if result is None or result.status == "rejected":
+                    unjudged[f"{action}: {rule}"] = (result.reason if result else None) or "not judged"
+                    continue
+                for occ in trace.actions[action].occurrences:
+                    try:
+                        holds = (result.satisfied >> points.index(occ)) & 1
+                    except ValueError:
+                        holds = 0
+                    if not holds:
+                        step = trace.positions[occ.demo][occ.position]
+                        blocked.append(Blocked(action=action, rule=rule, demonstration=occ.demo, line=step.line,
+                                               call=step.source.strip()[:MAX_CALL_CHARS]))
+        return ValidateResponse(blocked=blocked, unjudged=unjudged)
 
     @staticmethod
     def _check_cancel(cancelled: Callable[[], bool]) -> None:
         if cancelled():
             raise Cancelled("job cancelled")
+
+
+def _spec_of(request: CheckRequest | NextActionRequest) -> str:
+    if request.spec is None:
+        raise InvalidInput("precondition_set is resolved by the service: send `spec` and `preconditions` here",
+                           field="precondition_set")
+    return request.spec
+
+
+def history_program(spec: str, history: str | Sequence[HistoryEvent]) -> str:
+    """A history as the program the sandbox runs: code as sent, or structured events rendered with literals."""
+    if isinstance(history, str):
+        parse_source(history, "history")
+        return history
+    try:
+        program = render_history(spec, [event.model_dump() for event in history])
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
+    parse_source(program, "history")
+    return program
 
 
 def _no_evidence(actions: Sequence[str], trace: TraceResult, generators: Sequence[str]) -> dict[str, str]:
@@ -437,7 +499,18 @@ def _reports(
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),
             kept=result.expression in kept,
-            reason=dropped.get(result.expression, result.reason),
+            reason=_reason(result, ranked.reasons, dropped),
         )
         for result in ranked.results
     ]
+
+
+def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:
+    """Every candidate's fate in words: dropped at verification, failed in the sandbox, or ranked."""
+    if result.expression in dropped:
+        return dropped[result.expression]
+    if result.status == "invalid":
+        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
+    if result.status == "rejected":
+        return f"rejected before judging: {result.reason or 'unknown reason'}"
+    return ranked.get(result.expression, "valid, but not considered by the ranking")

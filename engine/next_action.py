@@ -92,11 +92,14 @@ class NextActionPlanner:
         self.verify = verify
         self.cancelled = cancelled
         self.actions = set(spec.stub_actions) | set(request.preconditions)
-        trees = [ast.parse(s) for s in (*request.demonstrations, request.history)]
+        if not isinstance(request.history, str):
+            raise TypeError("render a structured history first (engine.engine.history_program)")
+        self.history = request.history
+        trees = [ast.parse(s) for s in (*request.demonstrations, self.history)]
         self.receivers = instance_classes(trees, {m.cls for m in spec.methods.values()})
 
     def run(self, progress: Callable[[str, int, int], None]) -> list[PredictedAction]:
-        history = self.request.history
+        history = self.history
         out: list[PredictedAction] = []
         for step in range(self.options.max_actions):
             if self.cancelled():

@@ -174,3 +174,83 @@ def rank(criterion: str, clusters: Sequence[Cluster], evidence: ActionEvidence) 
     if criterion == "marginal":
         return marginal(clusters, evidence)
     return subsumption(clusters)
+
+
+def _quote(text: str, limit: int = 120) -> str:
+    return repr(text if len(text) <= limit else text[: limit - 3] + "...")
+
+
+def explain(
+    criterion: str,
+    valid: Sequence[Candidate],
+    clusters: Sequence[Cluster],
+    chosen: Sequence[Cluster],
+    evidence: ActionEvidence,
+    votes: Mapping[str, int],
+) -> dict[str, str]:
+    """In words, why each valid candidate was kept or dropped by clustering and ranking (the sandbox already
+    says why an invalid or rejected one failed). Recomputes what the criterion looked at; never decides."""
+    n_points = len(evidence.points)
+    everything = (1 << n_points) - 1
+    reasons: dict[str, str] = {}
+    chosen_sets = {c.satisfied for c in chosen}
+    if not evidence.occurrences:
+        best = chosen[0].representative.expression if chosen else None
+        for candidate in valid:
+            n = votes.get(candidate.expression, 0)
+            if candidate.expression == best:
+                reasons[candidate.expression] = (
+                    f"zero-shot: never demonstrated, kept by model vote ({n} samples proposed it, the most)")
+            elif best is not None:
+                reasons[candidate.expression] = (
+                    f"zero-shot: never demonstrated; {_quote(best)} had more model votes ({n} here)")
+            else:
+                reasons[candidate.expression] = (
+                    f"zero-shot: never demonstrated, so it holds vacuously; dropped: fewer than {MIN_VOTES} model "
+                    f"samples agreed on any assertion about the state or the arguments ({n} here)")
+        return reasons
+    informative_sets = {c.satisfied for c in clusters}
+    minimal = {c.satisfied for c in subsumption(clusters)}
+    index = {point: bit for bit, point in enumerate(evidence.points)}
+    for candidate in valid:
+        mine = candidate.satisfied
+        if mine not in informative_sets:
+            reasons[candidate.expression] = (
+                "held at every demonstrated point, so it excludes nothing: says nothing" if mine == everything
+                else "held at no demonstrated point other than where it is vacuous: says nothing")
+            continue
+        group = next(c for c in clusters if c.satisfied == mine)
+        representative = group.representative.expression
+        if candidate.expression != representative:
+            reasons[candidate.expression] = (
+                f"equivalent to {_quote(representative)} on the demonstrations (same cluster); the shortest is kept")
+            continue
+        if mine not in minimal:
+            stronger = min((c for c in clusters if c.satisfied != mine and c.satisfied & ~mine == 0),
+                           key=lambda c: (c.satisfied.bit_count(), len(c.representative.expression)))
+            reasons[candidate.expression] = (
+                f"subsumed by {_quote(stronger.representative.expression)}: that rule also held at every "
+                "occurrence and holds at fewer points, so it implies this one")
+            continue
+        rate = enabling_rate(group, evidence, index)
+        if mine in chosen_sets:
+            if criterion == "recency":
+                reasons[candidate.expression] = (
+                    f"kept: held at every occurrence, no valid rule is stricter, and it was made true before "
+                    f"{rate:.0%} of the occurrences (or is about the action's own arguments)")
+            elif criterion == "marginal":
+                reasons[candidate.expression] = (
+                    "kept: held at every occurrence, no valid rule is stricter, and it still excluded enough of the "
+                    "points the rules before it allowed")
+            else:
+                reasons[candidate.expression] = (
+                    "kept: held at every occurrence and no valid rule is stricter (subsumption-minimal)")
+        elif criterion == "recency":
+            reasons[candidate.expression] = (
+                "held at every occurrence, but was already true before the user's last turn each time: looks "
+                "like a phase, not a requirement")
+        else:
+            reasons[candidate.expression] = (
+                f"held at every occurrence, but excluded less than {MIN_GAIN:.0%} of the points the stricter "
+                "rules already allowed: likely a coincidence")
+    return reasons

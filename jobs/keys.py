@@ -30,12 +30,14 @@ QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
     "infer": MODEL_QUEUE,
     "next-action": MODEL_QUEUE,
     "check": CHECK_QUEUE,
+    "validate": CHECK_QUEUE,
 }
 """The queue of each kind's model jobs; see `queue_for` for the routing by cost."""
 QUEUES_BY_KIND: Final[dict[JobKind, tuple[str, ...]]] = {
     "infer": (MODEL_QUEUE, MODEL_FREE_QUEUE),
     "next-action": (MODEL_QUEUE,),
     "check": (CHECK_QUEUE,),
+    "validate": (CHECK_QUEUE,),
 }
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
@@ -47,7 +49,7 @@ UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 """Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
-_JOB_ID = re.compile(r"^(infer|next-action|check)-([0-9a-f]{16})-[0-9a-f]{48}$")
+_JOB_ID = re.compile(r"^(infer|next-action|check|validate)-([0-9a-f]{16})-[0-9a-f]{48}$")
 SHARED: Final = "shared"
 
 

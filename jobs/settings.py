@@ -148,6 +148,18 @@ class GatewaySettings(QueueSettings):
     tenant_max_jobs: int = Field(
         default=32, ge=1, description="Jobs one tenant may have queued or running at once (429 above)."
     )
+    max_sets_per_tenant: int = Field(
+        default=100, ge=0,
+        description="Precondition sets one tenant may store (422 above). Sets live in the queue Redis without "
+        "expiry; with the two bounds below and PRECOND_MAX_BODY_BYTES they bound its memory per tenant.",
+    )
+    max_set_versions: int = Field(
+        default=50, ge=1, description="Versions one precondition set may have (422 above: create a new set)."
+    )
+    max_set_bytes: int = Field(
+        default=1_000_000, ge=1_000,
+        description="Size of one stored version (spec, rules, demonstrations as JSON) in bytes (413 above).",
+    )
     max_work_points: int = Field(
         default=2_000_000,
         ge=1,

@@ -9,7 +9,16 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    StringConstraints,
+    Tag,
+    WithJsonSchema,
+    model_validator,
+)
 
 MAX_SOURCE_CHARS = 200_000
 MAX_DEMONSTRATIONS = 200
@@ -79,9 +88,71 @@ PRECONDITIONS_DESCRIPTION = (
     "not named here has no rule."
 )
 HISTORY_DESCRIPTION = (
-    "What happened so far, as a program over the spec: the statements creating the objects, then one call per "
-    "step (e.g. `user = USER()`, `system = SYSTEM(user)`, `user.INFORM('city')`)."
+    "What happened so far: either a program over the spec (the statements creating the objects, then one call "
+    "per step, e.g. `user = USER()`, `system = SYSTEM(user)`, `user.INFORM('city')`), or a list of events "
+    "(`{\"actor\": \"user\", \"act\": \"INFORM\", \"args\": [\"city\"]}`) that the service renders to that "
+    "program, arguments as literals only: what an end user typed can never become code. A dialog system should "
+    "send events."
 )
+MAX_HISTORY_EVENTS = 2_000
+MAX_EVENT_ARGS = 32
+SET_REFERENCE = r"^ps_[0-9a-f]{24}(@[1-9][0-9]{0,8})?$"
+PRECONDITION_SET_DESCRIPTION = (
+    "A stored precondition set (`POST /precondition-sets`) to use instead of `spec` + `preconditions`: "
+    "`id@version`, or `id` for its latest version. Another tenant's set is not found (404)."
+)
+
+Scalar = Annotated[
+    Any,
+    WithJsonSchema({"anyOf": [{"type": "string"}, {"type": "integer"}, {"type": "number"}, {"type": "boolean"},
+                              {"type": "null"}]}),
+]
+"""An event argument: str, int, float, bool or null; anything else is refused (422) when the history is rendered."""
+
+
+class HistoryEvent(_Body):
+    """One step of a structured history: `actor.act(*args)`."""
+
+    actor: str = Field(max_length=100, description="The spec class's variable: its name in lower case (`user`, "
+                       "`system`; `agent`, `environment`).")
+    act: str = Field(max_length=MAX_ACTION_CHARS, description="A method of the actor's class (`INFORM`, `REQUEST`).")
+    args: list[Scalar] = Field(
+        default_factory=list, max_length=MAX_EVENT_ARGS,
+        description="Positional arguments: strings, numbers, booleans or null only, rendered with `repr`.",
+    )
+
+
+def _history_kind(value: Any) -> str:
+    return "text" if isinstance(value, str) else "events"
+
+
+History = Annotated[
+    Annotated[str, Tag("text"), Field(max_length=MAX_SOURCE_CHARS)]
+    | Annotated[list[HistoryEvent], Tag("events"), Field(max_length=MAX_HISTORY_EVENTS)],
+    Discriminator(_history_kind),
+]
+
+
+class _UsesRules(_Body):
+    """Rules come inline (`spec` + `preconditions`) or from a stored set (`precondition_set`), never both."""
+
+    spec: str | None = Field(default=None, min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+    precondition_set: str | None = Field(default=None, pattern=SET_REFERENCE,
+                                         description=PRECONDITION_SET_DESCRIPTION)
+
+    @model_validator(mode="after")
+    def _one_source_of_rules(self) -> _UsesRules:
+        if self.precondition_set is None and self.spec is None:
+            raise ValueError("give `spec` (with `preconditions`) or `precondition_set`")
+        if self.precondition_set is not None and (self.spec is not None or getattr(self, "preconditions", None)):
+            raise ValueError("`precondition_set` replaces `spec` and `preconditions`: give one or the other")
+        return self
+
+    def spec_text(self) -> str:
+        """The spec; a request naming a stored set has it filled in by the gateway before it is queued."""
+        if self.spec is None:
+            raise ValueError("precondition_set must be resolved by the service before the request runs")
+        return self.spec
 
 
 class InferRequest(_Body):
@@ -107,7 +178,13 @@ class CandidateReport(_Body):
     cluster: int | None = None
     support: int = Field(description="|C_h|: demonstration points (position x arguments) where it holds.")
     kept: bool
-    reason: str | None = Field(default=None, description="Why a candidate was rejected or found invalid.")
+    reason: str | None = Field(
+        default=None,
+        description="Why it was kept or dropped, in words: 'violated at demonstration 3, line 12, ...', 'subsumed "
+        "by ...', 'held at every occurrence, but was already true before the user's last turn: looks like a "
+        "phase, not a requirement', 'zero-shot: never demonstrated, kept by model vote', 'kept: ...'. Set for "
+        "every candidate the engine reports.",
+    )
 
 
 class StageCounts(_Body):
@@ -164,8 +241,7 @@ class NextActionOptions(_Body):
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
 
 
-class NextActionRequest(_Body):
-    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+class NextActionRequest(_UsesRules):
     preconditions: Preconditions = Field(
         default_factory=dict, description=PRECONDITIONS_DESCRIPTION + " Predicted calls are verified against them."
     )
@@ -174,7 +250,7 @@ class NextActionRequest(_Body):
         max_length=MAX_DEMONSTRATIONS,
         description="Example trajectories shown to the model in its prompt (programs over the spec).",
     )
-    history: str = Field(max_length=MAX_SOURCE_CHARS, description=HISTORY_DESCRIPTION)
+    history: History = Field(description=HISTORY_DESCRIPTION)
     options: NextActionOptions = Field(
         default_factory=NextActionOptions, description="Sampling, verification and fallback."
     )
@@ -202,10 +278,9 @@ class NextActionResponse(_Body):
     model: ModelInfo | None = None
 
 
-class CheckRequest(_Body):
-    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+class CheckRequest(_UsesRules):
     preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
-    history: str = Field(max_length=MAX_SOURCE_CHARS, description=HISTORY_DESCRIPTION)
+    history: History = Field(description=HISTORY_DESCRIPTION)
     calls: list[str] = Field(
         min_length=1,
         max_length=MAX_CALLS,
@@ -232,7 +307,82 @@ class CheckResponse(_Body):
     results: list[CallVerdict]
 
 
-JobKind = Literal["infer", "next-action", "check"]
+class ValidateRequest(_Body):
+    """A worker job (kind `validate`, on the check queue): which demonstrated calls each rule would block.
+    The gateway sends it for every new version of a precondition set that has demonstrations."""
+
+    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+    preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
+    demonstrations: list[str] = Field(min_length=1, max_length=MAX_DEMONSTRATIONS)
+
+
+class Blocked(_Body):
+    action: str
+    rule: str
+    demonstration: int = Field(description="Index of the demonstration whose call the rule would have refused.")
+    line: int | None = Field(default=None, description="Line of that call in the demonstration.")
+    call: str | None = Field(default=None, description="The demonstrated call, as written.")
+
+
+class ValidateResponse(_Body):
+    blocked: list[Blocked] = Field(
+        default_factory=list, description="Every demonstrated call a rule would have refused; empty: all pass."
+    )
+    unjudged: dict[str, str] = Field(
+        default_factory=dict, description="Rules that could not be judged at all (`action: rule` → why)."
+    )
+
+
+MAX_SET_EDITS = 64
+EditOp = Literal["add", "remove", "require", "reject"]
+
+
+class RuleEdit(_Body):
+    op: EditOp = Field(description="'add' a rule; 'remove' one; 'require' one (re-inference keeps it); 'reject' "
+                       "one (removed, and re-inference never brings it back).")
+    action: str = Field(max_length=MAX_ACTION_CHARS, description="`Class.method`.")
+    rule: Assertion = Field(description="The rule: a Python expression, without `assert`.")
+
+
+class PreconditionSetCreate(_Body):
+    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
+    preconditions: Preconditions = Field(
+        default_factory=dict,
+        description=PRECONDITIONS_DESCRIPTION + " From an inference: its `preconditions` as returned.",
+    )
+    demonstrations: list[str] = Field(
+        default_factory=list, max_length=MAX_DEMONSTRATIONS,
+        description="Demonstrations the rules must allow; every version is checked against them (in the sandbox).",
+    )
+    force: bool = Field(default=False, description="Store even when a rule blocks a demonstrated call.")
+
+
+class PreconditionSetEdit(_Body):
+    edits: list[RuleEdit] = Field(min_length=1, max_length=MAX_SET_EDITS)
+    base_version: int | None = Field(
+        default=None, ge=1, description="The version these edits were made on; 409 when it is no longer the latest."
+    )
+    force: bool = Field(default=False, description="Store even when a rule blocks a demonstrated call.")
+
+
+class PreconditionSet(_Body):
+    id: str
+    version: int = Field(description="This version; versions are immutable.")
+    latest: int = Field(description="The set's latest version.")
+    reference: str = Field(description="`id@version`: what `precondition_set` accepts.")
+    created: str = Field(description="When this version was made (UTC, ISO 8601).")
+    spec: str
+    preconditions: dict[str, list[str]]
+    demonstrations: list[str] = Field(default_factory=list)
+    required: dict[str, list[str]] = Field(default_factory=dict, description="Rules marked required.")
+    rejected: dict[str, list[str]] = Field(default_factory=dict, description="Rules marked rejected.")
+    edits: list[RuleEdit] = Field(default_factory=list, description="The edits that made it from the version before.")
+    validation: ValidateResponse | None = Field(
+        default=None, description="Rules checked against the demonstrations: what they block (kept only with force)."
+    )
+
+
+JobKind = Literal["infer", "next-action", "check", "validate"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 

@@ -24,8 +24,9 @@ from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.queue import JobQueue
 from service.quotas import Quotas
-from service.routes import health, operations
+from service.routes import health, operations, sets
 from service.routes import jobs as job_routes
+from service.sets import SetStore
 
 log = logging.getLogger("precond.gateway")
 DESCRIPTION = """Infer verified action preconditions from demonstrations with a code model, pick next actions
@@ -59,7 +60,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         completions.start()
         quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs)
         queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, quotas, settings.result_ttl_s)
-        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys)
+        store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes)
+        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store)
         yield
         await completions.close()
         for connection in {id(redis): redis, id(cache_redis): cache_redis}.values():
@@ -68,7 +70,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     app = FastAPI(
         title="Precondition reasoning service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
     )
-    for router in (operations.router, job_routes.router, health.router):
+    for router in (operations.router, sets.router, job_routes.router, health.router):
         app.include_router(router)
     errors.install(app, settings.retry_after_s)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)

@@ -14,6 +14,7 @@ from service.auth import KeyStore
 from service.metrics import Metrics
 from service.queue import JobQueue
 from service.quotas import Quotas
+from service.sets import SetStore
 
 
 @dataclass(frozen=True)
@@ -26,6 +27,7 @@ class Services:
     quotas: Quotas
     secret: bytes
     keys: KeyStore | None
+    sets: SetStore
 
 
 def _services(request: Request) -> Services:

@@ -89,9 +89,18 @@ def _subclasses(cls: type[engine_errors.PrecondError]) -> list[type[engine_error
     return found
 
 
+_UNION_TAGS = {"text", "events"}
+"""pydantic's names for the two forms of `history` (schemas.api.History): not part of the field's path."""
+
+
 def _field(loc: tuple[Any, ...]) -> str:
     parts = [str(p) for p in loc]
-    return ".".join(parts[1:] if parts[:1] in (["body"], ["query"], ["path"]) else parts)
+    parts = parts[1:] if parts[:1] in (["body"], ["query"], ["path"]) else parts
+    if parts[:1] == ["history"] and parts[1:2] and parts[1] in _UNION_TAGS:
+        del parts[1]
+        if parts[1:2] and parts[1].isdigit():  # history[3].act, as the gateway's own event checks name it
+            parts[:2] = [f"history[{parts[1]}]"]
+    return ".".join(parts)
 
 
 async def _json_error(request: Request, error: dict[str, Any]) -> ErrorInfo:

@@ -23,7 +23,15 @@ from engine.engine import Engine
 from jobs.cache import ResultCache
 from jobs.records import Outcome, record_job, record_phase, write_progress
 from jobs.settings import WorkerSettings
-from schemas.api import CheckRequest, ErrorInfo, InferRequest, JobKind, JobProgress, NextActionRequest
+from schemas.api import (
+    CheckRequest,
+    ErrorInfo,
+    InferRequest,
+    JobKind,
+    JobProgress,
+    NextActionRequest,
+    ValidateRequest,
+)
 from schemas.errors import PrecondError, ResourceLimit
 
 ProgressFn = Callable[[str, int, int], None]
@@ -77,6 +85,8 @@ def _operate(
         return engine.infer(InferRequest.model_validate(body), progress, cancelled)
     if kind == "next-action":
         return engine.next_action(NextActionRequest.model_validate(body), progress, cancelled)
+    if kind == "validate":
+        return engine.validate(ValidateRequest.model_validate(body))
     return engine.check(CheckRequest.model_validate(body))
 
 

@@ -11,6 +11,7 @@ from pydantic import BaseModel
 
 from jobs import keys
 from programs import checks
+from programs.history import render as render_history
 from schemas.api import (
     CheckRequest,
     CheckResponse,
@@ -42,6 +43,8 @@ Wait = Annotated[
 ERRORS: dict[int | str, dict[str, Any]] = {
     202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
     400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
+    404: {"model": ErrorResponse, "description": "`precondition_set` names no set (or version) of yours; another "
+          "tenant's set is not found either."},
     413: {"model": ErrorResponse, "description": "Body larger than the configured bound."},
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
     422: {"model": ErrorResponse,
@@ -111,16 +114,40 @@ def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem |
         if isinstance(body, InferRequest):
             checks.check_infer(body.spec, body.demonstrations, body.actions)
         elif isinstance(body, NextActionRequest):
-            checks.check_next_action(body.spec, body.preconditions, body.demonstrations, body.history)
+            checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations, _text(body.history))
         elif isinstance(body, CheckRequest):
-            checks.check_check(body.spec, body.preconditions, body.history)
+            checks.check_check(body.spec_text(), body.preconditions, _text(body.history))
     except checks.ProgramProblem as exc:
         return exc.problem
     return None
 
 
+async def _with_rules_and_program(
+    services: Services, tag: str, body: CheckRequest | NextActionRequest
+) -> CheckRequest | NextActionRequest | checks.Problem:
+    """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
+    tenant has no such set), and a structured history rendered to its program (literals only)."""
+    if body.precondition_set is not None:
+        stored = await services.sets.get(tag, body.precondition_set)
+        body = body.model_copy(
+            update={"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
+        )
+    if not isinstance(body.history, str):
+        try:
+            program = render_history(body.spec_text(), [event.model_dump() for event in body.history])
+        except checks.ProgramProblem as exc:
+            return exc.problem
+        body = body.model_copy(update={"history": program})
+    return body
+
+
+def _text(history: object) -> str:
+    return history if isinstance(history, str) else ""
+
+
 def _program_chars(body: BaseModel) -> int:
-    texts = [getattr(body, "spec", ""), getattr(body, "history", ""), *getattr(body, "demonstrations", [])]
+    texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
+             *getattr(body, "demonstrations", [])]
     return sum(len(text) for text in texts)
 
 
@@ -136,6 +163,12 @@ async def _answer(
     settings = services.settings
     tag = keys.tenant_tag(services.secret, tenant)
     await _refuse_over_limit(services, tenant, await services.quotas.take_request(tag, tenant))
+    if isinstance(body, CheckRequest | NextActionRequest):
+        prepared = await _with_rules_and_program(services, tag, body)
+        if isinstance(prepared, checks.Problem):
+            info = ErrorInfo(type=prepared.type, message=prepared.message, field=prepared.field)
+            return error_response(request, 422, info)
+        body = prepared
     if _program_chars(body) <= INLINE_CHECK_CHARS:
         problem = _programs_problem(body, settings.max_work_points)
     else:

@@ -234,3 +234,20 @@ def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: 
     unknown = check({"SYSTEM.GODBYE": ["self.user.no_more"]})
     assert isinstance(unknown, UnknownAction) and unknown.field == "preconditions.SYSTEM.GODBYE"
     assert "did you mean 'SYSTEM.GOODBYE'?" in unknown.message
+
+
+@pytest.mark.parametrize("ranking", ["recency", "subsumption"])
+def test_every_candidate_says_why_it_was_kept_or_dropped(
+    engine: Engine, restaurants: dict[str, Any], ranking: str
+) -> None:
+    response = engine.infer(_infer(restaurants, ranking=ranking))
+    reports = [c for cands in response.candidates.values() for c in cands]
+    assert reports and all(c.reason for c in reports), [c.assertion for c in reports if not c.reason]
+    kept = [c for c in reports if c.kept]
+    assert kept and all(c.reason.startswith("kept") for c in kept if c.reason)
+    reasons = [c.reason or "" for c in reports if not c.kept]
+    assert any(r.startswith("violated at demonstration") and ", line " in r for r in reasons)
+    assert any(r.startswith("subsumed by ") for r in reasons)
+    assert any(r.startswith("equivalent to ") for r in reasons)
+    if ranking == "recency":
+        assert any("looks like a phase, not a requirement" in r for r in reasons)

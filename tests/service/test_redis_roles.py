@@ -27,9 +27,9 @@ from redis.asyncio import Redis as AsyncRedis
 
 from jobs import cache, keys
 from jobs.cache import ResultCache
-from jobs.settings import QueueSettings
+from jobs.settings import GatewaySettings, QueueSettings
 from schemas.api import CheckRequest, CheckResponse
-from stack.local import Stack, check_body, infer_body, make_stack, serving, wait_until
+from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 
 PASSWORD = "roles-test-redis-password"
 QUEUE_MAXMEMORY = 64 * 1024 * 1024
@@ -251,13 +251,24 @@ def test_every_key_expires_or_is_bounded(stack: Stack) -> None:
             client.post("/check-actions", json=check_body("system.REQUEST('cuisine')"), params={"wait": 30}),
         ):
             assert answer.status_code == 200, answer.text
+        made = client.post("/precondition-sets", json={"spec": SPEC, "demonstrations": DEMOS[:2],
+                                                      "preconditions": {"SYSTEM.GOODBYE": ["self.user.no_more"]}})
+        assert made.status_code == 201, made.text
         queue = queue_redis(stack)
         names = sorted(key.decode() for key in queue.scan_iter(count=1000))
         assert any(name.startswith("precond:progress:") for name in names)  # the audit saw the job's keys
         assert any(name.startswith("precond:worker:") for name in names)
         assert any(name.startswith("arq:result:") for name in names)
+        assert any(name.startswith("precond:set:") for name in names)
         for name in names:
             if name in BOUNDED_KEYS:
+                continue
+            if name.startswith(("precond:set:", "precond:sets:")):  # a client's data: bounded, never expired
+                fields = GatewaySettings.model_fields
+                if name.startswith("precond:sets:"):
+                    assert queue.scard(name) <= int(fields["max_sets_per_tenant"].default)
+                else:  # `latest` and one field per version
+                    assert queue.hlen(name) <= int(fields["max_set_versions"].default) + 1
                 continue
             assert queue.pttl(name) != -1, f"{name} never expires"  # -2: gone meanwhile (expired)
         for name in keys.QUEUES:

@@ -1,0 +1,151 @@
+"""Precondition sets: create, read any version, edit by making a new version (checked against the demonstrations
+by a worker: the gateway never runs code). Another tenant's set is a 404, word for word as a missing one."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path
+from fastapi.responses import JSONResponse
+
+from jobs import keys
+from programs import checks
+from schemas.api import (
+    ErrorInfo,
+    ErrorResponse,
+    PreconditionSet,
+    PreconditionSetCreate,
+    PreconditionSetEdit,
+    ValidateRequest,
+    ValidateResponse,
+)
+from service.auth import Tenant
+from service.deps import Services, ServicesDep
+from service.errors import ServiceError, status_for
+from service.queue import QueueFull
+from service.sets import apply_edits, blocking_message, new_id, version_of
+
+router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
+RESPONSES: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
+    404: {"model": ErrorResponse, "description": "No such set (or version) of yours: another tenant's set is not "
+          "found either."},
+    409: {"model": ErrorResponse, "description": "`base_version` is no longer the latest version."},
+    413: {"model": ErrorResponse, "description": "A version over PRECOND_MAX_SET_BYTES."},
+    422: {"model": ErrorResponse, "description": "Malformed body or rule (field names it, e.g. `edits[2]`), a rule "
+          "that would block a demonstrated call (unless `force`), or over a bound (`sets_limited`)."},
+    429: {"model": ErrorResponse, "description": "A limit of the tenant or the check queue (see Retry-After)."},
+    503: {"model": ErrorResponse, "description": "Queue backend unreachable, or the check against the "
+          "demonstrations did not finish in time (retry: its result is cached)."},
+}
+SetReference = Annotated[str, Path(max_length=100, description="`id`, or `id@version`.")]
+SetId = Annotated[str, Path(max_length=100)]
+
+
+@router.post("", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
+async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant: Tenant) -> JSONResponse:
+    """Store rules as version 1 of a new set, by hand or from an inference (its `preconditions`, with the `spec`
+    and `demonstrations` it was inferred from). Rules that would block a demonstrated call are refused (422,
+    naming the rule and the demonstration) unless `force`; the report is kept in `validation`."""
+    rules = _static_check(body.spec, body.preconditions, body.demonstrations)
+    validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
+    _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
+    set_id = new_id()
+    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation)
+    stored = await services.sets.create(_tag(services, tenant), version)
+    return JSONResponse(stored.model_dump(mode="json"), status_code=201)
+
+
+@router.get("/{reference}", response_model=PreconditionSet, responses=RESPONSES)
+async def get_set(reference: SetReference, services: ServicesDep, tenant: Tenant) -> PreconditionSet:
+    """The latest version (`id`) or a given one (`id@version`)."""
+    return await services.sets.get(_tag(services, tenant), reference)
+
+
+@router.get("/{set_id}/versions/{number}", response_model=PreconditionSet, responses=RESPONSES)
+async def get_version(set_id: SetId, number: Annotated[int, Path(ge=1, le=10**9)], services: ServicesDep,
+                      tenant: Tenant) -> PreconditionSet:
+    return await services.sets.get(_tag(services, tenant), f"{set_id}@{number}")
+
+
+@router.post("/{set_id}/versions", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
+async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesDep, tenant: Tenant) -> JSONResponse:
+    """A new version from the latest by edits: `add` a rule, `remove` one, `require` one, `reject` one (removed,
+    and kept out of re-inference). The new rules are checked against the set's demonstrations in the sandbox;
+    one that would block a demonstrated call is refused (422 naming the rule and the demonstration) unless
+    `force`. Earlier versions stay as they were."""
+    tag = _tag(services, tenant)
+    if "@" in set_id:
+        raise ServiceError(404, f"no precondition set {set_id[:80]}")
+    base = await services.sets.get(tag, set_id)
+    if body.base_version is not None and body.base_version != base.latest:
+        raise ServiceError(409, f"base_version {body.base_version} is not the latest version ({base.latest})",
+                           "conflict")
+    rules, required, rejected = apply_edits(base, body.edits)
+    rules = _static_check(base.spec, rules, [], field="edits")
+    before = {(a, r) for a, rs in base.preconditions.items() for r in rs}
+    new = {(a, r) for a, rs in rules.items() for r in rs} - before
+    validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
+    _refuse_blocking(validation, new, body.force, "edits")
+    version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
+                         body.edits, validation)
+    stored = await services.sets.append(tag, version)
+    return JSONResponse(stored.model_dump(mode="json"), status_code=201)
+
+
+def _tag(services: Services, tenant: str) -> str:
+    return keys.tenant_tag(services.secret, tenant)
+
+
+def _static_check(spec: str, rules: dict[str, list[str]], demonstrations: list[str],
+                  field: str | None = None) -> dict[str, list[str]]:
+    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations."""
+    try:
+        _, methods = checks.spec_methods(spec)
+        checks.check_preconditions(methods, rules)
+        for index, demonstration in enumerate(demonstrations):
+            checks.parse(demonstration, f"demonstrations[{index}]")
+    except checks.ProgramProblem as exc:
+        problem = exc.problem
+        raise ServiceError(422, problem.message, problem.type, field=field or problem.field) from None
+    return {action: list(dict.fromkeys(r.strip() for r in rs)) for action, rs in rules.items() if rs}
+
+
+def _refuse_blocking(validation: ValidateResponse | None, new: set[tuple[str, str]], force: bool, field: str) -> None:
+    if validation is None or force:
+        return
+    refusal = blocking_message(validation, new)
+    if refusal is not None:
+        raise ServiceError(422, refusal[0], "blocks_demonstration", field=field)
+
+
+async def _validate(services: Services, tenant: str, spec: str, rules: dict[str, list[str]],
+                    demonstrations: list[str]) -> ValidateResponse | None:
+    """The rules judged against the demonstrations by a worker (a `validate` job on the check queue)."""
+    if not demonstrations or not rules:
+        return None
+    settings = services.settings
+    payload = ValidateRequest(spec=spec, preconditions=rules, demonstrations=demonstrations).model_dump(mode="json")
+    job_id = keys.job_id("validate", payload, None, services.secret, tenant)
+    cache_key = keys.cache_id("validate", payload, None, services.secret, tenant, settings.share_cache)
+    cached = await services.cache.get(cache_key)
+    if cached is not None:
+        return ValidateResponse.model_validate(cached)
+    tag = _tag(services, tenant)
+    refusal = await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
+    if refusal is not None:
+        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
+                           headers={"Retry-After": str(refusal.retry_after_s)})
+    try:
+        await services.queue.submit("validate", job_id, payload, tag, cache_key)
+    except QueueFull as full:
+        raise ServiceError(429, f"queue limit: queue {full} is full", "queue_full",
+                           headers={"Retry-After": str(settings.retry_after_s)}) from None
+    status = await services.queue.wait(job_id, settings.wait_max_s, settings.wait_poll_s)
+    if status is None or status.status in ("queued", "running"):
+        raise ServiceError(503, "the check of the rules against the demonstrations did not finish in time; retry "
+                           "(its result is kept)", headers={"Retry-After": str(settings.retry_after_s)})
+    if status.status != "succeeded" or status.result is None:
+        error = status.error or ErrorInfo(type="internal", message="the check against the demonstrations failed")
+        raise ServiceError(status_for(error), error.message, error.type, field=error.field)
+    return ValidateResponse.model_validate(status.result)

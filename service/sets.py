@@ -1,0 +1,185 @@
+"""Precondition sets: a tenant's rules, stored in the queue Redis as immutable, numbered versions.
+
+A set is a client's data, not a cache entry: it has no TTL, lives in the queue Redis (which never evicts)
+and is bounded instead: `PRECOND_MAX_SETS_PER_TENANT` sets, `PRECOND_MAX_SET_VERSIONS` versions each,
+`PRECOND_MAX_SET_BYTES` per version. Keys carry the tenant's tag, so another tenant's set is simply not
+there: the same 404 as a set that never existed, without any lookup of owners.
+
+    precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
+    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten)
+"""
+
+from __future__ import annotations
+
+import re
+import secrets
+from datetime import UTC, datetime
+from typing import Any
+
+from arq.connections import ArqRedis
+
+from jobs.keys import PREFIX
+from schemas.api import PreconditionSet, RuleEdit, ValidateResponse
+from service.errors import ServiceError
+
+_REFERENCE = re.compile(r"^(ps_[0-9a-f]{24})(?:@([1-9][0-9]{0,8}))?$")
+
+_CREATE = """
+if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
+redis.call('sadd', KEYS[1], ARGV[1])
+redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3])
+return 1
+"""
+"""Create a set with its version 1 unless the tenant is at its bound: count and write in one step."""
+
+_APPEND = """
+local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
+if latest == 0 then return -1 end
+if latest ~= tonumber(ARGV[1]) then return -2 end
+if latest >= tonumber(ARGV[2]) then return -3 end
+redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3])
+return latest + 1
+"""
+"""Append version latest+1, only if `latest` is still the version the edits were made on."""
+
+
+def index_key(tag: str) -> str:
+    return f"{PREFIX}:sets:{tag}"
+
+
+def set_key(tag: str, set_id: str) -> str:
+    return f"{PREFIX}:set:{tag}:{set_id}"
+
+
+def not_found(reference: str) -> ServiceError:
+    return ServiceError(404, f"no precondition set {reference[:80]}")
+
+
+def parse_reference(reference: str) -> tuple[str, int | None]:
+    """`id@version` or `id` (latest); anything else is a set that does not exist."""
+    match = _REFERENCE.match(reference)
+    if match is None:
+        raise not_found(reference)
+    return match.group(1), int(match.group(2)) if match.group(2) else None
+
+
+class SetStore:
+    def __init__(self, redis: ArqRedis, max_sets: int, max_versions: int, max_bytes: int) -> None:
+        self.redis, self.max_sets, self.max_versions, self.max_bytes = redis, max_sets, max_versions, max_bytes
+
+    def _record(self, version: PreconditionSet) -> str:
+        text = version.model_dump_json()  # `latest` as it was then; readers replace it with the current one
+        if len(text.encode()) > self.max_bytes:
+            raise ServiceError(413, f"this version takes {len(text.encode()):,} bytes, over the bound of "
+                               f"{self.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="body")
+        return text
+
+    async def create(self, tag: str, version: PreconditionSet) -> PreconditionSet:
+        record = self._record(version)
+        made = await self.redis.eval(  # type: ignore[no-untyped-call]
+            _CREATE, 2, index_key(tag), set_key(tag, version.id), version.id, self.max_sets, record
+        )
+        if not made:
+            raise ServiceError(422, f"this tenant stores {self.max_sets} precondition sets already, the bound "
+                               "(PRECOND_MAX_SETS_PER_TENANT)", "sets_limited")
+        return version.model_copy(update={"latest": 1})
+
+    async def append(self, tag: str, version: PreconditionSet) -> PreconditionSet:
+        record = self._record(version)
+        answer = int(await self.redis.eval(  # type: ignore[no-untyped-call]
+            _APPEND, 1, set_key(tag, version.id), version.version - 1, self.max_versions, record
+        ))
+        if answer == -1:
+            raise not_found(version.id)
+        if answer == -2:
+            raise ServiceError(409, f"precondition set {version.id} got a new version meanwhile: read the latest "
+                               "and edit again", "conflict")
+        if answer == -3:
+            raise ServiceError(422, f"precondition set {version.id} has {self.max_versions} versions, the bound "
+                               "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version", "sets_limited")
+        return version.model_copy(update={"latest": answer})
+
+    async def get(self, tag: str, reference: str) -> PreconditionSet:
+        """A version of one of the tenant's sets (the latest when the reference names none); 404 otherwise."""
+        set_id, number = parse_reference(reference)
+        key = set_key(tag, set_id)
+        latest = await self.redis.hget(key, "latest")
+        if latest is None:
+            raise not_found(reference)
+        wanted = int(latest) if number is None else number
+        raw = await self.redis.hget(key, str(wanted))
+        if raw is None:
+            raise ServiceError(404, f"precondition set {set_id} has no version {wanted} (latest: {int(latest)})")
+        return PreconditionSet.model_validate_json(raw).model_copy(update={"latest": int(latest)})
+
+
+def new_id() -> str:
+    return f"ps_{secrets.token_hex(12)}"
+
+
+def now() -> str:
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def version_of(
+    set_id: str, number: int, spec: str, preconditions: dict[str, list[str]], demonstrations: list[str],
+    required: dict[str, list[str]], rejected: dict[str, list[str]], edits: list[RuleEdit],
+    validation: ValidateResponse | None,
+) -> PreconditionSet:
+    return PreconditionSet(
+        id=set_id, version=number, latest=number, reference=f"{set_id}@{number}", created=now(), spec=spec,
+        preconditions=preconditions, demonstrations=demonstrations, required=required, rejected=rejected,
+        edits=edits, validation=validation,
+    )
+
+
+def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str, list[str]], dict[str, list[str]],
+                                                                      dict[str, list[str]]]:
+    """The rules, required and rejected rules after the edits; 422 naming `edits[i]` for one that makes no sense."""
+    rules = {a: list(r) for a, r in base.preconditions.items()}
+    required = {a: list(r) for a, r in base.required.items()}
+    rejected = {a: list(r) for a, r in base.rejected.items()}
+
+    def drop(table: dict[str, list[str]], action: str, rule: str) -> None:
+        if rule in table.get(action, []):
+            table[action].remove(rule)
+            if not table[action]:
+                del table[action]
+
+    for index, edit in enumerate(edits):
+        action, rule, field = edit.action, edit.rule.strip(), f"edits[{index}]"
+        present = rule in rules.get(action, [])
+        if edit.op == "add":
+            if present:
+                raise ServiceError(422, f"{field}: {action} already has the rule {rule!r}", "invalid_input",
+                                   field=field)
+            rules.setdefault(action, []).append(rule)
+            drop(rejected, action, rule)  # adding by hand overrides an earlier rejection
+        elif edit.op == "require":
+            if not present:
+                raise ServiceError(422, f"{field}: {action} has no rule {rule!r} to require (add it first)",
+                                   "invalid_input", field=field)
+            if rule not in required.get(action, []):
+                required.setdefault(action, []).append(rule)
+        else:  # remove, reject
+            if not present and edit.op == "remove":
+                raise ServiceError(422, f"{field}: {action} has no rule {rule!r} to remove", "invalid_input",
+                                   field=field)
+            drop(rules, action, rule)
+            drop(required, action, rule)
+            if edit.op == "reject" and rule not in rejected.get(action, []):
+                rejected.setdefault(action, []).append(rule)
+    return rules, required, rejected
+
+
+def blocking_message(validation: ValidateResponse, new_rules: set[tuple[str, str]]) -> tuple[str, Any] | None:
+    """Why an edit is refused: the first new rule that blocks a demonstrated call, and how many it blocks."""
+    blocked = [b for b in validation.blocked if (b.action, b.rule) in new_rules]
+    if not blocked:
+        return None
+    first = blocked[0]
+    more = len(blocked) - 1
+    message = (f"rule {first.rule!r} of {first.action} would have blocked demonstration {first.demonstration}, "
+               f"line {first.line} ({first.call})" + (f", and {more} more demonstrated call(s)" if more else "")
+               + "; fix the rule, or send force: true to keep it anyway")
+    return message, first

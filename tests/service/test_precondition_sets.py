@@ -1,0 +1,185 @@
+"""Precondition sets and structured histories on a real stack (Redis, gateway, a worker with the real sandbox),
+with API keys: sets are stored, versioned and owned; edits are checked against the demonstrations by the
+worker; `/check-actions` takes a set reference and a history of events."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from jobs.keys import tenant_tag
+from service.sets import index_key, set_key
+from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving
+from tests.service.test_tenants import SECRET, client_for, make_key
+
+EVENTS = [
+    {"actor": "user", "act": "INFORM_INTENT", "args": ["FindRestaurants"]},
+    {"actor": "system", "act": "REQUEST", "args": ["city"]},
+    {"actor": "system", "act": "REQUEST", "args": ["cuisine"]},
+    {"actor": "user", "act": "INFORM", "args": ["city"]},
+    {"actor": "user", "act": "INFORM", "args": ["price_range"]},
+]
+"""examples/check-actions.json's history, as events."""
+
+
+@pytest.fixture(scope="module")
+def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
+    path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
+    return path, {tenant: make_key(path, tenant)[1] for tenant in ("acme", "globex", "small")}
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path,
+          keys: tuple[Path, dict[str, str]]) -> Iterator[Stack]:
+    stack = make_stack(tmp_path_factory.mktemp("sets"), tiny_model_dir, PRECOND_API_KEYS_FILE=str(keys[0]),
+                       PRECOND_MAX_SETS_PER_TENANT="2", PRECOND_TENANT_RATE_PER_S="1000",
+                       PRECOND_TENANT_BURST="1000")
+    with serving(stack, workers=1):
+        yield stack
+
+
+@pytest.fixture()
+def acme(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    with client_for(stack, keys[1]["acme"]) as client:
+        yield client
+
+
+@pytest.fixture()
+def globex(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    with client_for(stack, keys[1]["globex"]) as client:
+        yield client
+
+
+def _ok(answer: httpx.Response, status: int = 200) -> dict[str, Any]:
+    assert answer.status_code == status, answer.text
+    body: dict[str, Any] = answer.json()
+    return body
+
+
+@pytest.fixture(scope="module")
+def inferred(stack: Stack, keys: tuple[Path, dict[str, str]]) -> dict[str, Any]:
+    with client_for(stack, keys[1]["acme"]) as client:
+        return _ok(client.post("/infer-preconditions", json=infer_body(), params={"wait": 60}))
+
+
+def _create(client: httpx.Client, inferred: dict[str, Any], **extra: Any) -> dict[str, Any]:
+    body = {"spec": SPEC, "preconditions": inferred["preconditions"], "demonstrations": DEMOS, **extra}
+    return _ok(client.post("/precondition-sets", json=body), 201)
+
+
+def test_a_set_from_an_inference_is_stored_versioned_and_owned(
+    acme: httpx.Client, globex: httpx.Client, inferred: dict[str, Any], stack: Stack
+) -> None:
+    made = _create(acme, inferred)
+    set_id = made["id"]
+    assert made["version"] == 1 and made["reference"] == f"{set_id}@1"
+    assert made["preconditions"] == {a: r for a, r in inferred["preconditions"].items() if r}
+    assert made["validation"]["blocked"] == []  # inferred rules allow every demonstrated call
+    for path in (set_id, f"{set_id}@1", f"{set_id}/versions/1"):
+        assert _ok(acme.get(f"/precondition-sets/{path}"))["preconditions"] == made["preconditions"]
+    # another tenant: the same 404 as a set that does not exist
+    unknown = "ps_" + "0" * 24
+    theirs, missing = globex.get(f"/precondition-sets/{set_id}"), globex.get(f"/precondition-sets/{unknown}")
+    assert theirs.status_code == missing.status_code == 404
+    assert theirs.json()["error"]["message"].replace(set_id, unknown) == missing.json()["error"]["message"]
+    assert globex.post(f"/precondition-sets/{set_id}/versions",
+                       json={"edits": [{"op": "reject", "action": "SYSTEM.GOODBYE", "rule": "x"}]}).status_code == 404
+    used = globex.post("/check-actions", json={"precondition_set": set_id, "history": EVENTS,
+                                               "calls": ["system.GOODBYE()"]})
+    assert used.status_code == 404, used.text
+    # stored without expiry, under the owner's tag
+    redis = stack.redis.client()
+    tag = tenant_tag(SECRET, "acme")
+    assert redis.ttl(set_key(tag, set_id)) == -1 and set_id.encode() in redis.smembers(index_key(tag))
+
+
+def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(
+    acme: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    made = _create(acme, inferred)
+    set_id = made["id"]
+    bad = {"op": "add", "action": "SYSTEM.INFORM", "rule": "self.user.selected"}
+    refused = acme.post(f"/precondition-sets/{set_id}/versions", json={"edits": [bad]})
+    assert refused.status_code == 422, refused.text
+    error = refused.json()["error"]
+    assert error["type"] == "blocks_demonstration" and error["field"] == "edits"
+    assert "'self.user.selected' of SYSTEM.INFORM would have blocked demonstration " in error["message"]
+    assert ", line " in error["message"] and "force" in error["message"]
+    assert _ok(acme.get(f"/precondition-sets/{set_id}"))["latest"] == 1  # nothing stored
+    forced = _ok(acme.post(f"/precondition-sets/{set_id}/versions", json={"edits": [bad], "force": True}), 201)
+    assert forced["version"] == 2 and "self.user.selected" in forced["preconditions"]["SYSTEM.INFORM"]
+    blocked = forced["validation"]["blocked"]
+    assert blocked and {b["rule"] for b in blocked} == {"self.user.selected"}
+    first = blocked[0]
+    assert DEMOS[first["demonstration"]].splitlines()[first["line"] - 1].strip() == first["call"]
+    assert first["call"].startswith("system.INFORM(")
+    # reject it (kept out from now on), require another; every version stays as it was
+    kept_rule = inferred["preconditions"]["SYSTEM.GOODBYE"][0]
+    edited = _ok(acme.post(f"/precondition-sets/{set_id}/versions", json={"base_version": 2, "edits": [
+        {"op": "reject", "action": "SYSTEM.INFORM", "rule": "self.user.selected"},
+        {"op": "require", "action": "SYSTEM.GOODBYE", "rule": kept_rule},
+    ]}), 201)
+    assert edited["version"] == 3 and "self.user.selected" not in edited["preconditions"]["SYSTEM.INFORM"]
+    assert edited["rejected"] == {"SYSTEM.INFORM": ["self.user.selected"]}
+    assert edited["required"] == {"SYSTEM.GOODBYE": [kept_rule]}
+    assert _ok(acme.get(f"/precondition-sets/{set_id}@2"))["preconditions"] == forced["preconditions"]
+    stale = acme.post(f"/precondition-sets/{set_id}/versions",
+                      json={"base_version": 2, "edits": [{"op": "remove", "action": "SYSTEM.GOODBYE",
+                                                          "rule": kept_rule}]})
+    assert stale.status_code == 409, stale.text
+    nonsense = acme.post(f"/precondition-sets/{set_id}/versions",
+                         json={"edits": [{"op": "remove", "action": "SYSTEM.GOODBYE", "rule": "no such rule"}]})
+    assert nonsense.status_code == 422 and nonsense.json()["error"]["field"] == "edits[0]"
+    # check-actions on a version: version 2 refuses what version 3 allows
+    calls = ["system.INFORM('city')"]
+    history = [*EVENTS, {"actor": "user", "act": "REQUEST", "args": ["city"]}]
+    v2 = _ok(acme.post("/check-actions", json={"precondition_set": f"{set_id}@2", "history": history,
+                                               "calls": calls}, params={"wait": 30}))
+    latest = _ok(acme.post("/check-actions", json={"precondition_set": set_id, "history": history, "calls": calls},
+                           params={"wait": 30}))
+    assert v2["results"][0]["violations"] == ["self.user.selected"]
+    assert latest["results"][0]["allowed"] is True
+
+
+def test_sets_per_tenant_are_bounded(stack: Stack, keys: tuple[Path, dict[str, str]], inferred: dict[str, Any]) -> None:
+    with client_for(stack, keys[1]["small"]) as small:
+        body = {"spec": SPEC, "preconditions": {"SYSTEM.GOODBYE": ["self.user.no_more"]}}
+        for _ in range(2):
+            _ok(small.post("/precondition-sets", json=body), 201)
+        over = small.post("/precondition-sets", json=body)
+    assert over.status_code == 422 and over.json()["error"]["type"] == "sets_limited", over.text
+
+
+def test_a_structured_history_judges_like_its_program(acme: httpx.Client) -> None:
+    code = _ok(acme.post("/check-actions", json=check_body(), params={"wait": 30}))
+    events = _ok(acme.post("/check-actions", json=check_body() | {"history": EVENTS}, params={"wait": 30}))
+    assert events == code
+    # what an end user typed stays a string, whatever it says
+    typed = "x'); import os; os.system('id'); ('"
+    hostile = [*EVENTS, {"actor": "user", "act": "REQUEST", "args": [typed]}]
+    answer = _ok(acme.post("/check-actions", params={"wait": 30}, json=check_body(f"system.INFORM({typed!r})")
+                           | {"history": hostile}))
+    assert answer["results"][0]["allowed"] is True and answer["results"][0]["error"] is None
+
+
+@pytest.mark.parametrize(("event", "words"), [
+    ({"actor": "user", "act": "INFORMS", "args": ["city"]}, "unknown act 'INFORMS'"),
+    ({"actor": "customer", "act": "INFORM", "args": ["city"]}, "unknown actor 'customer'"),
+    ({"actor": "user", "act": "INFORM", "args": []}, "takes 1 argument"),
+    ({"actor": "user", "act": "INFORM", "args": ["city", "town"]}, "takes 1 argument"),
+    ({"actor": "user", "act": "INFORM", "args": [{"__class__": "x"}]}, "a dict is not allowed"),
+])
+def test_a_bad_event_is_a_422_naming_its_index(acme: httpx.Client, event: dict[str, Any], words: str) -> None:
+    answer = acme.post("/check-actions", json=check_body() | {"history": [*EVENTS[:3], event]})
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["field"].startswith("history[3]") and words in error["message"], error
+
+
+def test_an_event_missing_its_act_names_its_index(acme: httpx.Client) -> None:
+    answer = acme.post("/check-actions", json=check_body() | {"history": [*EVENTS[:3], {"actor": "user"}]})
+    assert answer.status_code == 422 and answer.json()["error"]["field"] == "history[3].act", answer.text
