@@ -15,7 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PROJECT = ("schemas", "jobs", "engine", "programs", "sandbox", "service", "worker", "cli", "evaluation", "stack",
-           "precond_client")
+           "precond_client", "convert")
 
 FORBIDDEN: dict[str, set[str]] = {
     "service": {"worker", "engine", "cli", "evaluation", "stack"},
@@ -26,6 +26,7 @@ FORBIDDEN: dict[str, set[str]] = {
     "programs": set(PROJECT) - {"programs"},
     "schemas": set(PROJECT) - {"schemas"},
     "precond_client": set(PROJECT) - {"precond_client", "schemas"},  # light: installable without the service
+    "convert": set(PROJECT) - {"convert", "programs", "schemas"},
 }
 JOBS_MAY_IMPORT_FROM_ENGINE = {"engine.settings"}
 """The model settings are part of every job id; `engine.settings` imports neither torch nor the engine."""
