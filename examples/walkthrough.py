@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout
 
-from precond_client import CheckRequest, Client, InferOptions, InferRequest, JobStatus  # noqa: E402
+from precond_client import CheckRequest, Client, InferOptions, InferRequest, JobStatus
 
 # 1. The spec: observations (USER's methods, with bodies that record what happened in its attributes) and
 #    actions (SYSTEM's stubs, whose rules are unknown and will be inferred).
