@@ -1,6 +1,8 @@
-"""`precond infer|next-action|check REQ.json`: the engine in-process, JSON in, JSON out.
+"""`precond infer|next-action|check REQ.json`: the engine in-process, JSON in, JSON out; with `--server URL`
+the same request goes to a running service through the Python client (`precond_client`) instead.
 
-Errors go to stderr with a non-zero exit (2 for bad input, 3 for a resource limit), so scripts can tell a
+Errors go to stderr with a non-zero exit (2 for bad input or a refused API key, 3 for a resource limit, 4 when
+the service cannot answer now: rate limited or unavailable after the client's retries), so scripts can tell a
 bad request from a broken machine.
 """
 
@@ -20,6 +22,16 @@ from schemas.api import CheckRequest, InferRequest, NextActionRequest
 from schemas.errors import PrecondError, ResourceLimit
 
 RequestFile = Annotated[Path, typer.Argument(help="Request body as JSON ('-' for standard input).")]
+Server = Annotated[
+    str | None,
+    typer.Option(help="URL of a running service (e.g. http://127.0.0.1:8000): send the request there instead of "
+                 "running the engine in-process.", envvar="PRECOND_SERVER", show_default=False),
+]
+ApiKey = Annotated[
+    str | None,
+    typer.Option(help="API key for --server (sent as `Authorization: Bearer`).", envvar="PRECOND_API_KEY",
+                 show_default=False),
+]
 
 
 def _load(path: Path, model: type[BaseModel]) -> Any:
@@ -68,28 +80,68 @@ def _run(call: Callable[..., BaseModel], request: BaseModel, with_progress: bool
     typer.echo(json.dumps(response.model_dump(mode="json"), indent=2))
 
 
-def infer(request: RequestFile) -> None:
+def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bool = True) -> None:
+    """The request through the client: a 202 is followed to the end, its progress drawn on stderr."""
+    from precond_client import Client, JobStatus, PrecondError, RateLimited, Unavailable
+    from precond_client import InvalidInput as ClientInvalidInput
+
+    progress = _Progress() if with_progress else None
+
+    def report(status: JobStatus) -> None:
+        if progress is not None:
+            progress(status.progress.phase, status.progress.done, status.progress.total)
+
+    try:
+        with Client(server, api_key=api_key) as client:
+            if isinstance(body, InferRequest):
+                response: BaseModel = client.infer_preconditions(body, progress=report)
+            elif isinstance(body, NextActionRequest):
+                response = client.next_action(body, progress=report)
+            elif isinstance(body, CheckRequest):
+                response = client.check_actions(body, progress=report)
+            else:
+                raise TypeError(f"no operation takes a {type(body).__name__}")
+    except PrecondError as exc:
+        where = f" ({exc.field})" if exc.field else ""
+        kind = f"{exc.type}{where}: " if exc.type else ""
+        code = 4 if isinstance(exc, RateLimited | Unavailable) else 2
+        if isinstance(exc, ClientInvalidInput) and exc.type == "resource_limit":
+            code = 3
+        _fail(f"{kind}{exc.message}", code)
+    finally:
+        if progress:
+            progress.close()
+    typer.echo(json.dumps(response.model_dump(mode="json"), indent=2))
+
+
+def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:
     """Infer verified preconditions for the spec's actions from the demonstrations."""
+    body = _load(request, InferRequest)
+    if server:
+        return _remote(server, api_key, body)
     from engine.factory import build_engine
 
-    body = _load(request, InferRequest)
     engine = build_engine(with_model="model" in body.options.generators)
     _run(engine.infer, body)
 
 
-def next_action(request: RequestFile) -> None:
+def next_action(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:
     """Predict the next action(s) after the history, verified against the preconditions (Algorithm 1)."""
+    body = _load(request, NextActionRequest)
+    if server:
+        return _remote(server, api_key, body)
     from engine.factory import build_engine
 
-    body = _load(request, NextActionRequest)
     _run(build_engine().next_action, body)
 
 
-def check(request: RequestFile) -> None:
+def check(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:
     """Say for each proposed call whether the preconditions allow it after the history (no model)."""
+    body = _load(request, CheckRequest)
+    if server:
+        return _remote(server, api_key, body, with_progress=False)
     from engine.factory import build_engine
 
-    body = _load(request, CheckRequest)
     _run(build_engine(with_model=False).check, body, with_progress=False)
 
 

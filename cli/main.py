@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import typer
 
-from cli import engine_commands, eval_commands, keys_commands, serve_commands
+from cli import convert_commands, engine_commands, eval_commands, keys_commands, serve_commands
 
 app = typer.Typer(
     help="Precondition reasoning as a service: infer verified preconditions, pick verified next actions.",
@@ -15,3 +15,4 @@ engine_commands.register(app)
 serve_commands.register(app)
 eval_commands.register(app)
 keys_commands.register(app)
+convert_commands.register(app)

@@ -14,7 +14,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PROJECT = ("schemas", "jobs", "engine", "programs", "sandbox", "service", "worker", "cli", "evaluation", "stack")
+PROJECT = ("schemas", "jobs", "engine", "programs", "sandbox", "service", "worker", "cli", "evaluation", "stack",
+           "precond_client", "convert")
 
 FORBIDDEN: dict[str, set[str]] = {
     "service": {"worker", "engine", "cli", "evaluation", "stack"},
@@ -24,6 +25,8 @@ FORBIDDEN: dict[str, set[str]] = {
     "sandbox": set(PROJECT) - {"sandbox", "programs"},
     "programs": set(PROJECT) - {"programs"},
     "schemas": set(PROJECT) - {"schemas"},
+    "precond_client": set(PROJECT) - {"precond_client", "schemas"},  # light: installable without the service
+    "convert": set(PROJECT) - {"convert", "programs", "schemas"},
 }
 JOBS_MAY_IMPORT_FROM_ENGINE = {"engine.settings"}
 """The model settings are part of every job id; `engine.settings` imports neither torch nor the engine."""

@@ -1,0 +1,82 @@
+"""`precond convert sgd|events`: users' own dialog data → spec, demonstration programs and an infer request
+(the rules: docs/converting.md). Input of the wrong shape exits 2 naming the file and the key."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from convert import events as events_converter
+from convert import sgd as sgd_converter
+from convert.shape import ConvertError
+from schemas.api import InferRequest
+
+app = typer.Typer(help="Convert dialog data (SGD files, JSON event logs) to a spec, programs and a request.",
+                  no_args_is_help=True)
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+def _request(spec: str, demonstrations: list[str]) -> str:
+    body = InferRequest(spec=spec, demonstrations=demonstrations)
+    return json.dumps(body.model_dump(mode="json", exclude_defaults=True), indent=2) + "\n"
+
+
+@app.command("sgd")
+def sgd(
+    schema: Annotated[Path, typer.Argument(help="SGD's schema.json (the services).")],
+    dialogues: Annotated[list[Path], typer.Argument(help="SGD's dialogues_*.json files.")],
+    out: Annotated[Path, typer.Option(help="Directory for spec.py, demos/<dialogue_id>.py and request.json.")],
+    service: Annotated[str | None, typer.Option(help="The service (e.g. Buses_1); needed when the schema "
+                                                     "lists several.", show_default=False)] = None,
+    demos: Annotated[int, typer.Option(min=1, max=200, help="How many dialogues go into request.json.")] = 10,
+) -> None:
+    """SGD dialogues of one service → its spec, one demonstration program per dialogue, an infer request."""
+    try:
+        converted = sgd_converter.convert(schema, dialogues, service)
+    except ConvertError as exc:
+        _fail(str(exc))
+    (out / "demos").mkdir(parents=True, exist_ok=True)
+    (out / "spec.py").write_text(converted.spec, encoding="utf-8")
+    for dialogue_id, program in converted.demonstrations.items():
+        name = re.sub(r"[^A-Za-z0-9_.-]", "_", dialogue_id)
+        (out / "demos" / f"{name}.py").write_text(program, encoding="utf-8")
+    chosen = list(converted.demonstrations.values())[:demos]
+    (out / "request.json").write_text(_request(converted.spec, chosen), encoding="utf-8")
+    typer.echo(f"{converted.service.name}: {len(converted.demonstrations)} dialogues → {out}/demos/, "
+               f"{len(chosen)} in {out}/request.json; {converted.skipped} skipped (other services)", err=True)
+
+
+@app.command("events")
+def events(
+    events_file: Annotated[Path, typer.Argument(metavar="EVENTS.json", help="A list of events (one trajectory) "
+                                                "or a list of such lists; an event: {actor, act, args}.")],
+    spec: Annotated[Path, typer.Option(help="The spec program (Python) the events are calls of.")],
+    setup: Annotated[Path | None, typer.Option(help="Statements making the objects (default: one per spec class, "
+                                               "`system = SYSTEM(user)`).", show_default=False)] = None,
+    request: Annotated[Path | None, typer.Option(help="Write an infer request (spec + programs) here instead of "
+                                                 "printing the programs.", show_default=False)] = None,
+) -> None:
+    """JSON events → programs over your spec (printed, or as an infer request with --request)."""
+    try:
+        spec_text, programs = events_converter.convert(events_file, spec, setup)
+    except ConvertError as exc:
+        _fail(str(exc))
+    if request is not None:
+        request.write_text(_request(spec_text, programs), encoding="utf-8")
+        return
+    for index, program in enumerate(programs):
+        if len(programs) > 1:
+            typer.echo(f"# trajectory {index}")
+        typer.echo(program)
+
+
+def register(root: typer.Typer) -> None:
+    root.add_typer(app, name="convert")

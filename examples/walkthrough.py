@@ -1,0 +1,175 @@
+"""The worked example of docs/writing-a-spec.md, end to end through the Python client:
+spec → demonstrations → infer → vet → check, as a dialog system would call it.
+
+    python examples/walkthrough.py --server http://127.0.0.1:8000 --api-key pk_...   # a running service
+    python examples/walkthrough.py                                                    # a throwaway local stack
+
+Without --server it starts a local stack of its own (stack/local.py: Redis, gateway, one worker; needs
+redis-server and the full install). Every step checks what it got and exits non-zero when the answer is
+not what the guide says (tests/client/test_walkthrough.py runs it, so the guide cannot rot).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout
+
+from precond_client import CheckRequest, Client, InferOptions, InferRequest, JobStatus
+
+# 1. The spec: observations (USER's methods, with bodies that record what happened in its attributes) and
+#    actions (SYSTEM's stubs, whose rules are unknown and will be inferred).
+SPEC = """\
+from collections import defaultdict
+
+class USER:
+    def __init__(self):
+        self.informed_intent = defaultdict(lambda: False)
+        self.informed_slot = defaultdict(lambda: False)
+        self.requested_slot = defaultdict(lambda: False)
+        self.affirmed = False
+        self.no_more = False
+    def INFORM_INTENT(self, intent): self.informed_intent[intent] = True
+    def INFORM(self, slot): self.informed_slot[slot] = True
+    def REQUEST(self, slot): self.requested_slot[slot] = True
+    def AFFIRM(self): self.affirmed = True
+    def GOODBYE(self): self.no_more = True
+
+class SYSTEM:
+    def __init__(self, user):
+        self.user = user
+        self.query_success = None
+    def REQUEST(self, slot): pass
+    def INFORM(self, slot): pass
+    def OFFER(self, slot): pass
+    def CONFIRM(self, slot): pass
+    def FindBooks(self): pass
+    def BorrowBook(self): pass
+    def NOTIFY_SUCCESS(self): pass
+    def GOODBYE(self): pass
+    def set_query_status(self, status): self.query_success = status
+"""
+
+# 2. Demonstrations: dialogues that went right, as programs over the spec (`precond convert` writes these
+#    from SGD files or JSON event logs).
+START = "user = USER()\nsystem = SYSTEM(user)\n"
+DEMONSTRATIONS = [
+    START + """\
+user.INFORM_INTENT('FindBooks')
+system.REQUEST('author')
+user.INFORM('author')
+system.FindBooks()
+system.set_query_status(True)
+system.OFFER('title')
+user.REQUEST('branch')
+system.INFORM('branch')
+user.INFORM_INTENT('BorrowBook')
+system.CONFIRM('title')
+user.AFFIRM()
+system.BorrowBook()
+system.set_query_status(True)
+system.NOTIFY_SUCCESS()
+user.GOODBYE()
+system.GOODBYE()
+""",
+    START + """\
+user.INFORM_INTENT('FindBooks')
+user.INFORM('author')
+system.FindBooks()
+system.set_query_status(True)
+system.OFFER('title')
+user.INFORM_INTENT('BorrowBook')
+system.CONFIRM('title')
+user.AFFIRM()
+system.BorrowBook()
+system.set_query_status(True)
+system.NOTIFY_SUCCESS()
+user.GOODBYE()
+system.GOODBYE()
+""",
+    START + """\
+user.INFORM('author')
+user.INFORM_INTENT('FindBooks')
+system.FindBooks()
+system.set_query_status(True)
+system.OFFER('title')
+user.REQUEST('due_date')
+system.INFORM('due_date')
+user.GOODBYE()
+system.GOODBYE()
+""",
+]
+
+
+def expect(condition: bool, what: str) -> None:
+    if not condition:
+        print(f"walkthrough: NOT AS THE GUIDE SAYS: {what}", file=sys.stderr)
+        raise SystemExit(1)
+
+
+def walkthrough(client: Client) -> None:
+    # 3. Infer. `generators: ["enumerate"]` is the model-free path (about a second); the default adds the
+    #    code model's candidates. A 202 is followed to the end; `progress` sees each status.
+    def progress(status: JobStatus) -> None:
+        print(f"  job {status.id[:16]}...: {status.status} {status.progress.phase} "
+              f"{status.progress.done}/{status.progress.total}", file=sys.stderr)
+
+    inferred = client.infer_preconditions(
+        InferRequest(spec=SPEC, demonstrations=DEMONSTRATIONS, options=InferOptions(generators=["enumerate"])),
+        progress=progress,
+    )
+    print("inferred rules:")
+    for action, rules in inferred.preconditions.items():
+        print(f"  {action}: {rules}")
+    for action, warning in inferred.warnings.items():
+        print(f"  warning {action}: {warning}")
+    expect("self.user.informed_slot['author']" in inferred.preconditions["SYSTEM.FindBooks"],
+           "FindBooks needs the author")
+    expect("self.user.affirmed" in inferred.preconditions["SYSTEM.BorrowBook"], "BorrowBook needs a yes")
+    expect("self.user.no_more" in inferred.preconditions["SYSTEM.GOODBYE"], "GOODBYE waits for the user")
+
+    # 4. Vet: the rules are yours to read, keep, edit or drop before they guard anything. Here: keep every
+    #    rule of the actions the system must never get wrong, and nothing for the rest.
+    guarded = ("SYSTEM.FindBooks", "SYSTEM.BorrowBook", "SYSTEM.GOODBYE", "SYSTEM.INFORM")
+    vetted = {action: inferred.preconditions[action] for action in guarded}
+    print("vetted rules:", vetted)
+
+    # 5. Check, from the dialog system: before it acts, it asks whether its candidate calls are allowed
+    #    after the dialogue so far (no model, answered in milliseconds on its own queue).
+    history = START + "user.INFORM_INTENT('FindBooks')\nuser.REQUEST('branch')\n"
+    calls = ["system.FindBooks()", "system.REQUEST('author')", "system.INFORM('branch')", "system.GOODBYE()"]
+    verdicts = client.check_actions(CheckRequest(spec=SPEC, preconditions=vetted, history=history, calls=calls))
+    allowed = {v.call: v.allowed for v in verdicts.results}
+    for verdict in verdicts.results:
+        print(f"  {verdict.call}: {'allowed' if verdict.allowed else 'refused ' + str(verdict.violations)}")
+    expect(not allowed["system.FindBooks()"], "FindBooks before the author is refused")
+    expect(allowed["system.REQUEST('author')"], "asking for the author is allowed")
+    expect(allowed["system.INFORM('branch')"], "answering the user's question is allowed")
+    expect(not allowed["system.GOODBYE()"], "GOODBYE before the user is done is refused")
+    print("walkthrough: ok")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--server", help="URL of a running service (default: start a local stack)")
+    parser.add_argument("--api-key", default=os.environ.get("PRECOND_API_KEY"), help="or PRECOND_API_KEY")
+    args = parser.parse_args()
+    if args.server:
+        with Client(args.server, api_key=args.api_key) as client:
+            walkthrough(client)
+        return
+    from stack.local import make_stack, serving
+    from stack.tiny_model import build_tiny_model
+
+    with tempfile.TemporaryDirectory() as tmp:
+        model = build_tiny_model(Path(tmp) / "model")  # the steps here are model-free: a tiny model suffices
+        with serving(make_stack(Path(tmp), model), workers=1) as stack, Client(stack.base_url) as client:
+            walkthrough(client)
+
+
+if __name__ == "__main__":
+    main()

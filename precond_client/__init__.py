@@ -1,0 +1,62 @@
+"""Python client of the precondition service: `Client` (blocking) and `AsyncClient` (asyncio), both over httpx.
+
+Light on purpose: it needs httpx and pydantic and this project's `schemas` (the request and response models,
+pydantic only), never torch, transformers or fastapi. Install it alone: README.md, "Python client".
+"""
+
+from precond_client._core import Polling, Progress, Retry, RetryHook
+from precond_client.aio import AsyncClient
+from precond_client.errors import (
+    Cancelled,
+    InvalidInput,
+    JobTimeout,
+    NotFound,
+    PrecondError,
+    RateLimited,
+    Unauthorized,
+    Unavailable,
+)
+from precond_client.sync import Client
+from schemas.api import (
+    CallVerdict,
+    CheckRequest,
+    CheckResponse,
+    InferOptions,
+    InferRequest,
+    InferResponse,
+    JobProgress,
+    JobStatus,
+    NextActionOptions,
+    NextActionRequest,
+    NextActionResponse,
+    PredictedAction,
+)
+
+__all__ = [
+    "AsyncClient",
+    "CallVerdict",
+    "Cancelled",
+    "CheckRequest",
+    "CheckResponse",
+    "Client",
+    "InferOptions",
+    "InferRequest",
+    "InferResponse",
+    "InvalidInput",
+    "JobProgress",
+    "JobStatus",
+    "JobTimeout",
+    "NextActionOptions",
+    "NextActionRequest",
+    "NextActionResponse",
+    "NotFound",
+    "Polling",
+    "PrecondError",
+    "PredictedAction",
+    "Progress",
+    "RateLimited",
+    "Retry",
+    "RetryHook",
+    "Unauthorized",
+    "Unavailable",
+]

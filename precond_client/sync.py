@@ -1,0 +1,173 @@
+"""`Client`: the blocking client (httpx)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping
+from types import TracebackType
+from typing import Any
+
+import httpx
+from pydantic import BaseModel
+
+from precond_client import _core
+from precond_client.errors import JobTimeout, PrecondError
+from schemas.api import (
+    CheckRequest,
+    CheckResponse,
+    InferRequest,
+    InferResponse,
+    JobStatus,
+    NextActionRequest,
+    NextActionResponse,
+)
+
+RequestLike = BaseModel | Mapping[str, Any]
+
+
+class Client:
+    """A blocking client of the precondition service.
+
+    >>> with Client("http://127.0.0.1:8000", api_key="pk_...") as client:
+    ...     verdicts = client.check_actions(request)
+
+    Each operation takes its request model (or a dict with the same fields), waits up to `wait` seconds on
+    the server, follows a 202 by polling `GET /jobs/{id}` (calling `progress` with the job's status) until the
+    job is done or `timeout` passes, and returns the typed response. 429 and 503 answers and transport errors
+    are retried per `retry`; what remains is raised as a `PrecondError` subclass.
+    """
+
+    def __init__(
+        self,
+        base_url: str,
+        api_key: str | None = None,
+        *,
+        timeout: float = 60.0,
+        retry: _core.Retry | None = None,
+        polling: _core.Polling | None = None,
+        on_retry: _core.RetryHook | None = None,
+        http: httpx.Client | None = None,
+    ) -> None:
+        self.base_url = base_url.rstrip("/")
+        self.retry = retry or _core.Retry()
+        self.polling = polling or _core.Polling()
+        self.on_retry = on_retry
+        self._http = http or httpx.Client(base_url=self.base_url, timeout=timeout)
+        self._headers = _core.headers(api_key)
+
+    # the operations -----------------------------------------------------------------------------------------
+
+    def infer_preconditions(
+        self, request: InferRequest | Mapping[str, Any], *, wait: float | None = None,
+        progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> InferResponse:
+        body, _ = _core.operation(request, InferRequest)
+        return self._follow(body, InferResponse, wait, progress, timeout)
+
+    def next_action(
+        self, request: NextActionRequest | Mapping[str, Any], *, wait: float | None = None,
+        progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> NextActionResponse:
+        body, _ = _core.operation(request, NextActionRequest)
+        return self._follow(body, NextActionResponse, wait, progress, timeout)
+
+    def check_actions(
+        self, request: CheckRequest | Mapping[str, Any], *, wait: float | None = None,
+        progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> CheckResponse:
+        body, _ = _core.operation(request, CheckRequest)
+        return self._follow(body, CheckResponse, wait, progress, timeout)
+
+    def submit(self, request: BaseModel, *, wait: float | None = 0) -> JobStatus:
+        """Send a request (a request model) without following it: its job's status (`succeeded` with the
+        result when it was done within `wait` or cached). Follow it with `result(job_id)`, stop it with
+        `cancel(job_id)`."""
+        body, op = _core.operation(request, type(request))
+        params = {} if wait is None else {"wait": wait}
+        answer = self._send("POST", op.path, json=body.model_dump(mode="json"), params=params)
+        return _core.submitted(answer, op.kind)
+
+    def result(
+        self, job_id: str, *, progress: _core.Progress | None = None, timeout: float | None = None
+    ) -> BaseModel:
+        """Poll a job until it is done: its typed response, or its error raised."""
+        status = self._poll(self.job(job_id), progress, timeout)
+        return _core.result(status, _core.RESPONSES[status.kind])
+
+    def job(self, job_id: str) -> JobStatus:
+        return JobStatus.model_validate(self._send("GET", f"/jobs/{job_id}").json())
+
+    def cancel(self, job_id: str) -> JobStatus:
+        """Cancel a queued or running job (a finished one is returned unchanged)."""
+        return JobStatus.model_validate(self._send("DELETE", f"/jobs/{job_id}").json())
+
+    def health(self) -> dict[str, Any]:
+        """Liveness, and whether the workers run untrusted code confined (`sandbox`). No key needed."""
+        body: dict[str, Any] = self._send("GET", "/health").json()
+        return body
+
+    def ready(self) -> dict[str, Any]:
+        """Readiness (Redis up, a worker that confines untrusted code with its model loaded); `Unavailable`
+        when not ready. Asked once, never retried: a probe reports, it does not wait."""
+        body: dict[str, Any] = self._send("GET", "/ready", retries=False).json()
+        return body
+
+    # plumbing -----------------------------------------------------------------------------------------------
+
+    def _follow(
+        self, body: BaseModel, expected: type[_core.Req], wait: float | None, progress: _core.Progress | None,
+        timeout: float | None,
+    ) -> _core.Req:
+        status = self.submit(body, wait=wait)
+        status = self._poll(status, progress, timeout)
+        return _core.result(status, expected)
+
+    def _poll(self, status: JobStatus, progress: _core.Progress | None, timeout: float | None) -> JobStatus:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        polls = 0
+        while not _core.finished(status):
+            if progress is not None:
+                progress(status)
+            if deadline is not None and time.monotonic() >= deadline:
+                raise JobTimeout(f"job {status.id} not done after {timeout} s ({status.status})", job_id=status.id)
+            time.sleep(self.polling.interval(polls))
+            polls += 1
+            status = self.job(status.id)
+        if progress is not None:
+            progress(status)
+        return status
+
+    def _send(self, method: str, path: str, *, retries: bool = True, **kwargs: Any) -> httpx.Response:
+        attempts = self.retry.attempts if retries else 1
+        for attempt in range(attempts):
+            error: PrecondError
+            try:
+                response = self._http.request(method, path, headers=self._headers, **kwargs)
+            except httpx.TransportError as exc:
+                error = _core.transport_error(exc, self.base_url + path)
+                after = None
+            else:
+                if response.status_code < 400:
+                    return response
+                error = _core.error_from_response(response)
+                if response.status_code not in _core.RETRY_STATUSES:
+                    raise error
+                after = _core.retry_after(response)
+            if attempt + 1 >= attempts:
+                raise error
+            delay = self.retry.delay(attempt, after)
+            if self.on_retry is not None:
+                self.on_retry(error, delay)
+            time.sleep(delay)
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def close(self) -> None:
+        self._http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, value: BaseException | None, traceback: TracebackType | None
+    ) -> None:
+        self.close()
