@@ -16,10 +16,12 @@ own code and runs in that caller's child anyway.
 from __future__ import annotations
 
 import ast
+import builtins
 from collections.abc import Collection
 from dataclasses import dataclass
 from functools import lru_cache
 
+BUILTIN_NAMES = frozenset(dir(builtins))
 SAFE_FUNCTIONS = frozenset({
     "len", "any", "all", "isinstance", "min", "max", "sum", "abs", "bool", "int", "str", "float", "list",
     "tuple", "set", "frozenset", "dict", "sorted", "range", "enumerate", "zip", "reversed", "round",
@@ -51,6 +53,9 @@ class SpecVocabulary:
     """Names a plain expression may use besides `self` and the parameters: the spec's classes, and its
     top-level constants and functions (bound by assignment or `def`, never by `import`: a module is the way
     into the interpreter's machinery)."""
+    imported: frozenset[str] = frozenset()
+    """Names the spec binds by `import`: never plain. A name that is neither these nor a builtin can only
+    raise NameError, so it is plain."""
 
 
 @lru_cache(maxsize=256)
@@ -58,7 +63,7 @@ def vocabulary(spec: str) -> SpecVocabulary:
     try:
         tree = ast.parse(spec)
     except (SyntaxError, ValueError, MemoryError, RecursionError):
-        return SpecVocabulary(frozenset(), frozenset())
+        return SpecVocabulary(frozenset(), frozenset(), frozenset(BUILTIN_NAMES))
     imported = {(a.asname or a.name).partition(".")[0] for node in tree.body
                 if isinstance(node, ast.Import | ast.ImportFrom) for a in node.names}
     attributes: set[str] = set()
@@ -79,7 +84,7 @@ def vocabulary(spec: str) -> SpecVocabulary:
         targets = [node.target] if isinstance(node, ast.AnnAssign) else getattr(node, "targets", [])
         names.update(t.id for target in targets for t in ast.walk(target) if isinstance(t, ast.Name))
     names = {n for n in names - imported if not _introspection(n)}
-    return SpecVocabulary(frozenset(attributes | BUILTIN_METHODS), frozenset(names))
+    return SpecVocabulary(frozenset(attributes | BUILTIN_METHODS), frozenset(names), frozenset(imported))
 
 
 def _introspection(name: str) -> bool:
@@ -97,7 +102,8 @@ def is_plain(expression: str, params: Collection[str], words: SpecVocabulary) ->
     for node in ast.walk(tree):
         if not isinstance(node, _PLAIN_NODES):
             return False
-        if isinstance(node, ast.Name) and node.id not in names:
+        if isinstance(node, ast.Name) and node.id not in names and (
+                node.id in words.imported or node.id in BUILTIN_NAMES):
             return False
         if isinstance(node, ast.Attribute) and (node.attr not in words.attributes or _introspection(node.attr)):
             return False
