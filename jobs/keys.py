@@ -123,11 +123,8 @@ def job_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes
     return f"{kind}-{tag}-{digest[:48]}"
 
 
-def cache_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes, tenant: str,
-             shared: bool) -> str:
-    """Where a result is cached: under its job id (each tenant's own), or, when the operator lets tenants
-    share results, under a digest of the request alone."""
-    if not shared:
-        return job_id(kind, body, model, secret, tenant)
+def cache_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes) -> str:
+    """Where a result is cached when the operator lets tenants share results: a digest of the request alone
+    (otherwise a result is cached under its job id, each tenant's own)."""
     digest = hmac.new(secret, b"shared\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
     return f"{kind}-{SHARED}-{digest[:48]}"

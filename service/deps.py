@@ -30,7 +30,8 @@ class Services:
     sets: SetStore
 
 
-def _services(request: Request) -> Services:
+async def _services(request: Request) -> Services:
+    """Async on purpose: FastAPI runs a plain `def` dependency in its thread pool, a round trip per request."""
     services: Services = request.app.state.services
     return services
 

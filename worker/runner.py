@@ -100,11 +100,16 @@ class WorkerProcess:
         s = self.settings
         model = queue == MODEL_QUEUE
         timeout = s.check_timeout_s if queue == CHECK_QUEUE else s.job_timeout_s
+        max_jobs = s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency
         return Worker(
             functions=[func(run_operation, name=JOB_FUNCTION, timeout=timeout)],
             queue_name=queue,
             redis_settings=RedisSettings.from_dsn(s.redis_dsn),
-            max_jobs=s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency,
+            max_jobs=max_jobs,
+            # Read no more jobs per poll than can start: arq starts a whole read batch (100 by default) in
+            # order before it polls again, which would put a newcomer behind a flood's next 100 jobs whatever
+            # their fair scores say (docs/tenants.md).
+            queue_read_limit=max_jobs,
             job_timeout=timeout,
             keep_result=s.result_ttl_s,
             max_tries=s.job_max_tries,

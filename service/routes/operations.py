@@ -169,6 +169,13 @@ async def _answer(
             info = ErrorInfo(type=prepared.type, message=prepared.message, field=prepared.field)
             return error_response(request, 422, info)
         body = prepared
+    payload = body.model_dump(mode="json")
+    job_id = keys.job_id(kind, payload, model, services.secret, tenant)
+    cache_key = keys.cache_id(kind, payload, model, services.secret) if settings.share_cache else job_id
+    cached = await services.cache.get(cache_key)
+    services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
+    if cached is not None:  # only a request that passed the checks below and ran has a cached result
+        return JSONResponse(cached, headers={"X-Job-Id": job_id})
     if _program_chars(body) <= INLINE_CHECK_CHARS:
         problem = _programs_problem(body, settings.max_work_points)
     else:
@@ -178,13 +185,6 @@ async def _answer(
             services.metrics.rejections.labels(tenant, "work").inc()
         info = ErrorInfo(type=problem.type, message=problem.message, field=problem.field)
         return error_response(request, 422, info)
-    payload = body.model_dump(mode="json")
-    job_id = keys.job_id(kind, payload, model, services.secret, tenant)
-    cache_key = keys.cache_id(kind, payload, model, services.secret, tenant, settings.share_cache)
-    cached = await services.cache.get(cache_key)
-    services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
-    if cached is not None:
-        return JSONResponse(cached, headers={"X-Job-Id": job_id})
     await _refuse_over_limit(
         services, tenant, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
     )

@@ -127,7 +127,7 @@ async def _validate(services: Services, tenant: str, spec: str, rules: dict[str,
     settings = services.settings
     payload = ValidateRequest(spec=spec, preconditions=rules, demonstrations=demonstrations).model_dump(mode="json")
     job_id = keys.job_id("validate", payload, None, services.secret, tenant)
-    cache_key = keys.cache_id("validate", payload, None, services.secret, tenant, settings.share_cache)
+    cache_key = keys.cache_id("validate", payload, None, services.secret) if settings.share_cache else job_id
     cached = await services.cache.get(cache_key)
     if cached is not None:
         return ValidateResponse.model_validate(cached)
