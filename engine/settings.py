@@ -32,9 +32,11 @@ def default_cache_dir() -> Path:
 class ModelSettings(BaseSettings):
     """`path` is "embedded", a Hugging Face model directory, or a `.gguf` file.
 
-    `device` and `dtype` default to "auto": CUDA in bfloat16 when present, else CPU in the dtype that
-    generates fastest there. `threads` defaults to 1 because the worker usually shares its cores with the
-    sandbox and other jobs; oversubscribed cores make torch an order of magnitude slower.
+    `device` and `dtype` default to "auto": CUDA in bfloat16 when present, else CPU in bfloat16 only where the
+    CPU has native bf16 dot products (avx512_bf16 or amx_bf16), float32 elsewhere (bf16 is 3-10x slower
+    there; see bench/model_bench.py). The choice and its reason are in every response's `model` block.
+    `threads` defaults to 1 because the worker usually shares its cores with the sandbox and other jobs;
+    oversubscribed cores make torch an order of magnitude slower.
     """
 
     model_config = SettingsConfigDict(env_prefix="MODEL_", extra="ignore")
@@ -46,7 +48,9 @@ class ModelSettings(BaseSettings):
     )
     device: str = Field(default="auto", description="`auto` (CUDA when present, else CPU), `cpu`, `cuda`, ...")
     dtype: str = Field(
-        default="auto", description="`auto` (bfloat16 on CUDA, the fastest dtype on CPU) or a torch dtype name."
+        default="auto",
+        description="`auto` (bfloat16 on CUDA; on CPU bfloat16 with avx512_bf16/amx_bf16, else float32) or a "
+        "torch dtype name (`float32`, `bfloat16`, `float16`).",
     )
     threads: int = Field(default=1, ge=1, description="CPU threads torch may use.")
     cache_dir: Path = Field(

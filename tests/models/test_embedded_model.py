@@ -7,8 +7,10 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 
 from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
+from engine.models.backend import cpu_dtype, cpu_flags
 from engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
 
 pytestmark = pytest.mark.model
@@ -57,7 +59,9 @@ def test_samples_mostly_parse(embedded: CodeModel) -> None:
 
 def test_model_info(embedded: CodeModel) -> None:
     assert embedded.info.sha256 == EMBEDDED_SHA256
-    assert (embedded.info.device, embedded.info.dtype) == ("cpu", "bfloat16")
+    dtype, reason = cpu_dtype(cpu_flags(), torch.backends.cpu.get_cpu_capability())
+    assert (embedded.info.device, embedded.info.dtype) == ("cpu", str(dtype).removeprefix("torch."))
+    assert embedded.info.dtype_reason == reason
 
 
 def test_gguf_path_is_converted_once_by_hash(embedded: CodeModel, tmp_path: Path) -> None:

@@ -1,12 +1,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import pytest
 import torch
 
 from engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
-from engine.models.backend import PREFILL_CHUNK, CodeModel
+from engine.models.backend import PREFILL_CHUNK, CodeModel, choose_dtype, cpu_dtype, cpu_flags
 from engine.models.stopping import StopRule, statement_end, stop_index
 
 PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12
@@ -129,3 +130,107 @@ def test_samples_do_not_depend_on_batch_size_for_greedy(tiny: CodeModel) -> None
 def test_invalid_sampling_is_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError, match="invalid sampling"):
         Sampling(**bad)  # type: ignore[arg-type]
+
+
+def test_model_info_says_why_its_dtype(tiny: CodeModel) -> None:
+    assert tiny.info.dtype_reason == "MODEL_DTYPE=float32: float32"
+
+
+@pytest.mark.parametrize(
+    ("flags", "capability", "expected"),
+    [
+        ("fpu avx2 avx512f", "AVX512", (torch.float32, "cpu without amx_bf16/avx512_bf16: float32")),
+        ("fpu avx2", "AVX2", (torch.float32, "cpu without amx_bf16/avx512_bf16: float32")),
+        ("avx512f avx512_bf16", "AVX512", (torch.bfloat16, "cpu with avx512_bf16: bfloat16")),
+        ("amx_tile amx_bf16 avx512_bf16", "AVX512", (torch.bfloat16, "cpu with amx_bf16: bfloat16")),
+        ("avx512f avx512_bf16", "AVX2", (torch.float32, "cpu has avx512_bf16 but torch runs AVX2 kernels: float32")),
+    ],
+)
+def test_cpu_dtype_follows_native_bf16(flags: str, capability: str, expected: tuple[torch.dtype, str]) -> None:
+    assert cpu_dtype(frozenset(flags.split()), capability) == expected
+
+
+def test_cpu_flags_are_read_from_cpuinfo(tmp_path: Path) -> None:
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text("processor\t: 0\nflags\t\t: fpu avx2 avx512_bf16\n\nprocessor\t: 1\nflags\t\t: fpu\n")
+    assert cpu_flags(cpuinfo) == frozenset({"fpu", "avx2", "avx512_bf16"})
+    assert cpu_flags(tmp_path / "absent") is None
+    assert cpu_dtype(None, "AVX512") == (torch.float32, "cpu features unknown (no /proc/cpuinfo): float32")
+
+
+def test_explicit_dtype_overrides_detection() -> None:
+    cpu = torch.device("cpu")
+    assert choose_dtype("bf16", cpu) == (torch.bfloat16, "MODEL_DTYPE=bf16: bfloat16")
+    assert choose_dtype("auto", cpu) == cpu_dtype(cpu_flags(), torch.backends.cpu.get_cpu_capability())
+    with pytest.raises(ValueError, match="unknown dtype"):
+        choose_dtype("int3", cpu)
+
+
+
+def _common(a: list[int], b: list[int]) -> int:
+    return next((i for i, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), min(len(a), len(b)))
+
+
+class _Counting:
+    """Counts the model's forward calls: decode steps apart, and the tokens every other call (a prefill of
+    prefix chunks or of tails) computed; pads are not counted."""
+
+    def __init__(self, model: CodeModel) -> None:
+        self.model = model
+        self.prefilled = self.prefill_calls = self.decode_calls = 0
+        self._in_step = False
+
+    def __enter__(self) -> _Counting:
+        forward, step = self.model.model.forward, self.model._step
+
+        def counted_forward(*args: Any, **kwargs: Any) -> Any:
+            width = kwargs["input_ids"].shape[1]
+            if self._in_step:
+                self.decode_calls += 1
+            else:
+                self.prefill_calls += 1
+                self.prefilled += int(kwargs["attention_mask"][:, -width:].sum())
+            return forward(*args, **kwargs)
+
+        def counted_step(*args: Any, **kwargs: Any) -> Any:
+            self._in_step = True
+            try:
+                return step(*args, **kwargs)
+            finally:
+                self._in_step = False
+
+        self.model.model.forward = counted_forward
+        self.model._step = counted_step  # type: ignore[method-assign]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        del self.model.model.forward
+        del self.model._step
+
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+def test_n_samples_of_a_prompt_cost_one_prefill(tiny: CodeModel, n: int) -> None:
+    """However many samples, and however often the batch (4 rows here) is refilled, the prompt runs once."""
+    prompt_tokens = len(tiny.tokenizer(PREFIX + SUFFIXES[0])["input_ids"])
+    fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
+    with _Counting(fresh) as counting:
+        (texts,) = fresh.complete(PREFIX, SUFFIXES[:1], n, Sampling(temperature=1.0, max_new_tokens=6), "line")
+    assert len(texts) == n
+    assert counting.prefilled == prompt_tokens
+    assert counting.prefill_calls == -(-(prompt_tokens - 1) // PREFILL_CHUNK) + 1  # prefix chunks, the tail
+    assert counting.decode_calls > 0
+
+
+def test_prompts_sharing_a_prefix_prefill_it_once(tiny: CodeModel) -> None:
+    """Three prompts x 5 samples over refills of 4 rows: the shared prefix once, each prompt's tail once; a
+    later call with the same prefix (per-action calls of one spec) reuses the prefix's whole chunks."""
+    ids = [tiny.tokenizer(PREFIX + suffix)["input_ids"] for suffix in SUFFIXES]
+    shared = min(min(len(i) for i in ids) - 1, min(_common(ids[0], i) for i in ids))
+    fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
+    with _Counting(fresh) as counting:
+        fresh.complete(PREFIX, SUFFIXES, 5, Sampling(max_new_tokens=4), "line")
+    assert counting.prefilled == shared + sum(len(i) - shared for i in ids)
+
+    with _Counting(fresh) as again:
+        fresh.complete(PREFIX, SUFFIXES[1:2], 5, Sampling(max_new_tokens=4), "line")
+    assert again.prefilled == len(ids[1]) - shared // PREFILL_CHUNK * PREFILL_CHUNK

@@ -62,7 +62,7 @@ def _fake_parts(tmp_path: Path) -> tuple[list[Path], str]:
 def test_cache_is_built_once_and_reused(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     converted: list[bytes] = []
 
-    def convert(gguf_file: Path, out_dir: Path) -> None:
+    def convert(gguf_file: Path, out_dir: Path, dtype: str) -> None:
         converted.append(gguf_file.read_bytes())
         out_dir.mkdir()
         (out_dir / "config.json").write_text(json.dumps({"model_type": "qwen2"}))
@@ -73,13 +73,42 @@ def test_cache_is_built_once_and_reused(tmp_path: Path, monkeypatch: pytest.Monk
     for part in parts:
         part.unlink()  # a reuse must not even read the parts
     second = embedded_model_dir(tmp_path / "cache", parts=parts, expected_sha256=sha256)
-    assert first == second == tmp_path / "cache" / sha256
+    assert first == second == tmp_path / "cache" / f"{sha256}-bfloat16"
     assert converted == [b"GGUFfakeweights"]
-    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == [sha256]
+    assert sorted(p.name for p in (tmp_path / "cache").iterdir()) == [f"{sha256}-bfloat16"]
+
+
+def test_each_dtype_has_its_own_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bfloat16 and a float32 copy coexist, each converted once, in the dtype it is named after."""
+    converted: list[str] = []
+
+    def convert(gguf_file: Path, out_dir: Path, dtype: str) -> None:
+        converted.append(dtype)
+        out_dir.mkdir()
+        (out_dir / "dtype").write_text(dtype)
+
+    monkeypatch.setattr(store, "convert_gguf", convert)
+    parts, sha256 = _fake_parts(tmp_path)
+    cache = tmp_path / "cache"
+    dirs = {d: embedded_model_dir(cache, parts, sha256, dtype=d) for d in ("float32", "bfloat16", "float32")}
+    assert converted == ["float32", "bfloat16"]
+    assert {d: (p.name, (p / "dtype").read_text()) for d, p in dirs.items()} == {
+        "float32": (f"{sha256}-float32", "float32"),
+        "bfloat16": (f"{sha256}-bfloat16", "bfloat16"),
+    }
+
+
+def test_a_cache_from_before_dtype_keys_is_bfloat16(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """`<sha256>` alone was written in bfloat16: reused for bfloat16, never served as float32."""
+    monkeypatch.setattr(store, "convert_gguf", lambda gguf_file, out_dir, dtype: out_dir.mkdir())
+    parts, sha256 = _fake_parts(tmp_path)
+    (tmp_path / "cache" / sha256).mkdir(parents=True)
+    assert embedded_model_dir(tmp_path / "cache", parts, sha256, dtype="bfloat16") == tmp_path / "cache" / sha256
+    assert embedded_model_dir(tmp_path / "cache", parts, sha256, dtype="float32").name == f"{sha256}-float32"
 
 
 def test_failed_conversion_leaves_no_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    def convert(gguf_file: Path, out_dir: Path) -> None:
+    def convert(gguf_file: Path, out_dir: Path, dtype: str) -> None:
         out_dir.mkdir()
         raise RuntimeError("boom")
 
@@ -91,12 +120,12 @@ def test_failed_conversion_leaves_no_cache(tmp_path: Path, monkeypatch: pytest.M
 
 
 def test_user_gguf_is_keyed_by_its_hash(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(store, "convert_gguf", lambda gguf_file, out_dir: out_dir.mkdir())
+    monkeypatch.setattr(store, "convert_gguf", lambda gguf_file, out_dir, dtype: out_dir.mkdir())
     gguf_file = tmp_path / "model.gguf"
     gguf_file.write_bytes(b"user weights")
     directory, sha256 = store.gguf_model_dir(gguf_file, tmp_path / "cache")
     assert sha256 == hashlib.sha256(b"user weights").hexdigest()
-    assert directory == tmp_path / "cache" / sha256
+    assert directory == tmp_path / "cache" / f"{sha256}-bfloat16"
     with pytest.raises(ModelStoreError, match="does not exist"):
         store.gguf_model_dir(tmp_path / "missing.gguf", tmp_path / "cache")
 
