@@ -177,6 +177,10 @@ class WorkerSettings(QueueSettings):
         description="Longest a model job or a model-free inference may run. (A job whose worker died is handed "
         "to another worker once the dead worker's heartbeat expires, not after this timeout.)",
     )
+    max_response_bytes: int = Field(
+        default=8 * 1024 * 1024, ge=1024,
+        description="Largest answer a job may return; above it the job fails with `response_too_large` (422).",
+    )
     check_timeout_s: float = Field(default=60.0, gt=0, description="Longest a check-actions job may run.")
     job_max_tries: int = Field(
         default=3, ge=1, description="Runs of a job before it fails (worker deaths count)."

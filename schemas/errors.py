@@ -26,6 +26,12 @@ class InvalidProgram(InvalidInput):
     kind = "invalid_program"
 
 
+class ResponseTooLarge(InvalidInput):
+    """The answer would exceed the deployment's bound (`PRECOND_MAX_RESPONSE_BYTES`)."""
+
+    kind = "response_too_large"
+
+
 class UnknownAction(InvalidInput):
     kind = "unknown_action"
 

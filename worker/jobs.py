@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import threading
 import time
 from collections.abc import Callable
@@ -32,7 +33,7 @@ from schemas.api import (
     NextActionRequest,
     ValidateRequest,
 )
-from schemas.errors import PrecondError, ResourceLimit
+from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
@@ -91,15 +92,22 @@ def _operate(
 
 
 def _outcome(
-    engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
+    engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn,
+    max_response_bytes: int,
 ) -> tuple[Outcome, bool]:
-    """A finished job's outcome, and whether a sandbox limit stopped it."""
+    """A finished job's outcome, and whether a sandbox limit stopped it. A result larger than the bound is
+    refused here, before Redis stores it twice (result and cache) and a client has to read it."""
     try:
-        result = _operate(engine, kind, body, progress, cancelled)
+        result = _operate(engine, kind, body, progress, cancelled).model_dump(mode="json")
     except PrecondError as exc:
         error = ErrorInfo(type=exc.kind, message=exc.message, field=exc.field)
         return Outcome(status="failed", error=error), isinstance(exc, ResourceLimit)
-    return Outcome(status="succeeded", result=result.model_dump(mode="json")), False
+    size = len(json.dumps(result))
+    if size > max_response_bytes:
+        message = (f"the answer would be {size:,} bytes, over PRECOND_MAX_RESPONSE_BYTES ({max_response_bytes:,}): "
+                   "ask for fewer calls, actions or candidates")
+        return Outcome(status="failed", error=ErrorInfo(type=ResponseTooLarge.kind, message=message)), False
+    return Outcome(status="succeeded", result=result), False
 
 
 async def run_operation(
@@ -113,7 +121,9 @@ async def run_operation(
     loop = asyncio.get_running_loop()
     reporter = ProgressReporter(redis, job_id, kind, loop, settings.result_ttl_s)
     stop = threading.Event()
-    future = loop.run_in_executor(None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set)
+    future = loop.run_in_executor(
+        None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set, settings.max_response_bytes
+    )
     try:
         outcome, sandbox_limit = await asyncio.shield(future)
     except asyncio.CancelledError:

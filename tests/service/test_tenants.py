@@ -180,3 +180,20 @@ def test_serve_refuses_an_open_non_loopback_address() -> None:
                           env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)})
     assert done.returncode == 2
     assert "without API keys" in done.stderr and "--no-auth" in done.stderr
+
+
+@pytest.fixture
+def small_answers(tmp_path: Path, tiny_model_dir: Path) -> Iterator[Stack]:
+    stack = make_stack(tmp_path, tiny_model_dir, PRECOND_MAX_RESPONSE_BYTES="1024")
+    with serving(stack, workers=1):
+        yield stack
+
+
+def test_an_answer_over_the_response_bound_is_refused_with_its_size(small_answers: Stack) -> None:
+    calls = [f"system.REQUEST('slot_{i}')" for i in range(40)]
+    with small_answers.http() as client:
+        answer = client.post("/check-actions", json=check_body(*calls), params={"wait": 30})
+        assert answer.status_code == 422, answer.text
+        error = answer.json()["error"]
+        assert error["type"] == "response_too_large" and "PRECOND_MAX_RESPONSE_BYTES (1,024)" in error["message"]
+        assert client.post("/check-actions", json=check_body(calls[0]), params={"wait": 30}).status_code == 200
