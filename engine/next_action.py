@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 
 from engine import prompting
 from engine.spec import Spec
+from programs.checks import instance_classes
 from schemas.api import CallVerdict, NextActionRequest, PredictedAction, Rejection
 from schemas.errors import Cancelled
 
@@ -34,18 +35,6 @@ class Prediction:
     text: str
     call: str | None
     reason: str | None = None
-
-
-def instance_classes(trees: Sequence[ast.Module], classes: set[str]) -> dict[str, str]:
-    """`system = SYSTEM(user)` → {"system": "SYSTEM"}: how a predicted line's receiver maps to a class."""
-    found: dict[str, str] = {}
-    for tree in trees:
-        for node in ast.walk(tree):
-            if isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
-                func = node.value.func
-                if isinstance(func, ast.Name) and func.id in classes:
-                    found.update({t.id: func.id for t in node.targets if isinstance(t, ast.Name)})
-    return found
 
 
 def classify(line: str, receivers: dict[str, str], actions: set[str]) -> Prediction:
