@@ -35,6 +35,7 @@ from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
 from engine.models.backend import _PrefixCache, choose_dtype
 from engine.prompting import inference_prefix, inference_suffix
 from engine.spec import parse_spec, resolve_actions
+from evaluation.report import cpu_model
 from evaluation.settings import data_path
 
 logger = logging.getLogger("model_bench")
@@ -282,7 +283,7 @@ def main() -> None:
 
     auto = choose_dtype("auto", torch.device("cpu"))
     report: dict[str, Any] = {
-        "cpu": _cpu_name(),
+        "cpu": cpu_model(),
         "cores": os.cpu_count(),
         "torch": torch.__version__,
         "torch_cpu_capability": torch.backends.cpu.get_cpu_capability(),
@@ -323,16 +324,6 @@ def markdown_table(results: list[dict[str, Any]]) -> str:
             f"| {r['load_average'][0]}, {r['load_average'][1]} |"
         )
     return "\n".join(lines)
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "unknown"
 
 
 if __name__ == "__main__":

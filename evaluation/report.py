@@ -163,7 +163,8 @@ def speed_table(rows: Sequence[dict[str, Any]]) -> str:
 # ---- machine ---------------------------------------------------------------------------------------------
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's name as /proc/cpuinfo gives it (reports and benchmarks state the machine they ran on)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -198,7 +199,7 @@ def _git_commit() -> str:
 def machine() -> str:
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     now = datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
-    return (f"- machine: {_cpu_model()}, {cores} cores available, {_memory_gib()} RAM, no GPU, "
+    return (f"- machine: {cpu_model()}, {cores} cores available, {_memory_gib()} RAM, no GPU, "
             f"Python {platform.python_version()}\n- generated: {now}\n- git commit: {_git_commit()}")
 
 

@@ -12,11 +12,12 @@ import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
-from programs.spec import Method, read_methods
+from programs.spec import Method, main_body, read_methods
 
 INVALID_PROGRAM = "invalid_program"
 UNKNOWN_ACTION = "unknown_action"
 INVALID_INPUT = "invalid_input"
+WORK_BUDGET = "work_budget"
 
 
 @dataclass(frozen=True)
@@ -152,22 +153,49 @@ def no_occurrence_problem(actions: Sequence[str], count: int) -> ProgramProblem:
     return ProgramProblem(Problem(INVALID_INPUT, "demonstrations", message))
 
 
-def check_infer(spec: str, demonstrations: Sequence[str], actions: Sequence[str] | None) -> None:
+def check_work(trees: Sequence[ast.Module], max_points: int | None) -> None:
+    """The work a request asks for, from its text: every candidate is judged at every point of its action,
+    demonstration steps x the distinct argument tuples it was called with. That product, not the body's
+    size, is what costs (37 KB with 3,000 distinct calls make 9 million points); the sandbox bounds the exact
+    count again inside its child."""
+    if max_points is None:
+        return
+    steps = sum(len(main_body(tree)) for tree in trees)
+    arguments: dict[str, set[str]] = {}
+    for tree in trees:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                call = ast.Call(func=ast.Name("f"), args=node.args, keywords=node.keywords)
+                arguments.setdefault(node.func.attr, set()).add(ast.dump(call))
+    if not arguments:
+        return
+    method, values = max(arguments.items(), key=lambda item: len(item[1]))
+    if steps * len(values) > max_points:
+        message = (f"about {steps * len(values):,} points to judge every candidate at ({steps:,} demonstration "
+                   f"steps x {len(values):,} distinct argument tuples of .{method}(...)), over the budget of "
+                   f"{max_points:,} (PRECOND_MAX_WORK_POINTS): send fewer demonstrations or fewer distinct "
+                   "arguments")
+        raise ProgramProblem(Problem(WORK_BUDGET, "demonstrations", message))
+
+
+def check_infer(spec: str, demonstrations: Sequence[str], actions: Sequence[str] | None,
+                max_points: int | None = None) -> None:
     """Everything an inference needs that can be seen without running it; raises ProgramProblem."""
     _, methods = spec_methods(spec)
     chosen = resolve_actions(methods, actions)
     trees = [parse(d, f"demonstrations[{i}]") for i, d in enumerate(demonstrations)]
     if not called_actions(trees, methods, chosen):
         raise no_occurrence_problem(chosen, len(demonstrations))
+    check_work(trees, max_points)
 
 
 def check_next_action(spec: str, preconditions: Mapping[str, Sequence[str]], demonstrations: Sequence[str],
-                      history: str) -> None:
+                      history: str, max_points: int | None = None) -> None:
     _, methods = spec_methods(spec)
     check_preconditions(methods, preconditions)
-    for i, demonstration in enumerate(demonstrations):
-        parse(demonstration, f"demonstrations[{i}]")
+    trees = [parse(d, f"demonstrations[{i}]") for i, d in enumerate(demonstrations)]
     parse(history, "history")
+    check_work(trees, max_points)
 
 
 def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: str) -> None:

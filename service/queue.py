@@ -37,8 +37,8 @@ SAFETY_POLL_S = 1.0
 
 
 _UNDO_OVER_BOUND = """
-local rank = redis.call('zrank', KEYS[1], ARGV[1])
-if rank and rank >= tonumber(ARGV[2]) and redis.call('exists', KEYS[3]) == 0 then
+local queued = redis.call('zscore', KEYS[1], ARGV[1])
+if queued and redis.call('zcard', KEYS[1]) > tonumber(ARGV[2]) and redis.call('exists', KEYS[3]) == 0 then
   redis.call('zrem', KEYS[1], ARGV[1])
   redis.call('del', KEYS[2])
   return 1
@@ -122,9 +122,10 @@ class JobQueue:
 
     async def _over_bound(self, queue: str, job_id: str) -> bool:
         """Take back a job that concurrent submissions pushed past the bound (the depth check above is not
-        atomic with the enqueue: 48 clients at once all saw a short queue). Jobs rank by their fair start, so
-        the jobs refused are those of the tenants with the most queued; a job a worker already started is left
-        alone."""
+        atomic with the enqueue: 48 clients at once all saw a short queue). By the count after our own enqueue,
+        not by rank: a fair score is handed out before its job is enqueued, so ranks seen by racing submissions
+        can all look in bounds. Racing jobs may each refuse themselves (a 429 too many, never a queue too long);
+        a job a worker already started is left alone."""
         undone = await self.redis.eval(  # type: ignore[no-untyped-call]
             _UNDO_OVER_BOUND, 3, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
             job_id, self.max_jobs,

@@ -25,7 +25,6 @@ from schemas.api import (
     NextActionResponse,
 )
 from service.auth import Tenant
-from service.budget import OverBudget, check_work
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples
@@ -107,14 +106,11 @@ def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem |
     """Every program of the request parsed (never run) before anything is queued, and its work estimated:
     422 now, not a failed job after the wait in the queue."""
     try:
-        check_work(body, max_work_points)
-    except OverBudget as over:
-        return checks.Problem(type="work_budget", field=over.field, message=str(over))
-    try:
         if isinstance(body, InferRequest):
-            checks.check_infer(body.spec, body.demonstrations, body.actions)
+            checks.check_infer(body.spec, body.demonstrations, body.actions, max_work_points)
         elif isinstance(body, NextActionRequest):
-            checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations, _text(body.history))
+            checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations,
+                                     _text(body.history), max_work_points)
         elif isinstance(body, CheckRequest):
             checks.check_check(body.spec_text(), body.preconditions, _text(body.history))
     except checks.ProgramProblem as exc:
@@ -181,7 +177,7 @@ async def _answer(
     else:
         problem = await asyncio.to_thread(_programs_problem, body, settings.max_work_points)
     if problem is not None:
-        if problem.type == "work_budget":
+        if problem.type == checks.WORK_BUDGET:
             services.metrics.rejections.labels(tenant, "work").inc()
         info = ErrorInfo(type=problem.type, message=problem.message, field=problem.field)
         return error_response(request, 422, info)
