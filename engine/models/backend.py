@@ -242,6 +242,55 @@ class CodeModel:
             results[row.suffix].append(row.text or "")
         return results
 
+    def score(
+        self, prefix: str, continuations: Sequence[str], should_stop: Callable[[], bool] | None = None
+    ) -> list[float]:
+        """Log-likelihood of each continuation after `prefix`: the sum over the continuation's own tokens.
+
+        This is how the engine lets the model *choose* among candidates that were already executed and
+        validated (enumerated conditions, allowed next calls) instead of hoping free samples hit them. The
+        prefix is prefilled once (and kept, like `complete`'s); the continuations run together, right-padded,
+        `max_batch` rows per forward pass. Tokens are split where the jointly tokenised texts diverge from the
+        prefix alone, so a boundary token merged across prefix and continuation counts for the continuation.
+        """
+        if not continuations:
+            return []
+        with self._lock, torch.inference_mode():
+            head = self._encode(prefix)
+            fulls = [self._encode(prefix + text) for text in continuations]
+            starts = [max(1, _common_prefix_length(head, full)) for full in fulls]
+            shared = max(0, min(starts) - 1)  # the token before each first scored one stays in the tail
+            prefix_cache = self._prefix_cache(tuple(fulls[0][:shared]), should_stop)
+            scores: list[float] = []
+            for first in range(0, len(fulls), self.max_batch):
+                if should_stop is not None and should_stop():
+                    raise GenerationCancelled()
+                chunk = range(first, min(first + self.max_batch, len(fulls)))
+                scores += self._score_tails([fulls[i][shared:] for i in chunk], [starts[i] - shared for i in chunk],
+                                            prefix_cache)
+        return scores
+
+    def _score_tails(self, tails: Sequence[Sequence[int]], starts: Sequence[int], prefix: _PrefixCache) -> list[float]:
+        """Sum of log p(tail[j] | everything before) for j >= start, one right-padded forward pass."""
+        shared = len(prefix.tokens)
+        pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
+        width = max(len(tail) for tail in tails)
+        ids = torch.tensor([list(t) + [pad] * (width - len(t)) for t in tails], device=self.device)
+        tail_mask = torch.tensor([[1] * len(t) + [0] * (width - len(t)) for t in tails], device=self.device)
+        mask = torch.cat([tail_mask.new_ones(len(tails), shared), tail_mask], dim=1)
+        positions = (shared + torch.arange(width, device=self.device))[None].expand(len(tails), -1)
+        cache = copy.deepcopy(prefix.cache)
+        if shared:
+            cache.batch_repeat_interleave(len(tails))
+        logits = self.model(
+            input_ids=ids, attention_mask=mask, position_ids=positions, past_key_values=cache, use_cache=True
+        ).logits.float()
+        logprobs = torch.log_softmax(logits[:, :-1], dim=-1).gather(-1, ids[:, 1:, None]).squeeze(-1)
+        column = torch.arange(1, width, device=self.device)[None]
+        lengths = torch.tensor([len(t) for t in tails], device=self.device)[:, None]
+        wanted = (column >= torch.tensor(list(starts), device=self.device)[:, None]) & (column < lengths)
+        return [float(x) for x in (logprobs * wanted).sum(dim=1)]
+
     def _encode(self, text: str) -> list[int]:
         return list(self.tokenizer(text)["input_ids"])
 

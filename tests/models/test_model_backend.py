@@ -234,3 +234,43 @@ def test_prompts_sharing_a_prefix_prefill_it_once(tiny: CodeModel) -> None:
     with _Counting(fresh) as again:
         fresh.complete(PREFIX, SUFFIXES[1:2], 5, Sampling(max_new_tokens=4), "line")
     assert again.prefilled == len(ids[1]) - shared // PREFILL_CHUNK * PREFILL_CHUNK
+
+
+def reference_score(model: CodeModel, prefix: str, continuation: str) -> float:
+    """Log-likelihood of the continuation's tokens from one plain forward pass over the whole text (no cache)."""
+    head = model.tokenizer(prefix)["input_ids"]
+    ids = model.tokenizer(prefix + continuation)["input_ids"]
+    start = max(1, _common(head, ids))
+    with torch.inference_mode():
+        logprobs = torch.log_softmax(model.model(input_ids=torch.tensor([ids])).logits[0].float(), dim=-1)
+    return float(sum(logprobs[j - 1, ids[j]] for j in range(start, len(ids))))
+
+
+CONTINUATIONS = [" self.informed_slot[slot]", " not self.informed_slot[slot]", " True", "\n"]
+
+
+@pytest.mark.parametrize("max_batch", [1, 2, 32])
+def test_scores_match_one_plain_forward_pass(tiny_model_dir: Path, max_batch: int) -> None:
+    model = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32",
+                                          max_batch=max_batch))
+    prefix = PREFIX + SUFFIXES[0]
+    expected = [reference_score(model, prefix, text) for text in CONTINUATIONS]
+    assert model.score(prefix, CONTINUATIONS) == pytest.approx(expected, abs=1e-3)
+    assert model.score("", ["def f(x", "class USER:\n"]) == pytest.approx(
+        [reference_score(model, "", "def f(x"), reference_score(model, "", "class USER:\n")], abs=1e-3
+    )
+
+
+def test_scoring_prefills_the_prefix_once(tiny: CodeModel) -> None:
+    """The prompt's prefix runs once whatever the number of continuations; each continuation runs once."""
+    prefix = PREFIX + "\n# a new prompt\n"
+    ids = [tiny.tokenizer(prefix + text)["input_ids"] for text in CONTINUATIONS]
+    shared = min(_common(tiny.tokenizer(prefix)["input_ids"], i) for i in ids) - 1
+    fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=2)
+    with _Counting(fresh) as counting:
+        fresh.score(prefix, CONTINUATIONS)
+    assert counting.prefilled == shared + sum(len(i) - shared for i in ids)
+
+
+def test_no_continuations_no_work(tiny: CodeModel) -> None:
+    assert tiny.score(PREFIX, []) == []
