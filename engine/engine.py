@@ -15,11 +15,20 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, TypeVar
 
-from engine import prompting
+from engine import judge, prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
-from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, explain, informative, rank, zero_shot
+from engine.ranking import (
+    ActionEvidence,
+    Candidate,
+    Cluster,
+    cluster,
+    explain,
+    informative,
+    rank,
+    zero_shot,
+)
 from engine.spec import Spec, as_error, check_preconditions, parse_source, parse_spec, render_program, resolve_actions
 from programs import checks
 from programs.history import render as render_history
@@ -200,6 +209,9 @@ class Engine:
         progress("rank", 0, 1)
         with timer.phase("rank"):
             ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
+        if request.options.judge:
+            with timer.phase("judge"):
+                ranked = self._judge(spec, actions, demos, trace, ranked, request.options.ranking)
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         with timer.phase("verify"):
             program, preconditions, dropped = self._verified_program(spec, chosen, demos)
@@ -274,6 +286,24 @@ class Engine:
             reasons = explain(criterion, valid, clusters, chosen, evidence, proposals.votes.get(action, {}))
             ranked[action] = Ranked(results, valid, clusters, chosen, reasons)
         return ranked
+
+    def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,
+               ranked: dict[str, Ranked], criterion: str) -> dict[str, Ranked]:
+        """Let the code model settle what the evidence left open (`engine.judge`), one question per action."""
+        questions = [q for a in actions if (q := _question(a, ranked[a], trace, criterion)) is not None]
+        if not questions:
+            return ranked
+        model = self.model()
+        rules = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
+        judged = dict(ranked)
+        for q in questions:
+            verdict = judge.decide(model, spec, actions, demos[0] if demos else "", rules, q)
+            r = ranked[q.action]
+            chosen = list(r.chosen) if q.kind == "phase" else []
+            chosen += [Cluster((c,)) for c in r.valid if c.expression == verdict.adopted][:1]
+            reasons = {**r.reasons, **{e: verdict.describe(e) for e in q.options if e in q.open}}
+            judged[q.action] = Ranked(r.results, r.valid, r.clusters, chosen, reasons)
+        return judged
 
     def _verified_program(
         self, spec: Spec, chosen: dict[str, list[str]], demos: list[str]
@@ -431,6 +461,20 @@ def _action_at(spec: Spec, demo: str, line: int, preconditions: dict[str, list[s
         if assertions and f".{spec.methods[action].name}(" in text:
             return action
     return None
+
+
+def _question(action: str, ranked: Ranked, trace: TraceResult, criterion: str) -> judge.Question | None:
+    """What the evidence left open for `action`, if anything: a rule for a zero-shot action, or a phase."""
+    if not trace.actions[action].occurrences:
+        # Never demonstrated: with parameters there are no points at all, so every valid candidate is an option.
+        vacuous = [c.representative.expression for c in ranked.clusters] or [c.expression for c in ranked.valid]
+        return judge.question(action, "zero-shot", vacuous, []) if vacuous else None
+    everything = [c.representative.expression for c in ranked.clusters]
+    if criterion != "recency":
+        return None
+    open_ = [c.representative.expression for c in ranked.clusters
+             if c not in ranked.chosen and not any(k.satisfied & ~c.satisfied == 0 for k in ranked.chosen)]
+    return judge.question(action, "phase", open_, everything) if open_ else None
 
 
 def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:

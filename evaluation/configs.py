@@ -4,7 +4,8 @@
 
     enumerate/subsumption            model+enumerate/recency/spp=4/dpp=2      model/recency/demos=4
 
-keys: `spp` samples per prompt, `ppa` prompts per action, `dpp` demonstrations per prompt, `seed`, and
+keys: `spp` samples per prompt, `ppa` prompts per action, `dpp` demonstrations per prompt, `seed`, `judge=1`
+(the code model settles what the evidence leaves open, engine/judge.py), and
 `demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
 `maxrate` = re-rank the same inference's valid candidates with evaluation/ranking_probe.py (a measurement of
 a ranking change, not an engine option).
@@ -21,7 +22,7 @@ from schemas.api import Generator, InferOptions, Ranking
 
 BASELINES = ("always", "gt")
 _KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
-         "seed": "seed"}
+         "seed": "seed", "judge": "judge"}
 DEMO_COUNTS = (1, 2, 4)
 
 GRIDS: dict[str, tuple[str, ...]] = {
@@ -57,7 +58,7 @@ class InferConfig:
 
     @property
     def uses_model(self) -> bool:
-        return "model" in self.generators
+        return "model" in self.generators or bool(self.options.get("judge"))
 
     def infer_options(self) -> InferOptions:
         return InferOptions(generators=list(self.generators), ranking=self.ranking, **self.options)  # type: ignore[arg-type]

@@ -66,6 +66,12 @@ class InferOptions(_Body):
         "argument conditions and conditions made true since the agent's previous turn; 'marginal' keeps "
         "conditions while they still exclude enough points.",
     )
+    judge: bool = Field(
+        default=False,
+        description="Let the code model settle what the demonstrations cannot: a rule for an action never "
+        "demonstrated, and whether a condition that only described the episode's phase is required. It scores "
+        "the validated candidates (never adopts anything unexecuted) and decides only when confident.",
+    )
     samples_per_prompt: int = Field(default=4, ge=1, le=64)
     prompts_per_action: int = Field(
         default=2, ge=1, le=MAX_DEMONSTRATIONS, description="How many demonstrations to vary across prompts."
