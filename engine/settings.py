@@ -58,6 +58,12 @@ class ModelSettings(BaseSettings):
         description="Where converted weights are kept. Unset: `$XDG_CACHE_HOME/precond` (`~/.cache/precond`).",
     )
     max_batch: int = Field(default=32, ge=1, description="Most sequences decoded in one forward pass.")
+    prefix_cache_tokens: int = Field(
+        default=32_768, ge=0,
+        description="Prompt prefixes whose key/value caches are kept for reuse, in tokens over all tenants (each "
+        "tenant reuses only its own; about 12 KB per token for the embedded 0.5B model in bfloat16, twice that in "
+        "float32; least recently used first).",
+    )
 
 
 _LIMITS = Limits()

@@ -21,7 +21,9 @@ from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
 from engine.engine import Engine
+from engine.scope import scoped
 from jobs.cache import ResultCache
+from jobs.keys import owner_of
 from jobs.records import Outcome, record_job, record_phase, write_progress
 from jobs.settings import WorkerSettings
 from schemas.api import (
@@ -93,12 +95,14 @@ def _operate(
 
 def _outcome(
     engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn,
-    max_response_bytes: int,
+    max_response_bytes: int, scope: str,
 ) -> tuple[Outcome, bool]:
     """A finished job's outcome, and whether a sandbox limit stopped it. A result larger than the bound is
-    refused here, before Redis stores it twice (result and cache) and a client has to read it."""
+    refused here, before Redis stores it twice (result and cache) and a client has to read it. The engine runs
+    in the job's tenant's cache scope (engine/scope.py): its model reuses only that tenant's prompt prefixes."""
     try:
-        result = _operate(engine, kind, body, progress, cancelled).model_dump(mode="json")
+        with scoped(scope):
+            result = _operate(engine, kind, body, progress, cancelled).model_dump(mode="json")
     except PrecondError as exc:
         error = ErrorInfo(type=exc.kind, message=exc.message, field=exc.field)
         return Outcome(status="failed", error=error), isinstance(exc, ResourceLimit)
@@ -122,7 +126,8 @@ async def run_operation(
     reporter = ProgressReporter(redis, job_id, kind, loop, settings.result_ttl_s)
     stop = threading.Event()
     future = loop.run_in_executor(
-        None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set, settings.max_response_bytes
+        None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set, settings.max_response_bytes,
+        owner_of(job_id) or job_id,
     )
     try:
         outcome, sandbox_limit = await asyncio.shield(future)

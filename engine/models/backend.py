@@ -4,7 +4,8 @@ Every precondition prompt of a domain shares a long prefix (observation function
 ~700 tokens) and differs only in a short suffix (the action's `def` ending in `assert`). So:
 
 * the prefix goes through the model once; its key/value cache is copied for every row, never recomputed,
-  and kept between calls so that per-action calls with the same prefix reuse it too;
+  and kept between calls so that later calls with the same prefix (per-action calls, a dialog's next turn)
+  reuse it too: kept per tenant (`engine.models.prefixes`), so no tenant's work speeds up or reveals another's;
 * the n samples of a suffix, and the rows of several suffixes, are decoded as one batch, refilled from the
   queue as rows finish (continuous batching) so the batch never drains to a few slow stragglers;
 * the suffixes' tails are left-padded *between* the shared prefix and the tail, so every row ends at the
@@ -30,6 +31,7 @@ import torch
 
 from engine.models.attention import use_grouped_attention
 from engine.models.kvcache import GrowingLayer, growing_cache
+from engine.models.prefixes import Prefix, PrefixStore
 from engine.models.stopping import StopRule, stop_index
 from engine.models.store import (
     EMBEDDED_NAME,
@@ -38,6 +40,7 @@ from engine.models.store import (
     embedded_model_dir,
     gguf_model_dir,
 )
+from engine.scope import current as current_scope
 from engine.settings import EMBEDDED, ModelSettings
 from schemas.api import ModelInfo
 from schemas.errors import Cancelled
@@ -75,14 +78,6 @@ class Sampling:
     @property
     def greedy(self) -> bool:
         return self.temperature <= 0
-
-
-@dataclass
-class _PrefixCache:
-    """The key/value cache of `tokens`, computed in PREFILL_CHUNK chunks from position 0."""
-
-    tokens: tuple[int, ...] = ()
-    cache: Any = None
 
 
 @dataclass
@@ -187,14 +182,15 @@ def sample_next(logits: torch.Tensor, sampling: Sampling, generator: torch.Gener
 class CodeModel:
     """A causal code model behind `complete`; one call at a time (the cache it keeps is not shareable)."""
 
-    def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 32) -> None:
+    def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 32,
+                 prefix_tokens: int = 32_768) -> None:
         self.model = model
         self.tokenizer = tokenizer
         self.info = info
         self.max_batch = max_batch
         self.device = next(model.parameters()).device
         self._stop_ids = self._end_token_ids()
-        self._prefix = _PrefixCache()
+        self._prefixes = PrefixStore(prefix_tokens)
         self._lock = threading.Lock()
 
     def _end_token_ids(self) -> frozenset[int]:
@@ -270,7 +266,7 @@ class CodeModel:
                                             prefix_cache)
         return scores
 
-    def _score_tails(self, tails: Sequence[Sequence[int]], starts: Sequence[int], prefix: _PrefixCache) -> list[float]:
+    def _score_tails(self, tails: Sequence[Sequence[int]], starts: Sequence[int], prefix: Prefix) -> list[float]:
         """Sum of log p(tail[j] | everything before) for j >= start, one right-padded forward pass."""
         shared = len(prefix.tokens)
         pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
@@ -308,13 +304,15 @@ class CodeModel:
         logits: torch.Tensor = out.logits[:, -1, :]
         return logits
 
-    def _prefix_cache(self, tokens: tuple[int, ...], should_stop: Callable[[], bool] | None = None) -> _PrefixCache:
-        """The cache of `tokens`, reusing the kept one up to the last chunk boundary both share."""
-        kept = self._prefix
-        if kept.cache is not None and kept.tokens == tokens:
+    def _prefix_cache(self, tokens: tuple[int, ...], should_stop: Callable[[], bool] | None = None) -> Prefix:
+        """The cache of `tokens`, reusing the closest one kept in this scope (`engine.scope`, the job's tenant)
+        up to the last chunk boundary both share."""
+        scope = current_scope()
+        kept, shared = self._prefixes.closest(scope, tokens)
+        if kept is not None and kept.tokens == tokens:
             return kept
-        reuse = _common_prefix_length(kept.tokens, tokens) // PREFILL_CHUNK * PREFILL_CHUNK
-        if reuse > 0 and kept.cache is not None:
+        reuse = shared // PREFILL_CHUNK * PREFILL_CHUNK
+        if reuse > 0 and kept is not None:
             cache = copy.deepcopy(kept.cache)
             if reuse < len(kept.tokens):
                 cache.crop(reuse - len(kept.tokens))
@@ -333,14 +331,15 @@ class CodeModel:
                 use_cache=True,
                 logits_to_keep=1,
             )
-        self._prefix = _PrefixCache(tokens=tokens, cache=cache)
-        return self._prefix
+        entry = Prefix(tokens=tokens, cache=cache)
+        self._prefixes.put(scope, entry)
+        return entry
 
     def _run(
         self,
         rows: Sequence[_Row],
         tails: Sequence[Sequence[int]],
-        prefix: _PrefixCache,
+        prefix: Prefix,
         sampling: Sampling,
         stop: StopRule,
         should_stop: Callable[[], bool] | None,
@@ -374,7 +373,7 @@ class CodeModel:
         self,
         rows: Sequence[_Row],
         tails: Sequence[Sequence[int]],
-        prefix: _PrefixCache,
+        prefix: Prefix,
         kept: _Tails | None,
         keep: bool,
     ) -> tuple[_Batch, _Tails | None]:
@@ -403,7 +402,7 @@ class CodeModel:
         source = torch.tensor([order.index(key) for key in keys], device=self.device)
         return _select(start, rows, source, keep), _Tails(order, start) if keep else None
 
-    def _prefill_tails(self, tails: Sequence[Sequence[int]], prefix: _PrefixCache) -> _Batch:
+    def _prefill_tails(self, tails: Sequence[Sequence[int]], prefix: Prefix) -> _Batch:
         """One row per tail: the prefix's cache copied, the tails run in one forward pass, left-padded."""
         shared = len(prefix.tokens)
         ids, tail_mask = self._left_pad(tails)
@@ -564,4 +563,4 @@ def load_code_model(settings: ModelSettings) -> CodeModel:
         use_grouped_attention(model)
     info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=_dtype_name(dtype), dtype_reason=reason)
     logger.info("loaded %s on %s (%s)", name, info.device, reason)
-    return CodeModel(model, tokenizer, info, max_batch=settings.max_batch)
+    return CodeModel(model, tokenizer, info, max_batch=settings.max_batch, prefix_tokens=settings.prefix_cache_tokens)

@@ -32,7 +32,8 @@ class ScriptedScorer:
 
 SPEC = parse_spec(
     "class A:\n    def __init__(self):\n        self.ready = False\n        self.done = False\n"
-    "    def go(self):\n        pass\n    def stop(self):\n        pass\n    def set(self):\n        self.ready = True\n"
+    "    def go(self):\n        pass\n    def stop(self):\n        pass\n"
+    "    def set(self):\n        self.ready = True\n"
 )
 ACTIONS = ["A.go", "A.stop"]
 

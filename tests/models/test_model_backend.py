@@ -8,7 +8,9 @@ import torch
 
 from engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
 from engine.models.backend import PREFILL_CHUNK, CodeModel, choose_dtype, cpu_dtype, cpu_flags
+from engine.models.prefixes import Prefix, PrefixStore
 from engine.models.stopping import StopRule, statement_end, stop_index
+from engine.scope import scoped
 
 PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12
 SUFFIXES = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert", "user = USER()\n"]
@@ -274,3 +276,40 @@ def test_scoring_prefills_the_prefix_once(tiny: CodeModel) -> None:
 
 def test_no_continuations_no_work(tiny: CodeModel) -> None:
     assert tiny.score(PREFIX, []) == []
+
+
+def test_a_tenant_never_reuses_another_tenants_prefix(tiny: CodeModel) -> None:
+    """The prompt-caching side channel: were B's identical prompt served from A's kept prefix, B's call would
+    prefill only its tail and answer faster, telling B that somebody sent that text. Each scope computes its
+    own; a scope's own later call reuses what it kept."""
+    prompt_tokens = len(tiny.tokenizer(PREFIX + SUFFIXES[0])["input_ids"])
+    fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
+    sampling = Sampling(temperature=0, max_new_tokens=4)
+    with scoped("tenant-a"):
+        first = fresh.complete(PREFIX, SUFFIXES[:1], 1, sampling, "line")
+    with scoped("tenant-b"), _Counting(fresh) as other:
+        assert fresh.complete(PREFIX, SUFFIXES[:1], 1, sampling, "line") == first
+    assert other.prefilled == prompt_tokens
+    with scoped("tenant-a"), _Counting(fresh) as same:
+        fresh.complete(PREFIX, SUFFIXES[:1], 1, sampling, "line")
+    assert same.prefilled < prompt_tokens - PREFILL_CHUNK
+
+
+def test_scores_are_scoped_too(tiny: CodeModel) -> None:
+    fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
+    with scoped("tenant-a"):
+        fresh.score(PREFIX, CONTINUATIONS)
+    with scoped("tenant-b"), _Counting(fresh) as other:
+        fresh.score(PREFIX, CONTINUATIONS)
+    assert other.prefilled >= len(tiny.tokenizer(PREFIX)["input_ids"]) - 1
+
+
+def test_kept_prefixes_are_bounded_in_tokens_least_recently_used_first() -> None:
+    store = PrefixStore(max_tokens=10)
+    store.put("a", Prefix(tokens=(1, 2, 3, 4)))
+    store.put("b", Prefix(tokens=(1, 2, 3, 5)))
+    assert store.closest("a", (1, 2, 3, 4, 9))[1] == 4  # a's own entry, now the most recent
+    store.put("c", Prefix(tokens=(7, 7, 7, 7)))  # 12 tokens > 10: b's entry, the least recent, goes
+    assert store.scopes() == {"a", "c"}
+    assert store.closest("b", (1, 2, 3, 5)) == (None, 0)
+    assert store.closest("c", (1, 2, 3, 4)) == (None, 0)  # never another scope's entry

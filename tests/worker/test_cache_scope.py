@@ -1,0 +1,31 @@
+"""A job runs in its tenant's cache scope, so the model reuses only that tenant's prompt prefixes."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from engine.scope import current
+from jobs.keys import job_id, owner_of, tenant_tag
+from schemas.api import CheckRequest, CheckResponse
+from worker.jobs import _outcome
+
+
+class SeesScope:
+    def __init__(self) -> None:
+        self.seen: list[str] = []
+
+    def check(self, request: CheckRequest) -> CheckResponse:
+        self.seen.append(current())
+        return CheckResponse(results=[])
+
+
+def test_the_engine_runs_in_the_jobs_tenant_scope_and_leaves_it_after() -> None:
+    engine = SeesScope()
+    body: dict[str, Any] = {"spec": "class A:\n    def go(self):\n        pass\n", "history": "a = A()\n",
+                            "calls": ["a.go()"]}
+    secret = b"s" * 32
+    ident = job_id("check", body, None, secret, "tenant-a")
+    outcome, _ = _outcome(engine, "check", body, lambda *a: None, lambda: False,  # type: ignore[arg-type]
+                          10**6, owner_of(ident) or ident)
+    assert outcome.status == "succeeded", outcome
+    assert engine.seen == [tenant_tag(secret, "tenant-a")] and current() == ""
