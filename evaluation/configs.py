@@ -30,7 +30,8 @@ GRIDS: dict[str, tuple[str, ...]] = {
     "enumerate": ("enumerate/subsumption", "enumerate/recency", "enumerate/marginal"),
     "enumerate-demos": tuple(f"enumerate/{r}/demos={n}"
                              for r in ("subsumption", "recency") for n in DEMO_COUNTS),
-    "model": ("model/subsumption", "model/recency", "model+enumerate/subsumption", "model+enumerate/recency"),
+    "model": ("model/subsumption", "model/recency", "model+enumerate/subsumption", "model+enumerate/recency",
+              "enumerate/recency/judge=1"),
     "probe": ("enumerate/recency/maxrate=0.9", "enumerate/subsumption/maxrate=0.9",
               "model+enumerate/recency/maxrate=0.9"),
     "model-ablation": ("model/recency/spp=2", "model/recency/spp=16", "model/recency/dpp=2",
