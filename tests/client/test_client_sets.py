@@ -60,6 +60,12 @@ def test_sets_round_trip_with_the_blocking_client(keyed: KeyedStack) -> None:
         verdicts = client.check_with_set(redone.reference, HISTORY.copy().user("REQUEST", "phone_number"),
                                          ["system.INFORM('phone_number')", "system.INFORM('cuisine')"])
         assert [v.allowed for v in verdicts.results] == [True, False]
+        # next-action with the set and events: a typed answer from the (tiny) model, verified against the set
+        predicted = client.next_action_with_set(
+            redone.reference, HISTORY, demonstrations=[DEMOS[0]],
+            options={"max_attempts": 1, "max_new_tokens": 8}, timeout=120,
+        )
+        assert len(predicted.actions) == 1 and predicted.actions[0].attempts >= 1
         with pytest.raises(InvalidInput) as bad:
             client.reinfer_set(made.id, [DEMOS[1], "user = USER(\n"], options=ENUMERATE)
         assert bad.value.field == "demonstrations[1]"
