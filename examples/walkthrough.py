@@ -1,5 +1,6 @@
 """The worked example of docs/writing-a-spec.md, end to end through the Python client:
-spec → demonstrations → infer → vet → check, as a dialog system would call it.
+spec → demonstrations → infer → vet → store and pin → check → re-infer with new demonstrations, as a dialog
+system would call it (events, never code strings, for what the user said).
 
     python examples/walkthrough.py --server http://127.0.0.1:8000 --api-key pk_...   # a running service
     python examples/walkthrough.py                                                    # a throwaway local stack
@@ -19,7 +20,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run from a checkout
 
-from precond_client import CheckRequest, Client, InferOptions, InferRequest, JobStatus
+from precond_client import Client, History, InferOptions, InferRequest, InvalidInput, JobStatus, rules
 
 # 1. The spec: observations (USER's methods, with bodies that record what happened in its attributes) and
 #    actions (SYSTEM's stubs, whose rules are unknown and will be inferred).
@@ -123,8 +124,8 @@ def walkthrough(client: Client) -> None:
         progress=progress,
     )
     print("inferred rules:")
-    for action, rules in inferred.preconditions.items():
-        print(f"  {action}: {rules}")
+    for action, found in inferred.preconditions.items():
+        print(f"  {action}: {found}")
     for action, warning in inferred.warnings.items():
         print(f"  warning {action}: {warning}")
     expect("self.user.informed_slot['author']" in inferred.preconditions["SYSTEM.FindBooks"],
@@ -134,15 +135,24 @@ def walkthrough(client: Client) -> None:
 
     # 4. Vet: the rules are yours to read, keep, edit or drop before they guard anything. Here: keep every
     #    rule of the actions the system must never get wrong, and nothing for the rest.
-    guarded = ("SYSTEM.FindBooks", "SYSTEM.BorrowBook", "SYSTEM.GOODBYE", "SYSTEM.INFORM")
+    guarded = ["SYSTEM.FindBooks", "SYSTEM.BorrowBook", "SYSTEM.GOODBYE", "SYSTEM.INFORM"]
     vetted = {action: inferred.preconditions[action] for action in guarded}
     print("vetted rules:", vetted)
 
-    # 5. Check, from the dialog system: before it acts, it asks whether its candidate calls are allowed
-    #    after the dialogue so far (no model, answered in milliseconds on its own queue).
-    history = START + "user.INFORM_INTENT('FindBooks')\nuser.REQUEST('branch')\n"
+    # 5. Store and pin: the vetted rules become version 1 of a stored set (checked against the demonstrations
+    #    on the server); the safety rule of BorrowBook is marked required, so no re-inference ever drops it.
+    stored = client.create_set({"spec": SPEC, "preconditions": vetted, "demonstrations": DEMONSTRATIONS})
+    pinned = client.edit_set(stored.id, [rules.require("SYSTEM.BorrowBook", "self.user.affirmed")],
+                             base_version=stored.version)
+    print(f"stored {stored.reference}, pinned {pinned.reference}: required {pinned.required}")
+    expect(pinned.validation is not None and not pinned.validation.blocked, "the vetted rules allow every demo")
+
+    # 6. Check, from the dialog system: before it acts, it asks whether its candidate calls are allowed after
+    #    the dialogue so far, naming the set and sending the dialogue as events (what the user typed is only
+    #    ever an argument: a literal, never code). No model, answered in milliseconds on its own queue.
+    history = History().user("INFORM_INTENT", "FindBooks").user("REQUEST", "branch")
     calls = ["system.FindBooks()", "system.REQUEST('author')", "system.INFORM('branch')", "system.GOODBYE()"]
-    verdicts = client.check_actions(CheckRequest(spec=SPEC, preconditions=vetted, history=history, calls=calls))
+    verdicts = client.check_with_set(pinned.reference, history, calls)
     allowed = {v.call: v.allowed for v in verdicts.results}
     for verdict in verdicts.results:
         print(f"  {verdict.call}: {'allowed' if verdict.allowed else 'refused ' + str(verdict.violations)}")
@@ -150,6 +160,52 @@ def walkthrough(client: Client) -> None:
     expect(allowed["system.REQUEST('author')"], "asking for the author is allowed")
     expect(allowed["system.INFORM('branch')"], "answering the user's question is allowed")
     expect(not allowed["system.GOODBYE()"], "GOODBYE before the user is done is refused")
+    odd = History().user("INFORM_INTENT", "FindBooks").user("REQUEST", "branch'); import os; ('")
+    expect(client.check_with_set(pinned.reference, odd, ["system.GOODBYE()"]).results[0].error is None,
+           "a quote in what the user said is data, not code")
+
+    # 7. Re-infer with new demonstrations: the new version keeps the required rule, and its `diff` says what
+    #    was added, removed (and why), kept. A demonstration that breaks a required rule is refused.
+    # A user who asks to borrow a book by an author: the system searches without a FindBooks intent, so
+    # "FindBooks needs the FindBooks intent" no longer holds and goes, with the reason in the diff.
+    new = START + """\
+user.INFORM_INTENT('BorrowBook')
+user.INFORM('author')
+system.FindBooks()
+system.set_query_status(True)
+system.OFFER('title')
+system.CONFIRM('title')
+user.AFFIRM()
+system.BorrowBook()
+system.set_query_status(True)
+system.NOTIFY_SUCCESS()
+user.GOODBYE()
+system.GOODBYE()
+"""
+    redone = client.reinfer_set(pinned.id, [new], actions=guarded, options=InferOptions(generators=["enumerate"]),
+                                base_version=pinned.version, progress=progress)
+    diff = redone.diff
+    expect(diff is not None, "a re-inferred version carries its diff")
+    assert diff is not None
+    print(f"re-inferred {redone.reference} from version {diff.base_version} with {diff.new_demonstrations} new "
+          "demonstration(s):")
+    for part in ("added", "removed", "kept", "required_kept"):
+        for change in getattr(diff, part):
+            print(f"  {part}: {change.action}: {change.rule}  ({change.reason})")
+    expect("self.user.affirmed" in redone.preconditions["SYSTEM.BorrowBook"], "the required rule is kept")
+    gone = {(c.action, c.rule): c.reason or "" for c in diff.removed}
+    expect("violated at" in gone.get(("SYSTEM.FindBooks", "self.user.informed_intent['FindBooks']"), ""),
+           "the rule the new demonstration refutes is removed, saying where")
+    expect(len(redone.demonstrations) == len(DEMONSTRATIONS) + 1, "the new version stores every demonstration")
+    rash = START + "user.INFORM_INTENT('BorrowBook')\nsystem.BorrowBook()\n"
+    try:
+        client.reinfer_set(pinned.id, [rash], actions=guarded, options=InferOptions(generators=["enumerate"]))
+    except InvalidInput as refused:
+        print(f"refused: {refused.field}: {refused.message}")
+        expect(refused.type == "blocks_demonstration" and refused.field == "demonstrations[0]",
+               "a demonstration that breaks a required rule is refused, naming it")
+    else:
+        expect(False, "a demonstration that breaks a required rule is refused")
     print("walkthrough: ok")
 
 

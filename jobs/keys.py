@@ -31,6 +31,7 @@ QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
     "next-action": MODEL_QUEUE,
     "check": CHECK_QUEUE,
     "validate": CHECK_QUEUE,
+    "reinfer": MODEL_QUEUE,
 }
 """The queue of each kind's model jobs; see `queue_for` for the routing by cost."""
 QUEUES_BY_KIND: Final[dict[JobKind, tuple[str, ...]]] = {
@@ -38,6 +39,7 @@ QUEUES_BY_KIND: Final[dict[JobKind, tuple[str, ...]]] = {
     "next-action": (MODEL_QUEUE,),
     "check": (CHECK_QUEUE,),
     "validate": (CHECK_QUEUE,),
+    "reinfer": (MODEL_QUEUE, MODEL_FREE_QUEUE),
 }
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
@@ -49,7 +51,7 @@ UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 """Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 
-_JOB_ID = re.compile(r"^(infer|next-action|check|validate)-([0-9a-f]{16})-[0-9a-f]{48}$")
+_JOB_ID = re.compile(r"^(infer|next-action|check|validate|reinfer)-([0-9a-f]{16})-[0-9a-f]{48}$")
 SHARED: Final = "shared"
 
 
@@ -73,7 +75,7 @@ def worker_key(worker_id: str) -> str:
 def queue_for(kind: JobKind, body: dict[str, Any]) -> str:
     """Route by cost: an inference that uses no model goes to the model-free queue, so it never waits for a
     model job (minutes); everything else to its kind's queue."""
-    if kind == "infer" and "model" not in body.get("options", {}).get("generators", ["model"]):
+    if kind in ("infer", "reinfer") and "model" not in body.get("options", {}).get("generators", ["model"]):
         return MODEL_FREE_QUEUE
     return QUEUE_BY_KIND[kind]
 

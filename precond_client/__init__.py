@@ -4,10 +4,12 @@ Light on purpose: it needs httpx and pydantic and this project's `schemas` (the 
 pydantic only), never torch, transformers or fastapi. Install it alone: README.md, "Python client".
 """
 
+from precond_client import rules
 from precond_client._core import Polling, Progress, Retry, RetryHook
 from precond_client.aio import AsyncClient
 from precond_client.errors import (
     Cancelled,
+    Conflict,
     InvalidInput,
     JobTimeout,
     NotFound,
@@ -16,11 +18,13 @@ from precond_client.errors import (
     Unauthorized,
     Unavailable,
 )
+from precond_client.history import History, event
 from precond_client.sync import Client
 from schemas.api import (
     CallVerdict,
     CheckRequest,
     CheckResponse,
+    HistoryEvent,
     InferOptions,
     InferRequest,
     InferResponse,
@@ -29,7 +33,12 @@ from schemas.api import (
     NextActionOptions,
     NextActionRequest,
     NextActionResponse,
+    PreconditionSet,
+    PreconditionSetCreate,
     PredictedAction,
+    RuleChange,
+    RuleEdit,
+    SetDiff,
 )
 
 __all__ = [
@@ -39,6 +48,9 @@ __all__ = [
     "CheckRequest",
     "CheckResponse",
     "Client",
+    "Conflict",
+    "History",
+    "HistoryEvent",
     "InferOptions",
     "InferRequest",
     "InferResponse",
@@ -52,11 +64,18 @@ __all__ = [
     "NotFound",
     "Polling",
     "PrecondError",
+    "PreconditionSet",
+    "PreconditionSetCreate",
     "PredictedAction",
     "Progress",
     "RateLimited",
     "Retry",
     "RetryHook",
+    "RuleChange",
+    "RuleEdit",
+    "SetDiff",
     "Unauthorized",
     "Unavailable",
+    "event",
+    "rules",
 ]

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import json
 import random
-from collections.abc import Callable, Mapping
+import re
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -16,28 +17,38 @@ from precond_client.errors import (
     ERROR_BY_JOB_TYPE,
     ERROR_BY_STATUS,
     Cancelled,
+    Conflict,
     InvalidInput,
     PrecondError,
     RateLimited,
     Unavailable,
 )
 from schemas.api import (
+    SET_REFERENCE,
     CheckRequest,
     CheckResponse,
     ErrorInfo,
+    HistoryEvent,
+    InferOptions,
     InferRequest,
     InferResponse,
     JobKind,
     JobProgress,
     JobStatus,
+    NextActionOptions,
     NextActionRequest,
     NextActionResponse,
+    PreconditionSet,
+    PreconditionSetEdit,
+    PreconditionSetReinfer,
+    RuleEdit,
 )
 
 Progress = Callable[[JobStatus], object]
 """Called with the job's status (its `progress`: phase, done, total) on the 202 and on every poll."""
 
 RETRY_STATUSES = frozenset({429, 503})
+SET_REFERENCE_RE = re.compile(SET_REFERENCE)
 Req = TypeVar("Req", bound=BaseModel)
 
 
@@ -55,6 +66,7 @@ OPERATIONS: dict[type[BaseModel], Operation] = {
     CheckRequest: Operation("check", "/check-actions", CheckRequest, CheckResponse),
 }
 RESPONSES: dict[JobKind, type[BaseModel]] = {op.kind: op.response for op in OPERATIONS.values()}
+RESPONSES["reinfer"] = PreconditionSet
 
 
 @dataclass(frozen=True)
@@ -90,6 +102,11 @@ def headers(api_key: str | None) -> dict[str, str]:
 
 def operation(request: BaseModel | Mapping[str, Any], expected: type[Req]) -> tuple[Req, Operation]:
     """The request as its model (a mapping is validated here: a bad field is `InvalidInput` before sending)."""
+    return validated(request, expected), OPERATIONS[expected]
+
+
+def validated(request: BaseModel | Mapping[str, Any], expected: type[Req]) -> Req:
+    """A request model as is, or a mapping validated into one (a bad field: `InvalidInput`, nothing sent)."""
     if isinstance(request, BaseModel):
         if not isinstance(request, expected):
             raise TypeError(f"expected {expected.__name__}, got {type(request).__name__}")
@@ -101,7 +118,21 @@ def operation(request: BaseModel | Mapping[str, Any], expected: type[Req]) -> tu
             first = exc.errors()[0]
             field = ".".join(str(p) for p in first["loc"]) or "body"
             raise InvalidInput(first["msg"], type="invalid_input", field=field) from None
-    return body, OPERATIONS[expected]
+    return body
+
+
+def set_path(reference: str, suffix: str = "") -> str:
+    """`/precondition-sets/{reference}{suffix}`, the reference checked so it can never leave that path."""
+    if not SET_REFERENCE_RE.match(reference):
+        raise InvalidInput(f"not a precondition set reference: {reference[:80]!r} (expected ps_<24 hex>[@n])",
+                           type="invalid_input", field="precondition_set")
+    return f"/precondition-sets/{reference}{suffix}"
+
+
+def set_body(model: BaseModel) -> dict[str, Any]:
+    """A set request's JSON: only the fields given, so the server's defaults stay the server's."""
+    body: dict[str, Any] = model.model_dump(mode="json", exclude_unset=True)
+    return body
 
 
 def retry_after(response: httpx.Response) -> float | None:
@@ -124,6 +155,8 @@ def error_from_response(response: httpx.Response) -> PrecondError:
         pass
     message = str(info.get("message") or response.text[:500] or response.reason_phrase)
     cls = ERROR_BY_STATUS.get(response.status_code, PrecondError)
+    if response.status_code == 409 and info.get("type") == "conflict":
+        cls = Conflict
     common: dict[str, Any] = {
         "status": response.status_code,
         "type": info.get("type"),
@@ -184,3 +217,43 @@ class Polling:
 
     def interval(self, polls: int) -> float:
         return float(min(self.max_s, self.first_s * self.factor**polls))
+
+
+HistoryLike = str | Iterable[HistoryEvent | Mapping[str, Any]]
+"""A history: a program (power users), or events (`History`, `event(...)`s, or dicts of the same shape)."""
+
+
+def history(value: HistoryLike) -> str | list[HistoryEvent]:
+    if isinstance(value, str):
+        return value
+    return [item if isinstance(item, HistoryEvent) else validated(item, HistoryEvent) for item in value]
+
+
+def edit_body(edits: Iterable[RuleEdit | Mapping[str, Any]], base_version: int | None, force: bool) -> dict[str, Any]:
+    body = PreconditionSetEdit(edits=[validated(e, RuleEdit) for e in edits], base_version=base_version, force=force)
+    return set_body(body)
+
+
+def reinfer_body(demonstrations: Iterable[str], actions: Iterable[str] | None,
+                 options: InferOptions | Mapping[str, Any] | None, base_version: int | None,
+                 force: bool) -> dict[str, Any]:
+    fields: dict[str, Any] = {"demonstrations": list(demonstrations), "base_version": base_version, "force": force}
+    if actions is not None:
+        fields["actions"] = list(actions)
+    if options is not None:
+        fields["options"] = validated(options, InferOptions)
+    return set_body(validated(fields, PreconditionSetReinfer))
+
+
+def check_body(precondition_set: str, history_: HistoryLike, calls: Iterable[str]) -> CheckRequest:
+    return validated({"precondition_set": precondition_set, "history": history(history_), "calls": list(calls)},
+                     CheckRequest)
+
+
+def next_action_body(precondition_set: str, history_: HistoryLike, demonstrations: Iterable[str],
+                     options: NextActionOptions | Mapping[str, Any] | None) -> NextActionRequest:
+    fields: dict[str, Any] = {"precondition_set": precondition_set, "history": history(history_),
+                              "demonstrations": list(demonstrations)}
+    if options is not None:
+        fields["options"] = validated(options, NextActionOptions)
+    return validated(fields, NextActionRequest)

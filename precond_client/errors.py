@@ -49,6 +49,11 @@ class Cancelled(PrecondError):
     """HTTP 409 / job status `cancelled`: the job was cancelled."""
 
 
+class Conflict(PrecondError):
+    """HTTP 409 with type `conflict`: the precondition set has a newer version than the one you edited or
+    re-inferred from (`base_version`); read the latest and try again."""
+
+
 class RateLimited(PrecondError):
     """HTTP 429 after the last retry: `limit` is the limit's type (`rate_limited`, `jobs_limited`,
     `queue_full`), `retry_after` the seconds the gateway asked to wait (None when it said nothing)."""
@@ -93,5 +98,8 @@ ERROR_BY_JOB_TYPE: dict[str, type[PrecondError]] = {
     "sandbox_failure": Unavailable,
     "unavailable": Unavailable,
     "cancelled": Cancelled,
+    "conflict": Conflict,
+    "blocks_demonstration": InvalidInput,
+    "sets_limited": InvalidInput,
 }
 """A failed job's `error.type` (GET /jobs/{id}) → the class its POST would have raised."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from types import TracebackType
 from typing import Any
 
@@ -15,11 +15,16 @@ from precond_client.errors import JobTimeout, PrecondError
 from schemas.api import (
     CheckRequest,
     CheckResponse,
+    InferOptions,
     InferRequest,
     InferResponse,
     JobStatus,
+    NextActionOptions,
     NextActionRequest,
     NextActionResponse,
+    PreconditionSet,
+    PreconditionSetCreate,
+    RuleEdit,
 )
 
 RequestLike = BaseModel | Mapping[str, Any]
@@ -77,6 +82,63 @@ class Client:
     ) -> CheckResponse:
         body, _ = _core.operation(request, CheckRequest)
         return self._follow(body, CheckResponse, wait, progress, timeout)
+
+    # precondition sets and structured histories -------------------------------------------------------------
+
+    def create_set(self, request: PreconditionSetCreate | Mapping[str, Any]) -> PreconditionSet:
+        """Store rules as version 1 of a new set (`spec`, `preconditions`, `demonstrations`; an inference's
+        `preconditions` as returned). A rule that blocks a demonstrated call is `InvalidInput` (type
+        `blocks_demonstration`) unless `force`."""
+        body = _core.set_body(_core.validated(request, PreconditionSetCreate))
+        answer = self._send("POST", "/precondition-sets", json=body)
+        return PreconditionSet.model_validate(answer.json())
+
+    def get_set(self, reference: str) -> PreconditionSet:
+        """A set's latest version (`id`) or a given one (`id@version`); `NotFound` for none of yours."""
+        return PreconditionSet.model_validate((self._send("GET", _core.set_path(reference))).json())
+
+    def edit_set(
+        self, set_id: str, edits: Iterable[RuleEdit | Mapping[str, Any]], *, base_version: int | None = None,
+        force: bool = False,
+    ) -> PreconditionSet:
+        """A new version by edits (`precond_client.rules`: `add`, `remove`, `require`, `reject`); `Conflict` when
+        `base_version` is no longer the latest, `InvalidInput` (`blocks_demonstration`) unless `force`."""
+        body = _core.edit_body(edits, base_version, force)
+        answer = self._send("POST", _core.set_path(set_id, "/versions"), json=body)
+        return PreconditionSet.model_validate(answer.json())
+
+    def reinfer_set(
+        self, set_id: str, demonstrations: Iterable[str], *, actions: Iterable[str] | None = None,
+        options: InferOptions | Mapping[str, Any] | None = None,
+        base_version: int | None = None, force: bool = False, wait: float | None = None,
+        progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> PreconditionSet:
+        """Re-infer the set from its demonstrations and these (a job, followed like every operation): the new
+        version keeps required rules, never brings back rejected ones, and carries `diff` against its base.
+        `InvalidInput` (`blocks_demonstration`, `field` naming `demonstrations[i]`) when a new demonstration
+        breaks a required rule, unless `force`; `Conflict` when the set got a newer version meanwhile."""
+        body = _core.reinfer_body(demonstrations, actions, options, base_version, force)
+        params = {} if wait is None else {"wait": wait}
+        answer = self._send("POST", _core.set_path(set_id, "/reinfer"), json=body, params=params)
+        status = self._poll(_core.submitted(answer, "reinfer"), progress, timeout)
+        return _core.result(status, PreconditionSet)
+
+    def check_with_set(
+        self, precondition_set: str, history: _core.HistoryLike, calls: Iterable[str], *, wait: float | None = None,
+        progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> CheckResponse:
+        """`check_actions` with a stored set (`id` or `id@version`) and a history of events (`History`)."""
+        body = _core.check_body(precondition_set, history, calls)
+        return self.check_actions(body, wait=wait, progress=progress, timeout=timeout)
+
+    def next_action_with_set(
+        self, precondition_set: str, history: _core.HistoryLike, *, demonstrations: Iterable[str] = (),
+        options: NextActionOptions | Mapping[str, Any] | None = None, wait: float | None = None,
+        progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> NextActionResponse:
+        """`next_action` with a stored set and a history of events."""
+        body = _core.next_action_body(precondition_set, history, demonstrations, options)
+        return self.next_action(body, wait=wait, progress=progress, timeout=timeout)
 
     def submit(self, request: BaseModel, *, wait: float | None = 0) -> JobStatus:
         """Send a request (a request model) without following it: its job's status (`succeeded` with the

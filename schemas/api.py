@@ -376,6 +376,61 @@ class PreconditionSetEdit(_Body):
     force: bool = Field(default=False, description="Store even when a rule blocks a demonstrated call.")
 
 
+class PreconditionSetReinfer(_Body):
+    demonstrations: list[str] = Field(
+        min_length=1, max_length=MAX_DEMONSTRATIONS,
+        description="New demonstrations (programs over the set's spec). Inference runs on the set's stored "
+        "demonstrations and these; the new version stores both (duplicates once).",
+    )
+    actions: list[str] | None = Field(
+        default=None, max_length=256,
+        description="Actions (`Class.method`) to re-infer; default: every stub method of the spec. The rules of "
+        "the others stay as they are.",
+    )
+    options: InferOptions = Field(default_factory=InferOptions, description="How candidates are made and ranked.")
+    base_version: int | None = Field(
+        default=None, ge=1, description="The version to re-infer from; 409 when it is no longer the latest."
+    )
+    force: bool = Field(default=False, description="Store even when a new demonstration breaks a required rule "
+                        "(the rule is kept; `validation` reports what it blocks).")
+
+
+class RuleChange(_Body):
+    action: str
+    rule: str
+    reason: str | None = Field(default=None, description="Why: the candidate's reason from the inference, or why "
+                               "a rule of the base version is gone.")
+
+
+class SetDiff(_Body):
+    """What a re-inference changed, against the version it started from."""
+
+    base_version: int
+    added: list[RuleChange] = Field(default_factory=list, description="Inferred now, not in the base version.")
+    removed: list[RuleChange] = Field(
+        default_factory=list, description="In the base version, gone now, each with the reason it was dropped.")
+    kept: list[RuleChange] = Field(default_factory=list, description="In both, inferred again.")
+    required_kept: list[RuleChange] = Field(
+        default_factory=list, description="Marked required: kept whatever the inference says.")
+    rejected_suppressed: list[RuleChange] = Field(
+        default_factory=list, description="Inferred again, but marked rejected: left out.")
+    new_demonstrations: int = Field(default=0, description="Demonstrations added by this re-inference.")
+
+
+class ReinferJob(_Body):
+    """A worker job (kind `reinfer`): infer on the base version's spec with its stored demonstrations and the
+    new ones, merge with its required and rejected rules, validate, and store the result as the next version
+    (the gateway resolved the base; the worker appends only if it is still the latest)."""
+
+    base: PreconditionSet
+    demonstrations: list[str] = Field(min_length=1, max_length=MAX_DEMONSTRATIONS)
+    actions: list[str] | None = None
+    options: InferOptions = Field(default_factory=InferOptions)
+    force: bool = False
+    max_versions: int = Field(ge=1)
+    max_bytes: int = Field(ge=1)
+
+
 class PreconditionSet(_Body):
     id: str
     version: int = Field(description="This version; versions are immutable.")
@@ -391,9 +446,13 @@ class PreconditionSet(_Body):
     validation: ValidateResponse | None = Field(
         default=None, description="Rules checked against the demonstrations: what they block (kept only with force)."
     )
+    diff: SetDiff | None = Field(
+        default=None, description="For a version made by re-inference: what changed against its base version.")
+    warnings: dict[str, str] = Field(
+        default_factory=dict, description="For a version made by re-inference: the inference's warnings per action.")
 
 
-JobKind = Literal["infer", "next-action", "check", "validate"]
+JobKind = Literal["infer", "next-action", "check", "validate", "reinfer"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
@@ -421,3 +480,5 @@ class JobStatus(_Body):
     progress: JobProgress = Field(default_factory=JobProgress)
     result: dict[str, Any] | None = None
     error: ErrorInfo | None = None
+
+ReinferJob.model_rebuild()

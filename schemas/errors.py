@@ -32,6 +32,24 @@ class ResponseTooLarge(InvalidInput):
     kind = "response_too_large"
 
 
+class BlocksDemonstration(InvalidInput):
+    """A rule would have refused a demonstrated call (an edit, or a required rule under new demonstrations)."""
+
+    kind = "blocks_demonstration"
+
+
+class SetsLimited(InvalidInput):
+    """A precondition set at one of its bounds (`PRECOND_MAX_SET_VERSIONS`, `PRECOND_MAX_SET_BYTES`)."""
+
+    kind = "sets_limited"
+
+
+class Conflict(PrecondError):
+    """The precondition set got a new version since the one this job started from (HTTP 409)."""
+
+    kind = "conflict"
+
+
 class UnknownAction(InvalidInput):
     kind = "unknown_action"
 

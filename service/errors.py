@@ -77,6 +77,8 @@ def status_for(info: ErrorInfo) -> int:
         if cls.kind == info.type:
             if issubclass(cls, engine_errors.ModelUnavailable | engine_errors.SandboxFailure):
                 return 503
+            if issubclass(cls, engine_errors.Conflict):
+                return 409
             if issubclass(cls, engine_errors.InvalidInput | engine_errors.ResourceLimit):
                 return 422
     return 500

@@ -5,8 +5,8 @@ and is bounded instead: `PRECOND_MAX_SETS_PER_TENANT` sets, `PRECOND_MAX_SET_VER
 `PRECOND_MAX_SET_BYTES` per version. Keys carry the tenant's tag, so another tenant's set is simply not
 there: the same 404 as a set that never existed, without any lookup of owners.
 
-    precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
-    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten)
+Keys, the atomic scripts and the merge of a re-inference live in `jobs/sets.py`: a worker appends the version
+a re-inference makes.
 """
 
 from __future__ import annotations
@@ -18,38 +18,11 @@ from typing import Any
 
 from arq.connections import ArqRedis
 
-from jobs.keys import PREFIX
+from jobs.sets import APPEND_CONFLICT, APPEND_MISSING, CREATE_SCRIPT, append, index_key, set_key
 from schemas.api import PreconditionSet, RuleEdit, ValidateResponse
 from service.errors import ServiceError
 
 _REFERENCE = re.compile(r"^(ps_[0-9a-f]{24})(?:@([1-9][0-9]{0,8}))?$")
-
-_CREATE = """
-if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
-redis.call('sadd', KEYS[1], ARGV[1])
-redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3])
-return 1
-"""
-"""Create a set with its version 1 unless the tenant is at its bound: count and write in one step."""
-
-_APPEND = """
-local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
-if latest == 0 then return -1 end
-if latest ~= tonumber(ARGV[1]) then return -2 end
-if latest >= tonumber(ARGV[2]) then return -3 end
-redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3])
-return latest + 1
-"""
-"""Append version latest+1, only if `latest` is still the version the edits were made on."""
-
-
-def index_key(tag: str) -> str:
-    return f"{PREFIX}:sets:{tag}"
-
-
-def set_key(tag: str, set_id: str) -> str:
-    return f"{PREFIX}:set:{tag}:{set_id}"
-
 
 def not_found(reference: str) -> ServiceError:
     return ServiceError(404, f"no precondition set {reference[:80]}")
@@ -77,7 +50,7 @@ class SetStore:
     async def create(self, tag: str, version: PreconditionSet) -> PreconditionSet:
         record = self._record(version)
         made = await self.redis.eval(  # type: ignore[no-untyped-call]
-            _CREATE, 2, index_key(tag), set_key(tag, version.id), version.id, self.max_sets, record
+            CREATE_SCRIPT, 2, index_key(tag), set_key(tag, version.id), version.id, self.max_sets, record
         )
         if not made:
             raise ServiceError(422, f"this tenant stores {self.max_sets} precondition sets already, the bound "
@@ -86,15 +59,13 @@ class SetStore:
 
     async def append(self, tag: str, version: PreconditionSet) -> PreconditionSet:
         record = self._record(version)
-        answer = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _APPEND, 1, set_key(tag, version.id), version.version - 1, self.max_versions, record
-        ))
-        if answer == -1:
+        answer = await append(self.redis, tag, version, record, self.max_versions)
+        if answer == APPEND_MISSING:
             raise not_found(version.id)
-        if answer == -2:
+        if answer == APPEND_CONFLICT:
             raise ServiceError(409, f"precondition set {version.id} got a new version meanwhile: read the latest "
                                "and edit again", "conflict")
-        if answer == -3:
+        if answer < 0:
             raise ServiceError(422, f"precondition set {version.id} has {self.max_versions} versions, the bound "
                                "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version", "sets_limited")
         return version.model_copy(update={"latest": answer})

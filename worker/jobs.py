@@ -33,9 +33,12 @@ from schemas.api import (
     JobKind,
     JobProgress,
     NextActionRequest,
+    PreconditionSet,
+    ReinferJob,
     ValidateRequest,
 )
 from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
+from worker.reinfer import reinfer, store
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
@@ -90,6 +93,8 @@ def _operate(
         return engine.next_action(NextActionRequest.model_validate(body), progress, cancelled)
     if kind == "validate":
         return engine.validate(ValidateRequest.model_validate(body))
+    if kind == "reinfer":
+        return reinfer(engine, ReinferJob.model_validate(body), progress, cancelled)
     return engine.check(CheckRequest.model_validate(body))
 
 
@@ -112,6 +117,16 @@ def _outcome(
                    "ask for fewer calls, actions or candidates")
         return Outcome(status="failed", error=ErrorInfo(type=ResponseTooLarge.kind, message=message)), False
     return Outcome(status="succeeded", result=result), False
+
+
+async def _store_version(redis: Redis[bytes], job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+    """A re-inference's version, stored (the set's next version) or refused (conflict, bounds): its outcome."""
+    try:
+        stored = await store(redis, owner_of(job_id) or "", ReinferJob.model_validate(body),
+                             PreconditionSet.model_validate(result))
+    except PrecondError as exc:
+        return Outcome(status="failed", error=ErrorInfo(type=exc.kind, message=exc.message, field=exc.field))
+    return Outcome(status="succeeded", result=stored.model_dump(mode="json"))
 
 
 async def run_operation(
@@ -137,6 +152,8 @@ async def run_operation(
         raise
     finally:
         reporter.finish_phase()
+    if kind == "reinfer" and outcome.result is not None:
+        outcome = await _store_version(redis, job_id, body, outcome.result)
     # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.

@@ -67,7 +67,7 @@ async def infer_preconditions(
     action no demonstration calls is listed in `warnings` ("no occurrence"), never a silent empty rule.
     `generators: ["enumerate"]` runs on the model-free queue, never behind model jobs."""
     model = keys.model_identity() if "model" in body.options.generators else None
-    return await _answer(services, request, tenant, "infer", body, model, wait)
+    return await answer(services, request, tenant, "infer", body, model, wait)
 
 
 @router.post("/next-action", response_model=NextActionResponse, responses=ERRORS)
@@ -81,7 +81,7 @@ async def next_action(
     """The next action(s), verified against the preconditions (the paper's Algorithm 1). A call is always a
     call of an action; when no attempt passes, `call` is null with every attempt in `rejected`, unless
     `options.fallback` is "greedy"."""
-    return await _answer(services, request, tenant, "next-action", body, keys.model_identity(), wait)
+    return await answer(services, request, tenant, "next-action", body, keys.model_identity(), wait)
 
 
 @router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
@@ -95,7 +95,7 @@ async def check_actions(
     """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
     ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
     and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
-    return await _answer(services, request, tenant, "check", body, None, wait)
+    return await answer(services, request, tenant, "check", body, None, wait)
 
 
 INLINE_CHECK_CHARS = 100_000
@@ -147,7 +147,7 @@ def _program_chars(body: BaseModel) -> int:
     return sum(len(text) for text in texts)
 
 
-async def _answer(
+async def answer(
     services: Services,
     request: Request,
     tenant: str,
@@ -167,7 +167,8 @@ async def _answer(
         body = prepared
     payload = body.model_dump(mode="json")
     job_id = keys.job_id(kind, payload, model, services.secret, tenant)
-    cache_key = keys.cache_id(kind, payload, model, services.secret) if settings.share_cache else job_id
+    shared = settings.share_cache and kind != "reinfer"  # a re-inference stores a version: never another tenant's
+    cache_key = keys.cache_id(kind, payload, model, services.secret) if shared else job_id
     cached = await services.cache.get(cache_key)
     services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
     if cached is not None:  # only a request that passed the checks below and ran has a cached result

@@ -5,17 +5,21 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter, Path, Request
+from fastapi.responses import JSONResponse, Response
 
 from jobs import keys
+from jobs.sets import union
 from programs import checks
 from schemas.api import (
+    MAX_DEMONSTRATIONS,
     ErrorInfo,
     ErrorResponse,
     PreconditionSet,
     PreconditionSetCreate,
     PreconditionSetEdit,
+    PreconditionSetReinfer,
+    ReinferJob,
     ValidateRequest,
     ValidateResponse,
 )
@@ -23,6 +27,7 @@ from service.auth import Tenant
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
+from service.routes.operations import ERRORS, Wait, answer
 from service.sets import apply_edits, blocking_message, new_id, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
@@ -91,6 +96,56 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
                          body.edits, validation)
     stored = await services.sets.append(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
+
+
+REINFER_RESPONSES: dict[int | str, dict[str, Any]] = {
+    **RESPONSES, 202: ERRORS[202],
+    409: {"model": ErrorResponse, "description": "`base_version` is not the latest version, or the set got a new "
+          "version while the re-inference ran (`conflict`)."},
+    422: {"model": ErrorResponse, "description": "Malformed body or demonstration (field names it, e.g. "
+          "`demonstrations[2]`), a new demonstration that a required rule would block (`blocks_demonstration`, "
+          "unless `force`), over a bound (`sets_limited`, `work_budget`)."},
+    429: ERRORS[429], 503: ERRORS[503],
+}
+
+
+@router.post("/{set_id}/reinfer", response_model=PreconditionSet, responses=REINFER_RESPONSES)
+async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Request, services: ServicesDep,
+                      tenant: Tenant, wait: Wait = None) -> Response:
+    """Re-infer the set's rules from its stored demonstrations and new ones (a job, like `/infer-preconditions`:
+    200 with the new version when done within `wait`, else 202 and `/jobs/{id}`). The new version keeps every
+    rule marked *required* (refused, 422 naming the new demonstration and line, when a new demonstration breaks
+    one, unless `force`), never brings back a rule marked *rejected*, stores the union of the demonstrations,
+    and carries `diff` against its base: rules `added`, `removed` (each with why it was dropped), `kept`,
+    `required_kept`, `rejected_suppressed`."""
+    tag = _tag(services, tenant)
+    if "@" in set_id:
+        raise ServiceError(404, f"no precondition set {set_id[:80]}")
+    base = await services.sets.get(tag, set_id)
+    if body.base_version is not None and body.base_version != base.latest:
+        raise ServiceError(409, f"base_version {body.base_version} is not the latest version ({base.latest})",
+                           "conflict")
+    for index, demonstration in enumerate(body.demonstrations):
+        try:
+            checks.parse(demonstration, f"demonstrations[{index}]")
+        except checks.ProgramProblem as exc:
+            raise ServiceError(422, exc.problem.message, exc.problem.type, field=exc.problem.field) from None
+    demonstrations = union(base.demonstrations, body.demonstrations)
+    if len(demonstrations) > MAX_DEMONSTRATIONS:
+        raise ServiceError(422, f"the set's {len(base.demonstrations)} demonstrations and these would be "
+                           f"{len(demonstrations)}, over {MAX_DEMONSTRATIONS}", "invalid_input",
+                           field="demonstrations")
+    try:
+        checks.check_infer(base.spec, demonstrations, body.actions, services.settings.max_work_points)
+    except checks.ProgramProblem as exc:
+        problem = exc.problem
+        field = "actions" if problem.field.startswith("actions") else "demonstrations"
+        raise ServiceError(422, problem.message, problem.type, field=field) from None
+    job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=body.options,
+                     force=body.force,
+                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes)
+    model = keys.model_identity() if "model" in body.options.generators else None
+    return await answer(services, request, tenant, "reinfer", job, model, wait)
 
 
 def _tag(services: Services, tenant: str) -> str:

@@ -10,7 +10,7 @@ import pytest
 
 from stack.keyed import KeyedStack, keyed_stack
 
-TENANTS = ("acme", "throttled", "cli", "walkthrough")
+TENANTS = ("acme", "throttled", "cli", "walkthrough", "light")
 
 
 @pytest.fixture(scope="session")

@@ -16,5 +16,5 @@ def test_the_walkthrough_runs_end_to_end(keyed: KeyedStack) -> None:
     done = subprocess.run([sys.executable, "examples/walkthrough.py", "--server", keyed.url], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=300, check=False)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert done.stdout.strip().endswith("walkthrough: ok")
+    assert done.stdout.strip().endswith("walkthrough: ok"), done.stdout + done.stderr
     assert "system.FindBooks(): refused" in done.stdout

@@ -4,6 +4,7 @@ worker; `/check-actions` takes a set reference and a history of events."""
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ EVENTS = [
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
     path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
-    return path, {tenant: make_key(path, tenant)[1] for tenant in ("acme", "globex", "small")}
+    return path, {tenant: make_key(path, tenant)[1] for tenant in ("acme", "globex", "small", "initech")}
 
 
 @pytest.fixture(scope="module")
@@ -183,3 +184,95 @@ def test_a_bad_event_is_a_422_naming_its_index(acme: httpx.Client, event: dict[s
 def test_an_event_missing_its_act_names_its_index(acme: httpx.Client) -> None:
     answer = acme.post("/check-actions", json=check_body() | {"history": [*EVENTS[:3], {"actor": "user"}]})
     assert answer.status_code == 422 and answer.json()["error"]["field"] == "history[3].act", answer.text
+
+
+ENUMERATE = {"generators": ["enumerate"]}
+
+
+@pytest.fixture()
+def initech(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    with client_for(stack, keys[1]["initech"]) as client:
+        yield client
+
+
+def test_reinference_keeps_required_rules_keeps_rejected_out_and_reports_a_diff(
+    initech: httpx.Client, globex: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    acme = initech  # a tenant of its own: the others are at their bound of sets
+    first = _ok(acme.post("/infer-preconditions", json=infer_body(demonstrations=[DEMOS[0]]), params={"wait": 60}))
+    made = _ok(acme.post("/precondition-sets", json={"spec": SPEC, "preconditions": first["preconditions"],
+                                                     "demonstrations": [DEMOS[0]]}), 201)
+    set_id = made["id"]
+
+    # from DEMOS[0] alone: SYSTEM.GOODBYE needs `not self.user.affirmed`, which DEMOS[1] refutes
+    assert made["preconditions"]["SYSTEM.GOODBYE"] == ["not self.user.affirmed"]
+    required = "self.user.requested_slot[slot]"  # of SYSTEM.INFORM, supported by both demonstrations
+    rejected = "self.query_success"  # of SYSTEM.OFFER: both support it, re-inference would bring it back
+    assert required in inferred["preconditions"]["SYSTEM.INFORM"]
+    assert rejected in inferred["preconditions"]["SYSTEM.OFFER"]
+    marked = _ok(acme.post(f"/precondition-sets/{set_id}/versions", json={"edits": [
+        {"op": "require", "action": "SYSTEM.INFORM", "rule": required},
+        {"op": "reject", "action": "SYSTEM.OFFER", "rule": rejected},
+    ]}), 201)
+    # through the job: 202 and /jobs/{id}, like every operation
+    queued = acme.post(f"/precondition-sets/{set_id}/reinfer", params={"wait": 0},
+                       json={"demonstrations": [DEMOS[1], DEMOS[0]], "options": ENUMERATE, "base_version": 2})
+    assert queued.status_code in (200, 202), queued.text
+    if queued.status_code == 202:
+        job = queued.headers["Location"]
+        for _ in range(300):
+            status = _ok(acme.get(job))
+            if status["status"] not in ("queued", "running"):
+                break
+            time.sleep(0.1)
+        assert status["kind"] == "reinfer" and status["status"] == "succeeded", status.get("error")
+        new = status["result"]
+    else:
+        new = queued.json()
+    assert new["version"] == 3 and new["reference"] == f"{set_id}@3"
+    assert new["demonstrations"] == [DEMOS[0], DEMOS[1]]  # the union, each once
+    assert required in new["preconditions"]["SYSTEM.INFORM"]
+    assert rejected not in new["preconditions"].get("SYSTEM.OFFER", [])
+    assert new["required"] == marked["required"] and new["rejected"] == marked["rejected"]
+    diff = new["diff"]
+    assert diff["base_version"] == 2 and diff["new_demonstrations"] == 1
+    assert [(c["action"], c["rule"]) for c in diff["required_kept"]] == [("SYSTEM.INFORM", required)]
+    assert [(c["action"], c["rule"]) for c in diff["rejected_suppressed"]] == [("SYSTEM.OFFER", rejected)]
+    assert ("SYSTEM.GOODBYE", "self.user.no_more") in {(c["action"], c["rule"]) for c in diff["added"]}
+    gone = {c["rule"]: c["reason"] for c in diff["removed"] if c["action"] == "SYSTEM.GOODBYE"}
+    assert "demonstration" in gone["not self.user.affirmed"], gone  # where the new demonstration refutes it
+    before = {(a, r) for a, rs in marked["preconditions"].items() for r in rs}
+    after = {(a, r) for a, rs in new["preconditions"].items() for r in rs}
+    listed = {(c["action"], c["rule"]) for part in ("kept", "required_kept", "removed") for c in diff[part]}
+    assert listed == before  # every base rule is accounted for
+    assert {(c["action"], c["rule"]) for c in diff["added"]} == after - before
+    assert {(c["action"], c["rule"]) for c in diff["removed"]} == before - after
+    assert all(c["reason"] for c in diff["removed"])
+    assert new["validation"]["blocked"] == []
+    assert _ok(acme.get(f"/precondition-sets/{set_id}"))["diff"] == diff  # stored with the version
+
+    # a new demonstration that breaks the required rule: refused, naming it and its line, unless forced
+    breaking = "user = USER()\nsystem = SYSTEM(user)\nsystem.INFORM('city')\n"
+    body = {"demonstrations": [DEMOS[1], breaking], "options": ENUMERATE}
+    refused = acme.post(f"/precondition-sets/{set_id}/reinfer", json=body, params={"wait": 60})
+    assert refused.status_code == 422, refused.text
+    error = refused.json()["error"]
+    assert error["type"] == "blocks_demonstration" and error["field"] == "demonstrations[1]"
+    assert f"required rule {required!r} of SYSTEM.INFORM" in error["message"] and "line 3" in error["message"]
+    assert _ok(acme.get(f"/precondition-sets/{set_id}"))["latest"] == 3
+    forced = _ok(acme.post(f"/precondition-sets/{set_id}/reinfer", json=body | {"force": True},
+                           params={"wait": 60}))
+    assert forced["version"] == 4 and required in forced["preconditions"]["SYSTEM.INFORM"]
+    assert {(b["rule"], b["demonstration"], b["line"]) for b in forced["validation"]["blocked"]} == {
+        (required, 2, 3)}
+
+    # stale base, another tenant's or no set, bad demonstrations
+    stale = acme.post(f"/precondition-sets/{set_id}/reinfer", json=body | {"base_version": 3})
+    assert stale.status_code == 409 and stale.json()["error"]["type"] == "conflict", stale.text
+    for client, ref in ((globex, set_id), (acme, "ps_" + "0" * 24), (acme, f"{set_id}@1")):
+        assert client.post(f"/precondition-sets/{ref}/reinfer", json=body).status_code == 404
+    bad = acme.post(f"/precondition-sets/{set_id}/reinfer",
+                    json={"demonstrations": [DEMOS[1], "user = USER(\n"], "options": ENUMERATE})
+    assert bad.status_code == 422 and bad.json()["error"]["field"] == "demonstrations[1]", bad.text
+    shape = acme.post(f"/precondition-sets/{set_id}/reinfer", json={"demonstrations": [], "options": ENUMERATE})
+    assert shape.status_code == 422 and shape.json()["error"]["field"] == "demonstrations", shape.text

@@ -1,0 +1,155 @@
+"""Precondition sets as the gateway and the workers share them: where versions live in the queue Redis, the
+atomic append of a version (the gateway for edits, a worker for re-inference), and the pure merge of a
+re-inference with the base version (required rules kept, rejected rules kept out, a diff with reasons).
+
+    precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
+    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten)
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Final
+
+from jobs.keys import PREFIX
+from schemas.api import CandidateReport, PreconditionSet, RuleChange, SetDiff
+
+CREATE_SCRIPT: Final = """
+if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
+redis.call('sadd', KEYS[1], ARGV[1])
+redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3])
+return 1
+"""
+"""Create a set with its version 1 unless the tenant is at its bound: count and write in one step."""
+
+APPEND_SCRIPT: Final = """
+local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
+if latest == 0 then return -1 end
+if latest ~= tonumber(ARGV[1]) then return -2 end
+if latest >= tonumber(ARGV[2]) then return -3 end
+redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3])
+return latest + 1
+"""
+"""Append version latest+1, only if `latest` is still the version it was made from."""
+
+APPEND_MISSING: Final = -1
+APPEND_CONFLICT: Final = -2
+APPEND_FULL: Final = -3
+
+
+def index_key(tag: str) -> str:
+    return f"{PREFIX}:sets:{tag}"
+
+
+def set_key(tag: str, set_id: str) -> str:
+    return f"{PREFIX}:set:{tag}:{set_id}"
+
+
+async def append(redis: Any, tag: str, version: PreconditionSet, record: str, max_versions: int) -> int:
+    """Store `record` (version n's JSON) as version n if n-1 is still the latest: n, or an APPEND_* code."""
+    return int(await redis.eval(APPEND_SCRIPT, 1, set_key(tag, version.id), version.version - 1, max_versions,
+                                record))
+
+
+def normal(rule: str) -> str:
+    """A rule's canonical text (`ast.unparse`), so `self.a and  self.b` and `self.a and self.b` are one rule."""
+    try:
+        return ast.unparse(ast.parse(rule.strip(), mode="eval"))
+    except (SyntaxError, ValueError, RecursionError):
+        return rule.strip()
+
+
+def _has(table: Mapping[str, Sequence[str]], action: str, rule: str) -> bool:
+    return normal(rule) in {normal(r) for r in table.get(action, ())}
+
+
+@dataclass(frozen=True)
+class Merged:
+    preconditions: dict[str, list[str]]
+    diff: SetDiff
+    unexplained: dict[str, list[str]]
+    """Rules of the base version that are gone and that no candidate of the inference explains: the caller
+    judges them against the demonstrations to say why (violated where, or still holding but not re-proposed)."""
+
+
+def merge(
+    base: PreconditionSet, inferred: Mapping[str, Sequence[str]],
+    candidates: Mapping[str, Sequence[CandidateReport]], new_demonstrations: int = 0,
+    actions: Collection[str] | None = None,
+) -> Merged:
+    """The rules of the version a re-inference makes from `base`, and what changed.
+
+    Kept: every required rule of the base (first, in its order), the rules of actions not re-inferred (when
+    `actions` names the re-inferred ones), then every inferred rule that is not marked rejected. Rules are
+    compared by their canonical text. A base rule that is gone is reported with the reason its candidate was
+    dropped, when the inference judged it; otherwise it is in `unexplained`.
+    """
+    rules: dict[str, list[str]] = {}
+    diff = SetDiff(base_version=base.version, new_demonstrations=new_demonstrations)
+
+    def keep(action: str, rule: str) -> None:
+        if not _has(rules, action, rule):
+            rules.setdefault(action, []).append(rule)
+
+    for action, required in base.required.items():
+        for rule in required:
+            keep(action, rule)
+            diff.required_kept.append(RuleChange(action=action, rule=rule, reason="marked required"))
+    for action, old_rules in base.preconditions.items():
+        if actions is not None and action not in actions:  # not re-inferred: stays as it is
+            for rule in old_rules:
+                if not _has(base.required, action, rule):
+                    keep(action, rule)
+                    diff.kept.append(RuleChange(action=action, rule=rule, reason="not re-inferred (not in `actions`)"))
+    reports = {a: {normal(c.assertion): c for c in cs} for a, cs in candidates.items()}
+    for action, inferred_rules in inferred.items():
+        for rule in inferred_rules:
+            report = reports.get(action, {}).get(normal(rule))
+            reason = report.reason if report is not None else None
+            if _has(base.rejected, action, rule):
+                diff.rejected_suppressed.append(RuleChange(action=action, rule=rule, reason="marked rejected"))
+            elif _has(base.required, action, rule):
+                continue
+            elif _has(base.preconditions, action, rule):
+                keep(action, rule)
+                diff.kept.append(RuleChange(action=action, rule=rule, reason=reason))
+            else:
+                keep(action, rule)
+                diff.added.append(RuleChange(action=action, rule=rule, reason=reason))
+    unexplained: dict[str, list[str]] = {}
+    for action, old_rules in base.preconditions.items():
+        for rule in old_rules:
+            if _has(rules, action, rule):
+                continue
+            report = reports.get(action, {}).get(normal(rule))
+            if report is not None and not report.kept:
+                diff.removed.append(RuleChange(action=action, rule=rule, reason=report.reason or "dropped"))
+            else:
+                unexplained.setdefault(action, []).append(rule)
+    return Merged(preconditions=rules, diff=diff, unexplained=unexplained)
+
+
+def explain_removed(merged: Merged, blocked: Mapping[tuple[str, str], str]) -> SetDiff:
+    """`merged.diff` with a reason for each unexplained removal: the first demonstrated call it would have
+    blocked (`blocked[(action, rule)]`, in words), or that it still holds but was not proposed again."""
+    removed = list(merged.diff.removed)
+    for action, rules in merged.unexplained.items():
+        for rule in rules:
+            why = blocked.get((action, rule))
+            reason = (f"violated at {why}" if why else "still holds at every demonstration, but the re-inference "
+                      "did not propose or keep it; add it back, or mark it required to keep it")
+            removed.append(RuleChange(action=action, rule=rule, reason=reason))
+    return merged.diff.model_copy(update={"removed": removed})
+
+
+def union(stored: Sequence[str], new: Sequence[str]) -> list[str]:
+    """The stored demonstrations, then the new ones not already stored (in their order)."""
+    seen = set(stored)
+    out = list(stored)
+    for demo in new:
+        if demo not in seen:
+            seen.add(demo)
+            out.append(demo)
+    return out
