@@ -32,7 +32,8 @@ from typing import Any
 import torch
 
 from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
-from engine.models.backend import _PrefixCache, choose_dtype
+from engine.models.backend import choose_dtype
+from engine.models.prefixes import Prefix, PrefixStore
 from engine.prompting import inference_prefix, inference_suffix
 from engine.spec import parse_spec, resolve_actions
 from evaluation.report import cpu_model
@@ -96,14 +97,19 @@ def prompt_text(tokens: int, count: Callable[[str], list[int]]) -> str:
 # --- the backend (transformers + torch) ---
 
 
-def backend_prefill(model: CodeModel, ids: list[int]) -> _PrefixCache:
+def cold(model: CodeModel) -> None:
+    """Forget every kept prefix: each run pays its own prefill."""
+    model._prefixes = PrefixStore(model._prefixes.max_tokens)
+
+
+def backend_prefill(model: CodeModel, ids: list[int]) -> Prefix:
     """The engine's own prefill (chunked, into its growing cache), from nothing."""
-    model._prefix = _PrefixCache()
+    cold(model)
     with torch.inference_mode():
         return model._prefix_cache(tuple(ids))
 
 
-def backend_decode(model: CodeModel, prefix: _PrefixCache, batch: int, steps: int) -> None:
+def backend_decode(model: CodeModel, prefix: Prefix, batch: int, steps: int) -> None:
     """`batch` rows continue the prefix for `steps` greedy tokens (a fixed amount of work: no stopping)."""
     cache = copy.deepcopy(prefix.cache)
     cache.batch_repeat_interleave(batch)
@@ -221,7 +227,7 @@ def bench_domain(threads: int, samples: list[int], max_new_tokens: int) -> dict[
     prefix, suffixes = domain_prompts(demos=1)
     runs = []
     for n in samples:
-        model._prefix = _PrefixCache()  # cold prefix cache: each run pays its own prefill
+        cold(model)
         sampling = Sampling(max_new_tokens=max_new_tokens, seed=n)
         wall_s, result = timed(lambda n=n, s=sampling: model.complete(prefix, suffixes, n, s, "statement"))
         texts = [text for texts in result for text in texts]
