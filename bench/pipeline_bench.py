@@ -1,0 +1,172 @@
+"""The same pipeline on each runtime, side by side in one run: one SGD domain's default inference end to end,
+and next-action latency (p50/p95), with the project's backend and with llama.cpp on the same GGUF.
+
+Only the code model changes between rows: the engine, its prompts, the sandbox and the request are the same.
+llama.cpp is reached through `LlamaCppModel`, an adapter with the backend's `complete`: llama-cpp-python has no
+batched sampling, so the n samples of a prompt are decoded one after another, each reusing the prompt's
+evaluated tokens (its prefix match), which is the fair way to run it. It is a benchmark adapter, not a serving
+backend (issue 16 admits a second backend only if it wins by a wide margin).
+
+Each configuration runs in a fresh process, one after another; take timings with nothing else running.
+
+    PYTHONPATH=. python bench/pipeline_bench.py [--domain Restaurants_1] [--turns 20] [--threads 2] [--json f]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import logging
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from engine.engine import Engine
+from engine.models.stopping import StopRule, stop_index
+from engine.settings import ModelSettings, SandboxSettings
+from evaluation.report import cpu_model
+from evaluation.settings import data_path
+from schemas.api import InferRequest, ModelInfo, NextActionRequest
+
+logger = logging.getLogger("pipeline_bench")
+
+
+class LlamaCppModel:
+    """`CodeModel.complete` on llama.cpp: rows one after another, each reusing the prompt's evaluated tokens."""
+
+    def __init__(self, gguf: Path, threads: int, n_ctx: int = 8192) -> None:
+        import llama_cpp
+
+        self.llm = llama_cpp.Llama(model_path=str(gguf), n_ctx=n_ctx, n_threads=threads, n_threads_batch=threads,
+                                   n_batch=512, verbose=False)
+        self.info = ModelInfo(name=f"llama.cpp {llama_cpp.__version__} {gguf.name}", device="cpu",
+                              dtype="Q4_K_M", dtype_reason="the GGUF as shipped")
+
+    def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: StopRule,
+                 should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
+        rows = 1 if sampling.greedy else n
+        results: list[list[str]] = []
+        for suffix in suffixes:
+            texts = []
+            for row in range(rows):
+                out: Any = self.llm.create_completion(
+                    prefix + suffix, max_tokens=sampling.max_new_tokens, temperature=sampling.temperature,
+                    top_p=sampling.top_p, seed=sampling.seed + row, stop=["\n"] if stop == "line" else None,
+                )
+                text: str = out["choices"][0]["text"]
+                cut = stop_index(text, stop)
+                texts.append(text if cut is None else text[:cut])
+            results.append(texts)
+        return results
+
+
+def domain(name: str) -> dict[str, Any]:
+    data: dict[str, Any] = json.loads((data_path() / "sgd" / f"{name}.json").read_text())
+    return data
+
+
+def histories(data: dict[str, Any], turns: int) -> list[str]:
+    """Histories that end just before a system act, across the test dialogs: what a dialog system sends."""
+    found: list[str] = []
+    for dialog in data["test"]:
+        lines = dialog["program"].splitlines()
+        for i, line in enumerate(lines):
+            if line.startswith("system.") and not lines[i - 1].startswith("system.") and i > 2:
+                found.append("\n".join(lines[:i]) + "\n")
+                if len(found) == turns:
+                    return found
+    return found
+
+
+def run(runtime: str, dtype: str, threads: int, name: str, turns: int) -> dict[str, Any]:
+    """One row, in this process: the domain's default inference, then `turns` next-action requests."""
+    import torch
+
+    torch.set_num_threads(threads)
+    data = domain(name)
+    demos = [d["program"] for d in data["demos"]]
+    with tempfile.TemporaryDirectory() as scratch:
+        if runtime == "llama_cpp":
+            from bench.model_bench import embedded_gguf
+
+            gguf = embedded_gguf(Path(scratch))
+            loader: Callable[[], Any] = lambda: LlamaCppModel(gguf, threads)  # noqa: E731
+        else:
+            from engine.models import load_code_model
+
+            loader = lambda: load_code_model(ModelSettings(dtype=dtype, threads=threads))  # noqa: E731
+        with SandboxSettings().build() as sandbox:
+            engine = Engine(sandbox, loader)
+            load_s, _ = timed(engine.model)
+            infer_s, inferred = timed(lambda: engine.infer(InferRequest(spec=data["spec_program"],
+                                                                        demonstrations=demos)))
+            latencies = []
+            for history in histories(data, turns):
+                request = NextActionRequest(spec=data["spec_program"], preconditions=inferred.preconditions,
+                                            demonstrations=demos[:1], history=history)
+                start = time.perf_counter()
+                engine.next_action(request)
+                latencies.append(time.perf_counter() - start)
+    return {
+        "runtime": runtime, "dtype": getattr(engine.model().info, "dtype", dtype), "threads": threads,
+        "domain": name, "load_s": round(load_s, 1), "infer_s": round(infer_s, 1),
+        "infer_generate_s": inferred.stats.seconds.get("generate"),
+        "next_action_p50_s": round(statistics.median(latencies), 2),
+        "next_action_p95_s": round(sorted(latencies)[max(0, round(0.95 * len(latencies)) - 1)], 2),
+        "requests": len(latencies),
+    }
+
+
+def timed(action: Callable[[], Any]) -> tuple[float, Any]:
+    start = time.perf_counter()
+    result = action()
+    return time.perf_counter() - start, result
+
+
+def run_child(argv: list[str]) -> dict[str, Any]:
+    env = {**os.environ, "OMP_NUM_THREADS": argv[2], "TOKENIZERS_PARALLELISM": "false"}
+    before = os.getloadavg()[0]
+    done = subprocess.run([sys.executable, __file__, "--child", *argv], env=env, capture_output=True, text=True,
+                          check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"{argv} failed:\n{done.stderr[-3000:]}")
+    result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
+    result["load_average"] = [round(before, 2), round(os.getloadavg()[0], 2)]
+    logger.info("%s", json.dumps(result))
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    parser.add_argument("--domain", default="Restaurants_1")
+    parser.add_argument("--turns", type=int, default=20)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--dtypes", nargs="+", default=["auto"])
+    parser.add_argument("--json", type=Path)
+    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        runtime, dtype, threads, name, turns = args.child
+        print(json.dumps(run(runtime, dtype, int(threads), name, int(turns))))
+        return
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    rows = [run_child(["backend", dtype, str(args.threads), args.domain, str(args.turns)]) for dtype in args.dtypes]
+    if importlib.util.find_spec("llama_cpp") is not None:
+        rows.append(run_child(["llama_cpp", "-", str(args.threads), args.domain, str(args.turns)]))
+    else:
+        logger.info("llama.cpp: skipped (llama_cpp is not importable)")
+    report = {"cpu": cpu_model(), "cores": os.cpu_count(), "rows": rows}
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2))
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
