@@ -17,16 +17,27 @@ from typing import TYPE_CHECKING, TypeVar
 
 from engine import prompting
 from engine.enumeration import StateModel, enumerate_atoms
+from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, verdict
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
 from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, explain, informative, rank, zero_shot
-from engine.spec import Spec, as_error, check_preconditions, parse_source, parse_spec, render_program, resolve_actions
+from engine.spec import (
+    Spec,
+    as_error,
+    check_preconditions,
+    parse_source,
+    parse_spec,
+    render_program,
+    resolve_actions,
+    skip_statements,
+)
 from programs import checks
 from programs.history import render as render_history
 from sandbox.types import (
     CandidateResult,
     EvaluateResult,
     LimitExceeded,
+    Point,
     ProgramError,
     SandboxCancelled,
     SandboxCrashed,
@@ -35,6 +46,7 @@ from sandbox.types import (
 )
 from schemas.api import (
     MAX_CALL_CHARS,
+    MAX_LISTED_EXCEPTIONS,
     Blocked,
     CallVerdict,
     CandidateReport,
@@ -47,9 +59,12 @@ from schemas.api import (
     ModelInfo,
     NextActionRequest,
     NextActionResponse,
+    RuleEvidence,
+    RuleException,
     StageCounts,
     ValidateRequest,
     ValidateResponse,
+    Verdict,
 )
 from schemas.errors import (
     Cancelled,
@@ -124,7 +139,10 @@ class Ranked:
     clusters: list[Cluster]
     chosen: list[Cluster]
     reasons: Mapping[str, str] = field(default_factory=dict)
-    """Valid candidates: why ranking kept or dropped each (`ranking.explain`)."""
+    """Why ranking kept or dropped each valid candidate (`ranking.explain`), and why evidence-weighted
+    validation refuted the others (`_screened`)."""
+    evidence: Mapping[str, Evidence] = field(default_factory=dict)
+    verdicts: Mapping[str, Verdict] = field(default_factory=dict)
 
 
 class Timer:
@@ -199,15 +217,17 @@ class Engine:
             evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
+            ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking,
+                                request.options.tolerance)
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         with timer.phase("verify"):
-            program, preconditions, dropped = self._verified_program(spec, chosen, demos)
-        response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds)
+            exempt = _exceptions_of(chosen, ranked)
+            program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
+        response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
-            model=model_info, warnings=warnings,
+            model=model_info, warnings=warnings, evidence=response.evidence,
         )
 
     def _generate(
@@ -256,6 +276,7 @@ class Engine:
         evaluated: EvaluateResult,
         proposals: Proposals,
         criterion: str,
+        tolerance: float,
     ) -> dict[str, Ranked]:
         ranked: dict[str, Ranked] = {}
         turns = _previous_turns(trace)
@@ -263,22 +284,39 @@ class Engine:
             results = evaluated.results.get(action, ())
             points = evaluated.points.get(action, ())
             origins = proposals.source.get(action, {})
+            info = trace.actions[action]
+            index = OccurrenceIndex.of(points, info.occurrences)
+            judged = {r.expression: gather(r.satisfied, index) for r in results if r.status != "rejected"}
+            verdicts = {r.expression: _verdict(r, judged[r.expression], tolerance)
+                        for r in results if r.status != "rejected"}
             valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
-                     for r in results if r.status == "valid"]
-            clusters = informative(cluster(valid), len(points))
-            evidence = ActionEvidence(points, trace.actions[action].occurrences, turns, trace.actions[action].params)
-            if trace.actions[action].occurrences:
-                chosen = rank(criterion, clusters, evidence)
+                     for r in results if verdicts.get(r.expression) in ("held", "tolerated")]
+            sparse = not info.occurrences or thin(len(index.occurrences), tolerance)
+            evidence = ActionEvidence(points, info.occurrences, turns, info.params, index.mask, sparse, tolerance)
+            votes = proposals.votes.get(action, {})
+            if sparse:  # the hook for the spec's zero-shot judgment: thin actions rank like unseen ones
+                valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
+                         for r in results if verdicts.get(r.expression) in ("held", "tolerated", "thin")]
+                clusters: list[Cluster] = []
+                chosen = zero_shot(valid, votes, info.params)
             else:
-                chosen = zero_shot(valid, proposals.votes.get(action, {}), trace.actions[action].params)
-            reasons = explain(criterion, valid, clusters, chosen, evidence, proposals.votes.get(action, {}))
-            ranked[action] = Ranked(results, valid, clusters, chosen, reasons)
+                clusters = informative(cluster(valid), len(points))
+                chosen = rank(criterion, clusters, evidence)
+            reasons = {**_screened(verdicts, judged, tolerance),
+                       **explain(criterion, valid, clusters, chosen, evidence, votes)}
+            ranked[action] = Ranked(results, valid, clusters, chosen, reasons, judged, verdicts)
         return ranked
 
     def _verified_program(
-        self, spec: Spec, chosen: dict[str, list[str]], demos: list[str]
+        self, spec: Spec, chosen: dict[str, list[str]], demos: list[str],
+        exempt: Mapping[int, set[int]] | None = None,
     ) -> tuple[str, dict[str, list[str]], dict[str, dict[str, str]]]:
         """The spec with the kept assertions, run on every demonstration; assertions that fail together are dropped.
+
+        `exempt` are the steps (demonstration -> main-body positions) that kept rules refuse by design: the
+        exceptions evidence-weighted validation accepted. They are skipped (the statement becomes `pass` on
+        the same lines) so that a tolerated slip is not mistaken for a conflict; an inferred action is a stub,
+        so skipping its call leaves the state the later steps see as it was.
 
         Each assertion was validated alone, but together they can disagree: one action's assertion may change
         the state another reads (subscripting a defaultdict inserts the key, so `len(d) == 1` later fails).
@@ -288,6 +326,7 @@ class Engine:
         """
         preconditions = {action: list(kept) for action, kept in chosen.items()}
         dropped: dict[str, dict[str, str]] = {}
+        demos = [skip_statements(d, (exempt or {}).get(i, set())) for i, d in enumerate(demos)]
         while True:
             failure = self._failure(spec, preconditions, demos)
             if failure is None:
@@ -456,10 +495,45 @@ def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
     return starts
 
 
+def _verdict(result: CandidateResult, evidence: Evidence, tolerance: float) -> Verdict:
+    """Tolerance 0 is the paper's validation exactly: the sandbox's own verdict at every occurrence."""
+    if tolerance <= 0:
+        return "held" if result.status == "valid" else "refuted"
+    return verdict(evidence, tolerance)
+
+
+def _screened(verdicts: Mapping[str, Verdict], judged: Mapping[str, Evidence], tolerance: float) -> dict[str, str]:
+    """Why evidence-weighted validation turned a candidate away (strict validation: the sandbox says why)."""
+    if tolerance <= 0:
+        return {}
+    reasons: dict[str, str] = {}
+    for expression, fate in verdicts.items():
+        e = judged[expression]
+        if fate == "refuted":
+            reasons[expression] = (f"refuted: {describe(e)}; more exceptions than slips at the tolerance "
+                                   f"({tolerance:.0%}) explain")
+        elif fate == "chance":
+            reasons[expression] = (f"not separated from chance: {describe(e)}; holding this often at the "
+                                   f"occurrences is likely (p = {e.chance():.2f}) for a condition that common")
+    return reasons
+
+
+def _exceptions_of(chosen: Mapping[str, Sequence[str]], ranked: Mapping[str, Ranked]) -> dict[int, set[int]]:
+    """Demonstration -> positions of the calls that kept rules refuse by design (tolerated exceptions)."""
+    steps: dict[int, set[int]] = {}
+    for action, kept in chosen.items():
+        for expression in kept:
+            if ranked[action].verdicts.get(expression) == "tolerated":
+                for occ in ranked[action].evidence[expression].exceptions:
+                    steps.setdefault(occ.demo, set()).add(occ.position)
+    return steps
+
+
 @dataclass(frozen=True)
 class _Report:
     candidates: dict[str, list[CandidateReport]]
     stats: InferStats
+    evidence: dict[str, dict[str, RuleEvidence]]
 
 
 def _response(
@@ -469,14 +543,19 @@ def _response(
     preconditions: Mapping[str, Sequence[str]],
     dropped: Mapping[str, Mapping[str, str]],
     seconds: dict[str, float],
+    trace: TraceResult,
 ) -> _Report:
-    """Candidate reports and stage counts of an inference, built in one place from what the phases returned."""
+    """Candidate reports, stage counts and kept rules' evidence of an inference, built in one place from what
+    the phases returned."""
     candidates: dict[str, list[CandidateReport]] = {}
     counts: dict[str, StageCounts] = {}
+    evidence: dict[str, dict[str, RuleEvidence]] = {}
     for action in actions:
         r = ranked[action]
         origins = proposals.source.get(action, {})
-        candidates[action] = _reports(r, origins, preconditions[action], dropped.get(action, {}))
+        candidates[action] = _reports(r, origins, preconditions[action], dropped.get(action, {}), trace)
+        reports = {c.assertion: c.evidence for c in candidates[action]}
+        evidence[action] = {rule: found for rule in preconditions[action] if (found := reports.get(rule))}
         counts[action] = StageCounts(
             sampled=proposals.sampled.get(action, 0), parsed=len(origins), valid=len(r.valid),
             clusters=len(r.clusters), kept=len(preconditions[action]),
@@ -484,33 +563,67 @@ def _response(
     total = StageCounts(**{
         name: sum(getattr(c, name) for c in counts.values()) for name in StageCounts.model_fields
     })
-    return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds))
+    return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds), evidence)
 
 
 def _reports(
-    ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str]
+    ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str], trace: TraceResult
 ) -> list[CandidateReport]:
     cluster_of = {m.expression: i for i, c in enumerate(ranked.clusters) for m in c.members}
-    return [
-        CandidateReport(
+    valid = {c.expression for c in ranked.valid}
+    reports = []
+    for result in ranked.results:
+        found = ranked.evidence.get(result.expression)
+        fate = ranked.verdicts.get(result.expression)
+        evidence = None if found is None or fate is None else _rule_evidence(found, fate, trace)
+        reason = _reason(result, ranked.reasons, dropped)
+        if evidence is not None and fate in ("held", "tolerated") and found is not None and found.occurrences:
+            reason = f"{reason}; {describe(found, [_where(x) for x in evidence.exceptions])}"
+        reports.append(CandidateReport(
             assertion=result.expression,
             source="enumerate" if origins.get(result.expression) == "enumerate" else "model",
-            valid=result.status == "valid",
+            valid=result.expression in valid and fate in ("held", "tolerated"),
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),
             kept=result.expression in kept,
-            reason=_reason(result, ranked.reasons, dropped),
-        )
-        for result in ranked.results
-    ]
+            reason=reason,
+            evidence=evidence,
+        ))
+    return reports
+
+
+def _rule_evidence(evidence: Evidence, fate: Verdict, trace: TraceResult) -> RuleEvidence:
+    """The API's form; exceptions are listed only for rules that passed validation (a refuted candidate can
+    fail at hundreds of calls, and its count says enough)."""
+    listed = evidence.exceptions[:MAX_LISTED_EXCEPTIONS] if fate in ("held", "tolerated") else ()
+    return RuleEvidence(
+        occurrences=evidence.occurrences, holds=evidence.holds, exceptions=[_exception(p, trace) for p in listed],
+        elsewhere=evidence.elsewhere, holds_elsewhere=evidence.holds_elsewhere,
+        confidence=round(evidence.confidence, 4), verdict=fate,
+    )
+
+
+def _exception(point: Point, trace: TraceResult) -> RuleException:
+    steps = trace.positions[point.demo] if 0 <= point.demo < len(trace.positions) else ()
+    step = steps[point.position] if 0 <= point.position < len(steps) else None
+    return RuleException(demonstration=point.demo, position=point.position,
+                         line=step.line if step else None,
+                         call=step.source.strip()[:MAX_CALL_CHARS] if step else None)
+
+
+def _where(exception: RuleException) -> str:
+    return f"demonstration {exception.demonstration}, line {exception.line}"
 
 
 def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:
-    """Every candidate's fate in words: dropped at verification, failed in the sandbox, or ranked."""
+    """Every candidate's fate in words: dropped at verification, rejected by the sandbox, ranked or screened
+    (evidence-weighted validation), or violated (strict validation)."""
     if result.expression in dropped:
         return dropped[result.expression]
-    if result.status == "invalid":
-        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
     if result.status == "rejected":
         return f"rejected before judging: {result.reason or 'unknown reason'}"
-    return ranked.get(result.expression, "valid, but not considered by the ranking")
+    if result.expression in ranked:
+        return ranked[result.expression]
+    if result.status == "invalid":
+        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
+    return "valid, but not considered by the ranking"
