@@ -28,6 +28,20 @@ def test_infer_prints_preconditions_and_a_runnable_program() -> None:
     assert body["stats"]["total"]["kept"] > 0
 
 
+def test_infer_prints_the_exceptions_of_kept_rules_on_stderr() -> None:
+    request = json.loads((EXAMPLES / "infer-enumerate.json").read_text())
+    demo = request["demonstrations"][0].splitlines()
+    at = next(i for i, line in enumerate(demo) if line.startswith("user.INFORM('"))
+    slot = demo[at].split("'")[1]
+    demo.insert(at + 1, f"system.REQUEST('{slot}')")  # an agent's slip: re-asks what the user just said
+    request["demonstrations"][0] = "\n".join(demo) + "\n"
+    result = precond("infer", "-", stdin=json.dumps(request))
+    assert result.returncode == 0, result.stderr
+    assert "SYSTEM.REQUEST: `not self.user.informed_slot[slot]` holds at" in result.stderr
+    assert f"  demonstration 0, line {at + 2}: system.REQUEST('{slot}')" in result.stderr
+    assert json.loads(result.stdout)["evidence"]["SYSTEM.REQUEST"]["not self.user.informed_slot[slot]"]
+
+
 def test_check_reads_standard_input() -> None:
     request = json.loads((EXAMPLES / "check-actions.json").read_text())
     request["calls"].append("system.GOODBYE()")  # no precondition given for GOODBYE: allowed
