@@ -20,7 +20,17 @@ from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, verdict
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
-from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, explain, informative, rank, zero_shot
+from engine.ranking import (
+    ActionEvidence,
+    Candidate,
+    Cluster,
+    by_criterion,
+    cluster,
+    explain,
+    informative,
+    within_budget,
+    zero_shot,
+)
 from engine.spec import (
     Spec,
     as_error,
@@ -299,11 +309,14 @@ class Engine:
                          for r in results if verdicts.get(r.expression) in ("held", "tolerated", "thin")]
                 clusters: list[Cluster] = []
                 chosen = zero_shot(valid, votes, info.params)
+                cut: list[Cluster] = []
             else:
                 clusters = informative(cluster(valid), len(points))
-                chosen = rank(criterion, clusters, evidence)
+                picked = by_criterion(criterion, clusters, evidence)
+                chosen = within_budget(picked, evidence)
+                cut = [c for c in picked if c not in chosen]
             reasons = {**_screened(verdicts, judged, tolerance),
-                       **explain(criterion, valid, clusters, chosen, evidence, votes)}
+                       **explain(criterion, valid, clusters, chosen, evidence, votes, cut)}
             ranked[action] = Ranked(results, valid, clusters, chosen, reasons, judged, verdicts)
         return ranked
 

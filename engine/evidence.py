@@ -7,18 +7,21 @@ rule and one occurrence into a confident coincidence. Here a rule is judged on i
 * n occurrences of the action, k of them where the rule holds (n - k exceptions);
 * m other points of the same demonstrations (positions x argument tuples), j of them where it holds.
 
-Three tests, all one-sided binomial tails computed with `math` (README, "Evidence-weighted validation"):
+Three tests (README, "Evidence-weighted validation"):
 
-1. *Refuted*: a true rule is broken only by slips. With slips at rate `tolerance`, n - k exceptions or more
-   happen with probability P[Bin(n, tolerance) >= n - k]; below `REFUTE_ALPHA` the exceptions are more than
-   slips explain, and the rule is refuted. Tolerance 0 refutes on the first exception (strict validation).
+1. *Refuted*: exceptions may be at most a share `tolerance` of the occurrences (n - k <= floor(tolerance x n)).
+   Tolerance 0 refutes on the first exception: the paper's strict validation, and then nothing below applies.
+   (A binomial test of "slips at rate `tolerance`" was measured first: it forgives 3 exceptions in 25 at
+   tolerance 0.05, and let correlated coincidences such as REQUEST: `not informed_slot['date']` in.)
 2. *Chance*: a condition that holds at the other points at rate p0 = (j + 1) / (m + 2) holds at k or more of
-   n occurrences by chance with probability P[Bin(n, p0) >= k]; the rule is kept only below `CHANCE_ALPHA`.
-   A condition true almost everywhere says nothing, and one occurrence cannot separate anything from chance
-   unless the condition is rare.
+   n occurrences by chance with probability P[Bin(n, p0) >= k] (one-sided binomial tail, computed with
+   `math`); the rule is kept only below `CHANCE_ALPHA`. A condition true almost everywhere says nothing.
 3. *Thin*: fewer than `MIN_OCCURRENCES` occurrences never make a rule from evidence (a coincidence at one
    or two calls is indistinguishable from a requirement); the action is treated like a never-demonstrated
-   one and its rule comes from the zero-shot path (`ranking.zero_shot`) or is empty.
+   one and its rule comes from the zero-shot path (`ranking.zero_shot`: the model's votes) or is empty.
+
+The kept rules of an action are a conjunction, so their exceptions add up: `ranking.within_budget` keeps the
+union of what they refuse within the same share.
 
 `confidence` is the Wilson lower bound (95%, one-sided) of the share of the action's calls at which the rule
 holds: 1 of 1 gives 0.27, 10 of 10 gives 0.79, 40 of 40 gives 0.94, so a caller can tell thin from solid.
@@ -28,7 +31,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from sandbox.types import Point
 from schemas.api import Verdict
@@ -100,9 +103,18 @@ class Evidence:
 
     occurrences: int
     holds: int
-    exceptions: tuple[Point, ...]
     elsewhere: int
     holds_elsewhere: int
+    satisfied: int = field(default=0, repr=False)
+    index: OccurrenceIndex | None = field(default=None, repr=False, compare=False)
+
+    @property
+    def exceptions(self) -> tuple[Point, ...]:
+        """The occurrences it refuses; computed on demand (most candidates are refuted and never listed)."""
+        if self.index is None or self.holds == self.occurrences:
+            return ()
+        return tuple(occ for occ, bit in zip(self.index.occurrences, self.index.bits, strict=True)
+                     if bit is None or not (self.satisfied >> bit) & 1)
 
     @property
     def confidence(self) -> float:
@@ -120,10 +132,8 @@ class Evidence:
 
 def gather(satisfied: int, index: OccurrenceIndex) -> Evidence:
     holds = (satisfied & index.mask).bit_count()
-    exceptions = tuple(occ for occ, bit in zip(index.occurrences, index.bits, strict=True)
-                       if bit is None or not (satisfied >> bit) & 1)
     elsewhere = index.n_points - index.mask.bit_count()
-    return Evidence(len(index.occurrences), holds, exceptions, elsewhere, satisfied.bit_count() - holds)
+    return Evidence(len(index.occurrences), holds, elsewhere, satisfied.bit_count() - holds, satisfied, index)
 
 
 def verdict(evidence: Evidence, tolerance: float) -> Verdict:

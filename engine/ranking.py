@@ -234,9 +234,11 @@ def explain(
     chosen: Sequence[Cluster],
     evidence: ActionEvidence,
     votes: Mapping[str, int],
+    over_budget: Sequence[Cluster] = (),
 ) -> dict[str, str]:
     """In words, why each valid candidate was kept or dropped by clustering and ranking (the sandbox already
-    says why an invalid or rejected one failed). Recomputes what the criterion looked at; never decides."""
+    says why an invalid or rejected one failed). Recomputes what the criterion looked at; never decides.
+    `over_budget`: what the criterion chose and `within_budget` left out."""
     n_points = len(evidence.points)
     everything = (1 << n_points) - 1
     reasons: dict[str, str] = {}
@@ -246,7 +248,7 @@ def explain(
     informative_sets = {c.satisfied for c in clusters}
     mask = evidence.occurrence_mask
     minimal = {c.satisfied for c in subsumption(clusters, mask)}
-    criterion_sets = {c.satisfied for c in by_criterion(criterion, clusters, evidence)}
+    cut = {c.satisfied for c in over_budget}
     index = {point: bit for bit, point in enumerate(evidence.points)}
     for candidate in valid:
         mine = candidate.satisfied
@@ -270,7 +272,7 @@ def explain(
                 "occurrence this one held at, and holds at fewer points, so it implies this one")
             continue
         rate = enabling_rate(group, evidence, index)
-        if mine in criterion_sets and mine not in chosen_sets:
+        if mine in cut:
             reasons[candidate.expression] = (
                 f"{held}, but its exceptions together with those of the rules kept before it exceed the "
                 f"tolerance ({exception_budget(evidence)} of {mask.bit_count()} occurrences)")

@@ -35,7 +35,7 @@ def test_confidence_grows_with_the_evidence() -> None:
 
 
 def _evidence(n: int, holds: int, elsewhere: int = 1000, holds_elsewhere: int = 200) -> Evidence:
-    return Evidence(n, holds, tuple(Point(0, i, ()) for i in range(n - holds)), elsewhere, holds_elsewhere)
+    return Evidence(n, holds, elsewhere, holds_elsewhere)
 
 
 def test_a_single_slip_does_not_kill_a_true_rule() -> None:
@@ -78,3 +78,4 @@ def test_gather_counts_occurrences_exceptions_and_other_points() -> None:
     e = gather(satisfied, index)
     assert (e.occurrences, e.holds, e.elsewhere, e.holds_elsewhere) == (3, 2, 9, 1)
     assert e.exceptions == (occurrences[1],)
+    assert gather(satisfied | 1 << grid.index(occurrences[1]), index).exceptions == ()
