@@ -18,7 +18,7 @@ import typer
 from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
-from schemas.api import CheckRequest, InferRequest, NextActionRequest
+from schemas.api import CheckRequest, InferRequest, InferResponse, NextActionRequest
 from schemas.errors import PrecondError, ResourceLimit
 
 RequestFile = Annotated[Path, typer.Argument(help="Request body as JSON ('-' for standard input).")]
@@ -77,7 +77,31 @@ def _run(call: Callable[..., BaseModel], request: BaseModel, with_progress: bool
     finally:
         if progress:
             progress.close()
+    _print(response)
+
+
+def _print(response: BaseModel) -> None:
+    """The response as JSON on stdout; for an inference, the kept rules' exceptions on stderr, so that a user
+    sees which demonstrated calls the rules refuse and can decide whether the log or the rule is wrong."""
     typer.echo(json.dumps(response.model_dump(mode="json"), indent=2))
+    if isinstance(response, InferResponse):
+        for line in exception_lines(response):
+            typer.echo(line, err=True)
+
+
+def exception_lines(response: InferResponse) -> list[str]:
+    lines = []
+    for action, rules in response.evidence.items():
+        for rule, evidence in rules.items():
+            if evidence.holds == evidence.occurrences:
+                continue
+            lines.append(f"{action}: `{rule}` holds at {evidence.holds} of {evidence.occurrences} demonstrated calls "
+                         f"(confidence {evidence.confidence:.2f}); exceptions:")
+            lines += [f"  demonstration {x.demonstration}, line {x.line}: {x.call}" for x in evidence.exceptions]
+            unlisted = evidence.occurrences - evidence.holds - len(evidence.exceptions)
+            if unlisted > 0:
+                lines.append(f"  ... and {unlisted} more")
+    return lines
 
 
 def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bool = True) -> None:
@@ -111,7 +135,7 @@ def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bo
     finally:
         if progress:
             progress.close()
-    typer.echo(json.dumps(response.model_dump(mode="json"), indent=2))
+    _print(response)
 
 
 def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:

@@ -147,11 +147,16 @@ def report(
     = Path("docs/results.md"),
     bench: Annotated[Path, typer.Option(help="Sandbox benchmark script (run with --json if present).")]
     = Path("bench/sandbox_bench.py"),
+    noise_only: Annotated[bool, typer.Option(help="Rewrite only the noise and sparsity section of OUT (from "
+                                             "`--configs noise`), keeping the rest as it is.")] = False,
 ) -> None:
     """Regenerate docs/results.md and docs/img/*.png from the cached results."""
-    from evaluation.report import write_report
+    from evaluation.report import write_noise_section, write_report
 
-    write_report(JsonCache(cache_dir), out, bench)
+    if noise_only:
+        write_noise_section(JsonCache(cache_dir), out)
+    else:
+        write_report(JsonCache(cache_dir), out, bench)
     typer.echo(f"wrote {out}")
 
 
@@ -172,7 +177,7 @@ def run_all(
     result = evaluate(_domains(data, "state,trajectory"), expand(f"{configs},{known}"), store,
                       Satisfaction(sandbox, store), lambda: _engine(False).infer, False, sandbox)
     store_precondition_results(store, result)
-    report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"))
+    report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"), noise_only=False)
 
 
 def register(app: typer.Typer) -> None:

@@ -17,25 +17,37 @@ from typing import TYPE_CHECKING, TypeVar
 
 from engine import judge, prompting
 from engine.enumeration import StateModel, enumerate_atoms
+from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, verdict
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
 from engine.ranking import (
     ActionEvidence,
     Candidate,
     Cluster,
+    by_criterion,
     cluster,
     explain,
     informative,
-    rank,
+    within_budget,
     zero_shot,
 )
-from engine.spec import Spec, as_error, check_preconditions, parse_source, parse_spec, render_program, resolve_actions
+from engine.spec import (
+    Spec,
+    as_error,
+    check_preconditions,
+    parse_source,
+    parse_spec,
+    render_program,
+    resolve_actions,
+    skip_statements,
+)
 from programs import checks
 from programs.history import render as render_history
 from sandbox.types import (
     CandidateResult,
     EvaluateResult,
     LimitExceeded,
+    Point,
     ProgramError,
     SandboxCancelled,
     SandboxCrashed,
@@ -44,21 +56,26 @@ from sandbox.types import (
 )
 from schemas.api import (
     MAX_CALL_CHARS,
+    MAX_LISTED_EXCEPTIONS,
     Blocked,
     CallVerdict,
     CandidateReport,
     CheckRequest,
     CheckResponse,
     HistoryEvent,
+    InferOptions,
     InferRequest,
     InferResponse,
     InferStats,
     ModelInfo,
     NextActionRequest,
     NextActionResponse,
+    RuleEvidence,
+    RuleException,
     StageCounts,
     ValidateRequest,
     ValidateResponse,
+    Verdict,
 )
 from schemas.errors import (
     Cancelled,
@@ -133,7 +150,10 @@ class Ranked:
     clusters: list[Cluster]
     chosen: list[Cluster]
     reasons: Mapping[str, str] = field(default_factory=dict)
-    """Valid candidates: why ranking kept or dropped each (`ranking.explain`)."""
+    """Why ranking kept or dropped each valid candidate (`ranking.explain`), and why evidence-weighted
+    validation refuted the others (`_screened`)."""
+    evidence: Mapping[str, Evidence] = field(default_factory=dict)
+    verdicts: Mapping[str, Verdict] = field(default_factory=dict)
 
 
 class Timer:
@@ -208,18 +228,20 @@ class Engine:
             evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking)
+            ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking,
+                                request.options.tolerance)
         if request.options.judge:
             with timer.phase("judge"):
-                ranked = self._judge(spec, actions, demos, trace, ranked, request.options.ranking)
+                ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         with timer.phase("verify"):
-            program, preconditions, dropped = self._verified_program(spec, chosen, demos)
-        response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds)
+            exempt = _exceptions_of(chosen, ranked)
+            program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
+        response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
-            model=model_info, warnings=warnings,
+            model=model_info, warnings=warnings, evidence=response.evidence,
         )
 
     def _generate(
@@ -268,6 +290,7 @@ class Engine:
         evaluated: EvaluateResult,
         proposals: Proposals,
         criterion: str,
+        tolerance: float,
     ) -> dict[str, Ranked]:
         ranked: dict[str, Ranked] = {}
         turns = _previous_turns(trace)
@@ -275,22 +298,37 @@ class Engine:
             results = evaluated.results.get(action, ())
             points = evaluated.points.get(action, ())
             origins = proposals.source.get(action, {})
+            info = trace.actions[action]
+            index = OccurrenceIndex.of(points, info.occurrences)
+            judged = {r.expression: gather(r.satisfied, index) for r in results if r.status != "rejected"}
+            verdicts = {r.expression: _verdict(r, judged[r.expression], tolerance)
+                        for r in results if r.status != "rejected"}
             valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
-                     for r in results if r.status == "valid"]
-            clusters = informative(cluster(valid), len(points))
-            evidence = ActionEvidence(points, trace.actions[action].occurrences, turns, trace.actions[action].params)
-            if trace.actions[action].occurrences:
-                chosen = rank(criterion, clusters, evidence)
+                     for r in results if verdicts.get(r.expression) in ("held", "tolerated")]
+            sparse = not info.occurrences or thin(len(index.occurrences), tolerance)
+            evidence = ActionEvidence(points, info.occurrences, turns, info.params, index.mask, sparse, tolerance)
+            votes = proposals.votes.get(action, {})
+            if sparse:  # the hook for the spec's zero-shot judgment: thin actions rank like unseen ones
+                valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
+                         for r in results if verdicts.get(r.expression) in ("held", "tolerated", "thin")]
+                clusters: list[Cluster] = []
+                chosen = zero_shot(valid, votes, info.params)
+                cut: list[Cluster] = []
             else:
-                chosen = zero_shot(valid, proposals.votes.get(action, {}), trace.actions[action].params)
-            reasons = explain(criterion, valid, clusters, chosen, evidence, proposals.votes.get(action, {}))
-            ranked[action] = Ranked(results, valid, clusters, chosen, reasons)
+                clusters = informative(cluster(valid), len(points))
+                picked = by_criterion(criterion, clusters, evidence)
+                chosen = within_budget(picked, evidence)
+                cut = [c for c in picked if c not in chosen]
+            reasons = {**_screened(verdicts, judged, tolerance, {r.expression: r.reason for r in results}),
+                       **explain(criterion, valid, clusters, chosen, evidence, votes, cut)}
+            ranked[action] = Ranked(results, valid, clusters, chosen, reasons, judged, verdicts)
         return ranked
 
     def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,
-               ranked: dict[str, Ranked], criterion: str) -> dict[str, Ranked]:
+               evaluated: EvaluateResult, ranked: dict[str, Ranked], options: InferOptions) -> dict[str, Ranked]:
         """Let the code model settle what the evidence left open (`engine.judge`), one question per action."""
-        questions = [q for a in actions if (q := _question(a, ranked[a], trace, criterion)) is not None]
+        questions = [q for a in actions
+                     if (q := _question(a, ranked[a], trace, len(evaluated.points.get(a, ())), options)) is not None]
         if not questions:
             return ranked
         model = self.model()
@@ -302,13 +340,19 @@ class Engine:
             chosen = list(r.chosen) if q.kind == "phase" else []
             chosen += [Cluster((c,)) for c in r.valid if c.expression == verdict.adopted][:1]
             reasons = {**r.reasons, **{e: verdict.describe(e) for e in q.options if e in q.open}}
-            judged[q.action] = Ranked(r.results, r.valid, r.clusters, chosen, reasons)
+            judged[q.action] = Ranked(r.results, r.valid, r.clusters, chosen, reasons, r.evidence, r.verdicts)
         return judged
 
     def _verified_program(
-        self, spec: Spec, chosen: dict[str, list[str]], demos: list[str]
+        self, spec: Spec, chosen: dict[str, list[str]], demos: list[str],
+        exempt: Mapping[int, set[int]] | None = None,
     ) -> tuple[str, dict[str, list[str]], dict[str, dict[str, str]]]:
         """The spec with the kept assertions, run on every demonstration; assertions that fail together are dropped.
+
+        `exempt` are the steps (demonstration -> main-body positions) that kept rules refuse by design: the
+        exceptions evidence-weighted validation accepted. They are skipped (the statement becomes `pass` on
+        the same lines) so that a tolerated slip is not mistaken for a conflict; an inferred action is a stub,
+        so skipping its call leaves the state the later steps see as it was.
 
         Each assertion was validated alone, but together they can disagree: one action's assertion may change
         the state another reads (subscripting a defaultdict inserts the key, so `len(d) == 1` later fails).
@@ -318,6 +362,7 @@ class Engine:
         """
         preconditions = {action: list(kept) for action, kept in chosen.items()}
         dropped: dict[str, dict[str, str]] = {}
+        demos = [skip_statements(d, (exempt or {}).get(i, set())) for i, d in enumerate(demos)]
         while True:
             failure = self._failure(spec, preconditions, demos)
             if failure is None:
@@ -463,15 +508,19 @@ def _action_at(spec: Spec, demo: str, line: int, preconditions: dict[str, list[s
     return None
 
 
-def _question(action: str, ranked: Ranked, trace: TraceResult, criterion: str) -> judge.Question | None:
-    """What the evidence left open for `action`, if anything: a rule for a zero-shot action, or a phase."""
-    if not trace.actions[action].occurrences:
-        # Never demonstrated: with parameters there are no points at all, so every valid candidate is an option.
-        vacuous = [c.representative.expression for c in ranked.clusters] or [c.expression for c in ranked.valid]
+def _question(action: str, ranked: Ranked, trace: TraceResult, n_points: int,
+              options: InferOptions) -> judge.Question | None:
+    """What the evidence left open for `action`, if anything: a rule for an action never or too thinly
+    demonstrated (zero-shot), or a condition that held but looked like a phase."""
+    occurrences = len(trace.actions[action].occurrences)
+    if not occurrences or thin(occurrences, options.tolerance):
+        # With parameters and no occurrence there are no points at all: every valid candidate is an option.
+        clusters = informative(cluster(ranked.valid), n_points)
+        vacuous = [c.representative.expression for c in clusters] or [c.expression for c in ranked.valid]
         return judge.question(action, "zero-shot", vacuous, []) if vacuous else None
-    everything = [c.representative.expression for c in ranked.clusters]
-    if criterion != "recency":
+    if options.ranking != "recency":
         return None
+    everything = [c.representative.expression for c in ranked.clusters]
     open_ = [c.representative.expression for c in ranked.clusters
              if c not in ranked.chosen and not any(k.satisfied & ~c.satisfied == 0 for k in ranked.chosen)]
     return judge.question(action, "phase", open_, everything) if open_ else None
@@ -500,10 +549,49 @@ def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
     return starts
 
 
+def _verdict(result: CandidateResult, evidence: Evidence, tolerance: float) -> Verdict:
+    """Tolerance 0 is the paper's validation exactly: the sandbox's own verdict at every occurrence."""
+    if tolerance <= 0:
+        return "held" if result.status == "valid" else "refuted"
+    return verdict(evidence, tolerance)
+
+
+def _screened(verdicts: Mapping[str, Verdict], judged: Mapping[str, Evidence], tolerance: float,
+              first_violation: Mapping[str, str | None]) -> dict[str, str]:
+    """Why evidence-weighted validation turned a candidate away (strict validation: the sandbox says why),
+    naming the first violated occurrence (demonstration, line) as the sandbox found it."""
+    if tolerance <= 0:
+        return {}
+    reasons: dict[str, str] = {}
+    for expression, fate in verdicts.items():
+        e = judged[expression]
+        where = first_violation.get(expression)
+        first = f"; first violated at {where}" if where else ""
+        if fate == "refuted":
+            reasons[expression] = (f"refuted: {describe(e)}; more exceptions than slips at the tolerance "
+                                   f"({tolerance:.0%}) explain{first}")
+        elif fate == "chance":
+            reasons[expression] = (f"not separated from chance: {describe(e)}; holding this often at the "
+                                   f"occurrences is likely (p = {e.chance():.2f}) for a condition that common{first}")
+    return reasons
+
+
+def _exceptions_of(chosen: Mapping[str, Sequence[str]], ranked: Mapping[str, Ranked]) -> dict[int, set[int]]:
+    """Demonstration -> positions of the calls that kept rules refuse by design (tolerated exceptions)."""
+    steps: dict[int, set[int]] = {}
+    for action, kept in chosen.items():
+        for expression in kept:
+            if ranked[action].verdicts.get(expression) == "tolerated":
+                for occ in ranked[action].evidence[expression].exceptions:
+                    steps.setdefault(occ.demo, set()).add(occ.position)
+    return steps
+
+
 @dataclass(frozen=True)
 class _Report:
     candidates: dict[str, list[CandidateReport]]
     stats: InferStats
+    evidence: dict[str, dict[str, RuleEvidence]]
 
 
 def _response(
@@ -513,14 +601,19 @@ def _response(
     preconditions: Mapping[str, Sequence[str]],
     dropped: Mapping[str, Mapping[str, str]],
     seconds: dict[str, float],
+    trace: TraceResult,
 ) -> _Report:
-    """Candidate reports and stage counts of an inference, built in one place from what the phases returned."""
+    """Candidate reports, stage counts and kept rules' evidence of an inference, built in one place from what
+    the phases returned."""
     candidates: dict[str, list[CandidateReport]] = {}
     counts: dict[str, StageCounts] = {}
+    evidence: dict[str, dict[str, RuleEvidence]] = {}
     for action in actions:
         r = ranked[action]
         origins = proposals.source.get(action, {})
-        candidates[action] = _reports(r, origins, preconditions[action], dropped.get(action, {}))
+        candidates[action] = _reports(r, origins, preconditions[action], dropped.get(action, {}), trace)
+        reports = {c.assertion: c.evidence for c in candidates[action]}
+        evidence[action] = {rule: found for rule in preconditions[action] if (found := reports.get(rule))}
         counts[action] = StageCounts(
             sampled=proposals.sampled.get(action, 0), parsed=len(origins), valid=len(r.valid),
             clusters=len(r.clusters), kept=len(preconditions[action]),
@@ -528,33 +621,67 @@ def _response(
     total = StageCounts(**{
         name: sum(getattr(c, name) for c in counts.values()) for name in StageCounts.model_fields
     })
-    return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds))
+    return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds), evidence)
 
 
 def _reports(
-    ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str]
+    ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str], trace: TraceResult
 ) -> list[CandidateReport]:
     cluster_of = {m.expression: i for i, c in enumerate(ranked.clusters) for m in c.members}
-    return [
-        CandidateReport(
+    valid = {c.expression for c in ranked.valid}
+    reports = []
+    for result in ranked.results:
+        found = ranked.evidence.get(result.expression)
+        fate = ranked.verdicts.get(result.expression)
+        evidence = None if found is None or fate is None else _rule_evidence(found, fate, trace)
+        reason = _reason(result, ranked.reasons, dropped)
+        if evidence is not None and fate in ("held", "tolerated") and found is not None and found.occurrences:
+            reason = f"{reason}; {describe(found, [_where(x) for x in evidence.exceptions])}"
+        reports.append(CandidateReport(
             assertion=result.expression,
             source="enumerate" if origins.get(result.expression) == "enumerate" else "model",
-            valid=result.status == "valid",
+            valid=result.expression in valid and fate in ("held", "tolerated"),
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),
             kept=result.expression in kept,
-            reason=_reason(result, ranked.reasons, dropped),
-        )
-        for result in ranked.results
-    ]
+            reason=reason,
+            evidence=evidence,
+        ))
+    return reports
+
+
+def _rule_evidence(evidence: Evidence, fate: Verdict, trace: TraceResult) -> RuleEvidence:
+    """The API's form; exceptions are listed only for rules that passed validation (a refuted candidate can
+    fail at hundreds of calls, and its count says enough)."""
+    listed = evidence.exceptions[:MAX_LISTED_EXCEPTIONS] if fate in ("held", "tolerated") else ()
+    return RuleEvidence(
+        occurrences=evidence.occurrences, holds=evidence.holds, exceptions=[_exception(p, trace) for p in listed],
+        elsewhere=evidence.elsewhere, holds_elsewhere=evidence.holds_elsewhere,
+        confidence=round(evidence.confidence, 4), verdict=fate,
+    )
+
+
+def _exception(point: Point, trace: TraceResult) -> RuleException:
+    steps = trace.positions[point.demo] if 0 <= point.demo < len(trace.positions) else ()
+    step = steps[point.position] if 0 <= point.position < len(steps) else None
+    return RuleException(demonstration=point.demo, position=point.position,
+                         line=step.line if step else None,
+                         call=step.source.strip()[:MAX_CALL_CHARS] if step else None)
+
+
+def _where(exception: RuleException) -> str:
+    return f"demonstration {exception.demonstration}, line {exception.line}"
 
 
 def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:
-    """Every candidate's fate in words: dropped at verification, failed in the sandbox, or ranked."""
+    """Every candidate's fate in words: dropped at verification, rejected by the sandbox, ranked or screened
+    (evidence-weighted validation), or violated (strict validation)."""
     if result.expression in dropped:
         return dropped[result.expression]
-    if result.status == "invalid":
-        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
     if result.status == "rejected":
         return f"rejected before judging: {result.reason or 'unknown reason'}"
-    return ranked.get(result.expression, "valid, but not considered by the ranking")
+    if result.expression in ranked:
+        return ranked[result.expression]
+    if result.status == "invalid":
+        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
+    return "valid, but not considered by the ranking"

@@ -10,6 +10,11 @@ observations since the agent's previous turn, or, for conditions on the action's
 the episode began ("this slot was not informed yet"). Conditions that merely describe the episode's phase
 ("a search has succeeded", "nothing was selected yet") are dropped.
 
+With evidence-weighted validation (engine/evidence.py) a kept candidate may have exceptions, so subsumption
+compares only rules that agree on the demonstrated calls: a rule that is stricter by refusing calls another
+allows is not "more specific", it is contradicted more often (`ActionEvidence.occurrence_mask`). Under strict
+validation every valid rule holds at every occurrence, and this is the paper's eq. (hopt) unchanged.
+
 `marginal` is a simpler recall-aware alternative: minimal clusters, most selective first, each kept only while
 it still excludes `MIN_GAIN` of the points that the conjunction so far allows.
 """
@@ -17,6 +22,7 @@ it still excludes `MIN_GAIN` of the points that the conjunction so far allows.
 from __future__ import annotations
 
 import ast
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
@@ -55,6 +61,9 @@ class ActionEvidence:
     occurrences: Sequence[Point]
     previous_turn: Mapping[tuple[int, int], int]  # (demo, position) -> first observation since the agent's last turn
     params: tuple[str, ...] = ()
+    occurrence_mask: int = 0  # the occurrences' bits among `points`
+    thin: bool = False  # too few occurrences to learn from: ranked like a never-demonstrated action
+    tolerance: float = 0.0  # share of the occurrences the kept rules together may refuse
 
 
 def cluster(valid: Sequence[Candidate]) -> list[Cluster]:
@@ -71,14 +80,16 @@ def informative(clusters: Sequence[Cluster], n_points: int) -> list[Cluster]:
     return [c for c in clusters if 0 != c.satisfied != everything]
 
 
-def subsumption(clusters: Sequence[Cluster]) -> list[Cluster]:
-    """Eq. (hopt): no other valid cluster's C_h is a strict subset of this one's."""
+def subsumption(clusters: Sequence[Cluster], occurrence_mask: int = 0) -> list[Cluster]:
+    """Eq. (hopt): no other valid cluster's C_h is a strict subset of this one's, among those that allow every
+    occurrence this one allows (all of them under strict validation)."""
     sets = [c.satisfied for c in clusters]
-    return [
-        c
-        for c, mine in zip(clusters, sets, strict=True)
-        if not any(other != mine and other & ~mine == 0 for other in sets)
-    ]
+    return [c for c, mine in zip(clusters, sets, strict=True)
+            if not any(_stricter(other, mine, occurrence_mask) for other in sets)]
+
+
+def _stricter(other: int, mine: int, occurrence_mask: int) -> bool:
+    return other != mine and other & ~mine == 0 and mine & ~other & occurrence_mask == 0
 
 
 def _false_between(c: Cluster, occ: Point, start: int, index: Mapping[Point, int]) -> bool:
@@ -87,6 +98,11 @@ def _false_between(c: Cluster, occ: Point, start: int, index: Mapping[Point, int
         if bit is not None and not (c.satisfied >> bit) & 1:
             return True
     return False
+
+
+def _holds_at(c: Cluster, occ: Point, index: Mapping[Point, int]) -> bool:
+    bit = index.get(occ)
+    return bit is not None and bool((c.satisfied >> bit) & 1)
 
 
 def _mentions(expression: str, names: Sequence[str]) -> bool:
@@ -115,6 +131,8 @@ def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, in
         return 1.0
     enabling = 0
     for occ in evidence.occurrences:
+        if not _holds_at(c, occ, index):  # a tolerated exception: the condition enabled nothing there
+            continue
         window = evidence.previous_turn.get((occ.demo, occ.position), 0)
         if _false_between(c, occ, window, index):
             enabling += 1
@@ -128,7 +146,7 @@ def recency(clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Clust
     held by the episodes' order, and guessing there costs more recall than it buys precision.
     """
     index = {point: bit for bit, point in enumerate(evidence.points)}
-    return [c for c in subsumption(clusters) if enabling_rate(c, evidence, index) > 0]
+    return [c for c in subsumption(clusters, evidence.occurrence_mask) if enabling_rate(c, evidence, index) > 0]
 
 
 def marginal(clusters: Sequence[Cluster], evidence: ActionEvidence, min_gain: float = MIN_GAIN) -> list[Cluster]:
@@ -139,7 +157,7 @@ def marginal(clusters: Sequence[Cluster], evidence: ActionEvidence, min_gain: fl
     every demonstrated occurrence by coincidence (`not requested_slot['price_range']`); leaving it out buys
     recall on unseen dialogs for little precision.
     """
-    remaining = list(subsumption(clusters))
+    remaining = list(subsumption(clusters, evidence.occurrence_mask))
     allowed = (1 << len(evidence.points)) - 1
     chosen: list[Cluster] = []
     while remaining:
@@ -169,11 +187,40 @@ def zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Sequ
 
 
 def rank(criterion: str, clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
+    return within_budget(by_criterion(criterion, clusters, evidence), evidence)
+
+
+def by_criterion(criterion: str, clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
     if criterion == "recency":
         return recency(clusters, evidence)
     if criterion == "marginal":
         return marginal(clusters, evidence)
-    return subsumption(clusters)
+    return subsumption(clusters, evidence.occurrence_mask)
+
+
+def exception_budget(evidence: ActionEvidence) -> int:
+    return math.floor(evidence.tolerance * evidence.occurrence_mask.bit_count() + 1e-9)
+
+
+def within_budget(chosen: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
+    """The chosen rules whose exceptions, together, stay within the tolerance: the precondition is their
+    conjunction, so what it refuses is the union of what each refuses.
+
+    Rules that held everywhere come first, then the fewest exceptions; a rule whose exceptions would push the
+    union over the budget is left out. Each rule alone was within the tolerance, but a handful of them, each
+    refusing a few different calls, would refuse many (`informed_slot['date']` and `informed_slot[slot]` for
+    CONFIRM); a true rule broken only by slips refuses the slips, which stay within it.
+    """
+    mask = evidence.occurrence_mask
+    if evidence.tolerance <= 0 or not mask:
+        return list(chosen)
+    budget, refused, kept = exception_budget(evidence), 0, set()
+    for c in sorted(chosen, key=lambda c: (mask & ~c.satisfied).bit_count()):
+        union = refused | (mask & ~c.satisfied)
+        if union.bit_count() <= budget:
+            kept.add(c.satisfied)
+            refused = union
+    return [c for c in chosen if c.satisfied in kept]
 
 
 def _quote(text: str, limit: int = 120) -> str:
@@ -187,33 +234,25 @@ def explain(
     chosen: Sequence[Cluster],
     evidence: ActionEvidence,
     votes: Mapping[str, int],
+    over_budget: Sequence[Cluster] = (),
 ) -> dict[str, str]:
     """In words, why each valid candidate was kept or dropped by clustering and ranking (the sandbox already
-    says why an invalid or rejected one failed). Recomputes what the criterion looked at; never decides."""
+    says why an invalid or rejected one failed). Recomputes what the criterion looked at; never decides.
+    `over_budget`: what the criterion chose and `within_budget` left out."""
     n_points = len(evidence.points)
     everything = (1 << n_points) - 1
     reasons: dict[str, str] = {}
     chosen_sets = {c.satisfied for c in chosen}
-    if not evidence.occurrences:
-        best = chosen[0].representative.expression if chosen else None
-        for candidate in valid:
-            n = votes.get(candidate.expression, 0)
-            if candidate.expression == best:
-                reasons[candidate.expression] = (
-                    f"zero-shot: never demonstrated, kept by model vote ({n} samples proposed it, the most)")
-            elif best is not None:
-                reasons[candidate.expression] = (
-                    f"zero-shot: never demonstrated; {_quote(best)} had more model votes ({n} here)")
-            else:
-                reasons[candidate.expression] = (
-                    f"zero-shot: never demonstrated, so it holds vacuously; dropped: fewer than {MIN_VOTES} model "
-                    f"samples agreed on any assertion about the state or the arguments ({n} here)")
-        return reasons
+    if not evidence.occurrences or evidence.thin:
+        return _explain_zero_shot(valid, chosen, evidence, votes)
     informative_sets = {c.satisfied for c in clusters}
-    minimal = {c.satisfied for c in subsumption(clusters)}
+    mask = evidence.occurrence_mask
+    minimal = {c.satisfied for c in subsumption(clusters, mask)}
+    cut = {c.satisfied for c in over_budget}
     index = {point: bit for bit, point in enumerate(evidence.points)}
     for candidate in valid:
         mine = candidate.satisfied
+        held = "held at every occurrence" if mine & mask == mask else "held at the occurrences within the tolerance"
         if mine not in informative_sets:
             reasons[candidate.expression] = (
                 "held at every demonstrated point, so it excludes nothing: says nothing" if mine == everything
@@ -226,31 +265,58 @@ def explain(
                 f"equivalent to {_quote(representative)} on the demonstrations (same cluster); the shortest is kept")
             continue
         if mine not in minimal:
-            stronger = min((c for c in clusters if c.satisfied != mine and c.satisfied & ~mine == 0),
+            stronger = min((c for c in clusters if _stricter(c.satisfied, mine, mask)),
                            key=lambda c: (c.satisfied.bit_count(), len(c.representative.expression)))
             reasons[candidate.expression] = (
                 f"subsumed by {_quote(stronger.representative.expression)}: that rule also held at every "
-                "occurrence and holds at fewer points, so it implies this one")
+                "occurrence this one held at, and holds at fewer points, so it implies this one")
             continue
         rate = enabling_rate(group, evidence, index)
+        if mine in cut:
+            reasons[candidate.expression] = (
+                f"{held}, but its exceptions together with those of the rules kept before it exceed the "
+                f"tolerance ({exception_budget(evidence)} of {mask.bit_count()} occurrences)")
+            continue
         if mine in chosen_sets:
             if criterion == "recency":
                 reasons[candidate.expression] = (
-                    f"kept: held at every occurrence, no valid rule is stricter, and it was made true before "
+                    f"kept: {held}, no valid rule is stricter, and it was made true before "
                     f"{rate:.0%} of the occurrences (or is about the action's own arguments)")
             elif criterion == "marginal":
                 reasons[candidate.expression] = (
-                    "kept: held at every occurrence, no valid rule is stricter, and it still excluded enough of the "
+                    f"kept: {held}, no valid rule is stricter, and it still excluded enough of the "
                     "points the rules before it allowed")
             else:
                 reasons[candidate.expression] = (
-                    "kept: held at every occurrence and no valid rule is stricter (subsumption-minimal)")
+                    f"kept: {held} and no valid rule is stricter (subsumption-minimal)")
         elif criterion == "recency":
             reasons[candidate.expression] = (
-                "held at every occurrence, but was already true before the user's last turn each time: looks "
+                f"{held}, but was already true before the user's last turn each time: looks "
                 "like a phase, not a requirement")
         else:
             reasons[candidate.expression] = (
-                f"held at every occurrence, but excluded less than {MIN_GAIN:.0%} of the points the stricter "
+                f"{held}, but excluded less than {MIN_GAIN:.0%} of the points the stricter "
                 "rules already allowed: likely a coincidence")
+    return reasons
+
+
+def _explain_zero_shot(valid: Sequence[Candidate], chosen: Sequence[Cluster], evidence: ActionEvidence,
+                       votes: Mapping[str, int]) -> dict[str, str]:
+    """Never demonstrated, or too thinly to learn from: the model's votes decide, or nothing is kept."""
+    n_occ = len(evidence.occurrences)
+    why = ("never demonstrated" if not n_occ else
+           f"only {n_occ} occurrence{'s' if n_occ > 1 else ''}, too few to tell a rule from a coincidence")
+    vacuous = ", so it holds vacuously" if not n_occ else ""
+    best = chosen[0].representative.expression if chosen else None
+    reasons: dict[str, str] = {}
+    for candidate in valid:
+        n = votes.get(candidate.expression, 0)
+        if candidate.expression == best:
+            reasons[candidate.expression] = f"zero-shot: {why}, kept by model vote ({n} samples proposed it, the most)"
+        elif best is not None:
+            reasons[candidate.expression] = f"zero-shot: {why}; {_quote(best)} had more model votes ({n} here)"
+        else:
+            reasons[candidate.expression] = (
+                f"zero-shot: {why}{vacuous}; dropped: fewer than {MIN_VOTES} model samples agreed on any assertion "
+                f"about the state or the arguments ({n} here)")
     return reasons

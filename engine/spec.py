@@ -12,7 +12,7 @@ import ast
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from programs import Method, checks
+from programs import Method, checks, main_body
 from schemas.errors import InvalidInput, InvalidProgram, UnknownAction
 
 
@@ -116,3 +116,30 @@ def render_program(spec: Spec, preconditions: dict[str, list[str]]) -> str:
     for start, end, new in sorted(edits, reverse=True):
         lines[start:end] = new
     return "\n".join(lines) + "\n"
+
+
+def skip_statements(source: str, positions: Iterable[int]) -> str:
+    """The program with the main-body statements at `positions` replaced by `pass`, every line number kept.
+
+    Used to verify kept rules on the demonstrations minus the calls they refuse by design. A statement that
+    shares its last line with another one is left as it is (verification then judges it as written).
+    """
+    wanted = set(positions)
+    if not wanted:
+        return source
+    body = main_body(ast.parse(source))
+    lines = source.splitlines()
+    for position in sorted(wanted):
+        if not 0 <= position < len(body):
+            continue
+        stmt = body[position]
+        first, last = stmt.lineno - 1, (stmt.end_lineno or stmt.lineno) - 1
+        head, tail = lines[first].encode(), lines[last].encode()
+        end = stmt.end_col_offset if stmt.end_col_offset is not None else len(tail)
+        if tail[end:].strip() and last != first:
+            continue
+        rest = tail[end:] if last == first else b""
+        lines[first] = (head[: stmt.col_offset] + b"pass" + rest).decode()
+        for k in range(first + 1, last + 1):
+            lines[k] = ""
+    return "\n".join(lines) + ("\n" if source.endswith("\n") else "")

@@ -8,7 +8,10 @@ keys: `spp` samples per prompt, `ppa` prompts per action, `dpp` demonstrations p
 (the code model settles what the evidence leaves open, engine/judge.py), and
 `demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
 `maxrate` = re-rank the same inference's valid candidates with evaluation/ranking_probe.py (a measurement of
-a ranking change, not an engine option).
+a ranking change, not an engine option), `tol` = the request's `options.tolerance` (0: the paper's strict
+validation), and for the noise and sparsity sweep (evaluation/noise.py, SGD only): `sample` = draw the
+`demos` demonstrations at random with this seed (instead of the first N), `noise` = inject agent errors at
+this share of the system steps (seeded by `sample`).
 Two names are baselines that run no inference: `always` (no precondition: every action always allowed)
 and `gt` (the ground truth; must score 1.0, a check of the scoring pipeline).
 """
@@ -18,7 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any, get_args
 
-from schemas.api import Generator, InferOptions, Ranking
+from schemas.api import DEFAULT_TOLERANCE, Generator, InferOptions, Ranking
 
 BASELINES = ("always", "gt")
 _KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
@@ -37,6 +40,23 @@ GRIDS: dict[str, tuple[str, ...]] = {
     "model-ablation": ("model/recency/spp=2", "model/recency/spp=16", "model/recency/dpp=2",
                        "model/recency/demos=2"),
 }
+SWEEP_TOLERANCES = (0.0, DEFAULT_TOLERANCE)
+SWEEP_SEEDS = (0, 1, 2)
+SWEEP_DEMOS = (1, 2, 3, 5)
+SWEEP_NOISE = (0.02, 0.05, 0.1)
+
+
+def sweep(base: str = "enumerate/recency") -> tuple[str, ...]:
+    """Strict and tolerant validation on fewer demonstrations (clean) and on all ten with injected errors."""
+    names = []
+    for tol in SWEEP_TOLERANCES:
+        names.append(f"{base}/tol={tol:g}")
+        names += [f"{base}/tol={tol:g}/demos={n}/sample={s}" for n in SWEEP_DEMOS for s in SWEEP_SEEDS]
+        names += [f"{base}/tol={tol:g}/noise={r:g}/sample={s}" for r in SWEEP_NOISE for s in SWEEP_SEEDS]
+    return tuple(names)
+
+
+GRIDS["noise"] = sweep()
 GRIDS["no-model"] = GRIDS["baselines"] + GRIDS["enumerate"] + GRIDS["enumerate-demos"]
 GRIDS["default"] = GRIDS["no-model"] + GRIDS["model"]
 
@@ -50,6 +70,8 @@ class InferConfig:
     demos: int | None = None
     options: dict[str, Any] = field(default_factory=dict)
     max_rate: float | None = None
+    sample: int | None = None
+    noise: float = 0.0
 
     @property
     def base(self) -> InferConfig:
@@ -80,18 +102,26 @@ def parse_config(name: str) -> InferConfig:
     options: dict[str, Any] = {}
     demos: int | None = None
     max_rate: float | None = None
+    sample: int | None = None
+    noise = 0.0
     for item in parts[2:]:
         key, _, value = item.partition("=")
         if key == "maxrate":
             max_rate = float(value)
+        elif key == "tol":
+            options["tolerance"] = float(value)
+        elif key == "sample":
+            sample = int(value)
+        elif key == "noise":
+            noise = float(value)
         elif key == "demos":
             demos = None if value == "all" else int(value)
         elif key in _KEYS:
             options[_KEYS[key]] = int(value)
         else:
-            known = ", ".join(["demos", "maxrate", *_KEYS])
+            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", *_KEYS])
             raise ValueError(f"config {name!r}: unknown key {key!r} (known: {known})")
-    config = InferConfig(name, None, generators, parts[1], demos, options, max_rate)
+    config = InferConfig(name, None, generators, parts[1], demos, options, max_rate, sample, noise)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs
     return config
 

@@ -64,6 +64,29 @@ def demos_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
     return _save(fig, img / "f1_vs_demos.png")
 
 
+def noise_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
+    """Mean SGD F1 against injected errors (all demonstrations) and against demonstrations (clean), strict and
+    tolerant validation, error bars = the spread over seeds."""
+    from evaluation.sweep import ALL_DEMOS, collect
+
+    cells = {s: c["mean"] for s, c in collect(rows).items() if "mean" in c}
+    if not cells:
+        return None
+    fig, (by_noise, by_demos) = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for tolerance in sorted({s.tolerance for s in cells}):
+        label = "strict (tolerance 0)" if tolerance == 0 else f"tolerance {tolerance:g}"
+        noisy = sorted((s.noise, c) for s, c in cells.items() if s.tolerance == tolerance and s.demos == ALL_DEMOS)
+        sparse = sorted((s.demos, c) for s, c in cells.items() if s.tolerance == tolerance and s.noise == 0)
+        for ax, series in ((by_noise, noisy), (by_demos, sparse)):
+            ax.errorbar([x for x, _ in series], [c.mean for _, c in series], yerr=[c.sd for _, c in series],
+                        marker="o", capsize=3, label=label)
+    by_noise.set_xlabel(f"share of system steps with an injected error ({ALL_DEMOS} demonstrations)")
+    by_demos.set_xlabel("demonstrations (clean, drawn at random)")
+    by_noise.set_ylabel("mean SGD macro F1")
+    by_noise.legend(fontsize=8)
+    return _save(fig, img / "noise_and_sparsity.png")
+
+
 def compatibility_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
     """GT compatibility and turn F1 per policy config (means over the domains run)."""
     configs = list(dict.fromkeys(r["config"] for r in rows))

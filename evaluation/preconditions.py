@@ -19,6 +19,7 @@ from evaluation.cache import JsonCache
 from evaluation.configs import InferConfig
 from evaluation.domains import Domain
 from evaluation.metrics import PRF, ActionScore, domain_macro, macro
+from evaluation.noise import corrupt, sample
 from evaluation.ranking_probe import rerank
 from evaluation.scoring import Satisfaction, score
 from sandbox import Sandbox
@@ -41,7 +42,15 @@ class Inference:
 
 
 def demonstrations(domain: Domain, config: InferConfig) -> list[str]:
-    return list(domain.demonstrations[: config.demos] if config.demos else domain.demonstrations)
+    """The request's demonstrations: the first N, or a seeded sample of N, with errors injected if asked."""
+    demos = list(domain.demonstrations)
+    if config.demos:
+        demos = sample(demos, config.demos, config.sample) if config.sample is not None else demos[: config.demos]
+    if config.noise:
+        if domain.benchmark != "sgd":
+            raise ValueError(f"{config.name}: errors are injected into SGD dialogs only, not {domain.name}")
+        demos = corrupt(demos, config.noise, config.sample or 0)
+    return demos
 
 
 def build_request(domain: Domain, config: InferConfig) -> InferRequest:

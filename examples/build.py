@@ -22,7 +22,10 @@ def bodies(domain: dict[str, object]) -> dict[str, dict[str, object]]:
     demos = [str(d["program"]) for d in domain["demos"][:2]]  # type: ignore[index]
     history = "\n".join(str(domain["test"][0]["program"]).splitlines()[:7]) + "\n"  # type: ignore[index]
     return {
-        "infer-enumerate": {"spec": spec, "demonstrations": demos, "options": {"generators": ["enumerate"]}},
+        # two demonstrations are too few for evidence-weighted validation (an action seen fewer than three
+        # times learns nothing): these examples ask for the paper's strict validation, `tolerance: 0`
+        "infer-enumerate": {"spec": spec, "demonstrations": demos,
+                            "options": {"generators": ["enumerate"], "tolerance": 0}},
         "infer-model": {
             "spec": spec,
             "demonstrations": demos,
@@ -31,6 +34,7 @@ def bodies(domain: dict[str, object]) -> dict[str, dict[str, object]]:
                 "generators": ["model", "enumerate"],
                 "samples_per_prompt": 4,
                 "prompts_per_action": 2,
+                "tolerance": 0,
             },
         },
         "next-action": {

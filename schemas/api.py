@@ -27,6 +27,10 @@ MAX_ASSERTION_CHARS = 1_000
 MAX_CALLS = 64
 MAX_CALL_CHARS = 1_000
 
+MAX_TOLERANCE = 0.5
+DEFAULT_TOLERANCE = 0.05
+MAX_LISTED_EXCEPTIONS = 20
+
 Generator = Literal["model", "enumerate"]
 Ranking = Literal["subsumption", "recency", "marginal"]
 
@@ -81,6 +85,17 @@ class InferOptions(_Body):
     top_p: float = Field(default=0.95, gt=0.0, le=1.0)
     max_new_tokens: int = Field(default=48, ge=4, le=256)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    tolerance: float = Field(
+        default=DEFAULT_TOLERANCE,
+        ge=0.0,
+        le=MAX_TOLERANCE,
+        allow_inf_nan=False,
+        description="Share of an action's demonstrated calls that may break a rule (agents' slips in real logs). "
+        "0 is the paper's strict validation (a rule must hold at every occurrence; nothing else changes). Above "
+        "0, a rule is kept when its exceptions are no more than slips at this rate explain, it holds at the "
+        "occurrences clearly more often than at the other points of the same demonstrations, and the action "
+        "occurs at least 3 times (fewer: treated as never demonstrated). README: 'Evidence-weighted validation'.",
+    )
 
 
 SPEC_DESCRIPTION = (
@@ -177,10 +192,45 @@ class InferRequest(_Body):
     options: InferOptions = Field(default_factory=InferOptions, description="How candidates are made and ranked.")
 
 
+class RuleException(_Body):
+    """A demonstrated call at which a rule does not hold: a slip in the log, or a sign the rule is wrong."""
+
+    demonstration: int = Field(description="Index of the demonstration.")
+    position: int = Field(description="The step: index of the statement in the demonstration's main body.")
+    line: int | None = Field(default=None, description="Line of that call in the demonstration.")
+    call: str | None = Field(default=None, description="The demonstrated call, as written.")
+
+
+Verdict = Literal["held", "tolerated", "refuted", "chance", "thin"]
+
+
+class RuleEvidence(_Body):
+    """What the demonstrations say about one rule (README: 'Evidence-weighted validation')."""
+
+    occurrences: int = Field(description="Demonstrated calls of the action.")
+    holds: int = Field(description="How many of them the rule allows.")
+    exceptions: list[RuleException] = Field(
+        default_factory=list,
+        description=f"The calls it refuses (listed for rules that passed validation, at most "
+        f"{MAX_LISTED_EXCEPTIONS}); `occurrences - holds` counts them all.",
+    )
+    elsewhere: int = Field(default=0, description="Other points of the same demonstrations (positions x arguments).")
+    holds_elsewhere: int = Field(default=0, description="How many of those it holds at.")
+    confidence: float = Field(
+        description="Lower 95% bound on the share of the action's calls the rule allows (Wilson): 1 of 1 gives "
+        "0.27, 40 of 40 gives 0.94."
+    )
+    verdict: Verdict = Field(
+        description="'held' at every occurrence, 'tolerated' (exceptions within `options.tolerance`), 'refuted' "
+        "(too many exceptions), 'chance' (holds about as often elsewhere: says nothing), 'thin' (too few "
+        "occurrences to learn from)."
+    )
+
+
 class CandidateReport(_Body):
     assertion: str
     source: Generator
-    valid: bool
+    valid: bool = Field(description="Passed validation: held at every occurrence, or within `options.tolerance`.")
     cluster: int | None = None
     support: int = Field(description="|C_h|: demonstration points (position x arguments) where it holds.")
     kept: bool
@@ -191,6 +241,7 @@ class CandidateReport(_Body):
         "phase, not a requirement', 'zero-shot: never demonstrated, kept by model vote', 'kept: ...'. Set for "
         "every candidate the engine reports.",
     )
+    evidence: RuleEvidence | None = Field(default=None, description="Its counts; absent for rejected candidates.")
 
 
 class StageCounts(_Body):
@@ -230,6 +281,11 @@ class InferResponse(_Body):
         description="Per action, why its rule is not backed by the demonstrations (e.g. `no occurrence`: no "
         "demonstration calls it, so an empty rule there means no evidence, not 'always allowed'). Empty: every "
         "action was seen.",
+    )
+    evidence: dict[str, dict[str, RuleEvidence]] = Field(
+        default_factory=dict,
+        description="Per action, per kept rule: its evidence (occurrences, holds, exceptions, confidence), to "
+        "store with the rules and to decide whether the log or the rule is wrong.",
     )
 
 

@@ -8,6 +8,7 @@ cd "$(dirname "$0")/.."
 . .venv/bin/activate
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 TOKENIZERS_PARALLELISM=false
 precond eval preconditions --data ../shared/data/sgd --data ../shared/data/alfworld --configs default
+precond eval preconditions --data ../shared/data/sgd --configs noise   # strict vs tolerant under errors and few demos
 precond eval policy --data ../shared/data/sgd --domains "${POLICY_DOMAINS:-Buses_1,Restaurants_1}" \
   --dialogs "${POLICY_DIALOGS:-2}" --turns "${POLICY_TURNS:-6}" --configs default
 precond eval all

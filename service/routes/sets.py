@@ -32,6 +32,7 @@ from service.sets import apply_edits, blocking_message, new_id, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
 RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
     404: {"model": ErrorResponse, "description": "No such set (or version) of yours: another tenant's set is not "
           "found either."},

@@ -28,6 +28,22 @@ def test_infer_prints_preconditions_and_a_runnable_program() -> None:
     assert body["stats"]["total"]["kept"] > 0
 
 
+def test_infer_prints_the_exceptions_of_kept_rules_on_stderr() -> None:
+    data = json.loads((ROOT / "tests" / "fixtures" / "data" / "sgd" / "Restaurants_1.json").read_text())
+    demos = [d["program"] for d in data["demos"]]
+    demo = demos[0].splitlines()
+    at = next(i for i, line in enumerate(demo) if line.startswith("user.INFORM('"))
+    slot = demo[at].split("'")[1]
+    demo.insert(at + 1, f"system.REQUEST('{slot}')")  # an agent's slip: re-asks what the user just said
+    demos[0] = "\n".join(demo) + "\n"
+    request = {"spec": data["spec_program"], "demonstrations": demos, "options": {"generators": ["enumerate"]}}
+    result = precond("infer", "-", stdin=json.dumps(request))
+    assert result.returncode == 0, result.stderr
+    assert "SYSTEM.REQUEST: `not self.user.informed_slot[slot]` holds at" in result.stderr
+    assert f"  demonstration 0, line {at + 2}: system.REQUEST('{slot}')" in result.stderr
+    assert json.loads(result.stdout)["evidence"]["SYSTEM.REQUEST"]["not self.user.informed_slot[slot]"]
+
+
 def test_check_reads_standard_input() -> None:
     request = json.loads((EXAMPLES / "check-actions.json").read_text())
     request["calls"].append("system.GOODBYE()")  # no precondition given for GOODBYE: allowed

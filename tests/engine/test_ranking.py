@@ -3,9 +3,11 @@ from engine.ranking import (
     Candidate,
     cluster,
     enabling_rate,
+    explain,
     informative,
     rank,
     subsumption,
+    within_budget,
     zero_shot,
 )
 from sandbox.types import Point
@@ -88,3 +90,42 @@ def test_zero_shot_keeps_the_most_proposed_assertion_only_when_samples_agree() -
     kept = zero_shot(valid, votes, ["recep"])
     assert [k.representative.expression for k in kept] == ["self.env.get_property(recep, 'open')"]
     assert zero_shot(valid, {"False": 9, "recep": 1}, ["recep"]) == []  # constants say nothing; 1 vote is noise
+
+
+def test_a_rule_stricter_only_by_refusing_demonstrated_calls_does_not_subsume() -> None:
+    # occurrences at bits 0 and 1; `strict` refuses occurrence 1 (a tolerated exception), `true` allows both
+    occurrences = int("11000000"[::-1], 2)
+    true, strict = c("true", "11110000"), c("strict", "10110000")
+    clusters = cluster([true, strict])
+    assert [k.representative.expression for k in subsumption(clusters)] == ["strict"]  # without evidence: eq. hopt
+    kept = subsumption(clusters, occurrences)
+    assert [k.representative.expression for k in kept] == ["true", "strict"]
+    tighter = c("tighter", "11100000")  # stricter, and allows every occurrence `true` allows: subsumes it
+    assert [k.representative.expression for k in subsumption(cluster([true, tighter]), occurrences)] == ["tighter"]
+
+
+def test_a_tolerated_exception_never_counts_as_enabling() -> None:
+    # the condition is false at 7..9: false before the call, and at the call itself (an exception)
+    evidence = _evidence()
+    index = {p: bit for bit, p in enumerate(evidence.points)}
+    assert enabling_rate(cluster([c("slipped", "1111111000")])[0], evidence, index) == 0.0
+
+
+def test_thin_actions_rank_like_never_demonstrated_ones() -> None:
+    evidence = ActionEvidence([Point(0, p, ()) for p in range(4)], [Point(0, 3, ())], {(0, 3): 2}, thin=True)
+    coincidence = c("self.q", "0001")
+    reasons = explain("recency", [coincidence], [], [], evidence, {})
+    assert "only 1 occurrence, too few" in reasons["self.q"] and "dropped" in reasons["self.q"]
+
+
+def test_kept_rules_together_refuse_no_more_than_the_tolerance() -> None:
+    # 20 occurrences at bits 0..19, 10 other points; tolerance 10%: the conjunction may refuse 2 calls
+    points = [Point(0, p, ()) for p in range(30)]
+    evidence = ActionEvidence(points, points[:20], {}, occurrence_mask=(1 << 20) - 1, tolerance=0.1)
+    held = c("held", "1" * 20 + "0" * 10)
+    slip = c("slip", "0" + "1" * 19 + "1" * 5 + "0" * 5)  # refuses occurrence 0
+    other = c("other", "1" + "00" + "1" * 17 + "0" * 10)  # refuses occurrences 1 and 2
+    chosen = within_budget(cluster([held, slip, other]), evidence)
+    assert [k.representative.expression for k in chosen] == ["held", "slip"]  # 1 + 2 refused > 2: `other` out
+    strict = ActionEvidence(points, points[:20], {}, occurrence_mask=(1 << 20) - 1)
+    assert len(within_budget(cluster([held, slip, other]), strict)) == 3  # tolerance 0: nothing to budget

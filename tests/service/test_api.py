@@ -6,6 +6,7 @@ import time
 from collections.abc import Iterator
 
 import httpx
+import pytest
 import redis
 
 from jobs import cache, keys
@@ -119,6 +120,17 @@ def test_malformed_body_is_422_with_field_path(client: httpx.Client) -> None:
         },
         "request_id": "req-42",
     }
+
+
+@pytest.mark.parametrize("tolerance", [-0.01, 0.51, "often", None, "nan"])
+def test_a_tolerance_outside_0_to_half_or_not_a_number_is_422_naming_it(
+    client: httpx.Client, tolerance: object
+) -> None:
+    body = infer_body()
+    body["options"]["tolerance"] = tolerance
+    answer = client.post("/infer-preconditions", json=body)
+    assert answer.status_code == 422, answer.text
+    assert answer.json()["error"]["field"] == "options.tolerance"
 
 
 def test_spec_that_does_not_parse_is_422_with_line(client: httpx.Client) -> None:

@@ -1,0 +1,81 @@
+"""The statistics of evidence-weighted validation (engine/evidence.py), on counts alone."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from engine.evidence import (
+    CHANCE_ALPHA,
+    MIN_OCCURRENCES,
+    Evidence,
+    OccurrenceIndex,
+    binomial_tail,
+    gather,
+    thin,
+    verdict,
+    wilson_lower,
+)
+from sandbox.types import Point, PointGrid
+
+
+def test_binomial_tail_matches_the_exact_sum() -> None:
+    for n, k, p in [(10, 3, 0.2), (25, 25, 0.9), (40, 1, 0.05), (7, 0, 0.5), (3, 4, 0.5), (200, 190, 0.97)]:
+        exact = sum(math.comb(n, i) * p**i * (1 - p) ** (n - i) for i in range(k, n + 1))
+        assert binomial_tail(n, k, p) == pytest.approx(exact, rel=1e-9, abs=1e-12)
+    assert binomial_tail(5, 1, 0.0) == 0.0 and binomial_tail(5, 5, 1.0) == 1.0
+
+
+def test_confidence_grows_with_the_evidence() -> None:
+    assert wilson_lower(1, 1) == pytest.approx(0.27, abs=0.01)
+    assert wilson_lower(10, 10) == pytest.approx(0.79, abs=0.01)
+    assert wilson_lower(40, 40) == pytest.approx(0.94, abs=0.01)
+    assert wilson_lower(0, 0) == 0.0 and wilson_lower(39, 40) < wilson_lower(40, 40)
+
+
+def _evidence(n: int, holds: int, elsewhere: int = 1000, holds_elsewhere: int = 200) -> Evidence:
+    return Evidence(n, holds, elsewhere, holds_elsewhere)
+
+
+def test_a_single_slip_does_not_kill_a_true_rule() -> None:
+    assert verdict(_evidence(25, 24), 0.05) == "tolerated"
+    assert verdict(_evidence(25, 25), 0.05) == "held"
+
+
+def test_more_exceptions_than_the_tolerance_refute() -> None:
+    assert verdict(_evidence(25, 22), 0.05) == "refuted"  # 3 of 25 = 12% > 5%
+    assert verdict(_evidence(10, 9), 0.05) == "refuted"  # 1 of 10 = 10% > 5%
+    assert verdict(_evidence(10, 9), 0.1) == "tolerated"
+
+
+def test_tolerance_zero_is_strict_validation_and_nothing_else() -> None:
+    assert verdict(_evidence(25, 24), 0.0) == "refuted"
+    assert verdict(_evidence(1, 1), 0.0) == "held"  # no thin rule, no chance test: the paper's behaviour
+    assert verdict(_evidence(10, 10, holds_elsewhere=990), 0.0) == "held"
+    assert not thin(1, 0.0)
+
+
+def test_a_coincidence_at_one_or_two_occurrences_is_not_a_rule() -> None:
+    for n in range(1, MIN_OCCURRENCES):
+        assert verdict(_evidence(n, n, holds_elsewhere=1), 0.05) == "thin"
+        assert thin(n, 0.05)
+    assert not thin(0, 0.05)  # never demonstrated is its own case (zero-shot), not thin
+
+
+def test_a_condition_true_almost_everywhere_says_nothing() -> None:
+    common = _evidence(10, 10, holds_elsewhere=950)
+    assert common.chance() >= CHANCE_ALPHA and verdict(common, 0.05) == "chance"
+    rare = _evidence(10, 10, holds_elsewhere=100)
+    assert rare.chance() < 1e-6 and verdict(rare, 0.05) == "held"
+
+
+def test_gather_counts_occurrences_exceptions_and_other_points() -> None:
+    grid = PointGrid([(0, p) for p in range(6)], [("a",), ("b",)])  # 12 points
+    occurrences = [Point(0, 1, ("a",)), Point(0, 3, ("b",)), Point(0, 5, ("a",))]
+    index = OccurrenceIndex.of(grid, occurrences)
+    satisfied = sum(1 << grid.index(p) for p in (occurrences[0], occurrences[2], Point(0, 2, ("a",))))
+    e = gather(satisfied, index)
+    assert (e.occurrences, e.holds, e.elsewhere, e.holds_elsewhere) == (3, 2, 9, 1)
+    assert e.exceptions == (occurrences[1],)
+    assert gather(satisfied | 1 << grid.index(occurrences[1]), index).exceptions == ()
