@@ -81,8 +81,13 @@ def precondition_table(summary: Sequence[dict[str, Any]]) -> str:
 
 
 def _measured(rows: Sequence[dict[str, Any]]) -> list[str]:
-    """Configs with at least one scored row, in first-seen order (error-only configs have nothing to show)."""
-    return list(dict.fromkeys(r["config"] for r in rows if "macro" in r))
+    """Configs with at least one scored row, in first-seen order (error-only configs have nothing to show);
+    the sweep's configs (injected errors, sampled demonstrations) have a section of their own."""
+    return list(dict.fromkeys(r["config"] for r in rows if "macro" in r and not _swept(r["config"])))
+
+
+def _swept(config: str) -> bool:
+    return any(part.startswith(("noise=", "sample=")) for part in config.split("/"))
 
 
 def main_table(rows: Sequence[dict[str, Any]]) -> str:
