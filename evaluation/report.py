@@ -324,7 +324,9 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         "\n## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
         speed_table(pre),
-        "\nNext-action latency: see p50/p95 columns of the policy table.\n",
+        "\nNext-action latency: see the next-action section. The model runtime (dtypes, threads, and the same "
+        "pipeline on llama.cpp side by side, measured with bench/ on a quiet machine): "
+        "[model-speed.md](model-speed.md).\n",
         "### Sandbox throughput\n",
         sandbox_bench(bench, store),
         "\n" + ANALYSIS.read_text(encoding="utf-8"),
