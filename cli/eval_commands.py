@@ -141,6 +141,66 @@ def policy(
     typer.echo(f"\nresults: {path}")
 
 
+def next_action(
+    data: Annotated[Path | None, typer.Option("--data", help="The SGD data directory (default: sgd/ of the "
+                                                 "data directory, PRECOND_DATA_DIR).")] = None,
+    configs: Annotated[str, typer.Option(help="Policy configs or grids (evaluation/policy.py).")] = "modes",
+    turns: Annotated[int, typer.Option(help="System turns per domain, at least (whole dialogs, seeded).")] = 100,
+    seed: Annotated[int, typer.Option(help="Seed of the dialog sample (and of the model's sampling).")] = 0,
+    baseline: Annotated[str, typer.Option(help="The config paired differences are taken against.")]
+    = "none/plain/shots=1",
+    inferred_from: Annotated[str, typer.Option(help="Precondition config for the 'inferred' rows (model-free "
+                                               "by default: cheap, and within 0.002 F1 of the model's).")]
+    = "enumerate/recency",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Next action at size: all SGD domains, a seeded sample of turns, intervals and paired differences."""
+    from evaluation.configs import parse_config
+    from evaluation.policy import expand_policy
+    from evaluation.preconditions import infer
+    from evaluation.report import store_sized_results
+    from evaluation.sized import Task, run, sample_dialogs, summarize
+
+    (data,) = _data([data] if data else None, "sgd")
+    store = JsonCache(cache_dir)
+    engine, memo = _memo_engine(store)
+    source = parse_config(inferred_from)
+    tasks = []
+    for domain in _domains([data], "state"):
+        raw = json.loads(next(p for p in data.glob("*.json") if p.stem == domain.name).read_text())
+        inferred = infer(domain, source, store, lambda: engine.infer)
+        tasks.append(Task(domain, sample_dialogs(raw["test"], turns, seed), inferred.preconditions))
+    results = run(engine, tasks, expand_policy(configs), store, seed, memo)
+    rows = summarize(results, baseline)
+    path = store_sized_results(store, {"rows": rows, "inferred_from": source.name, "turns_per_domain": turns,
+                                       "seed": seed})
+    typer.echo(json.dumps(rows, indent=1))
+    typer.echo(f"\nresults: {path}")
+
+
+def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
+    """An engine whose model remembers completions in the cache (evaluation/memo.py), and the memo's clock."""
+    import torch
+
+    from engine.engine import Engine
+    from engine.settings import ModelSettings, SandboxSettings
+    from evaluation.memo import MemoModel
+
+    torch.set_num_threads(1)
+    memo: list[MemoModel] = []
+
+    def load() -> MemoModel:
+        from engine.models import load_code_model
+
+        memo.append(MemoModel(load_code_model(ModelSettings()), store))
+        return memo[0]
+
+    def replayed() -> float:
+        return memo[0].take_replayed() if memo else 0.0
+
+    return Engine(SandboxSettings().build(), load), replayed  # type: ignore[arg-type]
+
+
 def report(
     cache_dir: CacheOption = DEFAULT_CACHE,
     out: Annotated[Path, typer.Option(help="Markdown file to write; plots go to img/ beside it.")]
@@ -180,6 +240,7 @@ def register(app: typer.Typer) -> None:
                         no_args_is_help=True)
     group.command("preconditions")(preconditions)
     group.command("policy")(policy)
+    group.command("next-action")(next_action)
     group.command("report")(report)
     group.command("all")(run_all)
     app.add_typer(group, name="eval")

@@ -47,6 +47,10 @@ def store_policy_results(store: JsonCache, new: Sequence[dict[str, Any]]) -> Pat
     return store.put(list(rows.values()), "results", "policy")
 
 
+def store_sized_results(store: JsonCache, result: dict[str, Any]) -> Path:
+    return store.put(result, "results", "next-action")
+
+
 # ---- tables ----------------------------------------------------------------------------------------------
 
 

@@ -1,0 +1,127 @@
+"""The constrained next action: enumerate the calls the preconditions allow now, let the model choose among them.
+
+Algorithm 1 resamples a small model that keeps proposing the same forbidden call; here the sandbox judges every
+call the agent could make (its actions × argument values seen in the spec's defaults, the history and the
+demonstrations) in one batch, and the model only ranks the allowed ones by log-likelihood after the next-action
+prompt (`CodeModel.score`, batched over the shared prefix): first the allowed actions, then that action's
+allowed calls. A chosen call is allowed by
+construction; an empty allowed set is an answer of its own ("nothing allowed"), never a forbidden call.
+
+Whether the agent acts again in the same turn is the model's call too: after the first action, the turn ends
+when the next line is likelier to start with another actor (`user.`) than with the agent (`system.`), the
+decision greedy decoding makes at a line's first token.
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+
+from engine.spec import Spec
+
+MAX_ENUMERATED = 1024
+"""Calls judged per step; beyond it the product of argument values is cut (the reason says so)."""
+MAX_SCORED = 96
+"""Calls of the chosen action scored in one pass; the rest are left unscored (and never chosen)."""
+MAX_VALUES = 64
+
+Scalar = str | int | float | bool | None
+
+
+@dataclass(frozen=True)
+class Candidates:
+    calls: list[str]
+    action: dict[str, str]
+    """call → qualified action (`SYSTEM.REQUEST`)."""
+    head: dict[str, str]
+    """call → its line head (`system.REQUEST(`), the part the turn-ending decision compares."""
+    truncated: bool
+
+
+def _literal(node: ast.expr) -> tuple[bool, Scalar]:
+    try:
+        value = ast.literal_eval(node)
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
+        return False, None
+    return (True, value) if value is None or isinstance(value, str | int | float | bool) else (False, None)
+
+
+def argument_values(spec: Spec, programs: Iterable[ast.Module]) -> tuple[dict[str, list[Scalar]], list[Scalar]]:
+    """Literal arguments per parameter name (from calls of spec methods, and defaults), and every literal seen.
+
+    Parameter names carry the domain (`slot`, `recep`): a value passed as `slot` anywhere is a candidate for
+    every `slot` parameter. The flat list is the fallback for a parameter no call names.
+    """
+    by_name: dict[str, list[Scalar]] = {}
+    every: list[Scalar] = []
+    methods = {m.name: m for m in spec.methods.values()}
+
+    def note(name: str | None, value: Scalar) -> None:
+        if name is not None and value not in by_name.setdefault(name, []):
+            by_name[name].append(value)
+        if value not in every:
+            every.append(value)
+
+    for method in spec.methods.values():
+        args = method.node.args
+        for param, default in zip(args.args[len(args.args) - len(args.defaults):], args.defaults, strict=True):
+            ok, value = _literal(default)
+            if ok:
+                note(param.arg, value)
+    for tree in programs:
+        for node in ast.walk(tree):
+            if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)):
+                continue
+            called = methods.get(node.func.attr)
+            names: Sequence[str | None] = called.positional if called else ()
+            for k, arg in enumerate(node.args):
+                ok, value = _literal(arg)
+                if ok:
+                    note(names[k] if k < len(names) else None, value)
+    return by_name, every
+
+
+def enumerate_calls(
+    spec: Spec, actions: Iterable[str], receivers: Mapping[str, str], values: Mapping[str, list[Scalar]],
+    fallback: Sequence[Scalar],
+) -> Candidates:
+    """Every call `var.method(args)` of the actions whose class has an instance in the history, in spec order."""
+    variable = {cls: var for var, cls in reversed(list(receivers.items()))}  # the first instance of each class
+    calls: list[str] = []
+    action_of: dict[str, str] = {}
+    head_of: dict[str, str] = {}
+    truncated = False
+    for action in actions:
+        method = spec.methods.get(action)
+        var = variable.get(method.cls) if method else None
+        if method is None or var is None:
+            continue
+        domains = [list(values.get(p) or fallback)[:MAX_VALUES] for p in method.positional]
+        head = f"{var}.{method.name}("
+        for args in itertools.product(*domains):
+            if len(calls) >= MAX_ENUMERATED:
+                truncated = True
+                break
+            call = f"{head}{', '.join(repr(a) for a in args)})"
+            calls.append(call)
+            action_of[call], head_of[call] = action, head
+    return Candidates(calls, action_of, head_of, truncated)
+
+
+def receiver_heads(spec: Spec, receivers: Mapping[str, str], actions: Iterable[str]) -> tuple[list[str], list[str]]:
+    """Line heads `var.` of the acting objects, and of the others (whose next line hands the turn back).
+
+    Compared at the receiver, the first thing a line says, the two are alike in length; comparing `user.`
+    with `system.REQUEST(` would favour ending the turn for being the shorter text.
+    """
+    acting = {spec.methods[a].cls for a in actions if a in spec.methods}
+    own = [f"{var}." for var, cls in receivers.items() if cls in acting]
+    return own, [f"{var}." for var, cls in receivers.items() if cls not in acting]
+
+
+def indentation(history: str) -> str:
+    """The indentation the next line of the history takes (top level, or inside the episode's function)."""
+    lines = [line for line in history.splitlines() if line.strip()]
+    return lines[-1][: len(lines[-1]) - len(lines[-1].lstrip())] if lines else ""
