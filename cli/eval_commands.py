@@ -178,6 +178,46 @@ def next_action(
     typer.echo(f"\nresults: {path}")
 
 
+def next_action_alfworld(
+    data: Annotated[Path | None, typer.Option("--data", help="The ALFWorld data directory (default: alfworld/ "
+                                                 "of the data directory, PRECOND_DATA_DIR).")] = None,
+    configs: Annotated[str, typer.Option(help="Policy configs or grids (evaluation/policy.py).")]
+    = "none/plain/shots=1,inferred/constrained/shots=1",
+    episodes: Annotated[int, typer.Option(help="valid_unseen trajectories (seeded order).")] = 10,
+    steps: Annotated[int, typer.Option(help="Action steps per trajectory, spread evenly.")] = 3,
+    seed: Annotated[int, typer.Option(help="Seed of the sample (and of the model's sampling).")] = 0,
+    baseline: Annotated[str, typer.Option(help="The config paired differences are taken against.")]
+    = "none/plain/shots=1",
+    inferred_from: Annotated[str, typer.Option(help="Precondition config for the 'inferred' rows.")]
+    = "enumerate/recency",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Next action in ALFWorld: share of predictions the simulator admits, and match with the expert."""
+    from evaluation.alfworld_next import run, sample_episodes, summarize
+    from evaluation.configs import parse_config
+    from evaluation.domains import ALFWORLD_TEST_SPLIT, load_alfworld
+    from evaluation.policy import expand_policy
+    from evaluation.preconditions import infer
+
+    (data,) = _data([data] if data else None, "alfworld")
+    store = JsonCache(cache_dir)
+    engine, memo = _memo_engine(store)
+    domain = load_alfworld(data)
+    inferred = infer(domain, parse_config(inferred_from), store, lambda: engine.infer).preconditions
+    trajectories = [t for t in json.loads((data / "test.json").read_text())["trajectories"]
+                    if t["split"] == ALFWORLD_TEST_SPLIT and not t.get("same_scene_as_demo")]
+    demos = json.loads((data / "demos.json").read_text())["trajectories"]
+    admissible = json.loads((data / "test_admissible_commands.json").read_text())["admissible_commands"]
+    sample = sample_episodes(trajectories, demos, admissible, episodes, steps, seed)
+    results = run(engine, domain.spec, sample, expand_policy(configs),
+                  lambda c: dict(domain.gt) if c.source == "gt" else inferred, store, seed, memo)
+    rows = summarize(results, baseline)
+    path = store.put({"rows": rows, "inferred_from": inferred_from, "episodes": episodes, "steps": steps,
+                      "seed": seed}, "results", "next-action-alfworld")
+    typer.echo(json.dumps(rows, indent=1))
+    typer.echo(f"\nresults: {path}")
+
+
 def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
     """An engine whose model remembers completions in the cache (evaluation/memo.py), and the memo's clock."""
     import torch
@@ -241,6 +281,7 @@ def register(app: typer.Typer) -> None:
     group.command("preconditions")(preconditions)
     group.command("policy")(policy)
     group.command("next-action")(next_action)
+    group.command("next-action-alfworld")(next_action_alfworld)
     group.command("report")(report)
     group.command("all")(run_all)
     app.add_typer(group, name="eval")

@@ -21,11 +21,14 @@ from dataclasses import dataclass
 
 from engine.spec import Spec
 
-MAX_ENUMERATED = 1024
+MAX_ENUMERATED = 2048
 """Calls judged per step; beyond it the product of argument values is cut (the reason says so)."""
+MAX_PER_ACTION = 512
+"""Calls of one action: a two-argument action over every object seen must not crowd out the others."""
 MAX_SCORED = 96
 """Calls of the chosen action scored in one pass; the rest are left unscored (and never chosen)."""
 MAX_VALUES = 64
+UNNAMED = "*"
 
 Scalar = str | int | float | bool | None
 
@@ -52,14 +55,16 @@ def argument_values(spec: Spec, programs: Iterable[ast.Module]) -> tuple[dict[st
     """Literal arguments per parameter name (from calls of spec methods, and defaults), and every literal seen.
 
     Parameter names carry the domain (`slot`, `recep`): a value passed as `slot` anywhere is a candidate for
-    every `slot` parameter. The flat list is the fallback for a parameter no call names.
+    every `slot` parameter. Values passed where no parameter names them (`*args`, as in
+    `agent.update_visible_objects('cabinet 1', 'apple 2')`: what the agent has seen) are candidates for
+    every parameter. The flat list is the fallback for a parameter no call names.
     """
     by_name: dict[str, list[Scalar]] = {}
     every: list[Scalar] = []
     methods = {m.name: m for m in spec.methods.values()}
 
-    def note(name: str | None, value: Scalar) -> None:
-        if name is not None and value not in by_name.setdefault(name, []):
+    def note(name: str, value: Scalar) -> None:
+        if value not in by_name.setdefault(name, []):
             by_name[name].append(value)
         if value not in every:
             every.append(value)
@@ -75,12 +80,13 @@ def argument_values(spec: Spec, programs: Iterable[ast.Module]) -> tuple[dict[st
             if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)):
                 continue
             called = methods.get(node.func.attr)
-            names: Sequence[str | None] = called.positional if called else ()
+            names: Sequence[str] = called.positional if called else ()
             for k, arg in enumerate(node.args):
                 ok, value = _literal(arg)
                 if ok:
-                    note(names[k] if k < len(names) else None, value)
-    return by_name, every
+                    note(names[k] if k < len(names) else UNNAMED, value)
+    unnamed = by_name.pop(UNNAMED, [])
+    return {name: values + [v for v in unnamed if v not in values] for name, values in by_name.items()}, every
 
 
 def enumerate_calls(
@@ -100,8 +106,8 @@ def enumerate_calls(
             continue
         domains = [list(values.get(p) or fallback)[:MAX_VALUES] for p in method.positional]
         head = f"{var}.{method.name}("
-        for args in itertools.product(*domains):
-            if len(calls) >= MAX_ENUMERATED:
+        for k, args in enumerate(itertools.product(*domains)):
+            if len(calls) >= MAX_ENUMERATED or k >= MAX_PER_ACTION:
                 truncated = True
                 break
             call = f"{head}{', '.join(repr(a) for a in args)})"

@@ -189,6 +189,30 @@ def _sized_section(result: dict[str, Any] | None) -> list[str]:
     ]
 
 
+def alfworld_next_table(result: dict[str, Any]) -> str:
+    body = []
+    for r in result["rows"]:
+        diff = [_ci(r["admissible_diff"], True), _ci(r["expert_diff"], True)] if "expert_diff" in r else ["–", "–"]
+        body.append([f"`{r['config']}`", str(r["episodes"]), str(r["steps"]), _ci(r["admissible"]),
+                     _ci(r["expert"]), *diff, f"{r['latency_p50_s']:.2f}", f"{r['latency_p95_s']:.2f}",
+                     str(r["refused"])])
+    return _markdown(["config", "trajectories", "steps", "admissible [95% CI]", "expert match [95% CI]",
+                      "Δ admissible", "Δ expert match", "p50 s", "p95 s", "refused"], body)
+
+
+def _alfworld_section(result: dict[str, Any] | None) -> list[str]:
+    if not result:
+        return ["No ALFWorld next-action run cached yet (`precond eval next-action-alfworld`)."]
+    return [
+        f"\nALFWorld valid_unseen: {result['episodes']} trajectories drawn in a seeded order (seed "
+        f"{result['seed']}), {result['steps']} action steps each, spread evenly; one action predicted per step, "
+        "with the demonstration of the episode's task type. Admissible: the simulator accepted the command in "
+        f"that state. Inferred preconditions: `{result['inferred_from']}`. Intervals: bootstrap over "
+        "trajectories.\n",
+        alfworld_next_table(result),
+    ]
+
+
 def speed_table(rows: Sequence[dict[str, Any]]) -> str:
     chosen = [r for r in rows if r["domain"] == SPEED_DOMAIN and r.get("seconds")
               and "demos=" not in r["config"] and "maxrate=" not in r["config"]]
@@ -295,6 +319,7 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         "\n" + (policy_table(pol) if pol else ""),
         "\n## Next action at size: modes compared with intervals\n",
         *_sized_section(sized),
+        *_alfworld_section(store.get("results", "next-action-alfworld")),
         "\n## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
         speed_table(pre),
