@@ -23,6 +23,7 @@ DataOption = Annotated[
 ]
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
 EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
+REPORT = Path("docs/results.md")
 
 
 @cache
@@ -158,7 +159,7 @@ def next_action(
     from evaluation.configs import parse_config
     from evaluation.policy import expand_policy
     from evaluation.preconditions import infer
-    from evaluation.report import store_sized_results
+    from evaluation.report import store_sized_results, write_next_action_section
     from evaluation.sized import Task, run, sample_dialogs, summarize
 
     (data,) = _data([data] if data else None, "sgd")
@@ -174,8 +175,9 @@ def next_action(
     rows = summarize(results, baseline)
     path = store_sized_results(store, {"rows": rows, "inferred_from": source.name, "turns_per_domain": turns,
                                        "seed": seed})
+    write_next_action_section(store, REPORT)
     typer.echo(json.dumps(rows, indent=1))
-    typer.echo(f"\nresults: {path}")
+    typer.echo(f"\nresults: {path}; section written into {REPORT}")
 
 
 def next_action_alfworld(
@@ -198,6 +200,7 @@ def next_action_alfworld(
     from evaluation.domains import ALFWORLD_TEST_SPLIT, load_alfworld
     from evaluation.policy import expand_policy
     from evaluation.preconditions import infer
+    from evaluation.report import write_next_action_section
 
     (data,) = _data([data] if data else None, "alfworld")
     store = JsonCache(cache_dir)
@@ -214,8 +217,9 @@ def next_action_alfworld(
     rows = summarize(results, baseline)
     path = store.put({"rows": rows, "inferred_from": inferred_from, "episodes": episodes, "steps": steps,
                       "seed": seed}, "results", "next-action-alfworld")
+    write_next_action_section(store, REPORT)
     typer.echo(json.dumps(rows, indent=1))
-    typer.echo(f"\nresults: {path}")
+    typer.echo(f"\nresults: {path}; section written into {REPORT}")
 
 
 def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
@@ -247,11 +251,16 @@ def report(
     = Path("docs/results.md"),
     bench: Annotated[Path, typer.Option(help="Sandbox benchmark script (run with --json if present).")]
     = Path("bench/sandbox_bench.py"),
+    next_action_only: Annotated[bool, typer.Option(help="Only (re)write the next-action section and its plot, "
+                                                   "keeping the rest of the report as it is.")] = False,
 ) -> None:
     """Regenerate docs/results.md and docs/img/*.png from the cached results."""
-    from evaluation.report import write_report
+    from evaluation.report import write_next_action_section, write_report
 
-    write_report(JsonCache(cache_dir), out, bench)
+    if next_action_only:
+        write_next_action_section(JsonCache(cache_dir), out)
+    else:
+        write_report(JsonCache(cache_dir), out, bench)
     typer.echo(f"wrote {out}")
 
 

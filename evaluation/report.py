@@ -213,6 +213,44 @@ def _alfworld_section(result: dict[str, Any] | None) -> list[str]:
     ]
 
 
+NEXT_ACTION_HEADING = "## Next action at size: modes compared with intervals"
+CHOICE = Path(__file__).with_name("next_action_choice.md")
+
+
+def next_action_section(store: JsonCache, plot: Path | None) -> str:
+    """The sized next-action runs (SGD and ALFWorld), the reading of them, and their plot."""
+    parts = [NEXT_ACTION_HEADING + "\n", *_sized_section(store.get("results", "next-action")),
+             *_alfworld_section(store.get("results", "next-action-alfworld")),
+             "\n" + CHOICE.read_text(encoding="utf-8") if CHOICE.exists() else ""]
+    if plot is not None:
+        parts.append(f"\n![{plot.stem}](img/{plot.name})\n")
+    return "\n".join(parts)
+
+
+def write_next_action_section(store: JsonCache, out: Path) -> None:
+    """Replace (or add, before `## Speed`) the next-action section of an existing report, and its plot.
+
+    The rest of the report comes from runs this cache may not hold (`write_report` regenerates it all);
+    a next-action run must not wipe them.
+    """
+    from evaluation.plots import sized_plot
+
+    sized = store.get("results", "next-action")
+    img = out.parent / "img"
+    img.mkdir(parents=True, exist_ok=True)
+    section = next_action_section(store, sized_plot(sized["rows"] if sized else [], img))
+    text = out.read_text(encoding="utf-8") if out.exists() else "# Evaluation results\n"
+    start = text.find(NEXT_ACTION_HEADING)
+    if start >= 0:
+        end = text.find("\n## ", start + len(NEXT_ACTION_HEADING))
+        text = text[:start] + section.rstrip() + "\n" + (text[end:] if end >= 0 else "")
+    else:
+        at = text.find("\n## Speed")
+        at = len(text) if at < 0 else at + 1
+        text = text[:at] + section.rstrip() + "\n\n" + text[at:]
+    out.write_text(text, encoding="utf-8")
+
+
 def speed_table(rows: Sequence[dict[str, Any]]) -> str:
     chosen = [r for r in rows if r["domain"] == SPEED_DOMAIN and r.get("seconds")
               and "demos=" not in r["config"] and "maxrate=" not in r["config"]]
@@ -317,9 +355,7 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         "\n## Policy (SGD next-action prediction)\n",
         _policy_overall(pol) if pol else "No policy run cached yet (`precond eval policy`).",
         "\n" + (policy_table(pol) if pol else ""),
-        "\n## Next action at size: modes compared with intervals\n",
-        *_sized_section(sized),
-        *_alfworld_section(store.get("results", "next-action-alfworld")),
+        "\n" + next_action_section(store, plots[-1]),
         "\n## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
         speed_table(pre),

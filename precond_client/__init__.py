@@ -18,6 +18,7 @@ from precond_client.errors import (
 )
 from precond_client.sync import Client
 from schemas.api import (
+    AllowedCall,
     CallVerdict,
     CheckRequest,
     CheckResponse,
@@ -33,6 +34,7 @@ from schemas.api import (
 )
 
 __all__ = [
+    "AllowedCall",
     "AsyncClient",
     "CallVerdict",
     "Cancelled",

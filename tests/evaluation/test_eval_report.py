@@ -34,3 +34,21 @@ def test_sized_run_is_a_table_with_intervals_and_a_plot(tmp_path: Path) -> None:
     assert "| `mode` | 3 | 3 | 1.000 [1.000, 1.000] | 1.000 [1.000, 1.000] (n=3) | +1.000 [+1.000, +1.000]" in table
     plot = sized_plot(rows, tmp_path)
     assert plot is not None and plot.stat().st_size > 0
+
+
+def test_the_next_action_section_is_replaced_in_place_and_the_rest_kept(tmp_path: Path) -> None:
+    from evaluation.report import NEXT_ACTION_HEADING, write_next_action_section
+
+    store = JsonCache(tmp_path / "cache")
+    out = tmp_path / "results.md"
+    out.write_text("# Evaluation results\n\n## Policy\n\nold policy\n\n## Speed\n\nfast\n", encoding="utf-8")
+    write_next_action_section(store, out)
+    first = out.read_text(encoding="utf-8")
+    assert first.index("## Policy") < first.index(NEXT_ACTION_HEADING) < first.index("## Speed")
+    assert "No sized next-action run cached yet" in first and "fast" in first and "old policy" in first
+    store.put({"rows": [], "inferred_from": "enumerate/recency", "turns_per_domain": 100, "seed": 0},
+              "results", "next-action")
+    write_next_action_section(store, out)
+    second = out.read_text(encoding="utf-8")
+    assert second.count(NEXT_ACTION_HEADING) == 1 and "No sized next-action run" not in second
+    assert "at least 100 system turns" in second and second.endswith("## Speed\n\nfast\n")
