@@ -153,6 +153,8 @@ def next_action(
     inferred_from: Annotated[str, typer.Option(help="Precondition config for the 'inferred' rows (model-free "
                                                "by default: cheap, and within 0.002 F1 of the model's).")]
     = "enumerate/recency",
+    cached_only: Annotated[bool, typer.Option(help="Predict nothing: summarize the dialogs every config has "
+                                              "finished (what an interrupted run has so far).")] = False,
     cache_dir: CacheOption = DEFAULT_CACHE,
 ) -> None:
     """Next action at size: all SGD domains, a seeded sample of turns, intervals and paired differences."""
@@ -160,7 +162,7 @@ def next_action(
     from evaluation.policy import expand_policy
     from evaluation.preconditions import infer
     from evaluation.report import store_sized_results, write_next_action_section
-    from evaluation.sized import Task, run, sample_dialogs, summarize
+    from evaluation.sized import Task, finished, run, sample_dialogs, summarize
 
     (data,) = _data([data] if data else None, "sgd")
     store = JsonCache(cache_dir)
@@ -171,10 +173,12 @@ def next_action(
         raw = json.loads(next(p for p in data.glob("*.json") if p.stem == domain.name).read_text())
         inferred = infer(domain, source, store, lambda: engine.infer)
         tasks.append(Task(domain, sample_dialogs(raw["test"], turns, seed), inferred.preconditions))
-    results = run(engine, tasks, expand_policy(configs), store, seed, memo)
+    results = run(engine, tasks, expand_policy(configs), store, seed, memo, cached_only)
     rows = summarize(results, baseline)
     path = store_sized_results(store, {"rows": rows, "inferred_from": source.name, "turns_per_domain": turns,
-                                       "seed": seed})
+                                       "seed": seed, "complete": not cached_only or all(
+                                           finished(store, t, d, expand_policy(configs))
+                                           for t in tasks for d in t.dialogs)})
     write_next_action_section(store, REPORT)
     typer.echo(json.dumps(rows, indent=1))
     typer.echo(f"\nresults: {path}; section written into {REPORT}")

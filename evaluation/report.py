@@ -178,13 +178,17 @@ def _sized_section(result: dict[str, Any] | None) -> list[str]:
     if not result:
         return ["No sized next-action run cached yet (`precond eval next-action`)."]
     baseline = next((r["vs"] for r in result["rows"] if "vs" in r), "–")
+    partial = "" if result.get("complete", True) else (
+        " **Partial run**: the sample was not finished within the time available; the table holds the dialogs "
+        "every configuration finished (domains interleaved dialog by dialog, so all four are in it), and "
+        "`precond eval next-action` continues it from the cache.")
     return [
         f"All four SGD domains, test dialogs drawn whole in a seeded order (seed {result['seed']}) until each "
         f"domain has at least {result['turns_per_domain']} system turns; every configuration runs on the same "
         f"turns. Inferred preconditions: `{result['inferred_from']}` (model-free, cached). Intervals: percentile "
         "bootstrap over dialogs (2,000 resamples; evaluation/stats.py); Δ: paired bootstrap of the difference "
         f"to `{baseline}` on the same dialogs. Latency: per request (one segment of a turn, up to 5 actions), "
-        "the model on one thread of a 2-core machine shared with other work.\n",
+        f"the model on one thread of a 2-core machine shared with other work.{partial}\n",
         sized_table(result),
     ]
 

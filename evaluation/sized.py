@@ -45,13 +45,25 @@ class Task:
     preconditions: dict[str, list[str]]
 
 
+def finished(cache: JsonCache, task: Task, dialog: dict[str, Any], configs: Sequence[PolicyConfig]) -> bool:
+    """Every configuration has every segment of the dialog in the cache."""
+    keys = {s.key for s in segments(dialog)}
+    return all(keys <= set(cache.get("policy", task.domain.name, c.name, dialog["dialogue_id"]) or {})
+               for c in configs)
+
+
 def run(engine: PolicyEngine, tasks: Sequence[Task], configs: Sequence[PolicyConfig], cache: JsonCache,
-        seed: int = 0, replayed: Callable[[], float] | None = None) -> dict[str, list[dict[str, Any]]]:
-    """Per-segment results per configuration (keyed `config`), every configuration on the same dialogs."""
-    total = sum(len(list(segments(d))) for t in tasks for d in t.dialogs) * len(configs)
+        seed: int = 0, replayed: Callable[[], float] | None = None, cached_only: bool = False
+        ) -> dict[str, list[dict[str, Any]]]:
+    """Per-segment results per configuration (keyed `config`), every configuration on the same dialogs.
+
+    `cached_only`: predict nothing; take the dialogs every configuration has finished (an interrupted run's
+    results so far, still paired)."""
+    chosen = [(t, d) for t, d in _rounds(tasks) if not cached_only or finished(cache, t, d, configs)]
+    total = sum(len(list(segments(d))) for _, d in chosen) * len(configs)
     out: dict[str, list[dict[str, Any]]] = {c.name: [] for c in configs}
     with tqdm(total=total, unit="request", desc="next-action", smoothing=0.05) as bar:
-        for task, dialog in _rounds(tasks):
+        for task, dialog in chosen:
             for config in configs:
                 pre = task.domain.gt if config.source == "gt" else task.preconditions
                 rows = run_policy(engine, task.domain, config, pre, [dialog], cache, None, seed,

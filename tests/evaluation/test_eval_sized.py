@@ -84,3 +84,40 @@ def test_a_remembered_completion_is_not_computed_again_and_its_time_is_replayed(
 def test_sample_is_deterministic_across_calls(seed: int) -> None:
     dialogs = [_dialog(f"d{k}", 2) for k in range(6)]
     assert sample_dialogs(dialogs, 5, seed) == sample_dialogs(list(dialogs), 5, seed)
+
+
+class CheckOnly:
+    """An engine that can judge calls but must not be asked to predict (a cached-only summary)."""
+
+    def next_action(self, request: Any) -> Any:
+        raise AssertionError("a cached-only summary predicted")
+
+    def check(self, request: Any) -> Any:
+        from schemas.api import CallVerdict, CheckResponse
+
+        return CheckResponse(results=[CallVerdict(call=c, allowed=True) for c in request.calls])
+
+
+def test_cached_only_takes_the_dialogs_every_config_finished(tmp_path: Path) -> None:
+    from evaluation.domains import Domain
+    from evaluation.policy import parse_policy_config, segments
+    from evaluation.sized import Task, finished, run
+
+    program = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM('a')\nsystem.REQUEST('b')\n"
+    dialogs = [{"dialogue_id": name, "program": program, "turns": [{"speaker": "USER", "steps": [0, 1]},
+                                                                  {"speaker": "SYSTEM", "steps": [1, 2]}],
+                "steps": [{"kind": "user_act"}, {"kind": "system_act"}]} for name in ("d1", "d2")]
+    domain = Domain("D", "sgd", "class SYSTEM: ...", (), ("SYSTEM.REQUEST",), (), (), {}, {})
+    configs = [parse_policy_config("none/plain/shots=1"), parse_policy_config("inferred/constrained/shots=1")]
+    cache = JsonCache(tmp_path)
+    [segment] = segments(dialogs[0])
+    done = {segment.key: {"predicted": ["system.REQUEST('b')"], "reference": list(segment.reference),
+                          "seconds": 1.0, "error": None, "turn": segment.turn}}
+    for config in configs:
+        cache.put(done, "policy", "D", config.name, "d1")
+    cache.put(done, "policy", "D", configs[0].name, "d2")  # d2: one config only
+    task = Task(domain, dialogs, {})
+    assert finished(cache, task, dialogs[0], configs) and not finished(cache, task, dialogs[1], configs)
+    results = run(CheckOnly(), [task], configs, cache, cached_only=True)
+    assert {name: [r["dialog"] for r in rows] for name, rows in results.items()} == {
+        c.name: ["d1"] for c in configs}
