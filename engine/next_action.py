@@ -198,7 +198,8 @@ class NextActionPlanner:
         verdicts = self._check(history, candidates.calls)
         allowed = [v.call for v in verdicts if v.allowed]
         rejected = [_rejection(v.call, v, None) for v in verdicts if not v.allowed]
-        cut = f"; only the first {constrained.MAX_ENUMERATED} calls were judged" if candidates.truncated else ""
+        cut = (f"; argument values were cut to {constrained.MAX_PER_ACTION} calls per action, "
+               f"{constrained.MAX_ENUMERATED} in all" if candidates.truncated else "")
         if not allowed:
             return PredictedAction(
                 call=None, verified=False, attempts=len(verdicts), rejected=rejected, nothing_allowed=True,
