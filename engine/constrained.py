@@ -4,7 +4,7 @@ Algorithm 1 resamples a small model that keeps proposing the same forbidden call
 call the agent could make (its actions × argument values seen in the spec's defaults, the history and the
 demonstrations) in one batch, and the model only ranks the allowed ones by log-likelihood after the next-action
 prompt (`CodeModel.score`, batched over the shared prefix): first the allowed actions, then that action's
-allowed calls. A chosen call is allowed by
+arguments one at a time, among the allowed calls. A chosen call is allowed by
 construction; an empty allowed set is an answer of its own ("nothing allowed"), never a forbidden call.
 
 Whether the agent acts again in the same turn is the model's call too: after the first action, the turn ends
@@ -25,8 +25,8 @@ MAX_ENUMERATED = 2048
 """Calls judged per step; beyond it the product of argument values is cut (the reason says so)."""
 MAX_PER_ACTION = 512
 """Calls of one action: a two-argument action over every object seen must not crowd out the others."""
-MAX_SCORED = 96
-"""Calls of the chosen action scored in one pass; the rest are left unscored (and never chosen)."""
+MAX_SCORED = 48
+"""Values of one argument scored in one pass; the rest are left unscored (and never chosen)."""
 MAX_VALUES = 64
 UNNAMED = "*"
 
@@ -39,7 +39,8 @@ class Candidates:
     action: dict[str, str]
     """call → qualified action (`SYSTEM.REQUEST`)."""
     head: dict[str, str]
-    """call → its line head (`system.REQUEST(`), the part the turn-ending decision compares."""
+    """call → its line head (`system.REQUEST(`)."""
+    args: dict[str, tuple[Scalar, ...]]
     truncated: bool
 
 
@@ -98,6 +99,7 @@ def enumerate_calls(
     calls: list[str] = []
     action_of: dict[str, str] = {}
     head_of: dict[str, str] = {}
+    args_of: dict[str, tuple[Scalar, ...]] = {}
     truncated = False
     for action in actions:
         method = spec.methods.get(action)
@@ -112,8 +114,15 @@ def enumerate_calls(
                 break
             call = f"{head}{', '.join(repr(a) for a in args)})"
             calls.append(call)
-            action_of[call], head_of[call] = action, head
-    return Candidates(calls, action_of, head_of, truncated)
+            action_of[call], head_of[call], args_of[call] = action, head, tuple(args)
+    return Candidates(calls, action_of, head_of, args_of, truncated)
+
+
+def argument_texts(head: str, chosen: Sequence[Scalar], options: Sequence[Scalar], last: bool) -> list[str]:
+    """The line so far with each option as the next argument: `agent.take('apple 1', ` or, last, the full line."""
+    before = "".join(f"{a!r}, " for a in chosen)
+    end = ")\n" if last else ", "
+    return [f"{head}{before}{v!r}{end}" for v in options]
 
 
 def receiver_heads(spec: Spec, receivers: Mapping[str, str], actions: Iterable[str]) -> tuple[list[str], list[str]]:

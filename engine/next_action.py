@@ -223,12 +223,14 @@ class NextActionPlanner:
 
     def _choose(self, history: str, step: int, candidates: constrained.Candidates, allowed: list[str]
                 ) -> tuple[str, dict[str, float], bool]:
-        """The likeliest allowed line, the scores taken, and whether ending the turn is likelier than acting.
+        """The likeliest allowed line, the scores of its last pass, and whether ending the turn is likelier.
 
-        Two `score` passes over the same prompt (its cache is reused as is): first the allowed actions' line
-        heads (`system.REQUEST(`) with the receiver heads that decide whether the turn ends, then the full
-        lines of the likeliest action's calls. That is greedy decoding at the grain of an action, then of its
-        arguments, restricted to what is allowed, and it scores a fraction of the tokens every full line would.
+        `score` passes over the same prompt (its cache is reused as is): first the allowed actions' line heads
+        (`system.REQUEST(`) with the receiver heads that decide whether the turn ends, then each argument of
+        the likeliest action in turn, among the allowed calls that agree with the arguments chosen so far (one
+        pass for SGD's one-argument acts, whose last pass scores full lines). That is greedy decoding at the
+        grain of an action, then of an argument, restricted to what is allowed, and it scores a fraction of
+        the tokens every full line would (ALFWorld's `take(obj, recep)` has hundreds of allowed pairs).
         """
         indent = constrained.indentation(history)
         prompt = self._prompt(history)
@@ -240,12 +242,22 @@ class NextActionPlanner:
         best = max(heads, key=lambda h: scored.get(h, 0.0))
         if own and others and max(scored[h] for h in others) > max(scored[h] for h in own):
             return best, {}, True
-        lines = [c for c in allowed if candidates.head[c] == best][: constrained.MAX_SCORED]
-        if len(lines) == 1:
-            return lines[0], {}, False
-        full = dict(zip(lines, self.model.score(prompt, [f"{indent}{c}\n" for c in lines], self.cancelled),
-                        strict=True))
-        return max(lines, key=lambda c: full[c]), full, False
+        calls = [c for c in allowed if candidates.head[c] == best]
+        full: dict[str, float] = {}
+        chosen: list[constrained.Scalar] = []
+        arity = len(candidates.args[calls[0]])
+        for k in range(arity):
+            calls = [c for c in calls if list(candidates.args[c][:k]) == chosen]
+            options = list(dict.fromkeys(candidates.args[c][k] for c in calls))[: constrained.MAX_SCORED]
+            if len(options) > 1:
+                texts = constrained.argument_texts(indent + best, chosen, options, k == arity - 1)
+                values = dict(zip(options, self.model.score(prompt, texts, self.cancelled), strict=True))
+                if k == arity - 1:
+                    full = {c: values[candidates.args[c][k]] for c in calls if candidates.args[c][k] in values}
+                options = [max(options, key=lambda v: values[v])]
+            chosen.append(options[0])
+        call = next(c for c in calls if list(candidates.args[c]) == chosen)
+        return call, full, False
 
 
 def _rejection(call: str, verdict: CallVerdict, reason: str | None) -> Rejection:

@@ -115,3 +115,28 @@ def test_options_of_sampling_are_refused_in_constrained_mode(options: dict[str, 
     with pytest.raises(ValidationError, match="needs mode 'sample'"):
         NextActionOptions(mode="constrained", **options)
     NextActionOptions(mode="sample", **options)
+
+
+AGENT_SPEC = """class Env:
+  def __init__(self):
+    self.seen = set()
+  def see(self, *objects): self.seen.update(objects)
+class Agent:
+  def __init__(self, env):
+    self.env = env
+  def goto(self, recep): pass
+  def take(self, obj, recep): pass
+"""
+
+
+def test_two_argument_calls_are_chosen_argument_by_argument_among_the_allowed(engine: Engine) -> None:
+    history = "env = Env()\nagent = Agent(env)\nenv.see('apple 1', 'table 1', 'cup 2')\nagent.goto('table 1')\n"
+    rules = {"Agent.goto": ["False"], "Agent.take": ["obj != recep", "obj in self.env.seen"]}
+    [action] = engine.next_action(NextActionRequest(
+        spec=AGENT_SPEC, preconditions=rules, history=history,
+        options={"mode": "constrained", "return_allowed": True})).actions
+    allowed = {a.call for a in action.allowed or []}
+    assert len(allowed) == 6 and "agent.take('apple 1', 'table 1')" in allowed  # 3 x 3 seen, minus obj == recep
+    assert action.call in allowed and action.held == rules["Agent.take"]
+    scored = [a for a in action.allowed or [] if a.score is not None]
+    assert all(a.call.startswith(action.call.rsplit(",", 1)[0]) for a in scored)  # last pass: same first arg
