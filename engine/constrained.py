@@ -3,19 +3,21 @@
 Algorithm 1 resamples a small model that keeps proposing the same forbidden call; here the sandbox judges every
 call the agent could make (its actions × argument values seen in the spec's defaults, the history and the
 demonstrations) in one batch, and the model only ranks the allowed ones by log-likelihood after the next-action
-prompt (`CodeModel.score`, batched over the shared prefix): first the allowed actions, then that action's
-arguments one at a time, among the allowed calls. A chosen call is allowed by
-construction; an empty allowed set is an answer of its own ("nothing allowed"), never a forbidden call.
+prompt (`CodeModel.score`, batched over the shared prefix): every allowed line in one pass, or, when there are
+more than MAX_LINES, the allowed actions first and then that action's arguments one at a time. A chosen call
+is allowed by construction; an empty allowed set is an answer of its own ("nothing allowed"), never a
+forbidden call.
 
 Whether the agent acts again in the same turn is the model's call too: after the first action, the turn ends
-when the next line is likelier to start with another actor (`user.`) than with the agent (`system.`), the
-decision greedy decoding makes at a line's first token.
+when the next line is likelier to be no action (another actor's, `user`, or an observation of the agent's
+own, `system.set_query_status` after a service call) than an action (`ends_turn`).
 """
 
 from __future__ import annotations
 
 import ast
 import itertools
+import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -25,8 +27,10 @@ MAX_ENUMERATED = 2048
 """Calls judged per step; beyond it the product of argument values is cut (the reason says so)."""
 MAX_PER_ACTION = 512
 """Calls of one action: a two-argument action over every object seen must not crowd out the others."""
+MAX_LINES = 64
+"""Up to this many allowed calls, every full line is scored in one pass (exact: the likeliest allowed line)."""
 MAX_SCORED = 48
-"""Values of one argument scored in one pass; the rest are left unscored (and never chosen)."""
+"""Beyond MAX_LINES: values of one argument scored in one pass; the rest are left unscored (never chosen)."""
 MAX_VALUES = 64
 UNNAMED = "*"
 
@@ -119,21 +123,50 @@ def enumerate_calls(
 
 
 def argument_texts(head: str, chosen: Sequence[Scalar], options: Sequence[Scalar], last: bool) -> list[str]:
-    """The line so far with each option as the next argument: `agent.take('apple 1', ` or, last, the full line."""
+    """The line so far with each option as the next argument: the full line for the last argument, else
+    `agent.take('apple 1` (without the closing quote, which the tokenizer merges with what follows: a text
+    cut inside a token would be scored as if the model had to write that rare token)."""
     before = "".join(f"{a!r}, " for a in chosen)
-    end = ")\n" if last else ", "
-    return [f"{head}{before}{v!r}{end}" for v in options]
+    if last:
+        return [f"{head}{before}{v!r})\n" for v in options]
+    return [f"{head}{before}{repr(v)[:-1] if isinstance(v, str) else repr(v)}" for v in options]
 
 
-def receiver_heads(spec: Spec, receivers: Mapping[str, str], actions: Iterable[str]) -> tuple[list[str], list[str]]:
-    """Line heads `var.` of the acting objects, and of the others (whose next line hands the turn back).
+@dataclass(frozen=True)
+class TurnHeads:
+    """Line heads whose likelihoods decide whether the agent acts again: its receiver (`system`), its own
+    methods that are no action (observations the environment reports, `system.set_query_status`), and the
+    other actors (`user`)."""
 
-    Compared at the receiver, the first thing a line says, the two are alike in length; comparing `user.`
-    with `system.REQUEST(` would favour ending the turn for being the shorter text.
-    """
-    acting = {spec.methods[a].cls for a in actions if a in spec.methods}
-    own = [f"{var}." for var, cls in receivers.items() if cls in acting]
-    return own, [f"{var}." for var, cls in receivers.items() if cls not in acting]
+    own: list[str]
+    observations: list[str]
+    others: list[str]
+
+    @property
+    def all(self) -> list[str]:
+        return [*self.own, *self.observations, *self.others]
+
+
+def turn_heads(spec: Spec, receivers: Mapping[str, str], actions: Iterable[str]) -> TurnHeads:
+    """Heads end where the tokenizer ends a token (`system`, `system.set_query_status`): `system.` or
+    `...status(` would be scored as if the model had to write a lone `.` or `(`, which it never does."""
+    wanted = set(actions)
+    acting = {spec.methods[a].cls for a in wanted if a in spec.methods}
+    own = [var for var, cls in receivers.items() if cls in acting]
+    observations = [f"{var}.{m.name}" for var in own for m in spec.methods.values()
+                    if m.cls == receivers[var] and m.qualname not in wanted and not m.name.startswith("_")]
+    return TurnHeads(own, observations, [var for var, cls in receivers.items() if cls not in acting])
+
+
+def ends_turn(heads: TurnHeads, scores: Mapping[str, float]) -> bool:
+    """Whether the next line is likelier no action than an action: P(other actor) + P(observation) against
+    P(agent) - P(observation). Compared at a line's first words, as greedy decoding decides; comparing `user`
+    with a whole `system.REQUEST('city')` line would favour ending the turn for being the shorter text."""
+    if not heads.own or not (heads.others or heads.observations):
+        return False
+    observed = sum(math.exp(scores[h]) for h in heads.observations)
+    stop = sum(math.exp(scores[h]) for h in heads.others) + observed
+    return stop > sum(math.exp(scores[h]) for h in heads.own) - observed
 
 
 def indentation(history: str) -> str:

@@ -225,24 +225,35 @@ class NextActionPlanner:
                 ) -> tuple[str, dict[str, float], bool]:
         """The likeliest allowed line, the scores of its last pass, and whether ending the turn is likelier.
 
-        `score` passes over the same prompt (its cache is reused as is): first the allowed actions' line heads
-        (`system.REQUEST(`) with the receiver heads that decide whether the turn ends, then each argument of
-        the likeliest action in turn, among the allowed calls that agree with the arguments chosen so far (one
-        pass for SGD's one-argument acts, whose last pass scores full lines). That is greedy decoding at the
-        grain of an action, then of an argument, restricted to what is allowed, and it scores a fraction of
-        the tokens every full line would (ALFWorld's `take(obj, recep)` has hundreds of allowed pairs).
+        Up to MAX_LINES allowed calls, one `score` pass holds every allowed line and the heads that decide
+        whether the turn ends (`ends_turn`). Beyond that (ALFWorld's `take(obj, recep)` has hundreds of
+        allowed pairs), passes over the same prompt (its cache reused as is) choose the action's head first,
+        then each argument in turn among the allowed calls that agree with those chosen so far: greedy decoding
+        at the grain of an action, then of an argument, restricted to what is allowed.
         """
         indent = constrained.indentation(history)
         prompt = self._prompt(history)
-        own, others = constrained.receiver_heads(self.spec, self.actors, self.actions) if step > 0 else ([], [])
+        turn = constrained.turn_heads(self.spec, self.actors, self.actions) if step > 0 else None
+        ends = turn.all if turn else []
+        if len(allowed) <= constrained.MAX_LINES:
+            scores = self.model.score(prompt, [f"{indent}{c}\n" for c in allowed] + [indent + h for h in ends],
+                                      self.cancelled)
+            full = dict(zip(allowed, scores[: len(allowed)], strict=True))
+            stop = turn is not None and constrained.ends_turn(turn, dict(zip(ends, scores[len(allowed):],
+                                                                             strict=True)))
+            return max(allowed, key=lambda c: full[c]), full, stop
         heads = list(dict.fromkeys(candidates.head[c] for c in allowed))
-        first = [*heads, *own, *others] if len(heads) > 1 or (own and others) else []
+        first = list(dict.fromkeys([*(h.rstrip("(") for h in heads), *ends]))
         scored = dict(zip(first, self.model.score(prompt, [indent + h for h in first], self.cancelled),
                           strict=True))
-        best = max(heads, key=lambda h: scored.get(h, 0.0))
-        if own and others and max(scored[h] for h in others) > max(scored[h] for h in own):
+        best = max(heads, key=lambda h: scored[h.rstrip("(")])
+        if turn is not None and constrained.ends_turn(turn, scored):
             return best, {}, True
-        calls = [c for c in allowed if candidates.head[c] == best]
+        return self._arguments(prompt, indent, best, candidates, [c for c in allowed if candidates.head[c] == best])
+
+    def _arguments(self, prompt: str, indent: str, head: str, candidates: constrained.Candidates,
+                   calls: list[str]) -> tuple[str, dict[str, float], bool]:
+        """One action's allowed call, chosen argument by argument (see `_choose`)."""
         full: dict[str, float] = {}
         chosen: list[constrained.Scalar] = []
         arity = len(candidates.args[calls[0]])
@@ -250,14 +261,13 @@ class NextActionPlanner:
             calls = [c for c in calls if list(candidates.args[c][:k]) == chosen]
             options = list(dict.fromkeys(candidates.args[c][k] for c in calls))[: constrained.MAX_SCORED]
             if len(options) > 1:
-                texts = constrained.argument_texts(indent + best, chosen, options, k == arity - 1)
+                texts = constrained.argument_texts(indent + head, chosen, options, k == arity - 1)
                 values = dict(zip(options, self.model.score(prompt, texts, self.cancelled), strict=True))
                 if k == arity - 1:
                     full = {c: values[candidates.args[c][k]] for c in calls if candidates.args[c][k] in values}
                 options = [max(options, key=lambda v: values[v])]
             chosen.append(options[0])
-        call = next(c for c in calls if list(candidates.args[c]) == chosen)
-        return call, full, False
+        return next(c for c in calls if list(candidates.args[c]) == chosen), full, False
 
 
 def _rejection(call: str, verdict: CallVerdict, reason: str | None) -> Rejection:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import math
 
 from engine import constrained
 from engine.spec import parse_spec
@@ -41,8 +42,21 @@ def test_calls_are_enumerated_on_the_history_s_own_objects() -> None:
     assert constrained.enumerate_calls(spec, ["Agent.goto"], {"env": "Env"}, values, every).calls == []
 
 
-def test_turn_ending_heads_are_the_other_actors() -> None:
+def test_the_turn_ends_when_no_action_is_likelier_than_an_action() -> None:
     spec = parse_spec(SPEC)
-    own, others = constrained.receiver_heads(spec, {"agent": "Agent", "env": "Env"}, ["Agent.goto"])
-    assert (own, others) == (["agent."], ["env."])
+    heads = constrained.turn_heads(spec, {"agent": "Agent", "env": "Env"}, ["Agent.goto", "Agent.take"])
+    assert (heads.own, heads.others) == (["agent"], ["env"])  # where tokens end: not `agent.`
+    assert set(heads.observations) == {"agent.wait", "agent.look"}  # the agent's methods that are no action
+    log = math.log
+    acting = {"agent": log(0.6), "agent.wait": log(0.05), "agent.look": log(0.05), "env": log(0.3)}
+    assert not constrained.ends_turn(heads, acting)  # 0.3 + 0.1 < 0.6 - 0.1
+    observing = acting | {"agent.look": log(0.3)}
+    assert constrained.ends_turn(heads, observing)  # 0.3 + 0.35 > 0.6 - 0.35
     assert constrained.indentation("def f():\n    agent = Agent(env)\n") == "    "
+
+
+def test_an_argument_that_is_not_the_last_is_scored_up_to_its_closing_quote() -> None:
+    assert constrained.argument_texts("agent.take(", [], ["apple 1", 3], last=False) == [
+        "agent.take('apple 1", "agent.take(3"]
+    assert constrained.argument_texts("agent.take(", ["apple 1"], ["table 1"], last=True) == [
+        "agent.take('apple 1', 'table 1')\n"]

@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
+from engine import constrained
 from engine.engine import Engine
 from engine.models import CodeModel, ModelSettings, load_code_model
 from sandbox import Sandbox
@@ -60,8 +61,9 @@ def test_the_allowed_set_is_what_the_sandbox_allows_and_the_call_is_chosen_from_
     assert refused["system.FindRestaurants()"].violations == ["self.user.informed_slot['cuisine']"]
     assert action.verified and action.call in allowed
     assert action.held == _gt(restaurants)[_action_of(action.call)]
-    scored = [a for a in action.allowed or [] if a.score is not None]
-    assert scored and all(a.score < 0 and _action_of(a.call) == _action_of(action.call) for a in scored)
+    assert all(a.score is not None and a.score < 0 for a in action.allowed or [])  # every line, one pass
+    best = max(action.allowed or [], key=lambda a: a.score or 0.0)
+    assert action.call == best.call
 
 
 def _action_of(call: str) -> str:
@@ -129,7 +131,11 @@ class Agent:
 """
 
 
-def test_two_argument_calls_are_chosen_argument_by_argument_among_the_allowed(engine: Engine) -> None:
+@pytest.mark.parametrize("max_lines", [64, 2])
+def test_two_argument_calls_are_chosen_among_the_allowed(engine: Engine, max_lines: int,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """All lines in one pass, or (more allowed calls than MAX_LINES) argument by argument."""
+    monkeypatch.setattr(constrained, "MAX_LINES", max_lines)
     history = "env = Env()\nagent = Agent(env)\nenv.see('apple 1', 'table 1', 'cup 2')\nagent.goto('table 1')\n"
     rules = {"Agent.goto": ["False"], "Agent.take": ["obj != recep", "obj in self.env.seen"]}
     [action] = engine.next_action(NextActionRequest(
@@ -139,4 +145,7 @@ def test_two_argument_calls_are_chosen_argument_by_argument_among_the_allowed(en
     assert len(allowed) == 6 and "agent.take('apple 1', 'table 1')" in allowed  # 3 x 3 seen, minus obj == recep
     assert action.call in allowed and action.held == rules["Agent.take"]
     scored = [a for a in action.allowed or [] if a.score is not None]
-    assert all(a.call.startswith(action.call.rsplit(",", 1)[0]) for a in scored)  # last pass: same first arg
+    if max_lines == 2:  # the last pass scored the second argument only, after the chosen first
+        assert scored and all(a.call.startswith(action.call.rsplit(",", 1)[0]) for a in scored)
+    else:
+        assert len(scored) == 6
