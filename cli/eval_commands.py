@@ -23,6 +23,7 @@ DataOption = Annotated[
 ]
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
 EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
+REPORT = Path("docs/results.md")
 
 
 @cache
@@ -141,6 +142,113 @@ def policy(
     typer.echo(f"\nresults: {path}")
 
 
+def next_action(
+    data: Annotated[Path | None, typer.Option("--data", help="The SGD data directory (default: sgd/ of the "
+                                                 "data directory, PRECOND_DATA_DIR).")] = None,
+    configs: Annotated[str, typer.Option(help="Policy configs or grids (evaluation/policy.py).")] = "modes",
+    turns: Annotated[int, typer.Option(help="System turns per domain, at least (whole dialogs, seeded).")] = 100,
+    seed: Annotated[int, typer.Option(help="Seed of the dialog sample (and of the model's sampling).")] = 0,
+    baseline: Annotated[str, typer.Option(help="The config paired differences are taken against.")]
+    = "none/plain/shots=1",
+    inferred_from: Annotated[str, typer.Option(help="Precondition config for the 'inferred' rows (model-free "
+                                               "by default: cheap, and within 0.002 F1 of the model's).")]
+    = "enumerate/recency",
+    cached_only: Annotated[bool, typer.Option(help="Predict nothing: summarize the dialogs every config has "
+                                              "finished (what an interrupted run has so far).")] = False,
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Next action at size: all SGD domains, a seeded sample of turns, intervals and paired differences."""
+    from evaluation.configs import parse_config
+    from evaluation.policy import expand_policy
+    from evaluation.preconditions import infer
+    from evaluation.report import store_sized_results, write_next_action_section
+    from evaluation.sized import Task, finished, run, sample_dialogs, summarize
+
+    (data,) = _data([data] if data else None, "sgd")
+    store = JsonCache(cache_dir)
+    engine, memo = _memo_engine(store)
+    source = parse_config(inferred_from)
+    tasks = []
+    for domain in _domains([data], "state"):
+        raw = json.loads(next(p for p in data.glob("*.json") if p.stem == domain.name).read_text())
+        inferred = infer(domain, source, store, lambda: engine.infer)
+        tasks.append(Task(domain, sample_dialogs(raw["test"], turns, seed), inferred.preconditions))
+    results = run(engine, tasks, expand_policy(configs), store, seed, memo, cached_only)
+    rows = summarize(results, baseline)
+    path = store_sized_results(store, {"rows": rows, "inferred_from": source.name, "turns_per_domain": turns,
+                                       "seed": seed, "complete": not cached_only or all(
+                                           finished(store, t, d, expand_policy(configs))
+                                           for t in tasks for d in t.dialogs)})
+    write_next_action_section(store, REPORT)
+    typer.echo(json.dumps(rows, indent=1))
+    typer.echo(f"\nresults: {path}; section written into {REPORT}")
+
+
+def next_action_alfworld(
+    data: Annotated[Path | None, typer.Option("--data", help="The ALFWorld data directory (default: alfworld/ "
+                                                 "of the data directory, PRECOND_DATA_DIR).")] = None,
+    configs: Annotated[str, typer.Option(help="Policy configs or grids (evaluation/policy.py).")]
+    = "none/plain/shots=1,inferred/constrained/shots=1",
+    episodes: Annotated[int, typer.Option(help="valid_unseen trajectories (seeded order).")] = 10,
+    steps: Annotated[int, typer.Option(help="Action steps per trajectory, spread evenly.")] = 3,
+    seed: Annotated[int, typer.Option(help="Seed of the sample (and of the model's sampling).")] = 0,
+    baseline: Annotated[str, typer.Option(help="The config paired differences are taken against.")]
+    = "none/plain/shots=1",
+    inferred_from: Annotated[str, typer.Option(help="Precondition config for the 'inferred' rows.")]
+    = "enumerate/recency",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Next action in ALFWorld: share of predictions the simulator admits, and match with the expert."""
+    from evaluation.alfworld_next import run, sample_episodes, summarize
+    from evaluation.configs import parse_config
+    from evaluation.domains import ALFWORLD_TEST_SPLIT, load_alfworld
+    from evaluation.policy import expand_policy
+    from evaluation.preconditions import infer
+    from evaluation.report import write_next_action_section
+
+    (data,) = _data([data] if data else None, "alfworld")
+    store = JsonCache(cache_dir)
+    engine, memo = _memo_engine(store)
+    domain = load_alfworld(data)
+    inferred = infer(domain, parse_config(inferred_from), store, lambda: engine.infer).preconditions
+    trajectories = [t for t in json.loads((data / "test.json").read_text())["trajectories"]
+                    if t["split"] == ALFWORLD_TEST_SPLIT and not t.get("same_scene_as_demo")]
+    demos = json.loads((data / "demos.json").read_text())["trajectories"]
+    admissible = json.loads((data / "test_admissible_commands.json").read_text())["admissible_commands"]
+    sample = sample_episodes(trajectories, demos, admissible, episodes, steps, seed)
+    results = run(engine, domain.spec, sample, expand_policy(configs),
+                  lambda c: dict(domain.gt) if c.source == "gt" else inferred, store, seed, memo)
+    rows = summarize(results, baseline)
+    path = store.put({"rows": rows, "inferred_from": inferred_from, "episodes": episodes, "steps": steps,
+                      "seed": seed}, "results", "next-action-alfworld")
+    write_next_action_section(store, REPORT)
+    typer.echo(json.dumps(rows, indent=1))
+    typer.echo(f"\nresults: {path}; section written into {REPORT}")
+
+
+def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
+    """An engine whose model remembers completions in the cache (evaluation/memo.py), and the memo's clock."""
+    import torch
+
+    from engine.engine import Engine
+    from engine.settings import ModelSettings, SandboxSettings
+    from evaluation.memo import MemoModel
+
+    torch.set_num_threads(1)
+    memo: list[MemoModel] = []
+
+    def load() -> MemoModel:
+        from engine.models import load_code_model
+
+        memo.append(MemoModel(load_code_model(ModelSettings()), store))
+        return memo[0]
+
+    def replayed() -> float:
+        return memo[0].take_replayed() if memo else 0.0
+
+    return Engine(SandboxSettings().build(), load), replayed  # type: ignore[arg-type]
+
+
 def report(
     cache_dir: CacheOption = DEFAULT_CACHE,
     out: Annotated[Path, typer.Option(help="Markdown file to write; plots go to img/ beside it.")]
@@ -149,12 +257,16 @@ def report(
     = Path("bench/sandbox_bench.py"),
     noise_only: Annotated[bool, typer.Option(help="Rewrite only the noise and sparsity section of OUT (from "
                                              "`--configs noise`), keeping the rest as it is.")] = False,
+    next_action_only: Annotated[bool, typer.Option(help="Only (re)write the next-action section and its plot, "
+                                                   "keeping the rest of the report as it is.")] = False,
 ) -> None:
     """Regenerate docs/results.md and docs/img/*.png from the cached results."""
-    from evaluation.report import write_noise_section, write_report
+    from evaluation.report import write_next_action_section, write_noise_section, write_report
 
     if noise_only:
         write_noise_section(JsonCache(cache_dir), out)
+    elif next_action_only:
+        write_next_action_section(JsonCache(cache_dir), out)
     else:
         write_report(JsonCache(cache_dir), out, bench)
     typer.echo(f"wrote {out}")
@@ -185,6 +297,8 @@ def register(app: typer.Typer) -> None:
                         no_args_is_help=True)
     group.command("preconditions")(preconditions)
     group.command("policy")(policy)
+    group.command("next-action")(next_action)
+    group.command("next-action-alfworld")(next_action_alfworld)
     group.command("report")(report)
     group.command("all")(run_all)
     app.add_typer(group, name="eval")

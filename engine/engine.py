@@ -404,8 +404,22 @@ class Engine:
             parse_source(demo, f"demonstrations[{i}]")
         planner = NextActionPlanner(spec, request, self.model(), self._verify, cancelled)
         with self._sandbox.cancel_when(cancelled):
+            violation = self._history_violation(spec, request.preconditions, planner.history)
             actions = planner.run(progress)
-        return NextActionResponse(actions=actions, model=self.model().info)
+        return NextActionResponse(actions=actions, mode=request.options.mode, history_violation=violation,
+                                  model=self.model().info)
+
+    def _history_violation(self, spec: Spec, preconditions: dict[str, list[str]], history: str) -> str | None:
+        """Where the history breaks the preconditions, if it does: the history run with the rules written in."""
+        if not any(preconditions.values()):
+            return None
+        failure = self._failure(spec, preconditions, [history])
+        if failure is None:
+            return None
+        lines = history.splitlines()
+        call = lines[failure.line - 1].strip() if failure.line and 0 < failure.line <= len(lines) else "?"
+        return f"history, line {failure.line}: {call}: {failure.exc_type}{': ' if failure.message else ''}" \
+            f"{failure.message}"
 
     def _verify(
         self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]

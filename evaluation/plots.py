@@ -104,6 +104,24 @@ def compatibility_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None
     return _save(fig, img / "policy_compatibility.png")
 
 
+def sized_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
+    """Turn F1 and GT compatibility per configuration of the sized run, with their 95% intervals."""
+    if not rows:
+        return None
+    fig, ax = plt.subplots(figsize=(8, 4))
+    xs = range(len(rows))
+    for offset, key, label in ((-0.2, "compatibility", "GT compatibility"), (0.2, "f1", "turn F1")):
+        values = [r[key]["estimate"] for r in rows]
+        errors = [[v - r[key]["low"] for v, r in zip(values, rows, strict=True)],
+                  [r[key]["high"] - v for v, r in zip(values, rows, strict=True)]]
+        ax.bar([x + offset for x in xs], values, 0.4, yerr=errors, capsize=4, label=label)
+    ax.set_xticks(list(xs), [r["config"] for r in rows], rotation=15, ha="right", fontsize=8)
+    ax.set_ylim(0, 1.05)
+    ax.set_title(f"next action, {rows[0]['turns']} SGD turns per configuration (95% bootstrap intervals)", fontsize=9)
+    ax.legend(fontsize=8, loc="lower right")
+    return _save(fig, img / "next_action_modes.png")
+
+
 def _weighted(rows: Sequence[dict[str, Any]], config: str, key: str, weight: str) -> float:
     members = [r for r in rows if r["config"] == config]
     total = sum(r[weight] for r in members)

@@ -19,15 +19,16 @@ segment is predicted without preconditions, as a client would have to.
 
 Policy configurations, `<preconditions>/<use>/shots=N`:
   preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
-  use:           plain (no precondition use) | prompt (written into the prompt's spec) |
-                 verify (Algorithm 1's verified sampling) | both
+  use:           plain (no precondition use: the model's greedy lines, unverified) | prompt (written into the
+                 prompt's spec) | verify (Algorithm 1's verified sampling, mode 'sample') | both |
+                 constrained (mode 'constrained': the model chooses among the calls the preconditions allow)
 """
 
 from __future__ import annotations
 
 import ast
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -45,13 +46,15 @@ from schemas.api import (
 )
 from schemas.errors import PrecondError
 
-USES = {"plain": (False, False), "prompt": (True, False), "verify": (False, True), "both": (True, True)}
+USES = {"plain": (False, False), "prompt": (True, False), "verify": (False, True), "both": (True, True),
+        "constrained": (False, True)}
 SOURCES = ("none", "inferred", "gt")
 GRIDS: dict[str, tuple[str, ...]] = {
     "default": ("none/plain/shots=1", "inferred/prompt/shots=1", "inferred/verify/shots=1",
                 "inferred/both/shots=1", "gt/verify/shots=1", "gt/both/shots=1",
                 "none/plain/shots=3", "inferred/both/shots=3", "gt/both/shots=3"),
     "small": ("none/plain/shots=1", "inferred/verify/shots=1", "gt/verify/shots=1"),
+    "modes": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1"),
 }
 MAX_ACTIONS = 5
 
@@ -71,6 +74,7 @@ class PolicyConfig:
     in_prompt: bool
     verify: bool
     shots: int
+    mode: str = "sample"
 
 
 def parse_policy_config(name: str) -> PolicyConfig:
@@ -81,7 +85,8 @@ def parse_policy_config(name: str) -> PolicyConfig:
     if parts[0] == "none" and parts[1] != "plain":
         raise ValueError(f"policy config {name!r}: without preconditions only 'plain' makes sense")
     in_prompt, verify = USES[parts[1]]
-    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")))
+    mode = "constrained" if parts[1] == "constrained" else "sample"
+    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")), mode)
 
 
 def expand_policy(names: str) -> list[PolicyConfig]:
@@ -134,14 +139,20 @@ def _segment(lines: Sequence[str], steps: Sequence[dict[str, Any]], turn: int, s
     return Segment(f"{turn}:{start}", turn, history, reference)
 
 
+def _no_replay() -> float:
+    return 0.0
+
+
 def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, preconditions: dict[str, list[str]],
-             segment: Segment, seed: int) -> dict[str, Any]:
+             segment: Segment, seed: int, replayed: Callable[[], float] = _no_replay) -> dict[str, Any]:
+    """One request; `replayed` gives the seconds of remembered completions it used (evaluation.memo)."""
     used = preconditions if config.source != "none" else {}
     request = NextActionRequest(
         spec=domain.spec, preconditions=used, demonstrations=list(domain.demonstrations[: config.shots]),
         history=segment.history,
         options=NextActionOptions(max_actions=MAX_ACTIONS, preconditions_in_prompt=config.in_prompt,
-                                  verify=config.verify, seed=seed, fallback="greedy"),
+                                  verify=config.verify, seed=seed, mode=config.mode,  # type: ignore[arg-type]
+                                  fallback="greedy" if config.mode == "sample" else "none"),
     )
     start = time.perf_counter()
     error = None
@@ -151,13 +162,17 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
         # The engine runs the history under the preconditions; when inferred ones contradict what the dialog
         # already did it refuses (422). Record that, and fall back to the policy without preconditions.
         error = f"{exc.kind}: {exc.message}"
-        plain = request.options.model_copy(update={"preconditions_in_prompt": False, "verify": False})
+        plain = request.options.model_copy(update={"preconditions_in_prompt": False, "verify": False,
+                                                   "mode": "sample"})
         response = engine.next_action(request.model_copy(update={"preconditions": {}, "options": plain}))
-    seconds = time.perf_counter() - start
-    # the paper's Algorithm 1 falls back to the greedy line; a line that is no action call counts as written
+    seconds = time.perf_counter() - start + replayed()
+    # the paper's Algorithm 1 falls back to the greedy line; a line that is no action call counts as written;
+    # "nothing allowed" (mode 'constrained') is no prediction at all
     predicted = [normalize_call(a.call if a.call is not None else a.rejected[0].call if a.rejected else "")
-                 for a in response.actions]
-    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds, "error": error}
+                 for a in response.actions if not a.nothing_allowed]
+    return {"predicted": predicted, "reference": list(segment.reference), "seconds": seconds, "error": error,
+            "nothing_allowed": sum(a.nothing_allowed for a in response.actions)}
+
 
 
 def receivers(history: str) -> dict[str, str]:
@@ -203,21 +218,25 @@ def _compatible(engine: PolicyEngine, domain: Domain, history: str, calls: list[
 
 def run_policy(engine: PolicyEngine, domain: Domain, config: PolicyConfig,
                preconditions: dict[str, list[str]], dialogs: Sequence[dict[str, Any]], cache: JsonCache,
-               max_turns: int | None, seed: int = 0) -> list[dict[str, Any]]:
+               max_turns: int | None, seed: int = 0, replayed: Callable[[], float] = _no_replay,
+               progress: Callable[[], None] | None = None) -> list[dict[str, Any]]:
     """Every selected segment's prediction, from the cache when present; one cache file per dialog.
 
     Compatibility is judged afresh on every run (a sandbox check is milliseconds), so a cached prediction is
     never scored under an outdated rule or ground truth.
     """
     results: list[dict[str, Any]] = []
-    for dialog in tqdm(dialogs, desc=f"{domain.name} {config.name}", unit="dialog", leave=False):
+    for dialog in tqdm(dialogs, desc=f"{domain.name} {config.name}", unit="dialog", leave=False,
+                       disable=progress is not None):
         done: dict[str, Any] = cache.get("policy", domain.name, config.name, dialog["dialogue_id"]) or {}
         turns = sorted({s.turn for s in segments(dialog)})[:max_turns]
         for segment in (s for s in segments(dialog) if s.turn in turns):
             if segment.key not in done:
-                done[segment.key] = _predict(engine, domain, config, preconditions, segment, seed) | {
+                done[segment.key] = _predict(engine, domain, config, preconditions, segment, seed, replayed) | {
                     "turn": segment.turn}
                 cache.put(done, "policy", domain.name, config.name, dialog["dialogue_id"])
+            if progress is not None:
+                progress()
             predicted = done[segment.key]["predicted"]
             known = receivers(segment.history)
             results.append(done[segment.key] | {

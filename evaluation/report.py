@@ -48,6 +48,10 @@ def store_policy_results(store: JsonCache, new: Sequence[dict[str, Any]]) -> Pat
     return store.put(list(rows.values()), "results", "policy")
 
 
+def store_sized_results(store: JsonCache, result: dict[str, Any]) -> Path:
+    return store.put(result, "results", "next-action")
+
+
 # ---- tables ----------------------------------------------------------------------------------------------
 
 
@@ -181,6 +185,106 @@ def _policy_overall(rows: Sequence[dict[str, Any]]) -> str:
     return _markdown(["config", "domains", "turns", "turn F1", "GT compat."], body)
 
 
+def _ci(interval: dict[str, float], signed: bool = False) -> str:
+    sign = "+" if signed else ""
+    return f"{interval['estimate']:{sign}.3f} [{interval['low']:{sign}.3f}, {interval['high']:{sign}.3f}]"
+
+
+def sized_table(result: dict[str, Any]) -> str:
+    """The sized next-action run: estimates with 95% intervals, paired differences to the baseline, latency."""
+    body = []
+    for r in result["rows"]:
+        diff = [_ci(r["f1_diff"], True), _ci(r["compatibility_diff"], True)] if "f1_diff" in r else ["–", "–"]
+        body.append([f"`{r['config']}`", str(r["dialogs"]), str(r["turns"]), _ci(r["f1"]),
+                     f"{_ci(r['compatibility'])} (n={r['compatibility']['n']})", *diff,
+                     f"{r['latency_p50_s']:.2f}", f"{r['latency_p95_s']:.2f}", f"{r['refused']}/{r['requests']}",
+                     str(r["nothing_allowed"])])
+    return _markdown(["config", "dialogs", "turns", "turn F1 [95% CI]", "GT compat. [95% CI]",
+                      "Δ turn F1 vs baseline [95% CI]", "Δ GT compat. [95% CI]", "p50 s/request",
+                      "p95 s/request", "refused", "nothing allowed"], body)
+
+
+def _sized_section(result: dict[str, Any] | None) -> list[str]:
+    if not result:
+        return ["No sized next-action run cached yet (`precond eval next-action`)."]
+    baseline = next((r["vs"] for r in result["rows"] if "vs" in r), "–")
+    partial = "" if result.get("complete", True) else (
+        " **Partial run**: the sample was not finished within the time available; the table holds the dialogs "
+        "every configuration finished (domains interleaved dialog by dialog, so all four are in it), and "
+        "`precond eval next-action` continues it from the cache.")
+    return [
+        f"All four SGD domains, test dialogs drawn whole in a seeded order (seed {result['seed']}) until each "
+        f"domain has at least {result['turns_per_domain']} system turns; every configuration runs on the same "
+        f"turns. Inferred preconditions: `{result['inferred_from']}` (model-free, cached). Intervals: percentile "
+        "bootstrap over dialogs (2,000 resamples; evaluation/stats.py); Δ: paired bootstrap of the difference "
+        f"to `{baseline}` on the same dialogs. Latency: per request (one segment of a turn, up to 5 actions), "
+        f"the model on one thread of a 2-core machine shared with other work.{partial}\n",
+        sized_table(result),
+    ]
+
+
+def alfworld_next_table(result: dict[str, Any]) -> str:
+    body = []
+    for r in result["rows"]:
+        diff = [_ci(r["admissible_diff"], True), _ci(r["expert_diff"], True)] if "expert_diff" in r else ["–", "–"]
+        body.append([f"`{r['config']}`", str(r["episodes"]), str(r["steps"]), _ci(r["admissible"]),
+                     _ci(r["expert"]), *diff, f"{r['latency_p50_s']:.2f}", f"{r['latency_p95_s']:.2f}",
+                     str(r["refused"])])
+    return _markdown(["config", "trajectories", "steps", "admissible [95% CI]", "expert match [95% CI]",
+                      "Δ admissible", "Δ expert match", "p50 s", "p95 s", "refused"], body)
+
+
+def _alfworld_section(result: dict[str, Any] | None) -> list[str]:
+    if not result:
+        return ["No ALFWorld next-action run cached yet (`precond eval next-action-alfworld`)."]
+    return [
+        f"\nALFWorld valid_unseen: {result['episodes']} trajectories drawn in a seeded order (seed "
+        f"{result['seed']}), {result['steps']} action steps each, spread evenly; one action predicted per step, "
+        "with the demonstration of the episode's task type. Admissible: the simulator accepted the command in "
+        f"that state. Inferred preconditions: `{result['inferred_from']}`. Intervals: bootstrap over "
+        "trajectories.\n",
+        alfworld_next_table(result),
+    ]
+
+
+NEXT_ACTION_HEADING = "## Next action at size: modes compared with intervals"
+CHOICE = Path(__file__).with_name("next_action_choice.md")
+
+
+def next_action_section(store: JsonCache, plot: Path | None) -> str:
+    """The sized next-action runs (SGD and ALFWorld), the reading of them, and their plot."""
+    parts = [NEXT_ACTION_HEADING + "\n", *_sized_section(store.get("results", "next-action")),
+             *_alfworld_section(store.get("results", "next-action-alfworld")),
+             "\n" + CHOICE.read_text(encoding="utf-8") if CHOICE.exists() else ""]
+    if plot is not None:
+        parts.append(f"\n![{plot.stem}](img/{plot.name})\n")
+    return "\n".join(parts)
+
+
+def write_next_action_section(store: JsonCache, out: Path) -> None:
+    """Replace (or add, before `## Speed`) the next-action section of an existing report, and its plot.
+
+    The rest of the report comes from runs this cache may not hold (`write_report` regenerates it all);
+    a next-action run must not wipe them.
+    """
+    from evaluation.plots import sized_plot
+
+    sized = store.get("results", "next-action")
+    img = out.parent / "img"
+    img.mkdir(parents=True, exist_ok=True)
+    section = next_action_section(store, sized_plot(sized["rows"] if sized else [], img))
+    text = out.read_text(encoding="utf-8") if out.exists() else "# Evaluation results\n"
+    start = text.find(NEXT_ACTION_HEADING)
+    if start >= 0:
+        end = text.find("\n## ", start + len(NEXT_ACTION_HEADING))
+        text = text[:start] + section.rstrip() + "\n" + (text[end:] if end >= 0 else "")
+    else:
+        at = text.find("\n## Speed")
+        at = len(text) if at < 0 else at + 1
+        text = text[:at] + section.rstrip() + "\n\n" + text[at:]
+    out.write_text(text, encoding="utf-8")
+
+
 def speed_table(rows: Sequence[dict[str, Any]]) -> str:
     chosen = [r for r in rows if r["domain"] == SPEED_DOMAIN and r.get("seconds")
               and "demos=" not in r["config"] and "maxrate=" not in r["config"]]
@@ -295,13 +399,15 @@ def write_noise_section(store: JsonCache, out: Path) -> None:
 
 
 def write_report(store: JsonCache, out: Path, bench: Path) -> None:
-    from evaluation.plots import compatibility_plot, demos_plot, per_action_plot
+    from evaluation.plots import compatibility_plot, demos_plot, per_action_plot, sized_plot
 
     pre = (store.get("results", "preconditions") or {"rows": []})["rows"]
     pol = store.get("results", "policy") or []
     img = out.parent / "img"
     img.mkdir(parents=True, exist_ok=True)
-    plots = [per_action_plot(pre, img), demos_plot(pre, img), compatibility_plot(pol, img)]
+    sized = store.get("results", "next-action")
+    plots = [per_action_plot(pre, img), demos_plot(pre, img), compatibility_plot(pol, img),
+             sized_plot(sized["rows"] if sized else [], img)]
     sections = [
         "# Evaluation results\n",
         "Generated by `precond eval all` (`precond eval report`: from the cache alone); do not edit by hand.",
@@ -321,6 +427,7 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         "## Policy (SGD next-action prediction)\n",
         _policy_overall(pol) if pol else "No policy run cached yet (`precond eval policy`).",
         "\n" + (policy_table(pol) if pol else ""),
+        "\n" + next_action_section(store, plots[-1]),
         "\n## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
         speed_table(pre),

@@ -21,6 +21,7 @@ from precond_client.errors import (
 from precond_client.history import History, event
 from precond_client.sync import Client
 from schemas.api import (
+    AllowedCall,
     CallVerdict,
     CheckRequest,
     CheckResponse,
@@ -42,6 +43,7 @@ from schemas.api import (
 )
 
 __all__ = [
+    "AllowedCall",
     "AsyncClient",
     "CallVerdict",
     "Cancelled",

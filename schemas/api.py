@@ -289,8 +289,23 @@ class InferResponse(_Body):
     )
 
 
+NextActionMode = Literal["sample", "constrained"]
+
+
 class NextActionOptions(_Body):
-    max_attempts: int = Field(default=5, ge=1, le=50)
+    mode: NextActionMode = Field(
+        default="constrained",
+        description="'constrained' (default, best on the dev numbers: docs/results.md): the sandbox judges every "
+        "call the agent could make now (its actions × argument values from the spec, the history and the "
+        "demonstrations) and the model chooses among the allowed ones by likelihood; nothing allowed is said "
+        "(`nothing_allowed`). 'sample': the paper's Algorithm 1 (greedy, then random samples until one passes).",
+    )
+    return_allowed: bool = Field(
+        default=False,
+        description="Return, with each predicted action, the calls the preconditions allow in its state (with "
+        "the model's log-likelihood in mode 'constrained').",
+    )
+    max_attempts: int = Field(default=5, ge=1, le=50, description="Mode 'sample': greedy plus samples.")
     max_actions: int = Field(default=1, ge=1, le=20)
     preconditions_in_prompt: bool = False
     verify: bool = Field(
@@ -306,6 +321,17 @@ class NextActionOptions(_Body):
     temperature: float = Field(default=0.8, ge=0.0, le=2.0)
     max_new_tokens: int = Field(default=32, ge=4, le=128)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
+
+    @model_validator(mode="after")
+    def _options_of_the_mode(self) -> NextActionOptions:
+        """Options that only mean something when sampling are refused in mode 'constrained', never ignored."""
+        if self.mode == "constrained":
+            if not self.verify:
+                raise ValueError("verify: false needs mode 'sample' (mode 'constrained' only returns allowed calls)")
+            if self.fallback != "none":
+                raise ValueError("fallback: 'greedy' needs mode 'sample' (mode 'constrained' answers "
+                                 "`nothing_allowed` instead of a forbidden call)")
+        return self
 
 
 class NextActionRequest(_UsesRules):
@@ -329,19 +355,49 @@ class Rejection(_Body):
     reason: str | None = None
 
 
+class AllowedCall(_Body):
+    call: str
+    score: float | None = Field(
+        default=None, description="Mode 'constrained': the model's log-likelihood of the call's line (higher is "
+        "likelier); null where it was not scored."
+    )
+
+
 class PredictedAction(_Body):
     call: str | None = Field(
         description="The action call; null: no verified action (every attempt is in `rejected`, `reason` says "
-        "why). Never a line that is not a call of an action."
+        "why), or nothing allowed (`nothing_allowed`). Never a line that is not a call of an action."
     )
-    verified: bool = Field(description="The call satisfies the preconditions after the history.")
-    attempts: int
-    rejected: list[Rejection] = Field(default_factory=list)
+    verified: bool = Field(description="The call satisfies the preconditions after the history (run in the sandbox).")
+    held: list[str] = Field(
+        default_factory=list,
+        description="The preconditions of the call's action that hold (all of them when `verified`).",
+    )
+    attempts: int = Field(description="Mode 'sample': model lines tried; mode 'constrained': calls judged.")
+    rejected: list[Rejection] = Field(
+        default_factory=list,
+        description="Calls refused and why: the violated preconditions (`violations`) or the error.",
+    )
+    nothing_allowed: bool = Field(
+        default=False,
+        description="Mode 'constrained': no call the agent could make is allowed by the preconditions here "
+        "(`call` is null; `rejected` lists every call judged, with the precondition that fails).",
+    )
+    allowed: list[AllowedCall] | None = Field(
+        default=None, description="With `options.return_allowed`: the calls the preconditions allow in this state."
+    )
     reason: str | None = Field(default=None, description="Why `call` is null, or why an unverified call is given.")
 
 
 class NextActionResponse(_Body):
     actions: list[PredictedAction]
+    mode: NextActionMode = "constrained"
+    history_violation: str | None = Field(
+        default=None,
+        description="Set when the history itself breaks the preconditions: the first call that does, by line, "
+        "and the rule. The history is taken as what happened and the answer is still given (a flagged answer, "
+        "not a 422): rules inferred from a few demonstrations can be stricter than the dialogs that occur.",
+    )
     model: ModelInfo | None = None
 
 

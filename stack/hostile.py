@@ -114,16 +114,18 @@ def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
     ]
     cases.append({"name": "calls:corpus", "method": post, "path": "/check-actions",
                   "json": check_body(*hostile_calls), "expect": (200,), "check": _all_disallowed})
-    # next-action runs the history only to judge a sampled call that parses; the tiny model's samples never
-    # do, so these end 200 with nothing verified (a real model's would reach the sandbox: 422 or a verdict).
+    # Mode 'sample' runs the history only to judge a sampled call that parses; the tiny model's samples never
+    # do, so those end 200 with nothing verified. Mode 'constrained' (the default) always runs the history in
+    # the sandbox, to judge every call the agent could make: 422 or a verdict, never an escape.
     for name in ("loop", "os_system", "kill_parent", "output_100mb"):
         code = _programs(canary_dir)[name]
-        next_action = example("next-action")
-        next_action["options"] = {"max_attempts": 1, "max_new_tokens": 8}
-        for role, changed in (("history", {"history": next_action["history"] + code}),
-                              ("spec", {"spec": _spec_with(code)})):
-            cases.append({"name": f"next-action-{role}:{name}", "method": post, "path": "/next-action",
-                          "json": next_action | changed, "expect": (200, 422), "check": _nothing_verified})
+        for options in ({"mode": "sample", "max_attempts": 1, "max_new_tokens": 8}, {"mode": "constrained"}):
+            next_action = example("next-action") | {"options": options}
+            for role, changed in (("history", {"history": next_action["history"] + code}),
+                                  ("spec", {"spec": _spec_with(code)})):
+                cases.append({"name": f"next-action-{options['mode']}-{role}:{name}", "method": post,
+                              "path": "/next-action", "json": next_action | changed, "expect": (200, 422),
+                              "check": _nothing_verified})
     cases += _bodies()
     return cases
 

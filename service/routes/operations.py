@@ -78,9 +78,12 @@ async def next_action(
     tenant: Tenant,
     wait: Wait = None,
 ) -> Response:
-    """The next action(s), verified against the preconditions (the paper's Algorithm 1). A call is always a
-    call of an action; when no attempt passes, `call` is null with every attempt in `rejected`, unless
-    `options.fallback` is "greedy"."""
+    """The next action(s), verified against the preconditions. `options.mode` "constrained" (default): the
+    sandbox judges every call the agent could make now and the model chooses among the allowed ones; when none
+    is allowed, `nothing_allowed` says so (with every call in `rejected`, by the failing rule). "sample": the
+    paper's Algorithm 1; when no attempt passes, `call` is null with every attempt in `rejected`, unless
+    `options.fallback` is "greedy". A call is always a call of an action; a history that itself breaks the
+    preconditions is answered with `history_violation` set (line and rule), not refused."""
     return await answer(services, request, tenant, "next-action", body, keys.model_identity(), wait)
 
 

@@ -121,7 +121,7 @@ def _next(data: dict[str, Any], model: ScriptedModel, **options: Any) -> list[An
         engine = Engine(sandbox, lambda: model)  # type: ignore[arg-type,return-value]
         response = engine.next_action(NextActionRequest(
             spec=data["spec_program"], preconditions=_gt(data), demonstrations=[data["demos"][0]["program"]],
-            history=history, options=options,
+            history=history, options={"mode": "sample", **options},
         ))
     return response.actions
 

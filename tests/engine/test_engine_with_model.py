@@ -52,8 +52,23 @@ def test_next_action_is_a_verified_system_act(engine: Engine, restaurants: dict[
     response = engine.next_action(NextActionRequest(
         spec=restaurants["spec_program"], preconditions=gt,
         demonstrations=[d["program"] for d in restaurants["demos"][:2]], history=history,
-        options={"max_attempts": 4, "max_actions": 1, "seed": 0},
+        options={"mode": "sample", "max_attempts": 4, "max_actions": 1, "seed": 0},
     ))
     [action] = response.actions
     assert action.call.startswith("system.") and 1 <= action.attempts <= 4
     assert action.verified, action
+
+
+def test_constrained_next_action_requests_a_slot_the_user_has_not_given(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    gt = {f"SYSTEM.{a}": list(v) for a, v in restaurants["gt_preconditions"].items()}
+    history = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')\nuser.INFORM('city')\n"
+    response = engine.next_action(NextActionRequest(
+        spec=restaurants["spec_program"], preconditions=gt,
+        demonstrations=[d["program"] for d in restaurants["demos"][:1]], history=history,
+        options={"mode": "constrained", "max_actions": 1, "return_allowed": True},
+    ))
+    [action] = response.actions
+    assert action.verified and action.call in {a.call for a in action.allowed or []}
+    assert action.call.startswith("system.REQUEST(") and action.call != "system.REQUEST('city')", action

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from typing import Any
 
 import httpx
 import pytest
@@ -59,7 +60,7 @@ def test_unfinished_job_is_202_then_polled_to_its_result(client: httpx.Client) -
 
 def test_next_action_with_the_tiny_model_reports_its_rejections(client: httpx.Client) -> None:
     body = example("next-action")
-    body["options"] = {"max_attempts": 3, "max_new_tokens": 16}
+    body["options"] = {"mode": "sample", "max_attempts": 3, "max_new_tokens": 16}
     answer = client.post("/next-action", json=body, params={"wait": 60})
     assert answer.status_code == 200, answer.text
     (action,) = answer.json()["actions"]
@@ -68,6 +69,26 @@ def test_next_action_with_the_tiny_model_reports_its_rejections(client: httpx.Cl
     assert action["attempts"] == 3 and len(action["rejected"]) == 3
     assert all(rejection["reason"] for rejection in action["rejected"])
     assert answer.json()["model"]["device"] == "cpu"
+
+
+def test_next_action_constrained_with_the_tiny_model_chooses_an_allowed_call(client: httpx.Client) -> None:
+    body = example("next-action")
+    body["options"] = {"mode": "constrained", "return_allowed": True}
+    answer = client.post("/next-action", json=body, params={"wait": 60})
+    assert answer.status_code == 200, answer.text
+    assert answer.json()["mode"] == "constrained"
+    (action,) = answer.json()["actions"]
+    assert action["verified"] and action["call"] in {a["call"] for a in action["allowed"]}
+
+
+@pytest.mark.parametrize("options", [{"mode": "constrained", "verify": False}, {"fallback": "greedy"},
+                                     {"mode": "guess"}])
+def test_next_action_options_that_do_not_fit_the_mode_are_422(client: httpx.Client, options: dict[str, Any]
+                                                               ) -> None:
+    body = example("next-action") | {"options": options}
+    answer = client.post("/next-action", json=body, params={"wait": 0})
+    assert answer.status_code == 422, answer.text
+    assert answer.json()["error"]["field"].startswith("options"), answer.json()
 
 
 def test_job_progress_poll_and_cancel(client: httpx.Client) -> None:

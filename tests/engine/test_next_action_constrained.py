@@ -1,0 +1,151 @@
+"""Mode 'constrained' through the real sandbox with the tiny model: the allowed set, the choice, nothing allowed,
+and the answers to bad input (the history, the action names)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from pydantic import ValidationError
+
+from engine import constrained
+from engine.engine import Engine
+from engine.models import CodeModel, ModelSettings, load_code_model
+from sandbox import Sandbox
+from schemas.api import CheckRequest, NextActionOptions, NextActionRequest
+from schemas.errors import InvalidInput, UnknownAction
+
+HISTORY = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')\nuser.INFORM('city')\n"
+
+
+@pytest.fixture(scope="module")
+def tiny(tiny_model_dir: Path) -> CodeModel:
+    return load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", max_batch=8))
+
+
+@pytest.fixture(scope="module")
+def engine(tiny: CodeModel) -> Iterator[Engine]:
+    with Sandbox(workers=1) as sandbox:
+        yield Engine(sandbox, lambda: tiny)
+
+
+def _gt(data: dict[str, Any]) -> dict[str, list[str]]:
+    return {f"SYSTEM.{a}": list(asserts) for a, asserts in data["gt_preconditions"].items()}
+
+
+def _request(data: dict[str, Any], preconditions: dict[str, list[str]] | None = None, history: Any = HISTORY,
+             **options: Any) -> NextActionRequest:
+    return NextActionRequest(
+        spec=data["spec_program"], preconditions=_gt(data) if preconditions is None else preconditions,
+        demonstrations=[data["demos"][0]["program"]], history=history,
+        options={"mode": "constrained", "return_allowed": True, **options},
+    )
+
+
+def test_the_allowed_set_is_what_the_sandbox_allows_and_the_call_is_chosen_from_it(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    [action] = engine.next_action(_request(restaurants)).actions
+    allowed = [a.call for a in action.allowed or []]
+    judged = allowed + [r.call for r in action.rejected]
+    assert action.attempts == len(judged) == len(set(judged))
+    # every call judged, judged again by /check-actions' path: allowed exactly when listed as allowed
+    verdicts = engine.check(CheckRequest(spec=restaurants["spec_program"], preconditions=_gt(restaurants),
+                                         history=HISTORY, calls=judged[:64])).results
+    assert [v.allowed for v in verdicts] == [c in allowed for c in judged[:64]]
+    assert "system.REQUEST('cuisine')" in allowed and "system.REQUEST('city')" not in allowed
+    refused = {r.call: r for r in action.rejected}
+    assert refused["system.REQUEST('city')"].violations == ["not self.user.informed_slot[slot]"]
+    assert refused["system.FindRestaurants()"].violations == ["self.user.informed_slot['cuisine']"]
+    assert action.verified and action.call in allowed
+    assert action.held == _gt(restaurants)[_action_of(action.call)]
+    assert all(a.score is not None and a.score < 0 for a in action.allowed or [])  # every line, one pass
+    best = max(action.allowed or [], key=lambda a: a.score or 0.0)
+    assert action.call == best.call
+
+
+def _action_of(call: str) -> str:
+    return "SYSTEM." + call.split(".", 1)[1].split("(", 1)[0]
+
+
+def test_preconditions_that_allow_nothing_say_so(engine: Engine, restaurants: dict[str, Any]) -> None:
+    nothing = {f"SYSTEM.{a}": ["False"] for a in restaurants["system_actions"]}
+    [action] = engine.next_action(_request(restaurants, nothing, max_actions=3)).actions
+    assert action.nothing_allowed and action.call is None and not action.verified
+    assert action.allowed == [] and action.reason and action.reason.startswith("nothing allowed")
+    assert action.rejected and all(r.violations == ["False"] for r in action.rejected)
+
+
+def test_later_actions_of_a_turn_are_allowed_in_the_state_they_are_made(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    actions = engine.next_action(_request(restaurants, max_actions=4)).actions
+    assert actions and all(a.verified and a.call in {x.call for x in a.allowed or []} for a in actions)
+
+
+def test_an_empty_history_is_refused_naming_the_history(engine: Engine, restaurants: dict[str, Any]) -> None:
+    with pytest.raises(InvalidInput) as err:
+        engine.next_action(_request(restaurants, history=""))
+    assert err.value.field == "history" and "no object of the acting class (SYSTEM)" in err.value.message
+
+
+def test_an_empty_event_history_is_the_start_of_a_dialog(engine: Engine, restaurants: dict[str, Any]) -> None:
+    [action] = engine.next_action(_request(restaurants, history=[])).actions
+    assert action.verified and action.call is not None
+
+
+def test_a_history_that_violates_the_preconditions_is_answered_and_flagged_with_its_line(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    history = HISTORY + "system.REQUEST('city')\n"
+    response = engine.next_action(_request(restaurants, history=history))
+    assert response.history_violation is not None
+    assert response.history_violation.startswith("history, line 5: system.REQUEST('city'): AssertionError")
+    assert response.actions[0].verified
+    assert engine.next_action(_request(restaurants)).history_violation is None
+
+
+def test_an_action_not_in_the_spec_is_refused(engine: Engine, restaurants: dict[str, Any]) -> None:
+    with pytest.raises(UnknownAction):
+        engine.next_action(_request(restaurants, {"SYSTEM.DANCE": ["True"]}))
+
+
+@pytest.mark.parametrize("options", [{"verify": False}, {"fallback": "greedy"}])
+def test_options_of_sampling_are_refused_in_constrained_mode(options: dict[str, Any]) -> None:
+    with pytest.raises(ValidationError, match="needs mode 'sample'"):
+        NextActionOptions(mode="constrained", **options)
+    NextActionOptions(mode="sample", **options)
+
+
+AGENT_SPEC = """class Env:
+  def __init__(self):
+    self.seen = set()
+  def see(self, *objects): self.seen.update(objects)
+class Agent:
+  def __init__(self, env):
+    self.env = env
+  def goto(self, recep): pass
+  def take(self, obj, recep): pass
+"""
+
+
+@pytest.mark.parametrize("max_lines", [64, 2])
+def test_two_argument_calls_are_chosen_among_the_allowed(engine: Engine, max_lines: int,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """All lines in one pass, or (more allowed calls than MAX_LINES) argument by argument."""
+    monkeypatch.setattr(constrained, "MAX_LINES", max_lines)
+    history = "env = Env()\nagent = Agent(env)\nenv.see('apple 1', 'table 1', 'cup 2')\nagent.goto('table 1')\n"
+    rules = {"Agent.goto": ["False"], "Agent.take": ["obj != recep", "obj in self.env.seen"]}
+    [action] = engine.next_action(NextActionRequest(
+        spec=AGENT_SPEC, preconditions=rules, history=history,
+        options={"mode": "constrained", "return_allowed": True})).actions
+    allowed = {a.call for a in action.allowed or []}
+    assert len(allowed) == 6 and "agent.take('apple 1', 'table 1')" in allowed  # 3 x 3 seen, minus obj == recep
+    assert action.call in allowed and action.held == rules["Agent.take"]
+    scored = [a for a in action.allowed or [] if a.score is not None]
+    if max_lines == 2:  # the last pass scored the second argument only, after the chosen first
+        assert scored and all(a.call.startswith(action.call.rsplit(",", 1)[0]) for a in scored)
+    else:
+        assert len(scored) == 6
