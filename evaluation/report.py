@@ -424,9 +424,8 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         *[f"\n### Per action: {d}\n\n{action_table(pre, d)}" for d in dict.fromkeys(r["domain"] for r in pre)
           if action_table(pre, d)],
         "\n" + noise_section(pre, img),
-        "## Policy (SGD next-action prediction)\n",
-        _policy_overall(pol) if pol else "No policy run cached yet (`precond eval policy`).",
-        "\n" + (policy_table(pol) if pol else ""),
+        *(["## Policy (SGD next-action prediction, the small grid of `precond eval policy`)\n",
+            _policy_overall(pol), "\n" + policy_table(pol)] if pol else []),
         "\n" + next_action_section(store, plots[-1]),
         "\n## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
