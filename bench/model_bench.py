@@ -256,11 +256,14 @@ def child(argv: list[str]) -> dict[str, Any]:
     raise ValueError(f"unknown configuration {kind!r}")
 
 
-def run_child(argv: list[str]) -> dict[str, Any]:
-    env = {**os.environ, "OMP_NUM_THREADS": argv[-2], "MKL_NUM_THREADS": argv[-2], "TOKENIZERS_PARALLELISM": "false"}
+def run_child(argv: list[str], script: str = __file__, threads: str | None = None) -> dict[str, Any]:
+    """One configuration of `script` (`--child ARGV`) in a fresh process, so its memory and caches are its own;
+    the result is the last line it prints, with the load average before and after (a shared machine's noise)."""
+    threads = threads or argv[-2]
+    env = {**os.environ, "OMP_NUM_THREADS": threads, "MKL_NUM_THREADS": threads, "TOKENIZERS_PARALLELISM": "false"}
     before = os.getloadavg()[0]
     done = subprocess.run(
-        [sys.executable, __file__, "--child", *argv], env=env, capture_output=True, text=True, check=False
+        [sys.executable, script, "--child", *argv], env=env, capture_output=True, text=True, check=False
     )
     if done.returncode != 0:
         raise RuntimeError(f"{argv} failed:\n{done.stderr[-3000:]}")

@@ -20,8 +20,6 @@ import json
 import logging
 import os
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -130,19 +128,6 @@ def timed(action: Callable[[], Any]) -> tuple[float, Any]:
     return time.perf_counter() - start, result
 
 
-def run_child(argv: list[str]) -> dict[str, Any]:
-    env = {**os.environ, "OMP_NUM_THREADS": argv[2], "TOKENIZERS_PARALLELISM": "false"}
-    before = os.getloadavg()[0]
-    done = subprocess.run([sys.executable, __file__, "--child", *argv], env=env, capture_output=True, text=True,
-                          check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"{argv} failed:\n{done.stderr[-3000:]}")
-    result: dict[str, Any] = json.loads(done.stdout.strip().splitlines()[-1])
-    result["load_average"] = [round(before, 2), round(os.getloadavg()[0], 2)]
-    logger.info("%s", json.dumps(result))
-    return result
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--domain", default="Restaurants_1")
@@ -157,9 +142,13 @@ def main() -> None:
         print(json.dumps(run(runtime, dtype, int(threads), name, int(turns))))
         return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    rows = [run_child(["backend", dtype, str(args.threads), args.domain, str(args.turns)]) for dtype in args.dtypes]
+    from bench.model_bench import run_child
+
+    threads = str(args.threads)
+    rows = [run_child(["backend", dtype, threads, args.domain, str(args.turns)], __file__, threads)
+            for dtype in args.dtypes]
     if importlib.util.find_spec("llama_cpp") is not None:
-        rows.append(run_child(["llama_cpp", "-", str(args.threads), args.domain, str(args.turns)]))
+        rows.append(run_child(["llama_cpp", "-", threads, args.domain, str(args.turns)], __file__, threads))
     else:
         logger.info("llama.cpp: skipped (llama_cpp is not importable)")
     report = {"cpu": cpu_model(), "cores": os.cpu_count(), "rows": rows}
