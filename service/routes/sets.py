@@ -81,12 +81,7 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     one that would block a demonstrated call is refused (422 naming the rule and the demonstration) unless
     `force`. Earlier versions stay as they were."""
     tag = _tag(services, tenant)
-    if "@" in set_id:
-        raise ServiceError(404, f"no precondition set {set_id[:80]}")
-    base = await services.sets.get(tag, set_id)
-    if body.base_version is not None and body.base_version != base.latest:
-        raise ServiceError(409, f"base_version {body.base_version} is not the latest version ({base.latest})",
-                           "conflict")
+    base = await _latest(services, tag, set_id, body.base_version)
     rules, required, rejected = apply_edits(base, body.edits)
     rules = _static_check(base.spec, rules, [], field="edits")
     before = {(a, r) for a, rs in base.preconditions.items() for r in rs}
@@ -120,12 +115,7 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
     and carries `diff` against its base: rules `added`, `removed` (each with why it was dropped), `kept`,
     `required_kept`, `rejected_suppressed`."""
     tag = _tag(services, tenant)
-    if "@" in set_id:
-        raise ServiceError(404, f"no precondition set {set_id[:80]}")
-    base = await services.sets.get(tag, set_id)
-    if body.base_version is not None and body.base_version != base.latest:
-        raise ServiceError(409, f"base_version {body.base_version} is not the latest version ({base.latest})",
-                           "conflict")
+    base = await _latest(services, tag, set_id, body.base_version)
     for index, demonstration in enumerate(body.demonstrations):
         try:
             checks.parse(demonstration, f"demonstrations[{index}]")
@@ -147,6 +137,18 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes)
     model = keys.model_identity() if "model" in body.options.generators else None
     return await answer(services, request, tenant, "reinfer", job, model, wait)
+
+
+async def _latest(services: Services, tag: str, set_id: str, base_version: int | None) -> PreconditionSet:
+    """The set a new version builds on: a bare id (a version reference is 404), whose latest version must be
+    `base_version` when the caller names one (optimistic concurrency: otherwise 409)."""
+    if "@" in set_id:
+        raise ServiceError(404, f"no precondition set {set_id[:80]}")
+    base = await services.sets.get(tag, set_id)
+    if base_version is not None and base_version != base.latest:
+        raise ServiceError(409, f"base_version {base_version} is not the latest version ({base.latest})",
+                           "conflict")
+    return base
 
 
 def _tag(services: Services, tenant: str) -> str:
