@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 sys.path.insert(0, str(ROOT))
 
+from service.server import GATEWAY_ARGS  # noqa: E402
 from stack.local import free_port, wait_until  # noqa: E402
 
 TENANTS = ("quiet", "flood")
@@ -91,7 +92,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
     argvs = [
         [redis_server, "--port", str(redis_port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
          "--dir", str(tmp)],
-        [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory", "--port", str(http_port),
+        [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS, "--port", str(http_port),
          "--log-level", "warning", "--no-access-log"],
         [sys.executable, "-c", "from cli.main import app; app()", "worker"],
     ]

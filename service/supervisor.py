@@ -22,6 +22,7 @@ from pathlib import Path
 from types import FrameType
 
 from jobs.settings import WorkerSettings
+from service.server import GATEWAY_ARGS
 
 log = logging.getLogger("precond.serve")
 LOCAL_REDIS = ("127.0.0.1", 6379)
@@ -164,7 +165,7 @@ class Supervisor:
             self.env["REDIS_URL"] = settings.redis_dsn
         if settings.secret is None and settings.secret_file is None:  # one secret for the processes started here
             self.env["PRECOND_SECRET"] = secrets.token_urlsafe(32)
-        gateway = [sys.executable, "-m", "uvicorn", "service.app:create_app", "--factory"]
+        gateway = [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS]
         self.children.append(Child("gateway", [*gateway, "--host", host, "--port", str(port)]))
         worker = [sys.executable, "-m", "worker.runner"]
         self.children += [Child(f"worker-{i}", worker) for i in range(workers)]

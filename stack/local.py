@@ -27,6 +27,8 @@ from typing import Any
 import httpx
 import redis
 
+from service.server import GATEWAY_ARGS
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = {
     name: json.loads((ROOT / "examples" / f"{name}.json").read_text())
@@ -159,15 +161,7 @@ class Stack:
         return process
 
     def start_gateway(self) -> None:
-        argv = [
-            sys.executable,
-            "-m",
-            "uvicorn",
-            "service.app:create_app",
-            "--factory",
-            "--port",
-            str(self.port),
-        ]
+        argv = [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS, "--port", str(self.port)]
         self._spawn("gateway", [*argv, "--log-level", "warning"])
         wait_until(lambda: self.http().get("/health").status_code == 200, 20, "gateway")
 

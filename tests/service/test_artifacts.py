@@ -15,6 +15,7 @@ import yaml
 
 from cli import export
 from schemas.api import CheckRequest, InferRequest, NextActionRequest
+from service.server import GATEWAY_ARGS
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
@@ -92,6 +93,7 @@ def test_compose_invariants() -> None:
     for worker in ("worker", "worker-gpu"):
         assert "model-cache:/models" in services[worker]["volumes"]
     assert services["gateway"]["ports"] == ["8000:8000"]
+    assert services["gateway"]["command"][1:1 + len(GATEWAY_ARGS)] == list(GATEWAY_ARGS)  # as every other start
     assert services["gateway"]["environment"] == services["worker"]["environment"]  # MODEL_* are cache keys
     devices = services["worker-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert devices[0]["capabilities"] == ["gpu"] and services["worker-gpu"]["profiles"] == ["gpu"]
