@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import functools
 import importlib.util
 import json
 import logging
@@ -194,7 +195,11 @@ def bench_llama_cpp(threads: int, repeat: int) -> dict[str, Any]:
         prefill()
         prefill_s = best(repeat, prefill)
         state = llm.save_state()
-        decode_s = best(repeat, lambda: (llm.load_state(state), decode(DECODE_STEPS)))
+        def decode_from_prompt() -> None:
+            llm.load_state(state)
+            decode(DECODE_STEPS)
+
+        decode_s = best(repeat, decode_from_prompt)
 
         def samples() -> None:
             prefill()
@@ -229,7 +234,7 @@ def bench_domain(threads: int, samples: list[int], max_new_tokens: int) -> dict[
     for n in samples:
         cold(model)
         sampling = Sampling(max_new_tokens=max_new_tokens, seed=n)
-        wall_s, result = timed(lambda n=n, s=sampling: model.complete(prefix, suffixes, n, s, "statement"))
+        wall_s, result = timed(functools.partial(model.complete, prefix, suffixes, n, sampling, "statement"))
         texts = [text for texts in result for text in texts]
         runs.append(
             {

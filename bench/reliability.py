@@ -29,14 +29,14 @@ from stack import scenarios  # noqa: E402
 from stack.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
 from stack.tiny_model import build_tiny_model  # noqa: E402
 
-FULL = {
+FULL: dict[str, dict[str, Any]] = {
     "crash": {"jobs": 200, "kills": 6, "millions": 5},
     "redis": {"jobs": 40, "millions": 5, "down_s": 5.0},
     "fuzz": {"max_examples": 100},
     "overload": {"clients": 48, "duration_s": 60.0, "millions": 5},
     "shutdown": {"millions": 90},
 }
-QUICK = {
+QUICK: dict[str, dict[str, Any]] = {
     "crash": {"jobs": 40, "kills": 3, "millions": 3},
     "redis": {"jobs": 12, "millions": 3, "down_s": 2.0},
     "fuzz": {"max_examples": 15},
@@ -58,32 +58,32 @@ def run(name: str, size: dict[str, Any], tmp: Path, model: Path, quick: bool) ->
                 figures["baseline"] = scenarios.worker_crashes(stack, **{**size, "kills": 0})
         return figures
     if name == "redis":
-        figures = []
+        restarts: list[Any] = []
         for kill in (False, True):
             sub = where / ("kill" if kill else "term")
             sub.mkdir()
             with scenario_stack("redis", sub, model, persistent=True) as stack:
-                figures.append(scenarios.redis_restart(stack, kill=kill, **size))
-        return figures
+                restarts.append(scenarios.redis_restart(stack, kill=kill, **size))
+        return restarts
     if name == "hostile":
         canaries = where / "canaries"
         canaries.mkdir()
-        with scenario_stack("hostile", where, model, **sandbox) as stack:
+        with scenario_stack("hostile", where, model, False, **sandbox) as stack:
             return scenarios.hostile_input(stack, canaries)
     if name == "fuzz":
-        with scenario_stack("fuzz", where, model, **FAST_SANDBOX) as stack:
+        with scenario_stack("fuzz", where, model, False, **FAST_SANDBOX) as stack:
             return scenarios.fuzz(stack, seed=1, out=where / "schemathesis", **size)
     if name == "overload":
         with scenario_stack("overload", where, model) as stack:
             return scenarios.overload(stack, **size)
     if name == "shutdown":
-        figures = []
+        shutdowns: list[Any] = []
         for covers in (True, False):
             sub = where / ("drain" if covers else "handback")
             sub.mkdir()
             with scenario_stack("shutdown-drain" if covers else "shutdown-handback", sub, model) as stack:
-                figures.append(scenarios.graceful_shutdown(stack, drain_covers_job=covers, **size))
-        return figures
+                shutdowns.append(scenarios.graceful_shutdown(stack, drain_covers_job=covers, **size))
+        return shutdowns
     raise SystemExit(f"unknown scenario {name}")
 
 

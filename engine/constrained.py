@@ -3,8 +3,9 @@
 Algorithm 1 resamples a small model that keeps proposing the same forbidden call; here the sandbox judges every
 call the agent could make (its actions × argument values seen in the spec's defaults, the history and the
 demonstrations) in one batch, and the model only ranks the allowed ones by log-likelihood after the next-action
-prompt (`CodeModel.score`, batched over the shared prefix): every allowed line in one pass, or, when there are
-more than MAX_LINES, the allowed actions first and then that action's arguments one at a time. A chosen call
+prompt (`CodeModel.score`, one token tree over the shared prefix): the allowed actions first and then that
+action's arguments one at a time (`choose_by: action`, the default), or every allowed line in one pass
+(`choose_by: line`, up to MAX_LINES of them). A chosen call
 is allowed by construction; an empty allowed set is an answer of its own ("nothing allowed"), never a
 forbidden call.
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, TypeVar
 
 from engine import judge, prompting
 from engine.enumeration import StateModel, enumerate_atoms
-from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, verdict
+from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
 from engine.ranking import (
@@ -215,9 +215,10 @@ class Engine:
         warnings = _no_evidence(actions, trace, request.options.generators)
         proposals = Proposals()
         model_info: ModelInfo | None = None
-        if "model" in request.options.generators:
+        prompted = _prompted(actions, trace, request.options)
+        if "model" in request.options.generators and prompted:
             with timer.phase("generate"):
-                model_info = self._generate(spec, actions, request, proposals, progress, cancelled)
+                model_info = self._generate(spec, actions, prompted, request, proposals, progress, cancelled)
         if "enumerate" in request.options.generators:
             with timer.phase("enumerate"):
                 self._enumerate(spec, actions, demo_trees, trace, proposals)
@@ -248,11 +249,14 @@ class Engine:
         self,
         spec: Spec,
         actions: list[str],
+        prompted: list[str],
         request: InferRequest,
         proposals: Proposals,
         progress: ProgressFn,
         cancelled: Callable[[], bool],
     ) -> ModelInfo:
+        """Samples for the `prompted` actions, in prompts that show every action's stub (the same prompt
+        whichever actions are asked about)."""
         from engine.models import Sampling
 
         options = request.options
@@ -260,14 +264,14 @@ class Engine:
         windows = prompting.demo_windows(
             len(request.demonstrations), options.prompts_per_action, options.demonstrations_per_prompt
         )
-        suffixes = [prompting.inference_suffix(spec, a) for a in actions]
+        suffixes = [prompting.inference_suffix(spec, a) for a in prompted]
         for index, window in enumerate(windows):
             self._check_cancel(cancelled)
             progress("generate", index, len(windows))
             prefix = prompting.inference_prefix(spec, actions, [request.demonstrations[i] for i in window])
             sampling = Sampling(options.temperature, options.top_p, options.max_new_tokens, options.seed + index)
             samples = model.complete(prefix, suffixes, options.samples_per_prompt, sampling, "statement", cancelled)
-            for action, texts in zip(actions, samples, strict=True):
+            for action, texts in zip(prompted, samples, strict=True):
                 parsed = parse_samples(texts)
                 proposals.add(action, parsed.assertions, "model", parsed.sampled, parsed.votes)
         progress("generate", len(windows), len(windows))
@@ -305,7 +309,7 @@ class Engine:
                         for r in results if r.status != "rejected"}
             valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
                      for r in results if verdicts.get(r.expression) in ("held", "tolerated")]
-            sparse = not info.occurrences or thin(len(index.occurrences), tolerance)
+            sparse = not info.occurrences or thin(index.occurrences, tolerance)
             evidence = ActionEvidence(points, info.occurrences, turns, info.params, index.mask, sparse, tolerance)
             votes = proposals.votes.get(action, {})
             if sparse:  # the hook for the spec's zero-shot judgment: thin actions rank like unseen ones
@@ -493,6 +497,14 @@ def history_program(spec: str, history: str | Sequence[HistoryEvent]) -> str:
     return program
 
 
+def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions) -> list[str]:
+    """The actions the model is asked about: all, or (`model_for: thin`, with the enumerator on to cover the
+    others) those too thinly demonstrated to learn from, never demonstrated included."""
+    if options.model_for == "all" or "enumerate" not in options.generators:
+        return list(actions)
+    return [a for a in actions if too_few(trace.actions[a].occurrences)]
+
+
 def _no_evidence(actions: Sequence[str], trace: TraceResult, generators: Sequence[str]) -> dict[str, str]:
     """Per action no demonstration calls, why its rule rests on no evidence; no such action at all: 422."""
     missing = [a for a in actions if not trace.actions[a].occurrences]
@@ -526,7 +538,7 @@ def _question(action: str, ranked: Ranked, trace: TraceResult, n_points: int,
               options: InferOptions) -> judge.Question | None:
     """What the evidence left open for `action`, if anything: a rule for an action never or too thinly
     demonstrated (zero-shot), or a condition that held but looked like a phase."""
-    occurrences = len(trace.actions[action].occurrences)
+    occurrences = trace.actions[action].occurrences
     if not occurrences or thin(occurrences, options.tolerance):
         # With parameters and no occurrence there are no points at all: every valid candidate is an option.
         clusters = informative(cluster(ranked.valid), n_points)

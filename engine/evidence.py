@@ -9,19 +9,37 @@ rule and one occurrence into a confident coincidence. Here a rule is judged on i
 
 Three tests (README, "Evidence-weighted validation"):
 
-1. *Refuted*: exceptions may be at most a share `tolerance` of the occurrences (n - k <= floor(tolerance x n)).
-   Tolerance 0 refutes on the first exception: the paper's strict validation, and then nothing below applies.
+1. *Refuted*: exceptions may be at most a share `tolerance` of the occurrences (n - k <= floor(tolerance x n)),
+   unless the rule is *strongly separated* (below). Tolerance 0 refutes on the first exception: the paper's
+   strict validation, and then nothing below applies.
    (A binomial test of "slips at rate `tolerance`" was measured first: it forgives 3 exceptions in 25 at
    tolerance 0.05, and let correlated coincidences such as REQUEST: `not informed_slot['date']` in.)
+   *Strong separation*: a fixed share cannot tell slips from a correlation, because slips concentrate: an
+   agent who re-asks a slot always does it with the same action, so errors at 5% of the steps are 10-27% of
+   one action's calls. What tells them apart is how strongly the rule singles the calls out from the rest of
+   the dialogs, and whether it still does next to the rules already kept. So more exceptions are forgiven
+   when (a) holding k of n times at background p0 is far beyond chance, P[Bin(n, p0) >= k] < `STRONG_ALPHA`
+   (the chance test of 2. at a level 250 times stricter), (b) the exceptions stay a minority: at most
+   `MAX_SLIP_SHARE` of the calls, and the rule allows a majority of them with 95% confidence (`confidence`
+   > 1/2, which one exception among 4 or 5 calls fails: `user.no_more` at 3 of 4 REQ_MORE calls, 6% of the
+   other points, is not a rule with a slip), and (c) there are other points to be separated from. Then
+   `ranking.within_budget` applies the same test to what the rule adds to the rules kept before it (its
+   counts among the points they still allow). A correlated condition fails there: Events CONFIRM
+   `informed_intent['BuyEventTickets']` (48 of 54 calls, 54% elsewhere) and Homes INFORM
+   `requested_slot['pets_allowed']` (17 of 23, 30%) pass (a) and (b) alone, but next to the rules that hold
+   at every call (`informed_slot['number_of_seats']`, `requested_slot[slot]`) they separate nothing more.
+   A requirement broken by slips is usually the action's only strong rule, and passes: REQUEST
+   `not informed_slot[slot]` at 25 of 30 calls, 41% elsewhere, p = 2e-6.
 2. *Chance*: a condition that holds at the other points at rate p0 = (j + 1) / (m + 2) holds at k or more of
    n occurrences by chance with probability P[Bin(n, p0) >= k] (one-sided binomial tail, computed with
    `math`); the rule is kept only below `CHANCE_ALPHA`. A condition true almost everywhere says nothing.
-3. *Thin*: fewer than `MIN_OCCURRENCES` occurrences never make a rule from evidence (a coincidence at one
+3. *Thin*: fewer than `MIN_OCCURRENCES` occurrences, or occurrences in fewer than `MIN_DIALOGS` demonstrations
+   (seven failure notices in two dialogs are two situations), never make a rule from evidence (a coincidence at one
    or two calls is indistinguishable from a requirement); the action is treated like a never-demonstrated
    one and its rule comes from the zero-shot path (`ranking.zero_shot`: the model's votes) or is empty.
 
 The kept rules of an action are a conjunction, so their exceptions add up: `ranking.within_budget` keeps the
-union of what they refuse within the same share.
+union of what they refuse within the same share, plus what strongly separated rules are forgiven.
 
 `confidence` is the Wilson lower bound (95%, one-sided) of the share of the action's calls at which the rule
 holds: 1 of 1 gives 0.27, 10 of 10 gives 0.79, 40 of 40 gives 0.94, so a caller can tell thin from solid.
@@ -37,7 +55,10 @@ from sandbox.types import Point
 from schemas.api import Verdict
 
 MIN_OCCURRENCES = 3
+MIN_DIALOGS = 3
 CHANCE_ALPHA = 0.25
+STRONG_ALPHA = 1e-3
+MAX_SLIP_SHARE = 0.3
 CONFIDENCE_Z = 1.645  # one-sided 95%
 
 
@@ -136,12 +157,20 @@ def gather(satisfied: int, index: OccurrenceIndex) -> Evidence:
     return Evidence(len(index.occurrences), holds, elsewhere, satisfied.bit_count() - holds, satisfied, index)
 
 
+def strongly_separated(evidence: Evidence) -> bool:
+    """Exceptions beyond the tolerance are forgiven when the rule separates the occurrences from the other
+    points so clearly that holding this often is no chance, and they stay a minority of the calls."""
+    exceptions = evidence.occurrences - evidence.holds
+    return (evidence.elsewhere > 0 and exceptions <= MAX_SLIP_SHARE * evidence.occurrences
+            and evidence.confidence > 0.5 and evidence.chance() < STRONG_ALPHA)
+
+
 def verdict(evidence: Evidence, tolerance: float) -> Verdict:
     """Whether the evidence backs the rule; tolerance 0 is the paper's strict validation and nothing more."""
     exceptions = evidence.occurrences - evidence.holds
     if tolerance <= 0:
         return "refuted" if exceptions else "held"
-    if exceptions > math.floor(tolerance * evidence.occurrences + 1e-9):
+    if exceptions > math.floor(tolerance * evidence.occurrences + 1e-9) and not strongly_separated(evidence):
         return "refuted"
     if evidence.occurrences < MIN_OCCURRENCES:
         return "thin"
@@ -150,9 +179,16 @@ def verdict(evidence: Evidence, tolerance: float) -> Verdict:
     return "tolerated" if exceptions else "held"
 
 
-def thin(occurrences: int, tolerance: float) -> bool:
-    """Too few occurrences to learn from (only with evidence weighting on: tolerance > 0)."""
-    return tolerance > 0 and 0 < occurrences < MIN_OCCURRENCES
+def too_few(occurrences: Sequence[Point]) -> bool:
+    """Fewer than MIN_OCCURRENCES calls, or all of them in fewer than MIN_DIALOGS demonstrations: calls in one
+    dialog share its situation, so they are not independent evidence."""
+    distinct = set(occurrences)
+    return len(distinct) < MIN_OCCURRENCES or len({point.demo for point in distinct}) < MIN_DIALOGS
+
+
+def thin(occurrences: Sequence[Point], tolerance: float) -> bool:
+    """Demonstrated, but too thinly to learn from (only with evidence weighting on: tolerance > 0)."""
+    return tolerance > 0 and bool(occurrences) and too_few(occurrences)
 
 
 def describe(evidence: Evidence, lines: Sequence[str] = ()) -> str:

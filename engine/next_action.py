@@ -225,17 +225,20 @@ class NextActionPlanner:
                 ) -> tuple[str, dict[str, float], bool]:
         """The likeliest allowed line, the scores of its last pass, and whether ending the turn is likelier.
 
-        Up to MAX_LINES allowed calls, one `score` pass holds every allowed line and the heads that decide
-        whether the turn ends (`ends_turn`). Beyond that (ALFWorld's `take(obj, recep)` has hundreds of
-        allowed pairs), passes over the same prompt (its cache reused as is) choose the action's head first,
-        then each argument in turn among the allowed calls that agree with those chosen so far: greedy decoding
-        at the grain of an action, then of an argument, restricted to what is allowed.
+        `choose_by: action` (default), and always beyond MAX_LINES allowed calls (ALFWorld's `take(obj, recep)`
+        has hundreds of allowed pairs): passes over the same prompt (its cache reused as is) choose the action's
+        head first, then each argument in turn among the allowed calls that agree with those chosen so far:
+        greedy decoding at the grain of an action, then of an argument, restricted to what is allowed. Whole
+        lines compared by likelihood favour the short ones (`system.NOTIFY_SUCCESS()` over every
+        `system.REQUEST('slot')`); compared at the action, each action's mass is not split among its arguments.
+        `choose_by: line`: one `score` pass holds every allowed line and the heads that decide whether the turn
+        ends (`ends_turn`); the likeliest line wins.
         """
         indent = constrained.indentation(history)
         prompt = self._prompt(history)
         turn = constrained.turn_heads(self.spec, self.actors, self.actions) if step > 0 else None
         ends = turn.all if turn else []
-        if len(allowed) <= constrained.MAX_LINES:
+        if self.options.choose_by == "line" and len(allowed) <= constrained.MAX_LINES:
             scores = self.model.score(prompt, [f"{indent}{c}\n" for c in allowed] + [indent + h for h in ends],
                                       self.cancelled)
             full = dict(zip(allowed, scores[: len(allowed)], strict=True))

@@ -26,6 +26,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+from engine.evidence import Evidence, strongly_separated
 from sandbox.types import Point
 
 MIN_GAIN = 0.3
@@ -207,20 +208,39 @@ def within_budget(chosen: Sequence[Cluster], evidence: ActionEvidence) -> list[C
     conjunction, so what it refuses is the union of what each refuses.
 
     Rules that held everywhere come first, then the fewest exceptions; a rule whose exceptions would push the
-    union over the budget is left out. Each rule alone was within the tolerance, but a handful of them, each
-    refusing a few different calls, would refuse many (`informed_slot['date']` and `informed_slot[slot]` for
-    CONFIRM); a true rule broken only by slips refuses the slips, which stay within it.
+    union over the budget is left out, unless it strongly separates the occurrences the rules kept before it
+    still allow from the other points they allow (`evidence.strongly_separated` on those counts).
     """
     mask = evidence.occurrence_mask
     if evidence.tolerance <= 0 or not mask:
         return list(chosen)
-    budget, refused, kept = exception_budget(evidence), 0, set()
+    everything = (1 << len(evidence.points)) - 1
+    budget, charged, allowed, kept = exception_budget(evidence), 0, everything, set()
     for c in sorted(chosen, key=lambda c: (mask & ~c.satisfied).bit_count()):
-        union = refused | (mask & ~c.satisfied)
-        if union.bit_count() <= budget:
-            kept.add(c.satisfied)
-            refused = union
+        new = (mask & allowed & ~c.satisfied).bit_count()
+        if charged + new <= budget:
+            charged += new
+        elif not strongly_separated(_given(c.satisfied, allowed, mask, everything)):
+            continue
+        kept.add(c.satisfied)
+        allowed &= c.satisfied
     return [c for c in chosen if c.satisfied in kept]
+
+
+def _given(satisfied: int, allowed: int, mask: int, everything: int) -> Evidence:
+    """A rule's counts among the points the rules kept so far allow: what it adds to their conjunction."""
+    occurrences, others = mask & allowed, everything & ~mask & allowed
+    return Evidence(occurrences.bit_count(), (occurrences & satisfied).bit_count(), others.bit_count(),
+                    (others & satisfied).bit_count())
+
+
+def _held(satisfied: int, evidence: ActionEvidence) -> str:
+    refused = (evidence.occurrence_mask & ~satisfied).bit_count()
+    if not refused:
+        return "held at every occurrence"
+    if refused <= exception_budget(evidence):
+        return "held at the occurrences within the tolerance"
+    return "held at most occurrences (more exceptions than the tolerance, forgiven for its strong separation)"
 
 
 def _quote(text: str, limit: int = 120) -> str:
@@ -252,7 +272,7 @@ def explain(
     index = {point: bit for bit, point in enumerate(evidence.points)}
     for candidate in valid:
         mine = candidate.satisfied
-        held = "held at every occurrence" if mine & mask == mask else "held at the occurrences within the tolerance"
+        held = _held(mine, evidence)
         if mine not in informative_sets:
             reasons[candidate.expression] = (
                 "held at every demonstrated point, so it excludes nothing: says nothing" if mine == everything
@@ -275,7 +295,8 @@ def explain(
         if mine in cut:
             reasons[candidate.expression] = (
                 f"{held}, but its exceptions together with those of the rules kept before it exceed the "
-                f"tolerance ({exception_budget(evidence)} of {mask.bit_count()} occurrences)")
+                f"tolerance ({exception_budget(evidence)} of {mask.bit_count()} occurrences), and among the "
+                "points those rules still allow it does not single the occurrences out strongly")
             continue
         if mine in chosen_sets:
             if criterion == "recency":

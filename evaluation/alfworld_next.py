@@ -78,6 +78,7 @@ def _predict(engine: PolicyEngine, spec: str, config: PolicyConfig, precondition
              episode: Episode, position: int, step: dict[str, Any], seed: int,
              replayed: Callable[[], float]) -> dict[str, Any]:
     options = NextActionOptions(max_actions=1, verify=config.verify, seed=seed, mode=config.mode,  # type: ignore[arg-type]
+                                choose_by=config.choose_by,  # type: ignore[arg-type]
                                 preconditions_in_prompt=config.in_prompt,
                                 fallback="greedy" if config.mode == "sample" else "none")
     request = NextActionRequest(spec=spec, preconditions=preconditions if config.source != "none" else {},

@@ -4,7 +4,9 @@
 
     enumerate/subsumption            model+enumerate/recency/spp=4/dpp=2      model/recency/demos=4
 
-keys: `spp` samples per prompt, `ppa` prompts per action, `dpp` demonstrations per prompt, `seed`, `judge=1`
+keys: `mnt` max new tokens per sample, `for` = the request's `options.model_for` (`thin`: the model proposes
+only for actions demonstrated fewer than 3 times), `spp` samples per prompt, `ppa` prompts per action, `dpp`
+demonstrations per prompt, `seed`, `judge=1`
 (the code model settles what the evidence leaves open, engine/judge.py), and
 `demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
 `maxrate` = re-rank the same inference's valid candidates with evaluation/ranking_probe.py (a measurement of
@@ -25,7 +27,7 @@ from schemas.api import DEFAULT_TOLERANCE, Generator, InferOptions, Ranking
 
 BASELINES = ("always", "gt")
 _KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
-         "seed": "seed", "judge": "judge"}
+         "seed": "seed", "judge": "judge", "mnt": "max_new_tokens"}
 DEMO_COUNTS = (1, 2, 4)
 
 GRIDS: dict[str, tuple[str, ...]] = {
@@ -34,7 +36,7 @@ GRIDS: dict[str, tuple[str, ...]] = {
     "enumerate-demos": tuple(f"enumerate/{r}/demos={n}"
                              for r in ("subsumption", "recency") for n in DEMO_COUNTS),
     "model": ("model/subsumption", "model/recency", "model+enumerate/subsumption", "model+enumerate/recency",
-              "enumerate/recency/judge=1"),
+              "model+enumerate/recency/for=all", "enumerate/recency/judge=1"),
     "probe": ("enumerate/recency/maxrate=0.9", "enumerate/subsumption/maxrate=0.9",
               "model+enumerate/recency/maxrate=0.9"),
     "model-ablation": ("model/recency/spp=2", "model/recency/spp=16", "model/recency/dpp=2",
@@ -114,12 +116,14 @@ def parse_config(name: str) -> InferConfig:
             sample = int(value)
         elif key == "noise":
             noise = float(value)
+        elif key == "for":
+            options["model_for"] = value
         elif key == "demos":
             demos = None if value == "all" else int(value)
         elif key in _KEYS:
             options[_KEYS[key]] = int(value)
         else:
-            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", *_KEYS])
+            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", "for", *_KEYS])
             raise ValueError(f"config {name!r}: unknown key {key!r} (known: {known})")
     config = InferConfig(name, None, generators, parts[1], demos, options, max_rate, sample, noise)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs

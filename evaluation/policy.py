@@ -21,7 +21,9 @@ Policy configurations, `<preconditions>/<use>/shots=N`:
   preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
   use:           plain (no precondition use: the model's greedy lines, unverified) | prompt (written into the
                  prompt's spec) | verify (Algorithm 1's verified sampling, mode 'sample') | both |
-                 constrained (mode 'constrained': the model chooses among the calls the preconditions allow)
+                 constrained (mode 'constrained': the model chooses among the calls the preconditions allow,
+                 action first, then its arguments) | constrained-lines (the same, the likeliest whole line:
+                 `options.choose_by: line`)
 """
 
 from __future__ import annotations
@@ -47,14 +49,15 @@ from schemas.api import (
 from schemas.errors import PrecondError
 
 USES = {"plain": (False, False), "prompt": (True, False), "verify": (False, True), "both": (True, True),
-        "constrained": (False, True)}
+        "constrained": (False, True), "constrained-lines": (False, True)}
 SOURCES = ("none", "inferred", "gt")
 GRIDS: dict[str, tuple[str, ...]] = {
     "default": ("none/plain/shots=1", "inferred/prompt/shots=1", "inferred/verify/shots=1",
                 "inferred/both/shots=1", "gt/verify/shots=1", "gt/both/shots=1",
                 "none/plain/shots=3", "inferred/both/shots=3", "gt/both/shots=3"),
     "small": ("none/plain/shots=1", "inferred/verify/shots=1", "gt/verify/shots=1"),
-    "modes": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1"),
+    "modes": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1",
+              "inferred/constrained-lines/shots=1"),
 }
 MAX_ACTIONS = 5
 
@@ -75,6 +78,7 @@ class PolicyConfig:
     verify: bool
     shots: int
     mode: str = "sample"
+    choose_by: str = "action"
 
 
 def parse_policy_config(name: str) -> PolicyConfig:
@@ -85,8 +89,9 @@ def parse_policy_config(name: str) -> PolicyConfig:
     if parts[0] == "none" and parts[1] != "plain":
         raise ValueError(f"policy config {name!r}: without preconditions only 'plain' makes sense")
     in_prompt, verify = USES[parts[1]]
-    mode = "constrained" if parts[1] == "constrained" else "sample"
-    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")), mode)
+    mode = "constrained" if parts[1].startswith("constrained") else "sample"
+    choose_by = "line" if parts[1] == "constrained-lines" else "action"
+    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")), mode, choose_by)
 
 
 def expand_policy(names: str) -> list[PolicyConfig]:
@@ -152,6 +157,7 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
         history=segment.history,
         options=NextActionOptions(max_actions=MAX_ACTIONS, preconditions_in_prompt=config.in_prompt,
                                   verify=config.verify, seed=seed, mode=config.mode,  # type: ignore[arg-type]
+                                  choose_by=config.choose_by,  # type: ignore[arg-type]
                                   fallback="greedy" if config.mode == "sample" else "none"),
     )
     start = time.perf_counter()

@@ -215,10 +215,11 @@ def _sized_section(result: dict[str, Any] | None) -> list[str]:
     return [
         f"All four SGD domains, test dialogs drawn whole in a seeded order (seed {result['seed']}) until each "
         f"domain has at least {result['turns_per_domain']} system turns; every configuration runs on the same "
-        f"turns. Inferred preconditions: `{result['inferred_from']}` (model-free, cached). Intervals: percentile "
+        f"turns. Inferred preconditions: `{result['inferred_from']}` (cached). Intervals: percentile "
         "bootstrap over dialogs (2,000 resamples; evaluation/stats.py); Δ: paired bootstrap of the difference "
         f"to `{baseline}` on the same dialogs. Latency: per request (one segment of a turn, up to 5 actions), "
-        f"the model on one thread of a 2-core machine shared with other work.{partial}\n",
+        "as the evaluation run saw it (1-2 threads of a 2-core machine, other work beside it); the latency "
+        f"targets are measured by bench/pipeline_bench.py on a quiet machine (docs/model-speed.md).{partial}\n",
         sized_table(result),
     ]
 

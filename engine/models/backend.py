@@ -19,6 +19,7 @@ would put a token boundary before "assert" that the model never saw in training,
 from __future__ import annotations
 
 import copy
+import hashlib
 import logging
 import threading
 from collections import deque
@@ -40,6 +41,7 @@ from engine.models.store import (
     embedded_model_dir,
     gguf_model_dir,
 )
+from engine.models.tree import TokenTree, groups
 from engine.scope import current as current_scope
 from engine.settings import EMBEDDED, ModelSettings
 from schemas.api import ModelInfo
@@ -52,6 +54,8 @@ __all__ = ["CodeModel", "GenerationCancelled", "Sampling", "StopRule", "load_cod
 PREFILL_CHUNK = 128
 """The prefix is run in chunks at these fixed boundaries, so the cache a call reuses is bit-identical to the
 one it would compute itself: outputs never depend on what an earlier call left behind."""
+MAX_TREE_NODES = 1024
+"""Tokens of scored continuations per forward pass (its logits are up to this many vocabulary rows)."""
 
 _TOP_K_FIRST = 256
 """Top-p looks at the best 256 tokens first; only rows whose nucleus is wider pay for a full-vocab sort."""
@@ -85,6 +89,9 @@ class _Row:
     """One sequence being decoded: which suffix it continues and what it produced so far."""
 
     suffix: int
+    key: str = ""
+    """What the row's random draws are keyed by (its suffix's text), with `sample`, the seed and the step."""
+    sample: int = 0
     tokens: list[int] = field(default_factory=list)
     text: str | None = None
 
@@ -162,21 +169,33 @@ def _common_prefix_length(a: Sequence[int], b: Sequence[int]) -> int:
     return n
 
 
-def sample_next(logits: torch.Tensor, sampling: Sampling, generator: torch.Generator) -> torch.Tensor:
-    """Temperature and nucleus (top-p) sampling of one token per row; argmax when greedy."""
+def uniform(seed: int, row: _Row) -> float:
+    """The row's random number for its next token: a function of the seed, the row's suffix and sample index and
+    the step only, never of the batch it is decoded in. So a prompt's samples are the same whatever else is
+    sampled beside it (other actions, other prompts) and whatever `max_batch` the server runs."""
+    digest = hashlib.blake2b(f"{seed}/{row.sample}/{len(row.tokens)}/{row.key}".encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "big") / 2.0**64
+
+
+def sample_next(logits: torch.Tensor, sampling: Sampling, uniforms: torch.Tensor) -> torch.Tensor:
+    """Temperature and nucleus (top-p) sampling of one token per row by inverting its distribution at the row's
+    own uniform number (`uniform`); argmax when greedy."""
     if sampling.greedy:
         return logits.argmax(dim=-1)
     probs = torch.softmax(logits.float() / sampling.temperature, dim=-1)
     if sampling.top_p >= 1:
-        return torch.multinomial(probs, 1, generator=generator).squeeze(-1)
-    k = min(_TOP_K_FIRST, probs.shape[-1])
-    top_probs, top_ids = probs.topk(k, dim=-1)
-    if not bool((top_probs.sum(dim=-1) >= sampling.top_p).all()):
-        top_probs, top_ids = probs.sort(dim=-1, descending=True)
-    outside = top_probs.cumsum(dim=-1) - top_probs > sampling.top_p
-    top_probs = top_probs.masked_fill(outside, 0.0)
-    choice = torch.multinomial(top_probs, 1, generator=generator)
-    return top_ids.gather(-1, choice).squeeze(-1)
+        top_probs, top_ids = probs, None
+    else:
+        k = min(_TOP_K_FIRST, probs.shape[-1])
+        top_probs, top_ids = probs.topk(k, dim=-1)
+        if not bool((top_probs.sum(dim=-1) >= sampling.top_p).all()):
+            top_probs, top_ids = probs.sort(dim=-1, descending=True)
+        outside = top_probs.cumsum(dim=-1) - top_probs > sampling.top_p
+        top_probs = top_probs.masked_fill(outside, 0.0)
+    cumulative = top_probs.cumsum(dim=-1)
+    target = uniforms.to(cumulative)[:, None] * cumulative[:, -1:]
+    choice = torch.searchsorted(cumulative, target, right=True).clamp(max=cumulative.shape[-1] - 1)
+    return choice.squeeze(-1) if top_ids is None else top_ids.gather(-1, choice).squeeze(-1)
 
 
 class CodeModel:
@@ -230,7 +249,7 @@ class CodeModel:
                 min(_common_prefix_length(prompts[0], p) for p in prompts),
             )
             prefix_cache = self._prefix_cache(tuple(prompts[0][:shared]), should_stop)
-            rows = [_Row(suffix=i) for i in range(len(prompts)) for _ in range(n)]
+            rows = [_Row(suffix=i, key=suffixes[i], sample=j) for i in range(len(prompts)) for j in range(n)]
             tails = [prompts[i][shared:] for i in range(len(prompts))]
             self._run(rows, tails, prefix_cache, sampling, stop, should_stop)
         results: list[list[str]] = [[] for _ in suffixes]
@@ -245,9 +264,10 @@ class CodeModel:
 
         This is how the engine lets the model *choose* among candidates that were already executed and
         validated (enumerated conditions, allowed next calls) instead of hoping free samples hit them. The
-        prefix is prefilled once (and kept, like `complete`'s); the continuations run together, right-padded,
-        `max_batch` rows per forward pass. Tokens are split where the jointly tokenised texts diverge from the
-        prefix alone, so a boundary token merged across prefix and continuation counts for the continuation.
+        prefix is prefilled once (and kept, like `complete`'s); the continuations run together as one token
+        tree over it (engine/models/tree.py: each shared token once, one copy of the cache), `MAX_TREE_NODES`
+        tokens per forward pass. Tokens are split where the jointly tokenised texts diverge from the prefix
+        alone, so a boundary token merged across prefix and continuation counts for the continuation.
         """
         if not continuations:
             return []
@@ -257,35 +277,39 @@ class CodeModel:
             starts = [max(1, _common_prefix_length(head, full)) for full in fulls]
             shared = max(0, min(starts) - 1)  # the token before each first scored one stays in the tail
             prefix_cache = self._prefix_cache(tuple(fulls[0][:shared]), should_stop)
-            scores: list[float] = []
-            for first in range(0, len(fulls), self.max_batch):
+            tails = [full[shared:] for full in fulls]
+            scores = [0.0] * len(fulls)
+            for group in groups(tails, MAX_TREE_NODES):
                 if should_stop is not None and should_stop():
                     raise GenerationCancelled()
-                chunk = range(first, min(first + self.max_batch, len(fulls)))
-                scores += self._score_tails([fulls[i][shared:] for i in chunk], [starts[i] - shared for i in chunk],
-                                            prefix_cache)
+                tree = TokenTree.of([tails[i] for i in group])
+                logprobs = self._tree_logprobs(tree, prefix_cache)
+                for i, path in zip(group, tree.paths, strict=True):
+                    scores[i] = sum(logprobs[node] for node in path if tree.depths[node] >= starts[i] - shared)
         return scores
 
-    def _score_tails(self, tails: Sequence[Sequence[int]], starts: Sequence[int], prefix: Prefix) -> list[float]:
-        """Sum of log p(tail[j] | everything before) for j >= start, one right-padded forward pass."""
+    def _tree_logprobs(self, tree: TokenTree, prefix: Prefix) -> list[float]:
+        """log p(node's token | prefix and the node's ancestors) for every node (0.0 for a root, unscored)."""
+        size = len(tree)
+        inner = tree.inner()
+        if not inner:
+            return [0.0] * size
         shared = len(prefix.tokens)
-        pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
-        width = max(len(tail) for tail in tails)
-        ids = torch.tensor([list(t) + [pad] * (width - len(t)) for t in tails], device=self.device)
-        tail_mask = torch.tensor([[1] * len(t) + [0] * (width - len(t)) for t in tails], device=self.device)
-        mask = torch.cat([tail_mask.new_ones(len(tails), shared), tail_mask], dim=1)
-        positions = (shared + torch.arange(width, device=self.device))[None].expand(len(tails), -1)
-        cache = copy.deepcopy(prefix.cache)
-        if shared:
-            cache.batch_repeat_interleave(len(tails))
+        allowed = torch.cat([torch.ones(size, shared, dtype=torch.bool), tree.ancestor_mask()], dim=1)
+        dtype = next(self.model.parameters()).dtype
+        mask = torch.zeros(1, 1, size, shared + size, dtype=dtype, device=self.device)
+        mask.masked_fill_(~allowed.to(self.device)[None, None], torch.finfo(dtype).min)
         logits = self.model(
-            input_ids=ids, attention_mask=mask, position_ids=positions, past_key_values=cache, use_cache=True
-        ).logits.float()
-        logprobs = torch.log_softmax(logits[:, :-1], dim=-1).gather(-1, ids[:, 1:, None]).squeeze(-1)
-        column = torch.arange(1, width, device=self.device)[None]
-        lengths = torch.tensor([len(t) for t in tails], device=self.device)[:, None]
-        wanted = (column >= torch.tensor(list(starts), device=self.device)[:, None]) & (column < lengths)
-        return [float(x) for x in (logprobs * wanted).sum(dim=1)]
+            input_ids=torch.tensor([tree.tokens], device=self.device),
+            attention_mask=mask,
+            position_ids=torch.tensor([[shared + d for d in tree.depths]], device=self.device),
+            past_key_values=copy.deepcopy(prefix.cache),
+            use_cache=True,
+            logits_to_keep=torch.tensor(inner, device=self.device),
+        ).logits[0].float()
+        logprobs = torch.log_softmax(logits, dim=-1)
+        row = {node: k for k, node in enumerate(inner)}
+        return [float(logprobs[row[p], t]) if p >= 0 else 0.0 for p, t in zip(tree.parents, tree.tokens, strict=True)]
 
     def _encode(self, text: str) -> list[int]:
         return list(self.tokenizer(text)["input_ids"])
@@ -349,7 +373,6 @@ class CodeModel:
         A batch drained to its few longest rows decodes at batch-1 speed (memory-bound, ~5 tokens/s on one
         CPU core) while a full one shares each weight read across all rows; refilling keeps it full.
         """
-        generator = torch.Generator(device=self.device).manual_seed(sampling.seed)
         pending = deque(rows)
         batch: _Batch | None = None
         kept: _Tails | None = None
@@ -362,7 +385,7 @@ class CodeModel:
             if should_stop is not None and should_stop():
                 raise GenerationCancelled()
             assert batch is not None
-            batch = self._step(batch, sampling, stop, generator)
+            batch = self._step(batch, sampling, stop)
 
     @property
     def _refill_at(self) -> int:
@@ -421,11 +444,10 @@ class CodeModel:
         mask = [[0] * (width - len(tail)) + [1] * len(tail) for tail in tails]
         return torch.tensor(ids, device=self.device), torch.tensor(mask, device=self.device)
 
-    def _step(
-        self, batch: _Batch, sampling: Sampling, stop: StopRule, generator: torch.Generator
-    ) -> _Batch | None:
+    def _step(self, batch: _Batch, sampling: Sampling, stop: StopRule) -> _Batch | None:
         """Sample one token per row, retire finished rows, and run the rest one position further."""
-        next_ids = sample_next(batch.logits, sampling, generator)
+        uniforms = torch.tensor([0.0 if sampling.greedy else uniform(sampling.seed, row) for row in batch.rows])
+        next_ids = sample_next(batch.logits, sampling, uniforms)
         tokens = next_ids.tolist()
         keep = [i for i, row in enumerate(batch.rows) if not self._advance(row, tokens[i], stop, sampling)]
         if not keep:

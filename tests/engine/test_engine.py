@@ -319,3 +319,52 @@ def test_demonstrations_that_refute_every_candidate_give_an_empty_rule_with_reas
     assert response.preconditions["A.act"] == []
     reports = response.candidates["A.act"]
     assert reports and all(c.reason and not c.kept for c in reports)
+
+
+class RecordingModel:
+    """Answers every inference prompt with a plain `assert True` and records which actions were asked about."""
+
+    info = ModelInfo(name="recording", device="cpu", dtype="none")
+
+    def __init__(self) -> None:
+        self.asked: list[str] = []
+
+    def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: str,
+                 should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
+        self.asked += suffixes
+        return [[" True"] * n for _ in suffixes]
+
+
+@pytest.mark.parametrize("model_for", ["thin", "all"])
+def test_the_model_is_asked_only_about_thinly_demonstrated_actions_when_told(
+    restaurants: dict[str, Any], model_for: str
+) -> None:
+    """Restaurants' first three demonstrations show INFORM twice and REQUEST eight times in all three: with
+    `model_for: thin` only the thin one gets a prompt; with `all` (the paper) both do."""
+    model = RecordingModel()
+    demos = [d["program"] for d in restaurants["demos"][:3]]
+    with Sandbox(workers=1) as sandbox:
+        engine = Engine(sandbox, lambda: model)  # type: ignore[arg-type,return-value]
+        trace = sandbox.trace(restaurants["spec_program"], demos)
+        response = engine.infer(InferRequest(
+            spec=restaurants["spec_program"], demonstrations=demos, actions=["SYSTEM.INFORM", "SYSTEM.REQUEST"],
+            options={"model_for": model_for, "prompts_per_action": 1},
+        ))
+    counts = {a: len(trace.actions[a].occurrences) for a in ("SYSTEM.INFORM", "SYSTEM.REQUEST")}
+    assert counts["SYSTEM.INFORM"] < 3 <= counts["SYSTEM.REQUEST"], counts
+    asked = {a for a in counts if any(f"def {a.split('.')[1]}(" in s for s in model.asked)}
+    assert asked == ({"SYSTEM.INFORM"} if model_for == "thin" else set(counts))
+    assert response.preconditions["SYSTEM.REQUEST"]  # the enumerator still learns the well-evidenced rule
+
+
+def test_without_the_enumerator_the_model_is_asked_about_every_action(restaurants: dict[str, Any]) -> None:
+    """`model_for: thin` narrows the model to what the enumerator cannot settle; with the model alone there is
+    nobody else to propose, so it is asked about every action."""
+    model = RecordingModel()
+    demos = [d["program"] for d in restaurants["demos"][:3]]
+    with Sandbox(workers=1) as sandbox:
+        Engine(sandbox, lambda: model).infer(InferRequest(  # type: ignore[arg-type,return-value]
+            spec=restaurants["spec_program"], demonstrations=demos, actions=["SYSTEM.INFORM", "SYSTEM.REQUEST"],
+            options={"generators": ["model"], "model_for": "thin", "prompts_per_action": 1},
+        ))
+    assert any("def REQUEST(" in s for s in model.asked) and any("def INFORM(" in s for s in model.asked)

@@ -47,7 +47,7 @@ def _request(data: dict[str, Any], preconditions: dict[str, list[str]] | None = 
 def test_the_allowed_set_is_what_the_sandbox_allows_and_the_call_is_chosen_from_it(
     engine: Engine, restaurants: dict[str, Any]
 ) -> None:
-    [action] = engine.next_action(_request(restaurants)).actions
+    [action] = engine.next_action(_request(restaurants, choose_by="line")).actions
     allowed = [a.call for a in action.allowed or []]
     judged = allowed + [r.call for r in action.rejected]
     assert action.attempts == len(judged) == len(set(judged))
@@ -64,6 +64,17 @@ def test_the_allowed_set_is_what_the_sandbox_allows_and_the_call_is_chosen_from_
     assert all(a.score is not None and a.score < 0 for a in action.allowed or [])  # every line, one pass
     best = max(action.allowed or [], key=lambda a: a.score or 0.0)
     assert action.call == best.call
+
+
+def test_by_default_the_action_is_chosen_first_then_its_arguments(engine: Engine, restaurants: dict[str, Any]
+                                                                  ) -> None:
+    """`choose_by: action`: the last pass scores only the chosen action's allowed calls (its arguments)."""
+    [action] = engine.next_action(_request(restaurants)).actions
+    assert action.verified and action.call in {a.call for a in action.allowed or []}
+    scored = [a for a in action.allowed or [] if a.score is not None]
+    assert all(_action_of(a.call) == _action_of(action.call) for a in scored)
+    if len(scored) > 1:
+        assert action.call == max(scored, key=lambda a: a.score or 0.0).call
 
 
 def _action_of(call: str) -> str:
@@ -131,21 +142,27 @@ class Agent:
 """
 
 
-@pytest.mark.parametrize("max_lines", [64, 2])
-def test_two_argument_calls_are_chosen_among_the_allowed(engine: Engine, max_lines: int,
+@pytest.mark.parametrize(("choose_by", "max_lines"), [("line", 64), ("line", 2), ("action", 64)])
+def test_two_argument_calls_are_chosen_among_the_allowed(engine: Engine, choose_by: str, max_lines: int,
                                                          monkeypatch: pytest.MonkeyPatch) -> None:
-    """All lines in one pass, or (more allowed calls than MAX_LINES) argument by argument."""
+    """Whole lines in one pass (`choose_by: line`), or argument by argument: by default (`action`), and for
+    `line` beyond MAX_LINES allowed calls."""
     monkeypatch.setattr(constrained, "MAX_LINES", max_lines)
     history = "env = Env()\nagent = Agent(env)\nenv.see('apple 1', 'table 1', 'cup 2')\nagent.goto('table 1')\n"
     rules = {"Agent.goto": ["False"], "Agent.take": ["obj != recep", "obj in self.env.seen"]}
     [action] = engine.next_action(NextActionRequest(
         spec=AGENT_SPEC, preconditions=rules, history=history,
-        options={"mode": "constrained", "return_allowed": True})).actions
+        options={"mode": "constrained", "return_allowed": True, "choose_by": choose_by})).actions
     allowed = {a.call for a in action.allowed or []}
     assert len(allowed) == 6 and "agent.take('apple 1', 'table 1')" in allowed  # 3 x 3 seen, minus obj == recep
     assert action.call in allowed and action.held == rules["Agent.take"]
     scored = [a for a in action.allowed or [] if a.score is not None]
-    if max_lines == 2:  # the last pass scored the second argument only, after the chosen first
-        assert scored and all(a.call.startswith(action.call.rsplit(",", 1)[0]) for a in scored)
-    else:
+    if choose_by == "line" and max_lines > len(allowed):
         assert len(scored) == 6
+    else:  # the last pass scored the second argument only, after the chosen first
+        assert scored and len(scored) < 6 and all(a.call.startswith(action.call.rsplit(",", 1)[0]) for a in scored)
+
+
+def test_choosing_by_line_needs_the_constrained_mode() -> None:
+    with pytest.raises(ValidationError, match="choose_by"):
+        NextActionOptions(mode="sample", choose_by="line")

@@ -129,3 +129,26 @@ def test_kept_rules_together_refuse_no_more_than_the_tolerance() -> None:
     assert [k.representative.expression for k in chosen] == ["held", "slip"]  # 1 + 2 refused > 2: `other` out
     strict = ActionEvidence(points, points[:20], {}, occurrence_mask=(1 << 20) - 1)
     assert len(within_budget(cluster([held, slip, other]), strict)) == 3  # tolerance 0: nothing to budget
+
+
+def _budgeted(n_occurrences: int, n_others: int) -> ActionEvidence:
+    points = [Point(0, p, ()) for p in range(n_occurrences + n_others)]
+    return ActionEvidence(points, points[:n_occurrences], {}, occurrence_mask=(1 << n_occurrences) - 1,
+                          tolerance=0.05)
+
+
+def test_a_strongly_separating_rule_may_refuse_more_calls_than_the_budget() -> None:
+    # 40 calls (budget 2), 60 other points: holds at 34 calls (6 slips, 15%) and at 10 of the other points
+    evidence = _budgeted(40, 60)
+    slipped = c("slipped", "0" * 6 + "1" * 34 + "1" * 10 + "0" * 50)
+    assert [k.representative.expression for k in within_budget(cluster([slipped]), evidence)] == ["slipped"]
+
+
+def test_extra_exceptions_need_separation_beyond_the_rules_already_kept() -> None:
+    # `held` allows the 40 calls and 12 of the 60 other points; `narrower` holds at 34 calls and 10 other
+    # points, all among those 12: strong on its own (10 of 60), but next to `held` it holds at 10 of 12 of
+    # the points still allowed, so its 6 exceptions are a correlation, not slips
+    evidence = _budgeted(40, 60)
+    held = c("held", "1" * 40 + "1" * 12 + "0" * 48)
+    narrower = c("narrower", "0" * 6 + "1" * 34 + "1" * 10 + "0" * 50)
+    assert [k.representative.expression for k in within_budget(cluster([held, narrower]), evidence)] == ["held"]

@@ -56,6 +56,17 @@ def test_same_seed_same_samples(tiny: CodeModel) -> None:
     assert tiny.complete(PREFIX, SUFFIXES, 3, Sampling(max_new_tokens=12, seed=8), "statement") != first
 
 
+@pytest.mark.parametrize("max_batch", [2, 32])
+def test_a_prompts_samples_do_not_depend_on_what_is_sampled_beside_it(tiny: CodeModel, max_batch: int) -> None:
+    """Each row draws its own random numbers (seed, suffix, sample index, step): asking about fewer actions,
+    or running another `max_batch`, changes nobody's samples (`options.model_for`, MODEL_MAX_BATCH)."""
+    sampling = Sampling(max_new_tokens=12, seed=3)
+    together = tiny.complete(PREFIX, SUFFIXES, 4, sampling, "statement")
+    other = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=max_batch)
+    assert other.complete(PREFIX, SUFFIXES[1:2], 4, sampling, "statement") == together[1:2]
+    assert len(set(together[1])) > 1  # the samples of one prompt still differ from each other
+
+
 def test_greedy_forces_one_sample(tiny: CodeModel) -> None:
     sampling = Sampling(temperature=0, max_new_tokens=10)
     result = tiny.complete(PREFIX, SUFFIXES, 4, sampling, "statement")
@@ -191,7 +202,9 @@ class _Counting:
                 self.decode_calls += 1
             else:
                 self.prefill_calls += 1
-                self.prefilled += int(kwargs["attention_mask"][:, -width:].sum())
+                mask = kwargs["attention_mask"]
+                # a 4D mask is a scored token tree: one row, no pads
+                self.prefilled += width if mask.dim() == 4 else int(mask[:, -width:].sum())
             return forward(*args, **kwargs)
 
         def counted_step(*args: Any, **kwargs: Any) -> Any:
@@ -251,10 +264,12 @@ def reference_score(model: CodeModel, prefix: str, continuation: str) -> float:
 CONTINUATIONS = [" self.informed_slot[slot]", " not self.informed_slot[slot]", " True", "\n"]
 
 
-@pytest.mark.parametrize("max_batch", [1, 2, 32])
-def test_scores_match_one_plain_forward_pass(tiny_model_dir: Path, max_batch: int) -> None:
-    model = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32",
-                                          max_batch=max_batch))
+@pytest.mark.parametrize("max_nodes", [1, 6, 1024])
+def test_scores_match_one_plain_forward_pass(tiny_model_dir: Path, max_nodes: int,
+                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whatever the trees' size (one continuation per pass, a few, all), the same log-likelihoods."""
+    monkeypatch.setattr("engine.models.backend.MAX_TREE_NODES", max_nodes)
+    model = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32"))
     prefix = PREFIX + SUFFIXES[0]
     expected = [reference_score(model, prefix, text) for text in CONTINUATIONS]
     assert model.score(prefix, CONTINUATIONS) == pytest.approx(expected, abs=1e-3)
@@ -264,14 +279,19 @@ def test_scores_match_one_plain_forward_pass(tiny_model_dir: Path, max_batch: in
 
 
 def test_scoring_prefills_the_prefix_once(tiny: CodeModel) -> None:
-    """The prompt's prefix runs once whatever the number of continuations; each continuation runs once."""
+    """The prompt's prefix runs once whatever the number of continuations; each token the continuations
+    share runs once too (`self.informed_slot[slot]` inside `not self.informed_slot[slot]` does not)."""
     prefix = PREFIX + "\n# a new prompt\n"
     ids = [tiny.tokenizer(prefix + text)["input_ids"] for text in CONTINUATIONS]
     shared = min(_common(tiny.tokenizer(prefix)["input_ids"], i) for i in ids) - 1
+    distinct = {tuple(i[: k + 1]) for i in ids for k in range(shared, len(i))}
     fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=2)
     with _Counting(fresh) as counting:
         fresh.score(prefix, CONTINUATIONS)
-    assert counting.prefilled == shared + sum(len(i) - shared for i in ids)
+    assert counting.prefilled == shared + len(distinct)
+    with _Counting(fresh) as again:
+        fresh.score(prefix, [*CONTINUATIONS, *CONTINUATIONS])
+    assert again.prefilled == len(distinct)  # the prefix is kept; repeated continuations cost nothing more
 
 
 def test_no_continuations_no_work(tiny: CodeModel) -> None:
