@@ -15,9 +15,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, TypeVar
 
-from engine import judge, prompting
+from engine import cautious, judge, prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
+from engine.freshness import Access, writes_at
 from engine.next_action import NextActionPlanner
 from engine.parsing import parse_samples
 from engine.ranking import (
@@ -62,6 +63,7 @@ from schemas.api import (
     CandidateReport,
     CheckRequest,
     CheckResponse,
+    Decided,
     HistoryEvent,
     InferOptions,
     InferRequest,
@@ -94,6 +96,8 @@ ProgressFn = Callable[[str, int, int], None]
 ModelLoader = Callable[[], "CodeModel"]
 T = TypeVar("T")
 
+MAX_LISTED_ASSUMED = 8
+UNSEEN_RULE = "False"  # `options.unseen: "refuse"`: a never-demonstrated action is refused until a rule exists
 SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
 
 
@@ -154,6 +158,8 @@ class Ranked:
     validation refuted the others (`_screened`)."""
     evidence: Mapping[str, Evidence] = field(default_factory=dict)
     verdicts: Mapping[str, Verdict] = field(default_factory=dict)
+    decided: Mapping[str, Decided] = field(default_factory=dict)
+    """How each chosen rule was decided (`engine.cautious.Choice`), by its expression."""
 
 
 class Timer:
@@ -212,7 +218,7 @@ class Engine:
         progress("trace", 0, 1)
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos)
-        warnings = _no_evidence(actions, trace, request.options.generators)
+        warnings = _no_evidence(actions, trace, request.options)
         proposals = Proposals()
         model_info: ModelInfo | None = None
         prompted = _prompted(actions, trace, request.options)
@@ -229,16 +235,19 @@ class Engine:
             evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            ranked = self._rank(actions, trace, evaluated, proposals, request.options.ranking,
-                                request.options.tolerance)
+            ranked = self._rank(actions, trace, evaluated, proposals, request.options, writes_at(spec, trace))
         if request.options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
+        if request.options.unseen == "refuse":  # unless the code model's zero-shot guess is a rule for it
+            chosen.update({a: [UNSEEN_RULE] for a in actions if not trace.actions[a].occurrences and not chosen[a]})
         with timer.phase("verify"):
             exempt = _exceptions_of(chosen, ranked)
             program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
         response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
+        for action, note in _assumed_warnings(ranked, preconditions).items():
+            warnings[action] = f"{warnings[action]}; {note}" if action in warnings else note
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
@@ -293,11 +302,12 @@ class Engine:
         trace: TraceResult,
         evaluated: EvaluateResult,
         proposals: Proposals,
-        criterion: str,
-        tolerance: float,
+        options: InferOptions,
+        writes: Mapping[tuple[int, int], frozenset[Access]],
     ) -> dict[str, Ranked]:
         ranked: dict[str, Ranked] = {}
         turns = _previous_turns(trace)
+        criterion, tolerance = options.ranking, options.tolerance
         for action in actions:
             results = evaluated.results.get(action, ())
             points = evaluated.points.get(action, ())
@@ -307,25 +317,44 @@ class Engine:
             judged = {r.expression: gather(r.satisfied, index) for r in results if r.status != "rejected"}
             verdicts = {r.expression: _verdict(r, judged[r.expression], tolerance)
                         for r in results if r.status != "rejected"}
-            valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
-                     for r in results if verdicts.get(r.expression) in ("held", "tolerated")]
+
+            def candidates(*fates: Verdict) -> list[Candidate]:
+                return [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)  # noqa: B023
+                        for r in results if verdicts.get(r.expression) in fates]  # noqa: B023
+
+            valid = candidates("held", "tolerated")
             sparse = not info.occurrences or thin(index.occurrences, tolerance)
-            evidence = ActionEvidence(points, info.occurrences, turns, info.params, index.mask, sparse, tolerance)
+            evidence = ActionEvidence(points, info.occurrences, turns, info.params, index.mask, sparse, tolerance,
+                                      writes if criterion == "cautious" else {})
             votes = proposals.votes.get(action, {})
+            clusters: list[Cluster] = []
+            cut: list[Cluster] = []
             if sparse:  # the hook for the spec's zero-shot judgment: thin actions rank like unseen ones
-                valid = [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)
-                         for r in results if verdicts.get(r.expression) in ("held", "tolerated", "thin")]
-                clusters: list[Cluster] = []
-                chosen = zero_shot(valid, votes, info.params)
-                cut: list[Cluster] = []
+                valid = candidates("held", "tolerated", "thin")
+                choice = _zero_shot(valid, votes, info.params)
+                if criterion == "cautious" and info.occurrences:
+                    choice = _with_thin(choice, candidates("held", "tolerated", "thin", "chance", "refuted"),
+                                        evidence, len(points), _answered(trace, action))
+            elif criterion == "cautious":
+                clusters = informative(cluster(valid), len(points))
+                common = informative(cluster(candidates("held", "tolerated", "chance")), len(points))
+                atoms = informative(cluster(candidates("held", "tolerated", "chance", "refuted")), len(points))
+                found = cautious.choose(clusters, common, atoms, evidence, _answered(trace, action))
+                kept = within_budget(found.chosen, evidence)
+                choice = cautious.Choice(kept, found.decided, found.notes)
+                cut = [c for c in found.chosen if c not in kept]
             else:
                 clusters = informative(cluster(valid), len(points))
                 picked = by_criterion(criterion, clusters, evidence)
-                chosen = within_budget(picked, evidence)
-                cut = [c for c in picked if c not in chosen]
+                kept = within_budget(picked, evidence)
+                choice = cautious.Choice(kept, {c.representative.expression: "established" for c in kept})
+                cut = [c for c in picked if c not in kept]
+            reported, judged, verdicts = _with_composites(choice, results, judged, verdicts, index)
             reasons = {**_screened(verdicts, judged, tolerance, {r.expression: r.reason for r in results}),
-                       **explain(criterion, valid, clusters, chosen, evidence, votes, cut)}
-            ranked[action] = Ranked(results, valid, clusters, chosen, reasons, judged, verdicts)
+                       **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut),
+                       **_decided_reasons(choice)}
+            ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts,
+                                    choice.decided)
         return ranked
 
     def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,
@@ -344,7 +373,12 @@ class Engine:
             chosen = list(r.chosen) if q.kind == "phase" else []
             chosen += [Cluster((c,)) for c in r.valid if c.expression == verdict.adopted][:1]
             reasons = {**r.reasons, **{e: verdict.describe(e) for e in q.options if e in q.open}}
-            judged[q.action] = Ranked(r.results, r.valid, r.clusters, chosen, reasons, r.evidence, r.verdicts)
+            decided: dict[str, Decided] = {
+                e: d for e, d in r.decided.items() if any(c.representative.expression == e for c in chosen)}
+            if verdict.adopted:
+                decided[verdict.adopted] = "zero-shot"
+            judged[q.action] = Ranked(r.results, r.valid, r.clusters, chosen, reasons, r.evidence, r.verdicts,
+                                      decided)
         return judged
 
     def _verified_program(
@@ -505,15 +539,31 @@ def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions)
     return [a for a in actions if too_few(trace.actions[a].occurrences)]
 
 
-def _no_evidence(actions: Sequence[str], trace: TraceResult, generators: Sequence[str]) -> dict[str, str]:
+def _no_evidence(actions: Sequence[str], trace: TraceResult, options: InferOptions) -> dict[str, str]:
     """Per action no demonstration calls, why its rule rests on no evidence; no such action at all: 422."""
     missing = [a for a in actions if not trace.actions[a].occurrences]
     if len(missing) == len(actions):
         raise as_error(checks.no_occurrence_problem(list(actions), trace_count(trace)))
-    fallback = ("its rule is the code model's zero-shot guess (kept only when several samples agree), not "
-                "learned from demonstrations" if "model" in generators
-                else "no rule can be learned for it, so its rule is empty: every call of it is allowed")
+    otherwise = ("every call of it is refused (options.unseen: 'refuse') until a rule is written or demonstrated"
+                 if options.unseen == "refuse" else
+                 "its rule is empty: every call of it is allowed (options.unseen: 'allow')")
+    fallback = (f"its rule is the code model's zero-shot guess if several samples agree; otherwise {otherwise}"
+                if "model" in options.generators else f"no rule can be learned for it, so {otherwise}")
     return {a: f"no occurrence: no demonstration calls {a}; {fallback}" for a in missing}
+
+
+def _assumed_warnings(ranked: Mapping[str, Ranked], preconditions: Mapping[str, Sequence[str]]) -> dict[str, str]:
+    """Per action whose kept rules include assumed ones (or that a thin action's few calls gave), which ones and
+    why a reviewer should look at them."""
+    out: dict[str, str] = {}
+    for action, r in ranked.items():
+        assumed = [rule for rule in preconditions.get(action, ()) if r.decided.get(rule) == "assumed"]
+        if assumed:
+            out[action] = (f"assumed: {len(assumed)} of its rules could not be ruled out as requirements, though the "
+                           f"demonstrations cannot tell them from correlates (review them): "
+                           + "; ".join(assumed[:MAX_LISTED_ASSUMED])
+                           + ("; ..." if len(assumed) > MAX_LISTED_ASSUMED else ""))
+    return out
 
 
 def trace_count(trace: TraceResult) -> int:
@@ -573,6 +623,80 @@ def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
                 k -= 1
             starts[(demo, position)] = k + 1
     return starts
+
+
+def _zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Sequence[str]) -> cautious.Choice:
+    chosen = zero_shot(valid, votes, params)
+    return cautious.Choice(chosen, {c.representative.expression: "zero-shot" for c in chosen})
+
+
+def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: ActionEvidence, n_points: int,
+               tool_call: bool) -> cautious.Choice:
+    """A thinly demonstrated action keeps, besides the model's zero-shot rule, what the cautious criterion would
+    keep from its few calls: assumed, not established (one or two calls cannot tell a requirement from a
+    coincidence)."""
+    kept = {c.satisfied for c in choice.chosen}
+    extra = [c for c in cautious.thin_rules(judged, evidence, n_points, tool_call) if c.satisfied not in kept]
+    return cautious.Choice([*choice.chosen, *extra],
+                           {**choice.decided, **{c.representative.expression: "assumed" for c in extra}},
+                           choice.notes)
+
+
+def _with_composites(choice: cautious.Choice, results: Sequence[CandidateResult], judged: dict[str, Evidence],
+                     verdicts: dict[str, Verdict], index: OccurrenceIndex
+                     ) -> tuple[Sequence[CandidateResult], dict[str, Evidence], dict[str, Verdict]]:
+    """Chosen rules the ranking composed (disjunctions) join the reports like any candidate; their satisfaction
+    set is the union of their terms' (verification then runs them in the sandbox like every kept rule)."""
+    known = {r.expression for r in results}
+    extra = [c.representative for c in choice.chosen if c.representative.expression not in known]
+    if not extra:
+        return results, judged, verdicts
+    judged, verdicts = dict(judged), dict(verdicts)
+    for candidate in extra:
+        judged[candidate.expression] = gather(candidate.satisfied, index)
+        verdicts[candidate.expression] = "held" if not index.mask & ~candidate.satisfied else "tolerated"
+    composed = [CandidateResult(c.expression, "valid", None, c.satisfied) for c in extra]
+    return (*results, *composed), judged, verdicts
+
+
+def _decided_reasons(choice: cautious.Choice) -> dict[str, str]:
+    """The reason of a rule that only the cautious criterion keeps: composed, or assumed."""
+    reasons = {e: f"kept: {note}" for e, note in choice.notes.items()}
+    for expression, decided in choice.decided.items():
+        if decided == "assumed" and expression not in reasons:
+            reasons[expression] = (
+                "assumed: held at every demonstrated call and nothing shows the call can happen without it, though "
+                "the evidence cannot tell it from a correlate (true long before, common everywhere, or implied by "
+                "another rule only on the demonstrated points); kept so the guard does not pick the permissive "
+                "side silently: review it")
+    return reasons
+
+
+def _receiver(source: str) -> str | None:
+    """The object a step's statement calls a method on (`system` in `system.FindBus()`), if it is such a call."""
+    try:
+        node = ast.parse(source.strip()).body[0]
+    except (SyntaxError, IndexError, RecursionError, ValueError):
+        return None
+    if isinstance(node, ast.Expr) and isinstance(node.value, ast.Call) and isinstance(node.value.func, ast.Attribute) \
+            and isinstance(node.value.func.value, ast.Name):
+        return node.value.func.value.id
+    return None
+
+
+def _answered(trace: TraceResult, action: str) -> bool:
+    """A tool call: at least half of its calls are answered by an observation on the same object (a service's
+    result, `system.set_query_status(True)` after `system.FindBus()`), not by another party's turn."""
+    occurrences = trace.actions[action].occurrences
+    acting = {(o.demo, o.position) for info in trace.actions.values() if info.stub for o in info.occurrences}
+    answered = 0
+    for occ in occurrences:
+        steps = trace.positions[occ.demo]
+        following = occ.position + 1
+        if following < len(steps) and (occ.demo, following) not in acting \
+                and _receiver(steps[following].source) == _receiver(steps[occ.position].source):
+            answered += 1
+    return bool(occurrences) and answered * 2 >= len(occurrences)
 
 
 def _verdict(result: CandidateResult, evidence: Evidence, tolerance: float) -> Verdict:
@@ -663,17 +787,31 @@ def _reports(
         reason = _reason(result, ranked.reasons, dropped)
         if evidence is not None and fate in ("held", "tolerated") and found is not None and found.occurrences:
             reason = f"{reason}; {describe(found, [_where(x) for x in evidence.exceptions])}"
+        is_kept = result.expression in kept
+        if evidence is not None and is_kept:
+            evidence = evidence.model_copy(update={"decided": ranked.decided.get(result.expression, "established")})
         reports.append(CandidateReport(
             assertion=result.expression,
             source="enumerate" if origins.get(result.expression) == "enumerate" else "model",
-            valid=result.expression in valid and fate in ("held", "tolerated"),
+            valid=is_kept or (result.expression in valid and fate in ("held", "tolerated")),
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),
-            kept=result.expression in kept,
+            kept=is_kept,
             reason=reason,
             evidence=evidence,
         ))
+    if UNSEEN_RULE in kept and not any(r.expression == UNSEEN_RULE for r in ranked.results):
+        reports.append(_unseen_report())
     return reports
+
+
+def _unseen_report() -> CandidateReport:
+    return CandidateReport(
+        assertion=UNSEEN_RULE, source="enumerate", valid=True, support=0, kept=True,
+        reason="kept: no demonstration calls this action and options.unseen is 'refuse': every call is refused "
+               "until a rule is written (or learned from demonstrations that show it)",
+        evidence=RuleEvidence(occurrences=0, holds=0, confidence=0.0, verdict="thin", decided="unseen"),
+    )
 
 
 def _rule_evidence(evidence: Evidence, fate: Verdict, trace: TraceResult) -> RuleEvidence:

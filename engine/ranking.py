@@ -24,9 +24,10 @@ from __future__ import annotations
 import ast
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from engine.evidence import Evidence, strongly_separated
+from engine.freshness import Access, reads, refreshed
 from sandbox.types import Point
 
 MIN_GAIN = 0.3
@@ -65,6 +66,7 @@ class ActionEvidence:
     occurrence_mask: int = 0  # the occurrences' bits among `points`
     thin: bool = False  # too few occurrences to learn from: ranked like a never-demonstrated action
     tolerance: float = 0.0  # share of the occurrences the kept rules together may refuse
+    writes: Mapping[tuple[int, int], frozenset[Access]] = field(default_factory=dict)  # what observations wrote
 
 
 def cluster(valid: Sequence[Candidate]) -> list[Cluster]:
@@ -124,20 +126,43 @@ def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, in
     agent's previous turn, i.e. they made it true; otherwise it describes where the episode is (a phase:
     "a search has succeeded", "nothing was selected yet"), which held at the demonstrated occurrences by the
     episodes' usual order rather than by necessity.
+
+    With `evidence.writes` (the cautious criterion, engine/freshness.py) an observation that wrote the very
+    state the condition reads *renews* it (a second "success" before a success notice); renewals count when
+    they, with the occurrences it was made true at, are at least half of the occurrences: a condition renewed
+    now and then by chance (a "no" that re-set a flag already unset) stays a phase.
     """
     if not evidence.occurrences:
         return 0.0
-    varied = len({occ.args for occ in evidence.occurrences}) > 1
-    if varied and any(_mentions(m.expression, evidence.params) for m in c.members):
+    if _about_arguments(c, evidence):
         return 1.0
-    enabling = 0
+    fates = enabled_at(c, evidence, index)
+    made, renewed = fates.count("made"), fates.count("renewed")
+    n = len(evidence.occurrences)
+    return made / n if made or (made + renewed) * 2 < n else (made + renewed) / n
+
+
+def _about_arguments(c: Cluster, evidence: ActionEvidence) -> bool:
+    varied = len({occ.args for occ in evidence.occurrences}) > 1
+    return varied and any(_mentions(m.expression, evidence.params) for m in c.members)
+
+
+def enabled_at(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> list[str | None]:
+    """Per occurrence: "made" (false since the agent's previous turn, true at the call), "renewed" (written
+    again by an observation since then) or None (held already, or not at all)."""
+    read = reads(c.representative.expression) if evidence.writes else frozenset()
+    fates: list[str | None] = []
     for occ in evidence.occurrences:
-        if not _holds_at(c, occ, index):  # a tolerated exception: the condition enabled nothing there
-            continue
         window = evidence.previous_turn.get((occ.demo, occ.position), 0)
-        if _false_between(c, occ, window, index):
-            enabling += 1
-    return enabling / len(evidence.occurrences)
+        if not _holds_at(c, occ, index):  # a tolerated exception: the condition enabled nothing there
+            fates.append(None)
+        elif _false_between(c, occ, window, index):
+            fates.append("made")
+        elif read and refreshed(read, occ, window, evidence.writes):
+            fates.append("renewed")
+        else:
+            fates.append(None)
+    return fates
 
 
 def recency(clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
@@ -299,7 +324,7 @@ def explain(
                 "points those rules still allow it does not single the occurrences out strongly")
             continue
         if mine in chosen_sets:
-            if criterion == "recency":
+            if criterion in ("recency", "cautious"):
                 reasons[candidate.expression] = (
                     f"kept: {held}, no valid rule is stricter, and it was made true before "
                     f"{rate:.0%} of the occurrences (or is about the action's own arguments)")
@@ -310,7 +335,7 @@ def explain(
             else:
                 reasons[candidate.expression] = (
                     f"kept: {held} and no valid rule is stricter (subsumption-minimal)")
-        elif criterion == "recency":
+        elif criterion in ("recency", "cautious"):
             reasons[candidate.expression] = (
                 f"{held}, but was already true before the user's last turn each time: looks "
                 "like a phase, not a requirement")

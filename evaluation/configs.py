@@ -118,12 +118,14 @@ def parse_config(name: str) -> InferConfig:
             noise = float(value)
         elif key == "for":
             options["model_for"] = value
+        elif key == "unseen":
+            options["unseen"] = value
         elif key == "demos":
             demos = None if value == "all" else int(value)
         elif key in _KEYS:
             options[_KEYS[key]] = int(value)
         else:
-            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", "for", *_KEYS])
+            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", "for", "unseen", *_KEYS])
             raise ValueError(f"config {name!r}: unknown key {key!r} (known: {known})")
     config = InferConfig(name, None, generators, parts[1], demos, options, max_rate, sample, noise)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs

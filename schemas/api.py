@@ -32,7 +32,9 @@ DEFAULT_TOLERANCE = 0.05
 MAX_LISTED_EXCEPTIONS = 20
 
 Generator = Literal["model", "enumerate"]
-Ranking = Literal["subsumption", "recency", "marginal"]
+Ranking = Literal["cautious", "subsumption", "recency", "marginal"]
+Unseen = Literal["refuse", "allow"]
+Decided = Literal["established", "assumed", "zero-shot", "unseen"]
 ModelFor = Literal["thin", "all"]
 
 SourceText = Field(max_length=MAX_SOURCE_CHARS)
@@ -66,10 +68,19 @@ class InferOptions(_Body):
         "['enumerate'] alone is the model-free fast path (about a second; SGD F1 0.899 against 0.913).",
     )
     ranking: Ranking = Field(
-        default="recency",
-        description="'subsumption' is the paper's eq. (hopt); 'recency' (default, best on the dev numbers) keeps "
-        "argument conditions and conditions made true since the agent's previous turn; 'marginal' keeps "
-        "conditions while they still exclude enough points.",
+        default="cautious",
+        description="'cautious' (default): the conditions made true or renewed since the agent's previous turn "
+        "(a disjunction of them when no single one covers the calls), plus, for tool calls, every positive fact "
+        "that held at every call, kept as `assumed` because nothing shows the call can happen without it (safest "
+        "in the states the demonstrations never show: docs/results.md, counterfactual table). The paper's "
+        "criteria: 'subsumption' (eq. hopt); 'recency' keeps argument conditions and conditions made true since "
+        "the agent's previous turn; 'marginal' keeps conditions while they still exclude enough points.",
+    )
+    unseen: Unseen = Field(
+        default="refuse",
+        description="What an action that no demonstration calls gets: 'refuse' (default): the rule `False`, every "
+        "call refused until a rule is written or learned; 'allow': the code model's zero-shot guess if several "
+        "samples agree, else no rule (every call allowed). Either way `warnings` names the action.",
     )
     model_for: ModelFor = Field(
         default="thin",
@@ -237,6 +248,13 @@ class RuleEvidence(_Body):
         description="'held' at every occurrence, 'tolerated' (exceptions within `options.tolerance`), 'refuted' "
         "(too many exceptions), 'chance' (holds about as often elsewhere: says nothing), 'thin' (too few "
         "occurrences to learn from)."
+    )
+    decided: Decided | None = Field(
+        default=None,
+        description="For a kept rule, how it was decided: 'established' (the evidence decides: it enabled the "
+        "demonstrated calls), 'assumed' (kept because it could not be ruled out: a fact that held at every call "
+        "but may be a correlate; review it), 'zero-shot' (the code model's guess, no evidence), 'unseen' (the "
+        "action was never demonstrated and `options.unseen` is 'refuse').",
     )
 
 

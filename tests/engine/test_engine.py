@@ -227,7 +227,8 @@ def test_an_action_without_occurrence_is_reported_not_silently_empty(
                                          options={"generators": ["enumerate"]}))
     assert set(response.warnings) == {"SYSTEM.GOODBYE"}
     assert response.warnings["SYSTEM.GOODBYE"].startswith("no occurrence: no demonstration calls SYSTEM.GOODBYE")
-    assert response.preconditions["SYSTEM.GOODBYE"] == []
+    assert response.preconditions["SYSTEM.GOODBYE"] == ["False"]  # options.unseen: "refuse" (the default)
+    assert "refused" in response.warnings["SYSTEM.GOODBYE"]
 
 
 def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: dict[str, Any]) -> None:
@@ -295,10 +296,12 @@ def test_a_single_slip_does_not_kill_a_true_rule(engine: Engine, restaurants: di
     engine._sandbox.trace(response.program, _without_exceptions(demos, response))
 
 
-def test_thin_evidence_keeps_no_coincidence(engine: Engine, restaurants: dict[str, Any]) -> None:
+def test_thin_evidence_keeps_no_coincidence_with_the_papers_criteria(engine: Engine,
+                                                                     restaurants: dict[str, Any]) -> None:
     demos = [d["program"] for d in restaurants["demos"][:3]]
     response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=demos,
-                                         options={"generators": ["enumerate"]}))
+                                         options={"generators": ["enumerate"], "ranking": "recency",
+                                                  "unseen": "allow"}))
     thin = [a for a, reports in response.candidates.items()
             if any(c.evidence and 0 < c.evidence.occurrences < 3 for c in reports)]
     assert thin
@@ -308,6 +311,22 @@ def test_thin_evidence_keeps_no_coincidence(engine: Engine, restaurants: dict[st
                    for c in response.candidates[action] if c.evidence and c.evidence.verdict == "thin")
     kept = [e for rules in response.evidence.values() for e in rules.values()]
     assert kept and all(e.occurrences >= 3 and 0 < e.confidence < 1 for e in kept)
+
+
+def test_thin_evidence_gives_assumed_rules_with_the_cautious_criterion(engine: Engine,
+                                                                       restaurants: dict[str, Any]) -> None:
+    """One or two calls cannot establish a rule; the cautious default keeps what enabled them, as assumed, and
+    says so in the warnings instead of leaving the action open."""
+    demos = [d["program"] for d in restaurants["demos"][:3]]
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=demos,
+                                         options={"generators": ["enumerate"]}))
+    thin = [a for a, reports in response.candidates.items()
+            if any(c.evidence and 0 < c.evidence.occurrences < 3 for c in reports)]
+    assumed = [a for a in thin if response.preconditions[a]]
+    assert assumed
+    for action in assumed:
+        assert {e.decided for e in response.evidence[action].values()} == {"assumed"}, action
+        assert response.warnings[action].startswith("assumed:") or "assumed:" in response.warnings[action]
 
 
 def test_demonstrations_that_refute_every_candidate_give_an_empty_rule_with_reasons(engine: Engine) -> None:

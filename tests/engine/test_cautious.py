@@ -1,0 +1,210 @@
+"""The cautious criterion on small domains of its own, each built so that the paper's criteria get it wrong:
+the guard must stay closed in the state the demonstrations never show (issue #26)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import Any
+
+import pytest
+
+from engine.cautious import polarity
+from engine.engine import UNSEEN_RULE, Engine
+from sandbox import Sandbox
+from schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
+
+CARD_SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.intent = defaultdict(lambda: False)
+    self.informed = defaultdict(lambda: False)
+    self.affirmed = False
+  def INFORM_INTENT(self, intent): self.intent[intent] = True
+  def INFORM(self, slot): self.informed[slot] = True
+  def AFFIRM(self): self.affirmed = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user = user
+    self.identity_verified = False
+    self.blocked = None
+  def REQUEST(self, slot): pass
+  def VERIFY_IDENTITY(self): pass
+  def CONFIRM(self): pass
+  def BLOCK_CARD(self): pass
+  def NOTIFY(self): pass
+  def REPORT_FRAUD(self): pass
+  def identity_result(self, ok): self.identity_verified = ok
+  def block_result(self, ok): self.blocked = ok
+"""
+
+
+def _card_dialog(first: str, second: str) -> str:
+    return "\n".join([
+        "user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('block_card')",
+        f"system.REQUEST({first!r})", f"user.INFORM({first!r})", f"system.REQUEST({second!r})",
+        f"user.INFORM({second!r})", "system.VERIFY_IDENTITY()", "system.identity_result(True)",
+        "system.CONFIRM()", "user.AFFIRM()", "system.BLOCK_CARD()", "system.block_result(True)", "system.NOTIFY()",
+    ]) + "\n"
+
+
+CARD_DEMOS = [_card_dialog("name", "dob"), _card_dialog("dob", "name"), _card_dialog("name", "dob"),
+              _card_dialog("dob", "name")]
+
+BANK_SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.intent = defaultdict(lambda: False)
+    self.informed = defaultdict(lambda: False)
+  def INFORM_INTENT(self, intent): self.intent[intent] = True
+  def INFORM(self, slot): self.informed[slot] = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user = user
+    self.balance = None
+  def REQUEST(self, slot): pass
+  def LOOKUP_BALANCE(self): pass
+  def INFORM_BALANCE(self): pass
+  def balance_result(self, amount): self.balance = amount
+"""
+
+
+def _bank_dialog(credentials: Sequence[str]) -> str:
+    steps = ["user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('balance')"]
+    for slot in credentials:
+        steps += [f"system.REQUEST({slot!r})", f"user.INFORM({slot!r})"]
+    steps += ["system.LOOKUP_BALANCE()", "system.balance_result(120)", "system.INFORM_BALANCE()"]
+    return "\n".join(steps) + "\n"
+
+
+ACCOUNT = ("account", "pin")
+SECURITY = ("dob", "answer1", "answer2")
+BANK_DEMOS = [_bank_dialog(c) for c in (ACCOUNT, SECURITY, ACCOUNT, SECURITY, ACCOUNT, SECURITY)]
+
+SEARCH_SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.intent = defaultdict(lambda: False)
+    self.informed = defaultdict(lambda: False)
+  def INFORM_INTENT(self, intent): self.intent[intent] = True
+  def INFORM(self, slot): self.informed[slot] = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user = user
+    self.results = None
+  def REQUEST(self, slot): pass
+  def SEARCH(self): pass
+  def OFFER(self): pass
+  def search_result(self, n): self.results = n
+"""
+
+
+def _search_dialog(slots: Sequence[str]) -> str:
+    steps = ["user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('find_flight')"]
+    for slot in slots:
+        steps += [f"system.REQUEST({slot!r})", f"user.INFORM({slot!r})"]
+    steps += ["system.SEARCH()", "system.search_result(3)", "system.OFFER()"]
+    return "\n".join(steps) + "\n"
+
+
+SEARCH_DEMOS = [_search_dialog(s) for s in (("city", "date"), ("date", "city"), ("city", "date"), ("date", "city"))]
+
+
+@pytest.fixture(scope="module")
+def engine() -> Iterator[Engine]:
+    with Sandbox(workers=2) as sandbox:
+        yield Engine(sandbox, None)
+
+
+def _infer(engine: Engine, spec: str, demos: list[str], **options: Any) -> InferResponse:
+    return engine.infer(InferRequest(spec=spec, demonstrations=demos,
+                                     options=InferOptions(generators=["enumerate"], **options)))
+
+
+def _allowed(engine: Engine, spec: str, rules: dict[str, list[str]], history: list[dict[str, Any]],
+             call: str) -> bool:
+    verdict = engine.check(CheckRequest(spec=spec, preconditions=rules, history=history, calls=[call])).results[0]
+    assert verdict.error is None, verdict.error
+    return verdict.allowed
+
+
+def _events(*steps: tuple[str, str, list[Any]]) -> list[dict[str, Any]]:
+    return [{"actor": actor, "act": act, "args": args} for actor, act, args in steps]
+
+
+CONFIRMED_FIRST = _events(("user", "INFORM_INTENT", ["block_card"]), ("system", "CONFIRM", []),
+                          ("user", "AFFIRM", []))
+VERIFIED = _events(("user", "INFORM_INTENT", ["block_card"]), ("user", "INFORM", ["name"]),
+                   ("user", "INFORM", ["dob"]), ("system", "VERIFY_IDENTITY", []), ("system", "identity_result", [True]),
+                   ("system", "CONFIRM", []), ("user", "AFFIRM", []))
+
+
+def test_identity_verified_before_every_confirmation_stays_required(engine: Engine) -> None:
+    response = _infer(engine, CARD_SPEC, CARD_DEMOS)
+    rules = response.preconditions
+    assert "self.identity_verified" in rules["SYSTEM.BLOCK_CARD"]
+    assert response.evidence["SYSTEM.BLOCK_CARD"]["self.identity_verified"].decided == "assumed"
+    assert response.evidence["SYSTEM.BLOCK_CARD"]["self.user.affirmed"].decided == "established"
+    assert not _allowed(engine, CARD_SPEC, rules, CONFIRMED_FIRST, "system.BLOCK_CARD()")
+    assert _allowed(engine, CARD_SPEC, rules, VERIFIED, "system.BLOCK_CARD()")
+    # the paper's criteria drop it: on the demonstrated points `affirmed` implies it (that is not implication)
+    paper = _infer(engine, CARD_SPEC, CARD_DEMOS, ranking="recency").preconditions
+    assert _allowed(engine, CARD_SPEC, paper, CONFIRMED_FIRST, "system.BLOCK_CARD()")
+
+
+def test_two_alternative_credential_sets_are_learned_as_a_disjunction(engine: Engine) -> None:
+    response = _infer(engine, BANK_SPEC, BANK_DEMOS)
+    rules = response.preconditions
+    (rule,) = [r for r in rules["SYSTEM.LOOKUP_BALANCE"] if " or " in r]
+    report = next(c for c in response.candidates["SYSTEM.LOOKUP_BALANCE"] if c.assertion == rule)
+    assert report.kept and report.reason and "disjunction" in report.reason
+
+    def given(*slots: str) -> list[dict[str, Any]]:
+        return _events(("user", "INFORM_INTENT", ["balance"]), *(("user", "INFORM", [s]) for s in slots))
+
+    assert _allowed(engine, BANK_SPEC, rules, given(*ACCOUNT), "system.LOOKUP_BALANCE()")
+    assert _allowed(engine, BANK_SPEC, rules, given(*SECURITY), "system.LOOKUP_BALANCE()")
+    for half in (("pin",), ("account",), ("dob", "answer2"), ("answer1", "answer2")):
+        assert not _allowed(engine, BANK_SPEC, rules, given(*half), "system.LOOKUP_BALANCE()"), half
+
+
+def test_an_intent_stated_at_the_start_of_every_dialog_stays_required(engine: Engine) -> None:
+    response = _infer(engine, SEARCH_SPEC, SEARCH_DEMOS)
+    rules = response.preconditions
+    assert response.evidence["SYSTEM.SEARCH"]["self.user.intent['find_flight']"].decided == "assumed"
+    slots = _events(("user", "INFORM", ["city"]), ("user", "INFORM", ["date"]))
+    assert not _allowed(engine, SEARCH_SPEC, rules, slots, "system.SEARCH()")
+    assert _allowed(engine, SEARCH_SPEC, rules, _events(("user", "INFORM_INTENT", ["find_flight"])) + slots,
+                    "system.SEARCH()")
+    # recency drops the intent: true almost everywhere, so "not separated from chance"
+    paper = _infer(engine, SEARCH_SPEC, SEARCH_DEMOS, ranking="recency").preconditions
+    assert _allowed(engine, SEARCH_SPEC, paper, slots, "system.SEARCH()")
+
+
+def test_a_never_demonstrated_action_is_refused_by_default_and_says_so(engine: Engine) -> None:
+    response = _infer(engine, CARD_SPEC, CARD_DEMOS)
+    assert response.preconditions["SYSTEM.REPORT_FRAUD"] == [UNSEEN_RULE]
+    assert response.evidence["SYSTEM.REPORT_FRAUD"][UNSEEN_RULE].decided == "unseen"
+    assert "SYSTEM.REPORT_FRAUD" in response.warnings
+    assert not _allowed(engine, CARD_SPEC, response.preconditions, VERIFIED, "system.REPORT_FRAUD()")
+    allowing = _infer(engine, CARD_SPEC, CARD_DEMOS, unseen="allow")
+    assert allowing.preconditions["SYSTEM.REPORT_FRAUD"] == []
+    assert "SYSTEM.REPORT_FRAUD" in allowing.warnings
+
+
+def test_dialog_acts_keep_only_what_enabled_them(engine: Engine) -> None:
+    """CONFIRM is answered by the user, not by a service: a phase there is not assumed."""
+    response = _infer(engine, CARD_SPEC, CARD_DEMOS)
+    assert all(e.decided == "established" for e in response.evidence["SYSTEM.CONFIRM"].values())
+
+
+@pytest.mark.parametrize(("expression", "expected"), [
+    ("self.user.informed['name']", "positive"), ("self.balance is not None", "positive"),
+    ("obj in self.inventory", "positive"), ("not self.user.affirmed", "negative"),
+    ("self.balance is None", "negative"), ("slot not in self.asked", "negative"), ("self.a != x", "negative"),
+    ("self.a or not self.b", "negative"), ("def", "negative"),
+])
+def test_polarity_tells_established_facts_from_not_yet_conditions(expression: str, expected: str) -> None:
+    assert polarity(expression) == expected
