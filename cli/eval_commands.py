@@ -292,6 +292,31 @@ def run_all(
     report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"), noise_only=False)
 
 
+def counterfactual(
+    data: DataOption = None,
+    configs: Annotated[str, typer.Option(help="Config names or grids (see evaluation/configs.py).")]
+    = "",
+    variants: Annotated[int, typer.Option(min=1, max=32, help="Changed copies of each test trajectory.")] = 4,
+    seed: Annotated[int, typer.Option(min=0, help="Seed of the changes.")] = 0,
+    cache_dir: CacheOption = DEFAULT_CACHE,
+    out: Annotated[Path, typer.Option(help="Report whose counterfactual section is (re)written.")] = REPORT,
+) -> None:
+    """The paper's F1 beside counterfactual safety (unsafe_allow, over_refuse) per config and domain."""
+    from evaluation.configs import expand
+    from evaluation.safety import DEFAULT_CONFIGS, evaluate, table, write_section
+    from evaluation.scoring import Satisfaction
+
+    store = JsonCache(cache_dir)
+    chosen = expand(configs or DEFAULT_CONFIGS)
+    needs_model = any(c.uses_model for c in chosen)
+    rows = evaluate(_domains(data, "state"), chosen, store, Satisfaction(_sandbox(), store),
+                    lambda: _engine(needs_model).infer, variants, seed)
+    store.put(rows, "results", "counterfactual")
+    write_section(rows, out, chosen[0].name)
+    typer.echo(table(rows))
+    typer.echo(f"\nwrote the counterfactual section of {out}")
+
+
 def register(app: typer.Typer) -> None:
     group = typer.Typer(help="Evaluate precondition inference and the policy on the development data.",
                         no_args_is_help=True)
@@ -299,6 +324,7 @@ def register(app: typer.Typer) -> None:
     group.command("policy")(policy)
     group.command("next-action")(next_action)
     group.command("next-action-alfworld")(next_action_alfworld)
+    group.command("counterfactual")(counterfactual)
     group.command("report")(report)
     group.command("all")(run_all)
     app.add_typer(group, name="eval")

@@ -133,3 +133,23 @@ def _save(fig: Any, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def safety_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
+    """Counterfactual unsafe_allow against over_refuse per configuration, one point per domain (the paper's F1
+    in the label's mean): the lower left corner is where a guard should be."""
+    scored = [r for r in rows if r.get("unsafe_allow") is not None and r.get("over_refuse") is not None]
+    if not scored:
+        return None
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for config in dict.fromkeys(r["config"] for r in scored):
+        mine = [r for r in scored if r["config"] == config]
+        f1 = sum(r["f1"] for r in mine) / len(mine)
+        ax.scatter([r["over_refuse"] for r in mine], [r["unsafe_allow"] for r in mine], label=f"{config} (F1 {f1:.2f})")
+    ax.set_xlabel("over_refuse (share of the truth's allowances refused)")
+    ax.set_ylabel("unsafe_allow (share of the truth's refusals allowed)")
+    ax.set_xlim(-0.02, 1.02)
+    ax.set_ylim(-0.02, 1.02)
+    ax.legend(fontsize=7)
+    ax.set_title("Counterfactual states: one point per domain")
+    return _save(fig, img / "counterfactual_safety.png")
