@@ -75,11 +75,23 @@ def writes_of(tools: Iterable[Tool]) -> set[str]:
 
 
 @dataclass
+class Call:
+    """A tool call as the log has it: what the evaluation labels and the guard judges."""
+
+    tool: str
+    arguments: dict[str, Any]
+    line: int
+    """Its line in the program (0-based): the lines before it are the history it is judged after."""
+    key: Any = None
+    result: tuple[bool, Any] | None = None
+    """(success, parsed value), once its result has come."""
+
+
+@dataclass
 class Trajectory:
     name: str
     program: str
-    calls: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
-    """Every tool call in order: (tool, arguments)."""
+    calls: list[Call] = field(default_factory=list)
     reward: float | None = None
 
 
@@ -93,7 +105,7 @@ class Converted:
     @property
     def without_writes(self) -> int:
         """Trajectories with no state-changing call: accepted and counted, never dropped silently."""
-        return sum(1 for t in self.trajectories if not any(name in self.writes for name, _ in t.calls))
+        return sum(1 for t in self.trajectories if not any(c.tool in self.writes for c in t.calls))
 
 
 def _fail(where: str, message: str) -> ConvertError:
@@ -188,12 +200,6 @@ def _text(content: Any, where: str) -> str | None:
     raise _fail(where, "content must be a string, null or a list of {'type': 'text', 'text'} parts")
 
 
-@dataclass
-class _Pending:
-    tool: Tool
-    key: Any
-
-
 class Renderer:
     """One trajectory's messages → program lines, calls paired with results by position."""
 
@@ -201,8 +207,8 @@ class Renderer:
         self.tools = {t.name: t for t in tools}
         self.where = where
         self.lines: list[str] = list(PREAMBLE)
-        self.calls: list[tuple[str, dict[str, Any]]] = []
-        self.pending: list[_Pending] = []
+        self.calls: list[Call] = []
+        self.pending: list[Call] = []
 
     def message(self, index: int, message: Any) -> None:
         at = f"{self.where}[{index}]"
@@ -237,9 +243,10 @@ class Renderer:
         arguments = self.arguments(tool, function.get("arguments", {}), f"{at}.function.arguments")
         rendered = ", ".join(literal(arguments.get(p), f"{at}.function.arguments.{p}") for p in tool.params)
         line = f"agent.{tool.name}({rendered})"
+        made = Call(tool.name, arguments, len(self.lines), _key(arguments.get(tool.key)) if tool.key else None)
         self.lines.append(line)
-        self.calls.append((tool.name, arguments))
-        self.pending.append(_Pending(tool, _key(arguments.get(tool.key)) if tool.key else None))
+        self.calls.append(made)
+        self.pending.append(made)
         return line
 
     @staticmethod
@@ -264,12 +271,13 @@ class Renderer:
             raise _fail(at, "a tool result that pairs with no call (every earlier call already has its result)")
         pending = self.pending.pop(0)
         name = message.get("name")
-        if name is not None and name != pending.tool.name:
-            raise _fail(f"{at}.name", f"result of {name!r} pairs by position with a call of {pending.tool.name!r}")
+        if name is not None and name != pending.tool:
+            raise _fail(f"{at}.name", f"result of {name!r} pairs by position with a call of {pending.tool!r}")
         content = _text(message.get("content"), f"{at}.content") or ""
         ok, value = outcome(content)
         rendered = literal(value, f"{at}.content")
-        self.lines.append(f"agent.result({pending.tool.name!r}, {pending.key!r}, {ok}, {rendered})")
+        pending.result = (ok, value)
+        self.lines.append(f"agent.result({pending.tool!r}, {pending.key!r}, {ok}, {rendered})")
 
     def program(self) -> str:
         return "\n".join(self.lines) + "\n"

@@ -25,7 +25,7 @@ import ast
 import itertools
 import re
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 from engine.spec import Spec
@@ -35,6 +35,7 @@ RESULTS = "self.results"
 MAX_VALUES = 6
 MAX_DISJUNCTS = 3
 MAX_DISJUNCTIONS = 24
+MIN_COVER = 0.75
 MAX_ATOMS = 400
 ISO_DATE = re.compile(r"^\d{4}-\d{2}-\d{2}")
 Scalar = str | int | float | bool | None
@@ -156,6 +157,7 @@ class _Test:
     """A positive condition on a result field and the demonstrated calls it covers (for disjunctions)."""
 
     text: str
+    field: str
     covers: frozenset[int]
 
 
@@ -182,7 +184,7 @@ class _Builder:
                 for value in common:
                     ref = f"{self.got}[{name!r}]"
                     atoms += [f"{self.has} and {ref} == {value!r}", f"{self.has} and {ref} != {value!r}"]
-                    tests.append(self._test(f"{ref} == {value!r}", lambda r, n=name, v=value: r.get(n) == v))
+                    tests.append(self._test(f"{ref} == {value!r}", name, _equals(name, value)))
             if _ordered(counts):
                 atoms += self._thresholds(name)
         return atoms, tests
@@ -195,10 +197,9 @@ class _Builder:
         low, high = min(at_calls), max(at_calls)  # type: ignore[type-var]
         return [f"{self.has} and {ref} >= {low!r}", f"{self.has} and {ref} <= {high!r}"]
 
-    def _test(self, text: str, holds: object) -> _Test:
-        assert callable(holds)
+    def _test(self, text: str, name: str, holds: Callable[[dict[str, object]], bool]) -> _Test:
         covers = frozenset(i for i, r in enumerate(self.seen) if isinstance(r, dict) and holds(r))
-        return _Test(text, covers)
+        return _Test(text, name, covers)
 
     def arguments(self) -> list[str]:
         """The call's own arguments against the same-named field of the result."""
@@ -216,20 +217,25 @@ class _Builder:
         return atoms
 
     def disjunctions(self, tests: list[_Test]) -> list[str]:
-        """Up to MAX_DISJUNCTS field tests that together hold at every demonstrated call, none of which
-        alone does, the fewest first."""
+        """Two or three tests on different fields that together hold at MIN_COVER of the demonstrated calls,
+        none of which alone does (policies say "if A, or B, or C"; logs hold a few slips, which evidence-weighted
+        validation may tolerate), the most covering first."""
         every = frozenset(i for i, r in enumerate(self.seen) if isinstance(r, dict))
         partial = [t for t in tests if t.covers and t.covers != every]
         if not every or len(partial) < 2:
             return []
-        found: list[str] = []
+        found: list[tuple[int, int, str]] = []
         for size in range(2, MAX_DISJUNCTS + 1):
             for group in itertools.combinations(partial, size):
-                if frozenset().union(*(t.covers for t in group)) == every and not _redundant(group):
-                    found.append(f"{self.has} and ({' or '.join(t.text for t in group)})")
-                    if len(found) >= MAX_DISJUNCTIONS:
-                        return found
-        return found
+                covered = frozenset().union(*(t.covers for t in group))
+                if (len(covered) >= MIN_COVER * len(every) and len({t.field for t in group}) == size
+                        and not _redundant(group)):
+                    found.append((-len(covered), size, f"{self.has} and ({' or '.join(t.text for t in group)})"))
+        return [text for _, _, text in sorted(found)[:MAX_DISJUNCTIONS]]
+
+
+def _equals(name: str, value: Scalar) -> Callable[[dict[str, object]], bool]:
+    return lambda result: result.get(name) == value
 
 
 def _redundant(group: Sequence[_Test]) -> bool:
