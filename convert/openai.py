@@ -11,6 +11,7 @@ literals: nothing in a log can become code. Standard library only: the gateway r
 
 from __future__ import annotations
 
+import functools
 import json
 import keyword
 import math
@@ -19,6 +20,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from convert.shape import ConvertError
+from programs import checks
+from programs.history import render as render_events
 
 USER_SPEC = '''from collections import defaultdict
 class USER:
@@ -108,8 +111,16 @@ class Converted:
         return sum(1 for t in self.trajectories if not any(c.tool in self.writes for c in t.calls))
 
 
-def _fail(where: str, message: str) -> ConvertError:
-    return ConvertError(f"{where}: {message}")
+class PlaceError(ConvertError):
+    """Bad input at a place: `where` names it (a file and key, or a request's field such as `history[3]`)."""
+
+    def __init__(self, where: str, problem: str) -> None:
+        super().__init__(f"{where}: {problem}")
+        self.where = where
+
+
+def _fail(where: str, message: str) -> PlaceError:
+    return PlaceError(where, message)
 
 
 def _identifier(name: object, where: str, what: str) -> str:
@@ -150,12 +161,6 @@ def read_tools(data: Any, source: str) -> list[Tool]:
     return list(tools.values())
 
 
-def tools_of_spec(methods: Mapping[str, Sequence[str]], required: Mapping[str, int]) -> list[Tool]:
-    """Tools from an AGENT spec's stubs (method → parameters, method → how many are required): what the gateway
-    has when a history arrives as OpenAI messages."""
-    return [Tool(name, tuple(params), frozenset(params[: required[name]])) for name, params in methods.items()]
-
-
 def spec_program(tools: Sequence[Tool], writes: Iterable[str]) -> str:
     lines = [USER_SPEC.rstrip("\n"), f"WRITES = {tuple(sorted(writes))!r}", AGENT_STATE.rstrip("\n")]
     for tool in tools:
@@ -168,19 +173,27 @@ def spec_program(tools: Sequence[Tool], writes: Iterable[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def literal(value: Any, where: str, depth: int = 0) -> str:
+def literal(value: Any, where: str) -> str:
     """`repr` of a JSON value, after checking it is one (finite numbers, bounded nesting)."""
+    _check_json(value, where, 0)
+    return repr(value)
+
+
+def _check_json(value: Any, where: str, depth: int) -> None:
     if depth > MAX_DEPTH:
         raise _fail(where, f"nested deeper than {MAX_DEPTH} levels")
     if isinstance(value, float) and not math.isfinite(value):
         raise _fail(where, "only finite numbers are allowed")
-    if value is None or isinstance(value, str | bool | int | float):
-        return repr(value)
     if isinstance(value, list):
-        return "[" + ", ".join(literal(v, where, depth + 1) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{" + ", ".join(f"{k!r}: {literal(v, where, depth + 1)}" for k, v in value.items()) + "}"
-    raise _fail(where, f"{type(value).__name__} is not a JSON value")
+        for item in value:
+            _check_json(item, where, depth + 1)
+    elif isinstance(value, dict):
+        for name, item in value.items():
+            if not isinstance(name, str):
+                raise _fail(where, f"a key {name!r} is not a string")
+            _check_json(item, where, depth + 1)
+    elif not (value is None or isinstance(value, str | bool | int | float)):
+        raise _fail(where, f"{type(value).__name__} is not a JSON value")
 
 
 def _no_constant(name: str) -> Any:
@@ -235,13 +248,14 @@ class Renderer:
         function = call.get("function", call) if isinstance(call, dict) else None
         if not isinstance(function, dict):
             raise _fail(at, "expected {'function': {'name', 'arguments'}}")
+        at = f"{at}.function" if "function" in call else at
         name = function.get("name")
         tool = self.tools.get(name) if isinstance(name, str) else None
         if tool is None:
             known = ", ".join(sorted(self.tools)[:20])
-            raise _fail(f"{at}.function.name", f"no tool {name!r} in the tools ({known})")
-        arguments = self.arguments(tool, function.get("arguments", {}), f"{at}.function.arguments")
-        rendered = ", ".join(literal(arguments.get(p), f"{at}.function.arguments.{p}") for p in tool.params)
+            raise _fail(f"{at}.name", f"no tool {name!r} in the tools ({known})")
+        arguments = self.arguments(tool, function.get("arguments", {}), f"{at}.arguments")
+        rendered = ", ".join(literal(arguments.get(p), f"{at}.arguments.{p}") for p in tool.params)
         line = f"agent.{tool.name}({rendered})"
         made = Call(tool.name, arguments, len(self.lines), _key(arguments.get(tool.key)) if tool.key else None)
         self.lines.append(line)
@@ -353,3 +367,51 @@ def convert(data: Any, tools_data: Any, source: str = "trajectories", tools_sour
         renderer = render(messages, tools, where)
         converted.trajectories.append(Trajectory(name, renderer.program(), renderer.calls, reward))
     return converted
+
+
+# ---- inside the API: histories and calls of a check or next-action request ---------------------------------
+
+def spec_tools(spec: str, field: str) -> tuple[Tool, ...]:
+    """The tools of a spec `precond convert openai` wrote: AGENT's stubs, their parameters as declared."""
+    tools = _tools_of(spec)
+    if tools is None:
+        raise _fail(field, "OpenAI messages and tool calls need a spec made by `precond convert openai` (class AGENT "
+                    "with result(tool, key, ok, value), class USER with says(text))")
+    return tools
+
+
+@functools.lru_cache(maxsize=32)
+def _tools_of(spec: str) -> tuple[Tool, ...] | None:
+    """Cached per spec text: an agent sends the same spec with every check, and parsing it is most of the
+    rendering's time (32 specs of at most MAX_SOURCE_CHARS: a bounded few MiB)."""
+    _, methods = checks.spec_methods(spec)
+    if not any(m.qualname == "AGENT.result" and not m.stub for m in methods.values()) or "USER.says" not in methods:
+        return None
+    return tuple(Tool(m.name, m.positional, frozenset(m.positional[: len(m.positional) - len(m.node.args.defaults)]))
+                 for m in methods.values() if m.cls == "AGENT" and m.stub)
+
+
+def _problem(exc: PlaceError) -> checks.ProgramProblem:
+    return checks.ProgramProblem(checks.Problem(checks.INVALID_INPUT, exc.where, str(exc)))
+
+
+def structured_history(spec: str, history: Sequence[Mapping[str, Any]], field: str = "history") -> str:
+    """Events (`{actor, act, args}`) or OpenAI chat messages (`{role, ...}`) → the program; bad input raises
+    `ProgramProblem` naming the field (`history[3].tool_calls[0].arguments`), as events always did."""
+    if not (history and "role" in history[0]):
+        return render_events(spec, history, field)
+    try:
+        return render(list(history), spec_tools(spec, field), field).program()
+    except PlaceError as exc:
+        raise _problem(exc) from None
+
+
+def call_lines(spec: str, calls: Sequence[str | Mapping[str, Any]], field: str = "calls") -> list[str]:
+    """Proposed calls as program lines: code as sent, tool calls `{name, arguments}` rendered with literals."""
+    if all(isinstance(c, str) for c in calls):
+        return [c for c in calls if isinstance(c, str)]
+    try:
+        renderer = Renderer(spec_tools(spec, field), field)
+        return [c if isinstance(c, str) else renderer.call(dict(c), f"{field}[{n}]") for n, c in enumerate(calls)]
+    except PlaceError as exc:
+        raise _problem(exc) from None

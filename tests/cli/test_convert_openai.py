@@ -125,3 +125,21 @@ def test_a_file_that_is_no_trajectory_is_refused() -> None:
         openai_converter.convert({"messages": []}, tools(), "t.json", "tools.json")
     with pytest.raises(ConvertError, match=r"tools\.json: expected a non-empty list of tool schemas"):
         openai_converter.convert(records(), {}, "t.json", "tools.json")
+
+
+def test_precond_check_openai_judges_a_tool_call_after_the_messages(tmp_path: Path) -> None:
+    converted = openai_converter.convert(records(), tools())
+    (tmp_path / "spec.py").write_text(converted.spec)
+    read = "reservation_id in self.results['get_reservation_details']"
+    (tmp_path / "rules.json").write_text(json.dumps({"preconditions": {"AGENT.cancel_reservation": [read]}}))
+    (tmp_path / "history.json").write_text(json.dumps(records()[3]))  # a record: its messages are the history
+    args = ["check", "--openai", str(tmp_path / "history.json"), "--spec", str(tmp_path / "spec.py"),
+            "--rules", str(tmp_path / "rules.json")]
+    done = precond(*args, "--call", '{"name": "cancel_reservation", "arguments": {"reservation_id": "H8Q05L"}}',
+                   "--call", '{"name": "cancel_reservation", "arguments": "{\\"reservation_id\\": \\"NOPE00\\"}"}')
+    assert done.returncode == 0, done.stderr
+    read_one, unread = json.loads(done.stdout)["results"]
+    assert read_one["allowed"] is True and read_one["call"] == "agent.cancel_reservation('H8Q05L')"
+    assert unread["allowed"] is False and unread["violations"] == [read]
+    bad = precond(*args, "--call", '{"name": "cancel_reservation", "arguments": {"id": 1}}')
+    assert bad.returncode == 2 and "calls[0].arguments" in bad.stderr and "has no parameter 'id'" in bad.stderr
