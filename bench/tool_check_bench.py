@@ -34,7 +34,7 @@ WRITES = ("cancel_reservation", "update_reservation_flights", "update_reservatio
 def bodies(records: list[dict[str, Any]], spec: str, n: int) -> list[dict[str, Any]]:
     """Per state-changing call of the runs: the messages before it, the call (one body each, at most n)."""
     rules = {f"AGENT.{w}": [READ] for w in WRITES}
-    out = []
+    out: list[dict[str, Any]] = []
     for record in records:
         for at, message in enumerate(record["traj"]):
             for call in message.get("tool_calls") or []:
