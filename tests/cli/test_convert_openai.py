@@ -6,6 +6,7 @@ calls, three successful) and the domain's tool schemas; bad input is built from 
 
 from __future__ import annotations
 
+import ast
 import copy
 import json
 import subprocess
@@ -143,3 +144,25 @@ def test_precond_check_openai_judges_a_tool_call_after_the_messages(tmp_path: Pa
     assert unread["allowed"] is False and unread["violations"] == [read]
     bad = precond(*args, "--call", '{"name": "cancel_reservation", "arguments": {"id": 1}}')
     assert bad.returncode == 2 and "calls[0].arguments" in bad.stderr and "has no parameter 'id'" in bad.stderr
+
+
+def test_what_a_log_carries_stays_literal_data() -> None:
+    """Attack: quotes, newlines and code in every place a log puts text (user words, arguments, results):
+    every statement of the program is a call whose arguments are literals, and the payload is a string."""
+    payload = "x'); import os; os.system('id'); ('\n\"\"\"; __import__('os')._exit(3) #"
+    messages = [
+        {"role": "user", "content": payload},
+        {"role": "assistant", "tool_calls": [{"function": {"name": "get_reservation_details",
+                                                           "arguments": json.dumps({"reservation_id": payload})}}]},
+        {"role": "tool", "content": json.dumps({"note": payload, payload: [payload]})},
+        {"role": "assistant", "tool_calls": [{"function": {"name": "cancel_reservation",
+                                                           "arguments": json.dumps({"reservation_id": payload})}}]},
+        {"role": "tool", "content": "Error: " + payload},
+    ]
+    program = openai_converter.convert(messages, tools()).trajectories[0].program
+    tree = ast.parse(program)
+    for statement in tree.body[2:]:
+        assert isinstance(statement, ast.Expr) and isinstance(statement.value, ast.Call)
+        assert all(isinstance(ast.literal_eval(arg), object) for arg in statement.value.args)
+    assert ast.literal_eval(tree.body[2].value.args[0]) == payload  # type: ignore[attr-defined]
+    assert sum(isinstance(node, ast.Import) for node in ast.walk(tree)) == 0
