@@ -1,4 +1,4 @@
-"""`precond convert sgd|events`: users' own dialog data → spec, demonstration programs and an infer request
+"""`precond convert sgd|events|openai`: users' own dialog data → spec, demonstration programs and an infer request
 (the rules: docs/converting.md). Input of the wrong shape exits 2 naming the file and the key."""
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ from typing import Annotated
 import typer
 
 from convert import events as events_converter
+from convert import openai as openai_converter
 from convert import sgd as sgd_converter
-from convert.shape import ConvertError
+from convert.shape import ConvertError, load_json
 from schemas.api import InferRequest
 
 app = typer.Typer(help="Convert dialog data (SGD files, JSON event logs) to a spec, programs and a request.",
@@ -24,8 +25,8 @@ def _fail(message: str) -> None:
     raise typer.Exit(2)
 
 
-def _request(spec: str, demonstrations: list[str]) -> str:
-    body = InferRequest(spec=spec, demonstrations=demonstrations)
+def _request(spec: str, demonstrations: list[str], actions: list[str] | None = None) -> str:
+    body = InferRequest(spec=spec, demonstrations=demonstrations, actions=actions)
     return json.dumps(body.model_dump(mode="json", exclude_defaults=True), indent=2) + "\n"
 
 
@@ -76,6 +77,43 @@ def events(
         if len(programs) > 1:
             typer.echo(f"# trajectory {index}")
         typer.echo(program)
+
+
+@app.command("openai")
+def openai(
+    trajectories: Annotated[Path, typer.Argument(metavar="TRAJECTORIES.json", help="OpenAI chat messages: one "
+                                                 "trajectory (a list of messages), a list of them, or tau-bench's "
+                                                 "{\"traj\": [...]} records.")],
+    tools: Annotated[Path, typer.Option(help="The tools' OpenAI function schemas (a JSON list).")],
+    out: Annotated[Path, typer.Option(help="Directory for spec.py, demos/<n>.py and request.json.")],
+    writes: Annotated[str | None, typer.Option(help="Comma-separated state-changing tools, the actions request.json "
+                                               "asks rules for (default: tools named book_, cancel_, update_, "
+                                               "send_, ...).", show_default=False)] = None,
+    min_reward: Annotated[float | None, typer.Option(help="Only records with at least this reward go into "
+                                                     "request.json (tau-bench: 1 = the run succeeded).",
+                                                     show_default=False)] = None,
+    demos: Annotated[int, typer.Option(min=1, max=200, help="How many trajectories go into request.json.")] = 200,
+) -> None:
+    """Tool-calling agent logs → a spec from the tool schemas, one program per trajectory, an infer request."""
+    chosen = None if writes is None else {w.strip() for w in writes.split(",") if w.strip()}
+    try:
+        converted = openai_converter.convert(load_json(trajectories), load_json(tools), str(trajectories),
+                                             str(tools), chosen)
+    except ConvertError as exc:
+        _fail(str(exc))
+    (out / "demos").mkdir(parents=True, exist_ok=True)
+    (out / "spec.py").write_text(converted.spec, encoding="utf-8")
+    for trajectory in converted.trajectories:
+        name = re.sub(r"[^A-Za-z0-9_.-]", "_", trajectory.name)
+        (out / "demos" / f"{name}.py").write_text(trajectory.program, encoding="utf-8")
+    kept = [t for t in converted.trajectories
+            if min_reward is None or (t.reward is not None and t.reward >= min_reward)]
+    chosen_programs = [t.program for t in kept][:demos]
+    actions = [f"AGENT.{w}" for w in sorted(converted.writes)] or None
+    (out / "request.json").write_text(_request(converted.spec, chosen_programs, actions), encoding="utf-8")
+    typer.echo(f"{len(converted.trajectories)} trajectories → {out}/demos/, {len(chosen_programs)} in "
+               f"{out}/request.json (actions: {', '.join(sorted(converted.writes)) or 'all'}); "
+               f"{converted.without_writes} without a state-changing call", err=True)
 
 
 def register(root: typer.Typer) -> None:

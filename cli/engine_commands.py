@@ -159,9 +159,59 @@ def next_action(request: RequestFile, server: Server = None, api_key: ApiKey = N
     _run(build_engine().next_action, body)
 
 
-def check(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:
+def _openai_check(messages: Path, spec: Path | None, rules: Path | None, precondition_set: str | None,
+                  calls: list[str]) -> CheckRequest:
+    """A check request from an agent's OpenAI messages (a list, or a tau-bench `{"traj": [...]}` record), the
+    rules (a file of `{action: [rules]}` or an infer response, with the spec; or a stored set) and tool calls."""
+    try:
+        history = json.loads(messages.read_text(encoding="utf-8"))
+        if isinstance(history, dict) and "traj" in history:
+            history = history["traj"]
+        fields: dict[str, Any] = {"history": history, "calls": [json.loads(c) for c in calls]}
+        if precondition_set is not None:
+            fields["precondition_set"] = precondition_set
+        if spec is not None:
+            fields["spec"] = spec.read_text(encoding="utf-8")
+        if rules is not None:
+            loaded = json.loads(rules.read_text(encoding="utf-8"))
+            fields["preconditions"] = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
+        return CheckRequest.model_validate(fields)
+    except OSError as exc:
+        _fail(f"cannot read {exc.filename}: {exc.strerror}", 2)
+    except json.JSONDecodeError as exc:
+        _fail(f"not JSON ({exc.doc[:60]!r}...): {exc}", 2)
+    except ValidationError as exc:
+        _fail(f"invalid check:\n{exc}", 2)
+    raise AssertionError("unreachable")
+
+
+def check(
+    request: Annotated[Path | None, typer.Argument(help="Request body as JSON ('-' for standard input); not with "
+                                                   "--openai.", show_default=False)] = None,
+    openai: Annotated[Path | None, typer.Option(help="An agent's OpenAI chat messages (a list, or a tau-bench "
+                                                "record) as the history; with --call, --spec and --rules (or "
+                                                "--precondition-set).", show_default=False)] = None,
+    call: Annotated[list[str] | None, typer.Option(help="With --openai: a proposed tool call as JSON, "
+                                                   "{\"name\": ..., \"arguments\": {...}}; repeatable.",
+                                                   show_default=False)] = None,
+    spec: Annotated[Path | None, typer.Option(help="With --openai: the spec (from `precond convert openai`).",
+                                              show_default=False)] = None,
+    rules: Annotated[Path | None, typer.Option(help="With --openai: the rules, {action: [rules]} or an infer "
+                                               "response.", show_default=False)] = None,
+    precondition_set: Annotated[str | None, typer.Option(help="With --openai and --server: a stored set instead "
+                                                         "of --spec and --rules.", show_default=False)] = None,
+    server: Server = None,
+    api_key: ApiKey = None,
+) -> None:
     """Say for each proposed call whether the preconditions allow it after the history (no model)."""
-    body = _load(request, CheckRequest)
+    if (openai is None) == (request is None):
+        _fail("give a request file, or --openai MESSAGES.json with --call (not both)", 2)
+    if openai is not None and not call:
+        _fail("--openai needs at least one --call '{\"name\": ..., \"arguments\": {...}}'", 2)
+    if openai is not None:
+        body = _openai_check(openai, spec, rules, precondition_set, call or [])
+    elif request is not None:
+        body = _load(request, CheckRequest)
     if server:
         return _remote(server, api_key, body, with_progress=False)
     from engine.factory import build_engine

@@ -226,6 +226,32 @@ def next_action_alfworld(
     typer.echo(f"\nresults: {path}; section written into {REPORT}")
 
 
+def tools(
+    data: Annotated[Path | None, typer.Option("--data", help="The tau-bench airline directory (default: "
+                                                 "tau-airline/ of the data directory, PRECOND_DATA_DIR).")] = None,
+    configs: Annotated[str, typer.Option(help="ranking/tolerance pairs, comma-separated (e.g. marginal/0); "
+                                         "empty: the grid of evaluation/tools.py.")] = "",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Guard tool calls: rules from the successful airline runs, judged on every state-changing call."""
+    from evaluation.tools import CONFIGS, GuardConfig, run
+    from evaluation.tools_report import write_tools_section
+
+    (data,) = _data([data] if data else None, "tau-airline")
+    chosen = list(CONFIGS)
+    if configs.strip():
+        try:
+            chosen = [GuardConfig(r, None if t == "default" else float(t))
+                      for r, _, t in (c.strip().partition("/") for c in configs.split(",") if c.strip())]
+        except ValueError as exc:
+            raise typer.BadParameter(f"--configs: {exc} (expected ranking/tolerance, e.g. marginal/0)") from None
+    store = JsonCache(cache_dir)
+    result = run(_engine(False), data, chosen, typer.echo)
+    path = store.put(result, "results", "tools")
+    write_tools_section(store, REPORT)
+    typer.echo(f"chosen: {result['chosen']}; results: {path}; section written into {REPORT}")
+
+
 def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
     """An engine whose model remembers completions in the cache (evaluation/memo.py), and the memo's clock."""
     import torch
@@ -325,6 +351,7 @@ def register(app: typer.Typer) -> None:
     group.command("next-action")(next_action)
     group.command("next-action-alfworld")(next_action_alfworld)
     group.command("counterfactual")(counterfactual)
+    group.command("tools")(tools)
     group.command("report")(report)
     group.command("all")(run_all)
     app.add_typer(group, name="eval")

@@ -13,8 +13,9 @@ import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
+from convert.openai import call_lines, structured_history
 from engine import cautious, judge, prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
@@ -43,7 +44,6 @@ from engine.spec import (
     skip_statements,
 )
 from programs import checks
-from programs.history import render as render_history
 from sandbox.types import (
     CandidateResult,
     EvaluateResult,
@@ -471,7 +471,11 @@ class Engine:
         spec = parse_spec(_spec_of(request))
         check_preconditions(spec, request.preconditions)
         history = history_program(spec.source, request.history)
-        return CheckResponse(results=self._verify(spec, request.preconditions, history, request.calls))
+        try:
+            calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls])
+        except checks.ProgramProblem as exc:
+            raise as_error(exc) from exc
+        return CheckResponse(results=self._verify(spec, request.preconditions, history, calls))
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
     def validate(self, request: ValidateRequest) -> ValidateResponse:
@@ -518,13 +522,14 @@ def _spec_of(request: CheckRequest | NextActionRequest) -> str:
     return request.spec
 
 
-def history_program(spec: str, history: str | Sequence[HistoryEvent]) -> str:
-    """A history as the program the sandbox runs: code as sent, or structured events rendered with literals."""
+def history_program(spec: str, history: str | Sequence[HistoryEvent | dict[str, Any]]) -> str:
+    """A history as the program the sandbox runs: code as sent, or structured events (or an agent's OpenAI
+    messages) rendered with literals."""
     if isinstance(history, str):
         parse_source(history, "history")
         return history
     try:
-        program = render_history(spec, [event.model_dump() for event in history])
+        program = structured_history(spec, [e if isinstance(e, dict) else e.model_dump() for e in history])
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
     parse_source(program, "history")

@@ -14,6 +14,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 from engine.spec import Spec
+from engine.tool_conditions import ToolFacts, read_facts, tool_atoms, tool_class
 from programs import Method, Purity
 from sandbox.types import ActionInfo
 
@@ -145,6 +146,8 @@ class StateModel:
 
     def __init__(self, spec: Spec, demos: Sequence[ast.Module]) -> None:
         self.facts = _read_demos(spec, demos)
+        self.tool_class = tool_class(spec)
+        self.tool_facts = read_facts(spec, self.tool_class, demos) if self.tool_class else ToolFacts()
         self.shapes: dict[str, ClassShape] = {}
         self.mapping_keys: dict[tuple[str, str], list[object]] = {}
         purity = Purity(spec.tree)
@@ -253,4 +256,6 @@ def enumerate_atoms(model: StateModel, info: ActionInfo, cls: str) -> list[str]:
                 atoms += _with_negation(f"{path}.{query}({args})")
     for param, words in _argument_words(info).items():
         atoms += [f"{word!r} in {param}" for word in words]
+    if cls == model.tool_class:  # a tool-calling agent's spec (convert/openai.py): engine/tool_conditions.py
+        atoms += tool_atoms(model.tool_facts, info.name.rsplit(".", 1)[-1], params)
     return list(dict.fromkeys(atoms))

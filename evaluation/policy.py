@@ -215,7 +215,7 @@ def _compatible(engine: PolicyEngine, domain: Domain, history: str, calls: list[
         return [False] * len(calls)
     try:
         verdicts = engine.check(CheckRequest(spec=domain.spec, preconditions=domain.gt, history=history,
-                                             calls=judged)).results
+                                             calls=[*judged])).results
     except PrecondError:
         return [False] * len(calls)
     allowed = iter(v.allowed for v in verdicts)

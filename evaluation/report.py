@@ -401,6 +401,7 @@ def write_noise_section(store: JsonCache, out: Path) -> None:
 
 def write_report(store: JsonCache, out: Path, bench: Path) -> None:
     from evaluation.plots import compatibility_plot, demos_plot, per_action_plot, sized_plot
+    from evaluation.tools_report import tools_plot, tools_section
 
     pre = (store.get("results", "preconditions") or {"rows": []})["rows"]
     pol = store.get("results", "policy") or []
@@ -428,6 +429,7 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         *(["## Policy (SGD next-action prediction, the small grid of `precond eval policy`)\n",
             _policy_overall(pol), "\n" + policy_table(pol)] if pol else []),
         "\n" + next_action_section(store, plots[-1]),
+        *(["\n" + tools_section(tools, tools_plot(tools, img))] if (tools := store.get("results", "tools")) else []),
         "\n## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
         speed_table(pre),

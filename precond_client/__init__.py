@@ -40,6 +40,7 @@ from schemas.api import (
     RuleChange,
     RuleEdit,
     SetDiff,
+    ToolCall,
 )
 
 __all__ = [
@@ -76,6 +77,7 @@ __all__ = [
     "RuleChange",
     "RuleEdit",
     "SetDiff",
+    "ToolCall",
     "Unauthorized",
     "Unavailable",
     "event",

@@ -42,6 +42,7 @@ from schemas.api import (
     PreconditionSetEdit,
     PreconditionSetReinfer,
     RuleEdit,
+    ToolCall,
 )
 
 Progress = Callable[[JobStatus], object]
@@ -220,13 +221,17 @@ class Polling:
 
 
 HistoryLike = str | Iterable[HistoryEvent | Mapping[str, Any]]
-"""A history: a program (power users), or events (`History`, `event(...)`s, or dicts of the same shape)."""
+"""A history: a program (power users), events (`History`, `event(...)`s, or dicts of the same shape), or a
+tool-calling agent's OpenAI chat messages (dicts with `role`; the service checks and renders them)."""
 
 
-def history(value: HistoryLike) -> str | list[HistoryEvent]:
+def history(value: HistoryLike) -> str | list[HistoryEvent] | list[dict[str, Any]]:
     if isinstance(value, str):
         return value
-    return [item if isinstance(item, HistoryEvent) else validated(item, HistoryEvent) for item in value]
+    items = list(value)
+    if items and isinstance(items[0], Mapping) and "role" in items[0]:
+        return [dict(item) for item in items if isinstance(item, Mapping)]
+    return [item if isinstance(item, HistoryEvent) else validated(item, HistoryEvent) for item in items]
 
 
 def edit_body(edits: Iterable[RuleEdit | Mapping[str, Any]], base_version: int | None, force: bool) -> dict[str, Any]:
@@ -245,7 +250,11 @@ def reinfer_body(demonstrations: Iterable[str], actions: Iterable[str] | None,
     return set_body(validated(fields, PreconditionSetReinfer))
 
 
-def check_body(precondition_set: str, history_: HistoryLike, calls: Iterable[str]) -> CheckRequest:
+CallLike = str | ToolCall | Mapping[str, Any]
+"""A proposed call: code (`system.REQUEST('city')`) or a tool call (`{"name", "arguments"}`)."""
+
+
+def check_body(precondition_set: str, history_: HistoryLike, calls: Iterable[CallLike]) -> CheckRequest:
     return validated({"precondition_set": precondition_set, "history": history(history_), "calls": list(calls)},
                      CheckRequest)
 

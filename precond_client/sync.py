@@ -124,10 +124,12 @@ class Client:
         return _core.result(status, PreconditionSet)
 
     def check_with_set(
-        self, precondition_set: str, history: _core.HistoryLike, calls: Iterable[str], *, wait: float | None = None,
+        self, precondition_set: str, history: _core.HistoryLike, calls: Iterable[_core.CallLike], *,
+        wait: float | None = None,
         progress: _core.Progress | None = None, timeout: float | None = None,
     ) -> CheckResponse:
-        """`check_actions` with a stored set (`id` or `id@version`) and a history of events (`History`)."""
+        """`check_actions` with a stored set (`id` or `id@version`) and a history of events (`History`), or of
+        an agent's OpenAI chat messages with tool calls `{"name", "arguments"}` as `calls`."""
         body = _core.check_body(precondition_set, history, calls)
         return self.check_actions(body, wait=wait, progress=progress, timeout=timeout)
 

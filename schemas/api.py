@@ -137,7 +137,8 @@ HISTORY_DESCRIPTION = (
     "per step, e.g. `user = USER()`, `system = SYSTEM(user)`, `user.INFORM('city')`), or a list of events "
     "(`{\"actor\": \"user\", \"act\": \"INFORM\", \"args\": [\"city\"]}`) that the service renders to that "
     "program, arguments as literals only: what an end user typed can never become code. A dialog system should "
-    "send events."
+    "send events; a tool-calling LLM agent may send its OpenAI chat messages instead (over a spec from "
+    "`precond convert openai`), rendered the same way."
 )
 MAX_HISTORY_EVENTS = 2_000
 MAX_EVENT_ARGS = 32
@@ -167,15 +168,44 @@ class HistoryEvent(_Body):
     )
 
 
+ChatMessage = Annotated[
+    dict[str, Any],
+    WithJsonSchema({
+        "type": "object",
+        "description": "An OpenAI chat message: `{\"role\": \"user\", \"content\"}`, `{\"role\": \"assistant\", "
+        "\"tool_calls\": [{\"function\": {\"name\", \"arguments\"}}]}`, `{\"role\": \"tool\", \"content\"}` "
+        "(system messages are skipped). Checked and rendered by the service (docs/converting.md).",
+        "properties": {"role": {"type": "string"}, "content": {}, "tool_calls": {"type": "array"},
+                       "tool_call_id": {"type": "string"}, "name": {"type": "string"}},
+        "required": ["role"],
+    }),
+]
+"""A message of a tool-calling agent's log; its shape is checked when the history is rendered (422 naming it)."""
+
+
 def _history_kind(value: Any) -> str:
-    return "text" if isinstance(value, str) else "events"
+    if isinstance(value, str):
+        return "text"
+    first = value[0] if isinstance(value, list) and value else None
+    return "openai" if isinstance(first, dict) and "role" in first else "events"
 
 
 History = Annotated[
     Annotated[str, Tag("text"), Field(max_length=MAX_SOURCE_CHARS)]
-    | Annotated[list[HistoryEvent], Tag("events"), Field(max_length=MAX_HISTORY_EVENTS)],
+    | Annotated[list[HistoryEvent], Tag("events"), Field(max_length=MAX_HISTORY_EVENTS)]
+    | Annotated[list[ChatMessage], Tag("openai"), Field(max_length=MAX_HISTORY_EVENTS)],
     Discriminator(_history_kind),
 ]
+
+
+class ToolCall(_Body):
+    """A proposed tool call, as an LLM agent writes it; rendered to `agent.<name>(...)` over a spec that
+    `precond convert openai` made (its parameters in the stub's order)."""
+
+    name: str = Field(max_length=MAX_ACTION_CHARS, description="The tool (a stub of the spec's AGENT).")
+    arguments: str | dict[str, Any] = Field(
+        default="{}", description="The arguments: a JSON object, or its text as OpenAI sends it.",
+    )
 
 
 class _UsesRules(_Body):
@@ -445,11 +475,12 @@ class NextActionResponse(_Body):
 class CheckRequest(_UsesRules):
     preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
     history: History = Field(description=HISTORY_DESCRIPTION)
-    calls: list[str] = Field(
+    calls: list[str | ToolCall] = Field(
         min_length=1,
         max_length=MAX_CALLS,
         description="Proposed calls, each judged on its own copy of the state after the history "
-        "(e.g. `system.REQUEST('cuisine')`).",
+        "(e.g. `system.REQUEST('cuisine')`), or tool calls `{\"name\", \"arguments\"}` over a spec from "
+        "`precond convert openai` (the verdict's `call` is then the rendered `agent.<name>(...)`).",
     )
 
 

@@ -91,8 +91,8 @@ def _subclasses(cls: type[engine_errors.PrecondError]) -> list[type[engine_error
     return found
 
 
-_UNION_TAGS = {"text", "events"}
-"""pydantic's names for the two forms of `history` (schemas.api.History): not part of the field's path."""
+_UNION_TAGS = {"text", "events", "openai"}
+"""pydantic's names for the forms of `history` (schemas.api.History): not part of the field's path."""
 
 
 def _field(loc: tuple[Any, ...]) -> str:

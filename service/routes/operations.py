@@ -9,9 +9,9 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 
+from convert.openai import call_lines, structured_history
 from jobs import keys
 from programs import checks
-from programs.history import render as render_history
 from schemas.api import (
     CheckRequest,
     CheckResponse,
@@ -125,18 +125,22 @@ async def _with_rules_and_program(
     services: Services, tag: str, body: CheckRequest | NextActionRequest
 ) -> CheckRequest | NextActionRequest | checks.Problem:
     """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
-    tenant has no such set), and a structured history rendered to its program (literals only)."""
+    tenant has no such set), and a structured history (events or OpenAI messages) and tool calls rendered to
+    program text (literals only)."""
     if body.precondition_set is not None:
         stored = await services.sets.get(tag, body.precondition_set)
         body = body.model_copy(
             update={"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
         )
-    if not isinstance(body.history, str):
-        try:
-            program = render_history(body.spec_text(), [event.model_dump() for event in body.history])
-        except checks.ProgramProblem as exc:
-            return exc.problem
-        body = body.model_copy(update={"history": program})
+    try:
+        if not isinstance(body.history, str):
+            history = [e if isinstance(e, dict) else e.model_dump() for e in body.history]
+            body = body.model_copy(update={"history": structured_history(body.spec_text(), history)})
+        if isinstance(body, CheckRequest) and not all(isinstance(c, str) for c in body.calls):
+            calls = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
+            body = body.model_copy(update={"calls": call_lines(body.spec_text(), calls)})
+    except checks.ProgramProblem as exc:
+        return exc.problem
     return body
 
 

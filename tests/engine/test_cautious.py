@@ -137,8 +137,8 @@ def _events(*steps: tuple[str, str, list[Any]]) -> list[dict[str, Any]]:
 CONFIRMED_FIRST = _events(("user", "INFORM_INTENT", ["block_card"]), ("system", "CONFIRM", []),
                           ("user", "AFFIRM", []))
 VERIFIED = _events(("user", "INFORM_INTENT", ["block_card"]), ("user", "INFORM", ["name"]),
-                   ("user", "INFORM", ["dob"]), ("system", "VERIFY_IDENTITY", []), ("system", "identity_result", [True]),
-                   ("system", "CONFIRM", []), ("user", "AFFIRM", []))
+                   ("user", "INFORM", ["dob"]), ("system", "VERIFY_IDENTITY", []),
+                   ("system", "identity_result", [True]), ("system", "CONFIRM", []), ("user", "AFFIRM", []))
 
 
 def test_identity_verified_before_every_confirmation_stays_required(engine: Engine) -> None:

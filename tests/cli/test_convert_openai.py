@@ -1,0 +1,168 @@
+"""`precond convert openai`: OpenAI chat logs of a tool-calling agent → spec, programs, infer request.
+
+Input: five real tau-bench airline trajectories (tests/fixtures/tau_airline/, four of them with state-changing
+calls, three successful) and the domain's tool schemas; bad input is built from them by each test.
+"""
+
+from __future__ import annotations
+
+import ast
+import copy
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from convert import openai as openai_converter
+from convert.shape import ConvertError
+from schemas.api import InferRequest
+
+ROOT = Path(__file__).resolve().parents[2]
+TAU = ROOT / "tests" / "fixtures" / "tau_airline"
+
+
+def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "cli", *args], input=stdin, capture_output=True, text=True,
+                          timeout=300, cwd=ROOT, check=False)
+
+
+def records() -> list[dict[str, Any]]:
+    return json.loads((TAU / "trajectories.json").read_text())
+
+
+def tools() -> list[Any]:
+    return json.loads((TAU / "tools.json").read_text())
+
+
+def test_real_logs_become_a_spec_programs_and_a_request_whose_rules_need_the_read(tmp_path: Path) -> None:
+    done = precond("convert", "openai", str(TAU / "trajectories.json"), "--tools", str(TAU / "tools.json"),
+                   "--out", str(tmp_path), "--min-reward", "1")
+    assert done.returncode == 0, done.stderr
+    assert "5 trajectories" in done.stderr and "3 in" in done.stderr
+    assert "1 without a state-changing call" in done.stderr
+    spec = (tmp_path / "spec.py").read_text()
+    assert "  def cancel_reservation(self, reservation_id):" in spec and "WRITES = ('book_reservation'," in spec
+    program = (tmp_path / "demos" / "task5-trial1.py").read_text().splitlines()
+    assert program[:2] == ["user = USER()", "agent = AGENT(user)"]
+    read = program.index("agent.get_reservation_details('FQ8APE')")
+    assert program[read + 1].startswith("agent.result('get_reservation_details', 'FQ8APE', True, {'reservation_id':")
+    assert any(line.startswith("agent.update_reservation_baggages('FQ8APE', ") for line in program[read:])
+    request = InferRequest.model_validate_json((tmp_path / "request.json").read_text())
+    assert len(request.demonstrations) == 3 and "AGENT.cancel_reservation" in (request.actions or [])
+
+    body = request.model_dump(mode="json")
+    body["options"] = {"generators": ["enumerate"], "tolerance": 0, "ranking": "marginal"}
+    inferred = precond("infer", "-", stdin=json.dumps(body))
+    assert inferred.returncode == 0, inferred.stderr
+    rules = json.loads(inferred.stdout)["preconditions"]
+    for write in ("cancel_reservation", "update_reservation_flights", "update_reservation_baggages",
+                  "update_reservation_passengers"):  # read before write, bound to the call's own reservation
+        assert "reservation_id in self.results['get_reservation_details']" in rules[f"AGENT.{write}"], write
+
+
+def test_results_pair_with_calls_by_position_and_stay_data() -> None:
+    messages = [
+        {"role": "system", "content": "policy"},
+        {"role": "user", "content": "x'); import os; ('"},
+        {"role": "assistant", "content": None, "tool_calls": [
+            {"id": "same", "type": "function",
+             "function": {"name": "get_reservation_details", "arguments": '{"reservation_id": "A1"}'}},
+            {"id": "same", "type": "function",
+             "function": {"name": "get_reservation_details", "arguments": '{"reservation_id": "B2"}'}}]},
+        {"role": "tool", "tool_call_id": "same", "name": "get_reservation_details", "content": '{"cabin": "business"}'},
+        {"role": "tool", "tool_call_id": "same", "name": "get_reservation_details", "content": "Error: not found"},
+    ]
+    converted = openai_converter.convert(messages, tools(), "t.json", "tools.json")
+    assert converted.trajectories[0].program.splitlines()[2:] == [
+        "user.says(\"x'); import os; ('\")",
+        "agent.get_reservation_details('A1')",
+        "agent.get_reservation_details('B2')",
+        "agent.result('get_reservation_details', 'A1', True, {'cabin': 'business'})",
+        "agent.result('get_reservation_details', 'B2', False, 'Error: not found')",
+    ]
+    assert converted.without_writes == 1
+
+
+def _broken(change: Any) -> list[dict[str, Any]]:
+    data = copy.deepcopy(records())
+    change(data)
+    return data
+
+
+def _call_at(data: list[dict[str, Any]], record: int) -> tuple[int, dict[str, Any]]:
+    traj = data[record]["traj"]
+    index = next(i for i, m in enumerate(traj) if m.get("tool_calls"))
+    return index, traj[index]["tool_calls"][0]["function"]
+
+
+@pytest.mark.parametrize(("change", "expected"), [
+    (lambda d: d[1]["traj"].__setitem__(3, "hello"), r"\[1\]\.traj\[3\]: not an OpenAI chat message"),
+    (lambda d: _call_at(d, 2)[1].__setitem__("name", "delete_everything"),
+     r"\[2\]\.traj\[\d+\]\.tool_calls\[0\]\.function\.name: no tool 'delete_everything'"),
+    (lambda d: _call_at(d, 0)[1].__setitem__("arguments", '{"user_id": '),
+     r"\[0\]\.traj\[\d+\]\.tool_calls\[0\]\.function\.arguments: not valid JSON"),
+    (lambda d: d[3]["traj"].insert(2, {"role": "tool", "content": "{}"}),
+     r"\[3\]\.traj\[2\]: a tool result that pairs with no call"),
+    (lambda d: d[4]["traj"].__setitem__(1, {"role": "robot", "content": "hi"}),
+     r"\[4\]\.traj\[1\]\.role: 'robot' is not an OpenAI role"),
+])
+def test_bad_input_names_the_trajectory_the_message_and_the_problem(change: Any, expected: str,
+                                                                    tmp_path: Path) -> None:
+    data = _broken(change)
+    with pytest.raises(ConvertError, match=expected):
+        openai_converter.convert(data, tools(), "trajectories.json", "tools.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(data))
+    done = precond("convert", "openai", str(bad), "--tools", str(TAU / "tools.json"), "--out", str(tmp_path / "o"))
+    assert done.returncode == 2 and done.stderr.startswith(f"error: {bad}: ["), done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_a_file_that_is_no_trajectory_is_refused() -> None:
+    with pytest.raises(ConvertError, match="expected a list of messages"):
+        openai_converter.convert({"messages": []}, tools(), "t.json", "tools.json")
+    with pytest.raises(ConvertError, match=r"tools\.json: expected a non-empty list of tool schemas"):
+        openai_converter.convert(records(), {}, "t.json", "tools.json")
+
+
+def test_precond_check_openai_judges_a_tool_call_after_the_messages(tmp_path: Path) -> None:
+    converted = openai_converter.convert(records(), tools())
+    (tmp_path / "spec.py").write_text(converted.spec)
+    read = "reservation_id in self.results['get_reservation_details']"
+    (tmp_path / "rules.json").write_text(json.dumps({"preconditions": {"AGENT.cancel_reservation": [read]}}))
+    (tmp_path / "history.json").write_text(json.dumps(records()[3]))  # a record: its messages are the history
+    args = ["check", "--openai", str(tmp_path / "history.json"), "--spec", str(tmp_path / "spec.py"),
+            "--rules", str(tmp_path / "rules.json")]
+    done = precond(*args, "--call", '{"name": "cancel_reservation", "arguments": {"reservation_id": "H8Q05L"}}',
+                   "--call", '{"name": "cancel_reservation", "arguments": "{\\"reservation_id\\": \\"NOPE00\\"}"}')
+    assert done.returncode == 0, done.stderr
+    read_one, unread = json.loads(done.stdout)["results"]
+    assert read_one["allowed"] is True and read_one["call"] == "agent.cancel_reservation('H8Q05L')"
+    assert unread["allowed"] is False and unread["violations"] == [read]
+    bad = precond(*args, "--call", '{"name": "cancel_reservation", "arguments": {"id": 1}}')
+    assert bad.returncode == 2 and "calls[0].arguments" in bad.stderr and "has no parameter 'id'" in bad.stderr
+
+
+def test_what_a_log_carries_stays_literal_data() -> None:
+    """Attack: quotes, newlines and code in every place a log puts text (user words, arguments, results):
+    every statement of the program is a call whose arguments are literals, and the payload is a string."""
+    payload = "x'); import os; os.system('id'); ('\n\"\"\"; __import__('os')._exit(3) #"
+    messages = [
+        {"role": "user", "content": payload},
+        {"role": "assistant", "tool_calls": [{"function": {"name": "get_reservation_details",
+                                                           "arguments": json.dumps({"reservation_id": payload})}}]},
+        {"role": "tool", "content": json.dumps({"note": payload, payload: [payload]})},
+        {"role": "assistant", "tool_calls": [{"function": {"name": "cancel_reservation",
+                                                           "arguments": json.dumps({"reservation_id": payload})}}]},
+        {"role": "tool", "content": "Error: " + payload},
+    ]
+    program = openai_converter.convert(messages, tools()).trajectories[0].program
+    tree = ast.parse(program)
+    for statement in tree.body[2:]:
+        assert isinstance(statement, ast.Expr) and isinstance(statement.value, ast.Call)
+        assert all(isinstance(ast.literal_eval(arg), object) for arg in statement.value.args)
+    assert ast.literal_eval(tree.body[2].value.args[0]) == payload  # type: ignore[attr-defined]
+    assert sum(isinstance(node, ast.Import) for node in ast.walk(tree)) == 0
