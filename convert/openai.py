@@ -11,7 +11,6 @@ literals: nothing in a log can become code. Standard library only: the gateway r
 
 from __future__ import annotations
 
-import functools
 import json
 import keyword
 import math
@@ -380,10 +379,9 @@ def spec_tools(spec: str, field: str) -> tuple[Tool, ...]:
     return tools
 
 
-@functools.lru_cache(maxsize=32)
 def _tools_of(spec: str) -> tuple[Tool, ...] | None:
-    """Cached per spec text: an agent sends the same spec with every check, and parsing it is most of the
-    rendering's time (32 specs of at most MAX_SOURCE_CHARS: a bounded few MiB)."""
+    """Parsed per request, never cached across requests: a cache shared by the gateway's tenants would let one
+    tell, by the time its own check takes, that another sent the same spec (docs/security.md)."""
     _, methods = checks.spec_methods(spec)
     if not any(m.qualname == "AGENT.result" and not m.stub for m in methods.values()) or "USER.says" not in methods:
         return None
