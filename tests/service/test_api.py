@@ -157,6 +157,19 @@ def test_a_tolerance_outside_0_to_half_or_not_a_number_is_422_naming_it(
     assert answer.json()["error"]["field"] == "options.tolerance"
 
 
+@pytest.mark.parametrize(("option", "value"), [("unseen", "maybe"), ("unseen", None), ("ranking", "safe"),
+                                               ("ranking", 3)])
+def test_a_safety_setting_outside_its_values_is_422_naming_it(client: httpx.Client, option: str,
+                                                               value: object) -> None:
+    body = infer_body()
+    body["options"][option] = value
+    answer = client.post("/infer-preconditions", json=body)
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["field"] == f"options.{option}"
+    assert ("'cautious'" if option == "ranking" else "'refuse'") in error["message"], error["message"]
+
+
 def test_spec_that_does_not_parse_is_422_with_line(client: httpx.Client) -> None:
     answer = client.post("/infer-preconditions", json=infer_body(spec="class A:\n  def f(self):\n    return (\n"))
     assert answer.status_code == 422, answer.text
