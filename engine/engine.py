@@ -19,6 +19,7 @@ from engine import judge, prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
 from engine.next_action import NextActionPlanner
+from engine.notices import rule_warnings
 from engine.parsing import parse_samples
 from engine.ranking import (
     ActionEvidence,
@@ -212,7 +213,7 @@ class Engine:
         progress("trace", 0, 1)
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos)
-        warnings = _no_evidence(actions, trace, request.options.generators)
+        _refuse_no_evidence(actions, trace)
         proposals = Proposals()
         model_info: ModelInfo | None = None
         prompted = _prompted(actions, trace, request.options)
@@ -239,6 +240,9 @@ class Engine:
             exempt = _exceptions_of(chosen, ranked)
             program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
         response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
+        occurrences = {a: trace.actions[a].occurrences for a in actions}
+        warnings = rule_warnings(actions, occurrences, preconditions, model_info is not None,
+                                 request.options.tolerance)
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
@@ -505,15 +509,10 @@ def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions)
     return [a for a in actions if too_few(trace.actions[a].occurrences)]
 
 
-def _no_evidence(actions: Sequence[str], trace: TraceResult, generators: Sequence[str]) -> dict[str, str]:
-    """Per action no demonstration calls, why its rule rests on no evidence; no such action at all: 422."""
-    missing = [a for a in actions if not trace.actions[a].occurrences]
-    if len(missing) == len(actions):
+def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:
+    """No demonstration calls any of the actions: nothing to learn from (422); some: `notices` warns of each."""
+    if not any(trace.actions[a].occurrences for a in actions):
         raise as_error(checks.no_occurrence_problem(list(actions), trace_count(trace)))
-    fallback = ("its rule is the code model's zero-shot guess (kept only when several samples agree), not "
-                "learned from demonstrations" if "model" in generators
-                else "no rule can be learned for it, so its rule is empty: every call of it is allowed")
-    return {a: f"no occurrence: no demonstration calls {a}; {fallback}" for a in missing}
 
 
 def trace_count(trace: TraceResult) -> int:

@@ -291,9 +291,9 @@ class InferResponse(_Body):
     model: ModelInfo | None = Field(default=None, description="None when no generator used a model.")
     warnings: dict[str, str] = Field(
         default_factory=dict,
-        description="Per action, why its rule is not backed by the demonstrations (e.g. `no occurrence`: no "
-        "demonstration calls it, so an empty rule there means no evidence, not 'always allowed'). Empty: every "
-        "action was seen.",
+        description="Per action whose rule is empty (every call allowed) or not backed by enough demonstrated "
+        "calls, why: `no occurrence` (no demonstration calls it), `thin evidence` (fewer than 3 calls in 3 "
+        "demonstrations) or `empty rule` (no candidate passed validation). Absent: a rule learned from evidence.",
     )
     evidence: dict[str, dict[str, RuleEvidence]] = Field(
         default_factory=dict,
@@ -364,7 +364,8 @@ class NextActionRequest(_UsesRules):
     demonstrations: list[str] = Field(
         default_factory=list,
         max_length=MAX_DEMONSTRATIONS,
-        description="Example trajectories shown to the model in its prompt (programs over the spec).",
+        description="Example trajectories shown to the model in its prompt (programs over the spec); their "
+        "argument values are among the calls judged. Empty with `precondition_set`: the set's demonstrations.",
     )
     history: History = Field(description=HISTORY_DESCRIPTION)
     options: NextActionOptions = Field(
@@ -584,7 +585,9 @@ class PreconditionSet(_Body):
     diff: SetDiff | None = Field(
         default=None, description="For a version made by re-inference: what changed against its base version.")
     warnings: dict[str, str] = Field(
-        default_factory=dict, description="For a version made by re-inference: the inference's warnings per action.")
+        default_factory=dict,
+        description="Per action whose rule is empty (every call allowed) or not backed by the demonstrations, why: "
+        "no rule, a reviewer rejected its only rules, or (a version made by re-inference) the inference's warning.")
 
 
 JobKind = Literal["infer", "next-action", "check", "validate", "reinfer"]

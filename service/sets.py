@@ -18,7 +18,7 @@ from typing import Any
 
 from arq.connections import ArqRedis
 
-from jobs.sets import APPEND_CONFLICT, APPEND_MISSING, CREATE_SCRIPT, append, index_key, set_key
+from jobs.sets import APPEND_CONFLICT, APPEND_MISSING, CREATE_SCRIPT, append, index_key, normal, set_key
 from schemas.api import PreconditionSet, RuleEdit, ValidateResponse
 from service.errors import ServiceError
 
@@ -95,12 +95,12 @@ def now() -> str:
 def version_of(
     set_id: str, number: int, spec: str, preconditions: dict[str, list[str]], demonstrations: list[str],
     required: dict[str, list[str]], rejected: dict[str, list[str]], edits: list[RuleEdit],
-    validation: ValidateResponse | None,
+    validation: ValidateResponse | None, warnings: dict[str, str],
 ) -> PreconditionSet:
     return PreconditionSet(
         id=set_id, version=number, latest=number, reference=f"{set_id}@{number}", created=now(), spec=spec,
         preconditions=preconditions, demonstrations=demonstrations, required=required, rejected=rejected,
-        edits=edits, validation=validation,
+        edits=edits, validation=validation, warnings=warnings,
     )
 
 
@@ -111,15 +111,19 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
     required = {a: list(r) for a, r in base.required.items()}
     rejected = {a: list(r) for a, r in base.rejected.items()}
 
+    def has(table: dict[str, list[str]], action: str, rule: str) -> bool:
+        return normal(rule) in {normal(r) for r in table.get(action, [])}
+
     def drop(table: dict[str, list[str]], action: str, rule: str) -> None:
-        if rule in table.get(action, []):
-            table[action].remove(rule)
+        """Every spelling of the rule: `x["a"]` and `x['a']` are one rule (`jobs.sets.normal`)."""
+        if has(table, action, rule):
+            table[action] = [r for r in table[action] if normal(r) != normal(rule)]
             if not table[action]:
                 del table[action]
 
     for index, edit in enumerate(edits):
         action, rule, field = edit.action, edit.rule.strip(), f"edits[{index}]"
-        present = rule in rules.get(action, [])
+        present = has(rules, action, rule)
         if edit.op == "add":
             if present:
                 raise ServiceError(422, f"{field}: {action} already has the rule {rule!r}", "invalid_input",
@@ -130,7 +134,7 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
             if not present:
                 raise ServiceError(422, f"{field}: {action} has no rule {rule!r} to require (add it first)",
                                    "invalid_input", field=field)
-            if rule not in required.get(action, []):
+            if not has(required, action, rule):
                 required.setdefault(action, []).append(rule)
         else:  # remove, reject
             if not present and edit.op == "remove":
@@ -138,7 +142,7 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
                                    field=field)
             drop(rules, action, rule)
             drop(required, action, rule)
-            if edit.op == "reject" and rule not in rejected.get(action, []):
+            if edit.op == "reject" and not has(rejected, action, rule):
                 rejected.setdefault(action, []).append(rule)
     return rules, required, rejected
 

@@ -125,12 +125,14 @@ async def _with_rules_and_program(
     services: Services, tag: str, body: CheckRequest | NextActionRequest
 ) -> CheckRequest | NextActionRequest | checks.Problem:
     """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
-    tenant has no such set), and a structured history rendered to its program (literals only)."""
+    tenant has no such set), its demonstrations too for a next action that sends none (they name the argument
+    values the agent could use), and a structured history rendered to its program (literals only)."""
     if body.precondition_set is not None:
         stored = await services.sets.get(tag, body.precondition_set)
-        body = body.model_copy(
-            update={"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
-        )
+        update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
+        if isinstance(body, NextActionRequest) and not body.demonstrations:
+            update["demonstrations"] = stored.demonstrations
+        body = body.model_copy(update=update)
     if not isinstance(body.history, str):
         try:
             program = render_history(body.spec_text(), [event.model_dump() for event in body.history])

@@ -9,7 +9,7 @@ from fastapi import APIRouter, Path, Request
 from fastapi.responses import JSONResponse, Response
 
 from jobs import keys
-from jobs.sets import union
+from jobs.sets import normal, set_warnings, union
 from programs import checks
 from schemas.api import (
     MAX_DEMONSTRATIONS,
@@ -57,7 +57,8 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
-    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation)
+    warnings = set_warnings(body.spec, rules, {}, {})
+    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings)
     stored = await services.sets.create(_tag(services, tenant), version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
@@ -88,8 +89,10 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     new = {(a, r) for a, rs in rules.items() for r in rs} - before
     validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
     _refuse_blocking(validation, new, body.force, "edits")
+    edited = {edit.action for edit in body.edits}
+    known = {action: warning for action, warning in base.warnings.items() if action not in edited}
     version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
-                         body.edits, validation)
+                         body.edits, validation, set_warnings(base.spec, rules, rejected, known))
     stored = await services.sets.append(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
@@ -166,7 +169,15 @@ def _static_check(spec: str, rules: dict[str, list[str]], demonstrations: list[s
     except checks.ProgramProblem as exc:
         problem = exc.problem
         raise ServiceError(422, problem.message, problem.type, field=field or problem.field) from None
-    return {action: list(dict.fromkeys(r.strip() for r in rs)) for action, rs in rules.items() if rs}
+    return {action: _unique(rs) for action, rs in rules.items() if rs}
+
+
+def _unique(rules: list[str]) -> list[str]:
+    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `jobs.sets.normal`), as first written."""
+    first: dict[str, str] = {}
+    for rule in rules:
+        first.setdefault(normal(rule), rule.strip())
+    return list(first.values())
 
 
 def _refuse_blocking(validation: ValidateResponse | None, new: set[tuple[str, str]], force: bool, field: str) -> None:

@@ -225,9 +225,38 @@ def test_an_action_without_occurrence_is_reported_not_silently_empty(
     response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=[demo],
                                          actions=["SYSTEM.REQUEST", "SYSTEM.GOODBYE"],
                                          options={"generators": ["enumerate"]}))
-    assert set(response.warnings) == {"SYSTEM.GOODBYE"}
+    assert set(response.warnings) == {"SYSTEM.GOODBYE", "SYSTEM.REQUEST"}  # REQUEST: called once
     assert response.warnings["SYSTEM.GOODBYE"].startswith("no occurrence: no demonstration calls SYSTEM.GOODBYE")
     assert response.preconditions["SYSTEM.GOODBYE"] == []
+
+
+def _programs(data: dict[str, Any], n: int) -> list[str]:
+    return [demo["program"] for demo in data["demos"][:n]]
+
+
+def test_an_action_seen_too_rarely_or_left_without_a_rule_is_warned_of(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    """NOTIFY_FAILURE (called twice) and REQ_MORE (4 calls, no rule kept) get `[]`: each says why, at the top."""
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=_programs(restaurants, 8),
+                                         options={"generators": ["enumerate"]}))
+    assert response.preconditions["SYSTEM.NOTIFY_FAILURE"] == [] and response.preconditions["SYSTEM.REQ_MORE"] == []
+    thin = response.warnings["SYSTEM.NOTIFY_FAILURE"]
+    assert thin.startswith("thin evidence: SYSTEM.NOTIFY_FAILURE is called 2 time(s) in 2 demonstration(s)")
+    assert thin.endswith("its rule is empty: every call of it is allowed")
+    assert response.warnings["SYSTEM.REQ_MORE"].startswith("empty rule: no candidate condition for SYSTEM.REQ_MORE")
+    assert all(a in response.warnings for a, rules in response.preconditions.items() if not rules)
+    assert "SYSTEM.INFORM" not in response.warnings  # demonstrated often, with rules: nothing to say
+
+
+def test_a_rule_resting_on_few_calls_is_warned_of_under_strict_validation(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=_programs(restaurants, 2),
+                                         options={"generators": ["enumerate"], "tolerance": 0}))
+    resting = [a for a, rules in response.preconditions.items() if rules and a in response.warnings]
+    assert resting, response.warnings
+    assert all("cannot tell a requirement from a coincidence" in response.warnings[a] for a in resting)
 
 
 def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: dict[str, Any]) -> None:

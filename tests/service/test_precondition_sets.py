@@ -14,7 +14,7 @@ import pytest
 
 from jobs.keys import tenant_tag
 from service.sets import index_key, set_key
-from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving
+from stack.local import DEMOS, SPEC, Stack, check_body, example, infer_body, make_stack, serving
 from tests.service.test_tenants import SECRET, client_for, make_key
 
 EVENTS = [
@@ -30,7 +30,8 @@ EVENTS = [
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
     path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
-    return path, {tenant: make_key(path, tenant)[1] for tenant in ("acme", "globex", "small", "initech")}
+    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella")
+    return path, {tenant: make_key(path, tenant)[1] for tenant in tenants}
 
 
 @pytest.fixture(scope="module")
@@ -144,6 +145,60 @@ def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(
                            params={"wait": 30}))
     assert v2["results"][0]["violations"] == ["self.user.selected"]
     assert latest["results"][0]["allowed"] is True
+
+
+@pytest.fixture()
+def hooli(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    with client_for(stack, keys[1]["hooli"]) as client:
+        yield client
+
+
+def test_an_action_left_without_a_rule_is_warned_of_and_rules_compare_as_code(
+    hooli: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    made = _create(hooli, inferred)
+    assert inferred["preconditions"]["SYSTEM.NOTIFY_FAILURE"] == []
+    assert made["warnings"]["SYSTEM.NOTIFY_FAILURE"].startswith("empty rule: the set has no rule for")
+    assert "SYSTEM.GOODBYE" not in made["warnings"]
+    only = inferred["preconditions"]["SYSTEM.GOODBYE"]
+    assert len(only) == 1
+    # the same rule in other quotes is the same rule: not added twice, and rejected in any spelling
+    twice = hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "add", "action": "SYSTEM.FindRestaurants", "rule": 'self.user.informed_slot["cuisine"]'}]})
+    assert twice.status_code == 422 and "already has the rule" in twice.json()["error"]["message"], twice.text
+    edited = _ok(hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "reject", "action": "SYSTEM.GOODBYE", "rule": only[0]},
+        {"op": "reject", "action": "SYSTEM.FindRestaurants", "rule": 'self.user.informed_slot["cuisine"]'}]}), 201)
+    assert "SYSTEM.GOODBYE" not in edited["preconditions"]
+    assert "SYSTEM.FindRestaurants" not in edited["preconditions"]
+    warning = edited["warnings"]["SYSTEM.GOODBYE"]
+    assert warning.startswith(f"empty rule: a reviewer rejected {only[0]!r} and no rule of SYSTEM.GOODBYE is left")
+    assert warning.endswith("every call of it is allowed")
+    assert "SYSTEM.FindRestaurants" in edited["warnings"]
+    assert edited["warnings"]["SYSTEM.NOTIFY_FAILURE"] == made["warnings"]["SYSTEM.NOTIFY_FAILURE"]
+    duplicate = _ok(hooli.post("/precondition-sets", json={"spec": SPEC, "preconditions": {
+        "SYSTEM.GOODBYE": ["self.user.no_more", "self.user.no_more "], "SYSTEM.CONFIRM": [
+            "self.user.informed_slot['time']", 'self.user.informed_slot["time"]']}}), 201)
+    assert duplicate["preconditions"] == {"SYSTEM.GOODBYE": ["self.user.no_more"],
+                                          "SYSTEM.CONFIRM": ["self.user.informed_slot['time']"]}
+
+
+def test_next_action_on_a_stored_set_lists_arguments_from_its_demonstrations(
+    stack: Stack, keys: tuple[Path, dict[str, str]]
+) -> None:
+    """The set's demonstrations name argument values (slots) the spec and history do not: with the set, the
+    calls judged are those judged when the same demonstrations are sent inline."""
+    inline = example("next-action")
+    inline["options"] = {"return_allowed": True}
+    inline["demonstrations"] = DEMOS
+    with client_for(stack, keys[1]["umbrella"]) as client:  # a tenant of its own: the others are at their bound
+        made = _ok(client.post("/precondition-sets", json={"spec": inline["spec"], "preconditions":
+                                                           inline["preconditions"], "demonstrations": DEMOS}), 201)
+        by_set = {"precondition_set": made["reference"], "history": inline["history"], "options": inline["options"]}
+        direct = _ok(client.post("/next-action", json=inline, params={"wait": 60}))["actions"][0]
+        stored = _ok(client.post("/next-action", json=by_set, params={"wait": 60}))["actions"][0]
+    assert stored["attempts"] == direct["attempts"]
+    assert stored["call"] == direct["call"] and stored["allowed"] == direct["allowed"]
 
 
 def test_sets_per_tenant_are_bounded(stack: Stack, keys: tuple[Path, dict[str, str]], inferred: dict[str, Any]) -> None:
