@@ -35,6 +35,7 @@ from engine.ranking import (
 from engine.spec import (
     Spec,
     as_error,
+    check_calls,
     check_preconditions,
     parse_source,
     parse_spec,
@@ -441,6 +442,7 @@ class Engine:
         spec = parse_spec(_spec_of(request))
         check_preconditions(spec, request.preconditions)
         history = history_program(spec.source, request.history)
+        check_calls(spec, request.preconditions, history, request.calls)
         return CheckResponse(results=self._verify(spec, request.preconditions, history, request.calls))
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------

@@ -115,7 +115,7 @@ def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem |
             checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations,
                                      _text(body.history), max_work_points)
         elif isinstance(body, CheckRequest):
-            checks.check_check(body.spec_text(), body.preconditions, _text(body.history))
+            checks.check_check(body.spec_text(), body.preconditions, _text(body.history), body.calls)
     except checks.ProgramProblem as exc:
         return exc.problem
     return None
@@ -148,7 +148,7 @@ def _text(history: object) -> str:
 
 def _program_chars(body: BaseModel) -> int:
     texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
-             *getattr(body, "demonstrations", [])]
+             *getattr(body, "demonstrations", []), *getattr(body, "calls", [])]
     return sum(len(text) for text in texts)
 
 

@@ -259,6 +259,20 @@ def test_a_rule_resting_on_few_calls_is_warned_of_under_strict_validation(
     assert all("cannot tell a requirement from a coincidence" in response.warnings[a] for a in resting)
 
 
+@pytest.mark.parametrize(("call", "words"), [
+    ("user.AFFIRM()", "USER.AFFIRM is not one of the agent's actions"),
+    ("system.REQUESTT('city')", "unknown action 'SYSTEM.REQUESTT' in calls[1] (did you mean 'SYSTEM.REQUEST'?)"),
+])
+def test_a_call_of_something_not_an_action_is_refused_never_approved(
+    engine: Engine, restaurants: dict[str, Any], call: str, words: str
+) -> None:
+    request = CheckRequest(spec=restaurants["spec_program"], preconditions={}, calls=["system.GOODBYE()", call],
+                           history="user = USER()\nsystem = SYSTEM(user)\n")
+    with pytest.raises(UnknownAction) as err:
+        engine.check(request)
+    assert err.value.field == "calls[1]" and words in err.value.message
+
+
 def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: dict[str, Any]) -> None:
     history = "user = USER()\nsystem = SYSTEM(user)\n"
 

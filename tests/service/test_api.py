@@ -188,6 +188,17 @@ def test_unknown_action_is_422(client: httpx.Client) -> None:
     assert answer.json()["error"]["field"] == "actions[0]"
 
 
+@pytest.mark.parametrize(("call", "words"), [
+    ("user.AFFIRM()", "USER.AFFIRM is not one of the agent's actions"),
+    ("system.REQUESTT('city')", "(did you mean 'SYSTEM.REQUEST'?)"),
+])
+def test_a_proposed_call_of_no_action_is_422_never_approved(client: httpx.Client, call: str, words: str) -> None:
+    answer = client.post("/check-actions", json=check_body("system.GOODBYE()", call), params={"wait": 30})
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["type"] == "unknown_action" and error["field"] == "calls[1]" and words in error["message"]
+
+
 def test_oversized_body_is_413_declared_or_streamed(client: httpx.Client) -> None:
     big = infer_body()
     big["demonstrations"] = ["x" * 70_000]
