@@ -69,6 +69,7 @@ from schemas.api import (
     InferRequest,
     InferResponse,
     InferStats,
+    Listed,
     ModelInfo,
     NextActionRequest,
     NextActionResponse,
@@ -246,7 +247,8 @@ class Engine:
                                  request.options.tolerance)
         progress("done", 1, 1)
         return InferResponse(
-            preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
+            preconditions=preconditions, program=program, stats=response.stats,
+            candidates=_listed(response.candidates, request.options.candidates),
             model=model_info, warnings=warnings, evidence=response.evidence,
         )
 
@@ -387,7 +389,7 @@ class Engine:
                 len(kept) - 1,
             )
             dropped.setdefault(action, {})[kept.pop(culprit)] = (
-                f"dropped: fails with the other kept assertions (demonstration {failure.index}, line {failure.line})"
+                f"dropped: fails with the other kept assertions (demonstrations[{failure.index}], line {failure.line})"
             )
 
     def _failure(self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str]) -> ProgramError | None:
@@ -651,6 +653,13 @@ def _response(
     return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds), evidence)
 
 
+def _listed(candidates: dict[str, list[CandidateReport]], which: Listed) -> dict[str, list[CandidateReport]]:
+    """The candidate reports the caller asked for (`options.candidates`): all, the kept rules' only, or none."""
+    if which == "all":
+        return candidates
+    return {a: [c for c in reports if c.kept] for a, reports in candidates.items()} if which == "kept" else {}
+
+
 def _reports(
     ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str], trace: TraceResult
 ) -> list[CandidateReport]:
@@ -697,7 +706,7 @@ def _exception(point: Point, trace: TraceResult) -> RuleException:
 
 
 def _where(exception: RuleException) -> str:
-    return f"demonstration {exception.demonstration}, line {exception.line}"
+    return f"demonstrations[{exception.demonstration}], line {exception.line}"
 
 
 def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:

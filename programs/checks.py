@@ -205,13 +205,23 @@ def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: 
     check_calls(methods, preconditions, parse(history, "history"), calls)
 
 
+def _literal_arguments(call: ast.Call) -> bool:
+    """Arguments the sandbox accepts (literals, no `*`/`**`); a call with others it refuses itself."""
+    try:
+        for value in [*call.args, *(k.value for k in call.keywords if k.arg is not None)]:
+            ast.literal_eval(value)
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+        return False
+    return all(k.arg is not None for k in call.keywords)
+
+
 def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Sequence[str]], history: ast.Module,
                 calls: Sequence[str]) -> None:
     """Every proposed `receiver.method(...)` whose receiver the history creates must be a call of one of the
     agent's actions (the spec's stubs and the actions given rules): a method its class lacks is an unknown action
     (with the closest name), and a method that is not an action (an observation, the user's `AFFIRM`) is
-    refused, never approved because no rule guards it. Text that is not such a call is left to the sandbox,
-    which refuses it with the reason."""
+    refused, never approved because no rule guards it. Text that is not such a call (with literal arguments)
+    is left to the sandbox, which refuses it with the reason."""
     receivers = instance_classes([history], {m.cls for m in methods.values()})
     actions = {name for name, method in methods.items() if method.stub} | set(preconditions)
     for index, text in enumerate(calls):
@@ -220,7 +230,8 @@ def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Seque
         except (SyntaxError, ValueError, RecursionError, MemoryError):
             continue
         if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-                and isinstance(node.func.value, ast.Name) and node.func.value.id in receivers):
+                and isinstance(node.func.value, ast.Name) and node.func.value.id in receivers
+                and _literal_arguments(node)):
             continue
         name, field = f"{receivers[node.func.value.id]}.{node.func.attr}", f"calls[{index}]"
         if name not in methods:

@@ -34,6 +34,7 @@ MAX_LISTED_EXCEPTIONS = 20
 Generator = Literal["model", "enumerate"]
 Ranking = Literal["subsumption", "recency", "marginal"]
 ModelFor = Literal["thin", "all"]
+Listed = Literal["all", "kept", "none"]
 
 SourceText = Field(max_length=MAX_SOURCE_CHARS)
 
@@ -78,6 +79,12 @@ class InferOptions(_Body):
         "of the spec is what is left, while the enumerator covers the others (without it, every action); 'all': "
         "every action (the paper). On every dev domain both give the same rules (docs/results.md), and 'thin' "
         "samples a fraction of the prompts (generation is most of the time).",
+    )
+    candidates: Listed = Field(
+        default="all",
+        description="Which candidate reports the answer lists: 'all' (default: every candidate with why it was "
+        "kept or dropped; hundreds of KB for a real domain), 'kept' (the kept rules' reports only: with "
+        "`evidence`, what a reviewer reads), 'none'. The rules, warnings and evidence are the same either way.",
     )
     judge: bool = Field(
         default=False,
@@ -249,7 +256,7 @@ class CandidateReport(_Body):
     kept: bool
     reason: str | None = Field(
         default=None,
-        description="Why it was kept or dropped, in words: 'violated at demonstration 3, line 12, ...', 'subsumed "
+        description="Why it was kept or dropped, in words: 'violated at demonstrations[3], line 12, ...', 'subsumed "
         "by ...', 'held at every occurrence, but was already true before the user's last turn: looks like a "
         "phase, not a requirement', 'zero-shot: never demonstrated, kept by model vote', 'kept: ...'. Set for "
         "every candidate the engine reports.",

@@ -154,7 +154,7 @@ def blocking_message(validation: ValidateResponse, new_rules: set[tuple[str, str
         return None
     first = blocked[0]
     more = len(blocked) - 1
-    message = (f"rule {first.rule!r} of {first.action} would have blocked demonstration {first.demonstration}, "
+    message = (f"rule {first.rule!r} of {first.action} would have blocked demonstrations[{first.demonstration}], "
                f"line {first.line} ({first.call})" + (f", and {more} more demonstrated call(s)" if more else "")
                + "; fix the rule, or send force: true to keep it anyway")
     return message, first

@@ -58,7 +58,8 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
                     f"({first.call}){more}; fix the demonstration, un-require the rule, or send force: true",
                     field=where,
                 )
-        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=job.options)
+        options = job.options.model_copy(update={"candidates": "all"})  # the diff's reasons come from them
+        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=options)
         inferred = engine.infer(request, progress, cancelled)
         merged = sets.merge(base, inferred.preconditions, inferred.candidates, len(demos) - len(base.demonstrations),
                             job.actions)

@@ -300,7 +300,7 @@ def test_every_candidate_says_why_it_was_kept_or_dropped(
     kept = [c for c in reports if c.kept]
     assert kept and all(c.reason.startswith("kept") for c in kept if c.reason)
     reasons = [c.reason or "" for c in reports if not c.kept]
-    assert any(r.startswith("violated at demonstration") and ", line " in r for r in reasons)
+    assert any(r.startswith("violated at demonstrations[") and ", line " in r for r in reasons)
     assert any(r.startswith("subsumed by ") for r in reasons)
     assert any(r.startswith("equivalent to ") for r in reasons)
     if ranking == "recency":
@@ -333,7 +333,7 @@ def test_a_single_slip_does_not_kill_a_true_rule(engine: Engine, restaurants: di
     (exception,) = evidence.exceptions
     assert (exception.demonstration, exception.line, exception.call) == (demo, line, "system.REQUEST('city')")
     report = next(c for c in response.candidates["SYSTEM.REQUEST"] if c.assertion == rule)
-    assert report.kept and report.valid and f"demonstration {demo}, line {line}" in (report.reason or "")
+    assert report.kept and report.valid and f"demonstrations[{demo}], line {line}" in (report.reason or "")
     # the returned program runs the demonstrations except at the recorded exception
     engine._sandbox.trace(response.program, _without_exceptions(demos, response))
 

@@ -176,7 +176,7 @@ def test_demonstration_that_raises_is_422_naming_it_and_its_line(client: httpx.C
     assert answer.status_code == 422, answer.text
     assert answer.json()["error"] == {
         "type": "invalid_program",
-        "message": "demonstration 1, line 4: AttributeError: 'USER' object has no attribute 'NOPE'",
+        "message": "demonstrations[1], line 4: AttributeError: 'USER' object has no attribute 'NOPE'",
         "field": "demonstrations[1]",
     }
 

@@ -109,7 +109,7 @@ def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(
     assert refused.status_code == 422, refused.text
     error = refused.json()["error"]
     assert error["type"] == "blocks_demonstration" and error["field"] == "edits"
-    assert "'self.user.selected' of SYSTEM.INFORM would have blocked demonstration " in error["message"]
+    assert "'self.user.selected' of SYSTEM.INFORM would have blocked demonstrations[" in error["message"]
     assert ", line " in error["message"] and "force" in error["message"]
     assert _ok(acme.get(f"/precondition-sets/{set_id}"))["latest"] == 1  # nothing stored
     forced = _ok(acme.post(f"/precondition-sets/{set_id}/versions", json={"edits": [bad], "force": True}), 201)
