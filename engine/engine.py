@@ -460,6 +460,7 @@ class Engine:
         evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, rules)
         blocked: list[Blocked] = []
         unjudged: dict[str, str] = {}
+        raised: dict[str, str] = {}
         for action, expressions in rules.items():
             points = evaluated.points.get(action, ())
             results = {r.expression: r for r in evaluated.results.get(action, ())}
@@ -468,6 +469,8 @@ class Engine:
                 if result is None or result.status == "rejected":
                     unjudged[f"{action}: {rule}"] = (result.reason if result else None) or "not judged"
                     continue
+                if result.status == "invalid" and _raised(result.reason):
+                    raised[f"{action}: {rule}"] = str(result.reason)
                 for occ in trace.actions[action].occurrences:
                     try:
                         holds = (result.satisfied >> points.index(occ)) & 1
@@ -477,12 +480,19 @@ class Engine:
                         step = trace.positions[occ.demo][occ.position]
                         blocked.append(Blocked(action=action, rule=rule, demonstration=occ.demo, line=step.line,
                                                call=step.source.strip()[:MAX_CALL_CHARS]))
-        return ValidateResponse(blocked=blocked, unjudged=unjudged)
+        return ValidateResponse(blocked=blocked, unjudged=unjudged, raised=raised)
 
     @staticmethod
     def _check_cancel(cancelled: Callable[[], bool]) -> None:
         if cancelled():
             raise Cancelled("job cancelled")
+
+
+def _raised(first_violation: str | None) -> bool:
+    """The sandbox's first violation of a rule names an exception (`..., args []: AttributeError: ...`), not a
+    false answer (`: assertion fails`) or a state it could not copy."""
+    return bool(first_violation) and not str(first_violation).endswith(
+        (": assertion fails", ": the state could not be copied"))
 
 
 def _spec_of(request: CheckRequest | NextActionRequest) -> str:

@@ -485,6 +485,12 @@ class ValidateResponse(_Body):
     unjudged: dict[str, str] = Field(
         default_factory=dict, description="Rules that could not be judged at all (`action: rule` → why)."
     )
+    raised: dict[str, str] = Field(
+        default_factory=dict,
+        description="Rules that raise instead of answering true or false (`action: rule` → where, and the "
+        "exception: e.g. `AttributeError: 'USER' object has no attribute 'afirmed'` for a misspelt name); a call "
+        "at which a rule raises is refused, so they are in `blocked` too.",
+    )
 
 
 MAX_SET_EDITS = 64

@@ -23,6 +23,8 @@ from schemas.api import PreconditionSet, RuleEdit, ValidateResponse
 from service.errors import ServiceError
 
 _REFERENCE = re.compile(r"^(ps_[0-9a-f]{24})(?:@([1-9][0-9]{0,8}))?$")
+_RAISED = re.compile(r"^(demonstrations\[\d+\], line \d+), args .*?: (\w+(?:Error|Exception)\b.*)$", re.DOTALL)
+"""The sandbox's first violation of a rule that raised: where, then the exception."""
 
 def not_found(reference: str) -> ServiceError:
     return ServiceError(404, f"no precondition set {reference[:80]}")
@@ -152,6 +154,17 @@ def blocking_message(validation: ValidateResponse, new_rules: set[tuple[str, str
     blocked = [b for b in validation.blocked if (b.action, b.rule) in new_rules]
     if not blocked:
         return None
+    raising = [b for b in blocked if f"{b.action}: {b.rule}" in validation.raised]
+    if raising:  # a typo (`self.user.afirmed`) is an exception to name, not calls to count
+        first = raising[0]
+        error = validation.raised[f"{first.action}: {first.rule}"]
+        found = _RAISED.match(error)
+        where, exception = found.groups() if found else ("", error)
+        count = sum((b.action, b.rule) == (first.action, first.rule) for b in blocked)
+        message = (f"rule {first.rule!r} of {first.action} raises {exception}" + (f" ({where})" if where else "")
+                   + f" instead of answering true or false, so it refuses every call it raises at ({count} "
+                   "demonstrated call(s)): fix the rule (a misspelt name?), or send force: true to keep it anyway")
+        return message, first
     first = blocked[0]
     more = len(blocked) - 1
     message = (f"rule {first.rule!r} of {first.action} would have blocked demonstrations[{first.demonstration}], "

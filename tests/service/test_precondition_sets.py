@@ -166,6 +166,14 @@ def test_an_action_left_without_a_rule_is_warned_of_and_rules_compare_as_code(
     twice = hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
         {"op": "add", "action": "SYSTEM.FindRestaurants", "rule": 'self.user.informed_slot["cuisine"]'}]})
     assert twice.status_code == 422 and "already has the rule" in twice.json()["error"]["message"], twice.text
+    # a misspelt attribute is named as the exception it is, not counted as blocked calls
+    typo = hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "add", "action": "SYSTEM.ReserveRestaurant", "rule": "self.user.afirmed"}]})
+    assert typo.status_code == 422, typo.text
+    message = typo.json()["error"]["message"]
+    assert message.startswith("rule 'self.user.afirmed' of SYSTEM.ReserveRestaurant raises AttributeError: 'USER' "
+                              "object has no attribute 'afirmed' (demonstrations["), message
+    assert "misspelt" in message and "would have blocked" not in message
     edited = _ok(hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
         {"op": "reject", "action": "SYSTEM.GOODBYE", "rule": only[0]},
         {"op": "reject", "action": "SYSTEM.FindRestaurants", "rule": 'self.user.informed_slot["cuisine"]'}]}), 201)
