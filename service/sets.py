@@ -26,8 +26,17 @@ _REFERENCE = re.compile(r"^(ps_[0-9a-f]{24})(?:@([1-9][0-9]{0,8}))?$")
 _RAISED = re.compile(r"^(demonstrations\[\d+\], line \d+), args .*?: (\w+(?:Error|Exception)\b.*)$", re.DOTALL)
 """The sandbox's first violation of a rule that raised: where, then the exception."""
 
+NOT_FOUND_HINT = (
+    "a set is found only with a key of the tenant that made it; sets made while the API was open (no keys) "
+    "belong to the tenant `public`: reach them with a key made by `precond keys create --tenant public` "
+    "(docs/tenants.md)"
+)
+"""The same for every 404 of a set, whoever asks and whether or not the set exists elsewhere: it tells nothing
+about other tenants' sets, and it is the first thing to check after turning keys on."""
+
+
 def not_found(reference: str) -> ServiceError:
-    return ServiceError(404, f"no precondition set {reference[:80]}")
+    return ServiceError(404, f"no precondition set {reference[:80]}; {NOT_FOUND_HINT}")
 
 
 def parse_reference(reference: str) -> tuple[str, int | None]:

@@ -28,7 +28,7 @@ from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer
-from service.sets import apply_edits, blocking_message, new_id, version_of
+from service.sets import apply_edits, blocking_message, new_id, not_found, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
 RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -146,7 +146,7 @@ async def _latest(services: Services, tag: str, set_id: str, base_version: int |
     """The set a new version builds on: a bare id (a version reference is 404), whose latest version must be
     `base_version` when the caller names one (optimistic concurrency: otherwise 409)."""
     if "@" in set_id:
-        raise ServiceError(404, f"no precondition set {set_id[:80]}")
+        raise not_found(set_id)
     base = await services.sets.get(tag, set_id)
     if base_version is not None and base_version != base.latest:
         raise ServiceError(409, f"base_version {base_version} is not the latest version ({base.latest})",

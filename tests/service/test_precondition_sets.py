@@ -88,6 +88,7 @@ def test_a_set_from_an_inference_is_stored_versioned_and_owned(
     theirs, missing = globex.get(f"/precondition-sets/{set_id}"), globex.get(f"/precondition-sets/{unknown}")
     assert theirs.status_code == missing.status_code == 404
     assert theirs.json()["error"]["message"].replace(set_id, unknown) == missing.json()["error"]["message"]
+    assert "belong to the tenant `public`" in missing.json()["error"]["message"]  # after turning keys on
     assert globex.post(f"/precondition-sets/{set_id}/versions",
                        json={"edits": [{"op": "reject", "action": "SYSTEM.GOODBYE", "rule": "x"}]}).status_code == 404
     used = globex.post("/check-actions", json={"precondition_set": set_id, "history": EVENTS,
