@@ -57,7 +57,9 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 @router.post("/infer-preconditions", response_model=InferResponse, responses=ERRORS)
 async def infer_preconditions(
-    body: Annotated[InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-model"))],
+    body: Annotated[
+        InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-kept", "infer-model"))
+    ],
     request: Request,
     services: ServicesDep,
     tenant: Tenant,
