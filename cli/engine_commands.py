@@ -9,6 +9,7 @@ bad request from a broken machine.
 from __future__ import annotations
 
 import json
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -40,8 +41,20 @@ def _load(path: Path, model: type[BaseModel]) -> Any:
         return model.model_validate_json(text)
     except OSError as exc:
         _fail(f"cannot read {path}: {exc.strerror}", 2)
-    except (ValidationError, UnicodeDecodeError) as exc:
-        _fail(f"invalid request in {path}:\n{exc}", 2)
+    except ValidationError as exc:
+        _fail(f"invalid request in {path}:\n" + "\n".join(_problems(exc)), 2)
+    except UnicodeDecodeError as exc:
+        _fail(f"invalid request in {path}: not UTF-8: {exc.reason}", 2)
+
+
+def _problems(error: ValidationError) -> list[str]:
+    """`field: message` per problem, in the service's words (no pydantic prefix, type code or link)."""
+    lines = []
+    for problem in error.errors():
+        field = ".".join(str(part) for part in problem["loc"]) or "body"
+        message = re.sub(r"^(Value error|Assertion failed), ", "", problem["msg"])
+        lines.append(f"  {field}: {message}")
+    return lines
 
 
 def _fail(message: str, code: int) -> None:

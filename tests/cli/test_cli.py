@@ -80,6 +80,10 @@ def test_bad_request_exits_2_naming_the_field() -> None:
     result = precond("infer", "-", stdin=bad)
     assert result.returncode == 2
     assert "demonstrations" in result.stderr and "sedd" in result.stderr and result.stdout == ""
+    assert "  options.sedd: Extra inputs are not permitted" in result.stderr.splitlines()
+    neither = precond("check", "-", stdin=json.dumps({"history": "", "calls": ["a.b()"]}))
+    assert neither.returncode == 2
+    assert "  body: give `spec` (with `preconditions`) or `precondition_set`" in neither.stderr.splitlines()
 
 
 def test_program_error_exits_2_with_line() -> None:
