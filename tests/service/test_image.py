@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -106,4 +107,7 @@ def test_compose_config_is_accepted_by_a_compose_client(profile: str | None) -> 
     out = subprocess.run([*client, "-f", str(ROOT / "docker-compose.yml"), *profiles, "config"], cwd=ROOT,
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
-    assert "gateway" in out.stdout and ("worker-gpu" in out.stdout) == (profile == "gpu")
+    config = yaml.safe_load(out.stdout)
+    assert {"keys", "redis", "redis-cache", "gateway", "worker"} <= set(config["services"])
+    if profile == "gpu":  # torch from PyPI (TORCH_INDEX empty): its 2.13.0 wheel is the CUDA build
+        assert config["services"]["worker-gpu"]["build"]["args"]["TORCH_INDEX"] == ""
