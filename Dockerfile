@@ -25,6 +25,8 @@ COPY programs programs
 COPY worker worker
 COPY sandbox sandbox
 COPY cli cli
+COPY convert convert
+COPY precond_client precond_client
 COPY evaluation evaluation
 COPY examples examples
 COPY docker docker

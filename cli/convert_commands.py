@@ -9,11 +9,13 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from pydantic import ValidationError
 
 from convert import events as events_converter
 from convert import openai as openai_converter
 from convert import sgd as sgd_converter
 from convert.shape import ConvertError, load_json
+from programs import checks
 from schemas.api import InferRequest
 
 app = typer.Typer(help="Convert dialog data (SGD files, JSON event logs) to a spec, programs and a request.",
@@ -114,6 +116,37 @@ def openai(
     typer.echo(f"{len(converted.trajectories)} trajectories → {out}/demos/, {len(chosen_programs)} in "
                f"{out}/request.json (actions: {', '.join(sorted(converted.writes)) or 'all'}); "
                f"{converted.without_writes} without a state-changing call", err=True)
+
+
+@app.command("programs")
+def programs(
+    spec: Annotated[Path, typer.Option(help="The spec program (Python).")],
+    demonstrations: Annotated[list[Path], typer.Argument(metavar="DEMO.py...", help="Demonstration programs over "
+                                                         "the spec, one per file (e.g. demos/*.py), in this order.")],
+    request: Annotated[Path | None, typer.Option(help="Write the infer request here instead of printing it.",
+                                                 show_default=False)] = None,
+) -> None:
+    """spec.py + demos/*.py → an infer request, each program parsed first (an error names its file and line)."""
+    try:
+        spec_text = spec.read_text(encoding="utf-8")
+        texts = [path.read_text(encoding="utf-8") for path in demonstrations]
+    except (OSError, UnicodeDecodeError) as exc:
+        _fail(f"cannot read {getattr(exc, 'filename', None) or 'a file'}: {exc}")
+    names = {f"demonstrations[{i}]": str(path) for i, path in enumerate(demonstrations)}
+    try:
+        checks.check_infer(spec_text, texts, None)
+    except checks.ProgramProblem as exc:
+        where = names.get(exc.problem.field, str(spec) if exc.problem.field == "spec" else "")
+        _fail(f"{where}: {exc.problem.message}" if where else exc.problem.message)
+    try:
+        body = _request(spec_text, texts)
+    except ValidationError as exc:
+        _fail(f"not a valid request: {exc}")
+    if request is None:
+        typer.echo(body, nl=False)
+    else:
+        request.write_text(body, encoding="utf-8")
+        typer.echo(f"{len(texts)} demonstrations → {request}", err=True)
 
 
 def register(root: typer.Typer) -> None:

@@ -9,6 +9,7 @@ bad request from a broken machine.
 from __future__ import annotations
 
 import json
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -18,7 +19,7 @@ import typer
 from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
-from schemas.api import CheckRequest, InferRequest, InferResponse, NextActionRequest
+from schemas.api import CheckRequest, InferRequest, InferResponse, Listed, NextActionRequest, RuleEvidence
 from schemas.errors import PrecondError, ResourceLimit
 
 RequestFile = Annotated[Path, typer.Argument(help="Request body as JSON ('-' for standard input).")]
@@ -40,8 +41,20 @@ def _load(path: Path, model: type[BaseModel]) -> Any:
         return model.model_validate_json(text)
     except OSError as exc:
         _fail(f"cannot read {path}: {exc.strerror}", 2)
-    except (ValidationError, UnicodeDecodeError) as exc:
-        _fail(f"invalid request in {path}:\n{exc}", 2)
+    except ValidationError as exc:
+        _fail(f"invalid request in {path}:\n" + "\n".join(_problems(exc)), 2)
+    except UnicodeDecodeError as exc:
+        _fail(f"invalid request in {path}: not UTF-8: {exc.reason}", 2)
+
+
+def _problems(error: ValidationError) -> list[str]:
+    """`field: message` per problem, in the service's words (no pydantic prefix, type code or link)."""
+    lines = []
+    for problem in error.errors():
+        field = ".".join(str(part) for part in problem["loc"]) or "body"
+        message = re.sub(r"^(Value error|Assertion failed), ", "", problem["msg"])
+        lines.append(f"  {field}: {message}")
+    return lines
 
 
 def _fail(message: str, code: int) -> None:
@@ -65,7 +78,8 @@ class _Progress:
         self.bar.close()
 
 
-def _run(call: Callable[..., BaseModel], request: BaseModel, with_progress: bool = True) -> None:
+def _run(call: Callable[..., BaseModel], request: BaseModel, with_progress: bool = True,
+         summary: bool = False) -> None:
     progress = _Progress() if with_progress else None
     try:
         response = call(request, progress) if progress else call(request)
@@ -77,16 +91,26 @@ def _run(call: Callable[..., BaseModel], request: BaseModel, with_progress: bool
     finally:
         if progress:
             progress.close()
-    _print(response)
+    _print(response, summary)
 
 
-def _print(response: BaseModel) -> None:
-    """The response as JSON on stdout; for an inference, the kept rules' exceptions on stderr, so that a user
-    sees which demonstrated calls the rules refuse and can decide whether the log or the rule is wrong."""
+def _print(response: BaseModel, summary: bool = False) -> None:
+    """The response as JSON on stdout (an inference with `--summary`: its summary instead); for an inference,
+    the kept rules' exceptions on stderr, so that a user sees which demonstrated calls the rules refuse and can
+    decide whether the log or the rule is wrong."""
+    if summary and isinstance(response, InferResponse):
+        typer.echo("\n".join(summary_lines(response)))
+        return
     typer.echo(json.dumps(response.model_dump(mode="json"), indent=2))
     if isinstance(response, InferResponse):
         for line in exception_lines(response):
             typer.echo(line, err=True)
+
+
+def _exceptions(evidence: RuleEvidence, indent: str) -> list[str]:
+    lines = [f"{indent}demonstrations[{x.demonstration}], line {x.line}: {x.call}" for x in evidence.exceptions]
+    unlisted = evidence.occurrences - evidence.holds - len(evidence.exceptions)
+    return lines + ([f"{indent}... and {unlisted} more"] if unlisted > 0 else [])
 
 
 def exception_lines(response: InferResponse) -> list[str]:
@@ -97,14 +121,37 @@ def exception_lines(response: InferResponse) -> list[str]:
                 continue
             lines.append(f"{action}: `{rule}` holds at {evidence.holds} of {evidence.occurrences} demonstrated calls "
                          f"(confidence {evidence.confidence:.2f}); exceptions:")
-            lines += [f"  demonstration {x.demonstration}, line {x.line}: {x.call}" for x in evidence.exceptions]
-            unlisted = evidence.occurrences - evidence.holds - len(evidence.exceptions)
-            if unlisted > 0:
-                lines.append(f"  ... and {unlisted} more")
+            lines += _exceptions(evidence, "  ")
     return lines
 
 
-def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bool = True) -> None:
+def summary_lines(response: InferResponse) -> list[str]:
+    """What a person reads: per action its rules, how each was decided (its evidence and the kept candidate's
+    reason), the demonstrated calls it refuses, and the action's warning (an empty or thin rule)."""
+    lines: list[str] = []
+    for action, rules in response.preconditions.items():
+        reasons = {c.assertion: c.reason for c in response.candidates.get(action, []) if c.kept}
+        lines.append(f"{action}: " + (f"{len(rules)} rule(s), all must hold" if rules
+                                      else "no rule: every call of it is allowed"))
+        for rule in rules:
+            lines.append(f"  {rule}")
+            evidence = response.evidence.get(action, {}).get(rule)
+            if evidence is not None:
+                lines.append(f"    evidence: {evidence.verdict}, holds at {evidence.holds} of "
+                             f"{evidence.occurrences} demonstrated calls (confidence {evidence.confidence:.2f})")
+                lines += _exceptions(evidence, "    refuses ")
+            label = f"{evidence.decided}: " if evidence is not None and evidence.decided else ""
+            if reasons.get(rule) or label:  # its counts are the evidence line's
+                lines.append(f"    decided: {label}{str(reasons.get(rule) or '').split('; held at ')[0]}")
+        if action in response.warnings:
+            lines.append(f"  WARNING {response.warnings[action]}")
+    kept = sum(len(r) for r in response.preconditions.values())
+    lines.append(f"{kept} rule(s) for {len(response.preconditions)} action(s); {len(response.warnings)} warning(s)")
+    return lines
+
+
+def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bool = True,
+            summary: bool = False) -> None:
     """The request through the client: a 202 is followed to the end, its progress drawn on stderr."""
     from precond_client import Client, JobStatus, PrecondError, RateLimited, Unavailable
     from precond_client import InvalidInput as ClientInvalidInput
@@ -135,18 +182,31 @@ def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bo
     finally:
         if progress:
             progress.close()
-    _print(response)
+    _print(response, summary)
 
 
-def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:
+Summary = Annotated[bool, typer.Option("--summary", help="Print a summary to read (rules per action, how each "
+                                       "was decided, the calls it refuses, warnings) instead of the JSON.")]
+Candidates = Annotated[
+    Listed | None,
+    typer.Option(help="Which candidate reports the JSON lists (sets the request's options.candidates): all, kept "
+                 "(the kept rules' only), none.", show_default=False),
+]
+
+
+def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None, summary: Summary = False,
+          candidates: Candidates = None) -> None:
     """Infer verified preconditions for the spec's actions from the demonstrations."""
     body = _load(request, InferRequest)
+    listed = candidates or ("kept" if summary and body.options.candidates == "none" else None)
+    if listed:
+        body = body.model_copy(update={"options": body.options.model_copy(update={"candidates": listed})})
     if server:
-        return _remote(server, api_key, body)
+        return _remote(server, api_key, body, summary=summary)
     from engine.factory import build_engine
 
     engine = build_engine(with_model="model" in body.options.generators)
-    _run(engine.infer, body)
+    _run(engine.infer, body, summary=summary)
 
 
 def next_action(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:

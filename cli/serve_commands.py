@@ -27,9 +27,15 @@ def serve(
     cache_maxmemory: Annotated[
         str, typer.Option(help="maxmemory of the private cache Redis (allkeys-lru: evicts old results).")
     ] = "256mb",
+    redis_url: Annotated[
+        str | None,
+        typer.Option(help="Use this Redis (sets REDIS_URL for every process), even one without a password; "
+                     "default: REDIS_URL, else two private ones started here. A Redis already answering on 6379 "
+                     "without a password is refused unless named here.", show_default=False),
+    ] = None,
 ) -> None:
-    """Run gateway, workers and, when REDIS_URL is unset and none answers locally, two private redis-servers
-    (queue on 6379, cache on 6380; 127.0.0.1 only, with a random password per start).
+    """Run gateway, workers and, when REDIS_URL is unset, two private redis-servers (queue on 6379, cache on
+    6380; 127.0.0.1 only, with a random password per start); says at start which Redis it uses.
 
     Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
     other unless --no-auth says so.
@@ -45,8 +51,11 @@ def serve(
             raise typer.Exit(2)
         typer.echo(f"note: no API keys: the API on {host} is open to anyone who can reach it", err=True)
     port = settings.port if port is None else port
+    worker_settings = get_worker_settings()
+    if redis_url is not None:
+        worker_settings = worker_settings.model_copy(update={"redis_url": redis_url})
     supervisor = Supervisor(
-        get_worker_settings(), host, port, workers, data_dir,
+        worker_settings, host, port, workers, data_dir,
         redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory,
     )
     raise typer.Exit(supervisor.run())

@@ -21,6 +21,7 @@ from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
 from engine.freshness import Access, writes_at
 from engine.next_action import NextActionPlanner
+from engine.notices import rule_warnings
 from engine.parsing import parse_samples
 from engine.ranking import (
     ActionEvidence,
@@ -36,6 +37,7 @@ from engine.ranking import (
 from engine.spec import (
     Spec,
     as_error,
+    check_calls,
     check_preconditions,
     parse_source,
     parse_spec,
@@ -69,6 +71,7 @@ from schemas.api import (
     InferRequest,
     InferResponse,
     InferStats,
+    Listed,
     ModelInfo,
     NextActionRequest,
     NextActionResponse,
@@ -96,7 +99,6 @@ ProgressFn = Callable[[str, int, int], None]
 ModelLoader = Callable[[], "CodeModel"]
 T = TypeVar("T")
 
-MAX_LISTED_ASSUMED = 8
 UNSEEN_RULE = "False"  # `options.unseen: "refuse"`: a never-demonstrated action is refused until a rule exists
 SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
 
@@ -218,7 +220,7 @@ class Engine:
         progress("trace", 0, 1)
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos)
-        warnings = _no_evidence(actions, trace, request.options)
+        _refuse_no_evidence(actions, trace)
         proposals = Proposals()
         model_info: ModelInfo | None = None
         prompted = _prompted(actions, trace, request.options)
@@ -246,11 +248,15 @@ class Engine:
             exempt = _exceptions_of(chosen, ranked)
             program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
         response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
-        for action, note in _assumed_warnings(ranked, preconditions).items():
-            warnings[action] = f"{warnings[action]}; {note}" if action in warnings else note
+        occurrences = {a: trace.actions[a].occurrences for a in actions}
+        decided = {a: {rule: ranked[a].decided.get(rule, "unseen" if rule == UNSEEN_RULE else "established")
+                       for rule in preconditions[a]} for a in actions}
+        warnings = rule_warnings(actions, occurrences, preconditions, decided, model_info is not None,
+                                 request.options.tolerance, request.options.unseen)
         progress("done", 1, 1)
         return InferResponse(
-            preconditions=preconditions, program=program, candidates=response.candidates, stats=response.stats,
+            preconditions=preconditions, program=program, stats=response.stats,
+            candidates=_listed(response.candidates, request.options.candidates),
             model=model_info, warnings=warnings, evidence=response.evidence,
         )
 
@@ -416,7 +422,7 @@ class Engine:
                 len(kept) - 1,
             )
             dropped.setdefault(action, {})[kept.pop(culprit)] = (
-                f"dropped: fails with the other kept assertions (demonstration {failure.index}, line {failure.line})"
+                f"dropped: fails with the other kept assertions (demonstrations[{failure.index}], line {failure.line})"
             )
 
     def _failure(self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str]) -> ProgramError | None:
@@ -475,6 +481,7 @@ class Engine:
             calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls])
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
+        check_calls(spec, request.preconditions, history, calls)
         return CheckResponse(results=self._verify(spec, request.preconditions, history, calls))
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
@@ -490,6 +497,7 @@ class Engine:
         evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, rules)
         blocked: list[Blocked] = []
         unjudged: dict[str, str] = {}
+        raised: dict[str, str] = {}
         for action, expressions in rules.items():
             points = evaluated.points.get(action, ())
             results = {r.expression: r for r in evaluated.results.get(action, ())}
@@ -498,6 +506,8 @@ class Engine:
                 if result is None or result.status == "rejected":
                     unjudged[f"{action}: {rule}"] = (result.reason if result else None) or "not judged"
                     continue
+                if result.status == "invalid" and _raised(result.reason):
+                    raised[f"{action}: {rule}"] = str(result.reason)
                 for occ in trace.actions[action].occurrences:
                     try:
                         holds = (result.satisfied >> points.index(occ)) & 1
@@ -507,12 +517,19 @@ class Engine:
                         step = trace.positions[occ.demo][occ.position]
                         blocked.append(Blocked(action=action, rule=rule, demonstration=occ.demo, line=step.line,
                                                call=step.source.strip()[:MAX_CALL_CHARS]))
-        return ValidateResponse(blocked=blocked, unjudged=unjudged)
+        return ValidateResponse(blocked=blocked, unjudged=unjudged, raised=raised)
 
     @staticmethod
     def _check_cancel(cancelled: Callable[[], bool]) -> None:
         if cancelled():
             raise Cancelled("job cancelled")
+
+
+def _raised(first_violation: str | None) -> bool:
+    """The sandbox's first violation of a rule names an exception (`..., args []: AttributeError: ...`), not a
+    false answer (`: assertion fails`) or a state it could not copy."""
+    return bool(first_violation) and not str(first_violation).endswith(
+        (": assertion fails", ": the state could not be copied"))
 
 
 def _spec_of(request: CheckRequest | NextActionRequest) -> str:
@@ -544,31 +561,10 @@ def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions)
     return [a for a in actions if too_few(trace.actions[a].occurrences)]
 
 
-def _no_evidence(actions: Sequence[str], trace: TraceResult, options: InferOptions) -> dict[str, str]:
-    """Per action no demonstration calls, why its rule rests on no evidence; no such action at all: 422."""
-    missing = [a for a in actions if not trace.actions[a].occurrences]
-    if len(missing) == len(actions):
+def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:
+    """No demonstration calls any of the actions: nothing to learn from (422); some: `notices` warns of each."""
+    if not any(trace.actions[a].occurrences for a in actions):
         raise as_error(checks.no_occurrence_problem(list(actions), trace_count(trace)))
-    otherwise = ("every call of it is refused (options.unseen: 'refuse') until a rule is written or demonstrated"
-                 if options.unseen == "refuse" else
-                 "its rule is empty: every call of it is allowed (options.unseen: 'allow')")
-    fallback = (f"its rule is the code model's zero-shot guess if several samples agree; otherwise {otherwise}"
-                if "model" in options.generators else f"no rule can be learned for it, so {otherwise}")
-    return {a: f"no occurrence: no demonstration calls {a}; {fallback}" for a in missing}
-
-
-def _assumed_warnings(ranked: Mapping[str, Ranked], preconditions: Mapping[str, Sequence[str]]) -> dict[str, str]:
-    """Per action whose kept rules include assumed ones (or that a thin action's few calls gave), which ones and
-    why a reviewer should look at them."""
-    out: dict[str, str] = {}
-    for action, r in ranked.items():
-        assumed = [rule for rule in preconditions.get(action, ()) if r.decided.get(rule) == "assumed"]
-        if assumed:
-            out[action] = (f"assumed: {len(assumed)} of its rules could not be ruled out as requirements, though the "
-                           f"demonstrations cannot tell them from correlates (review them): "
-                           + "; ".join(assumed[:MAX_LISTED_ASSUMED])
-                           + ("; ..." if len(assumed) > MAX_LISTED_ASSUMED else ""))
-    return out
 
 
 def trace_count(trace: TraceResult) -> int:
@@ -779,6 +775,13 @@ def _response(
     return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds), evidence)
 
 
+def _listed(candidates: dict[str, list[CandidateReport]], which: Listed) -> dict[str, list[CandidateReport]]:
+    """The candidate reports the caller asked for (`options.candidates`): all, the kept rules' only, or none."""
+    if which == "all":
+        return candidates
+    return {a: [c for c in reports if c.kept] for a, reports in candidates.items()} if which == "kept" else {}
+
+
 def _reports(
     ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str], trace: TraceResult
 ) -> list[CandidateReport]:
@@ -839,7 +842,7 @@ def _exception(point: Point, trace: TraceResult) -> RuleException:
 
 
 def _where(exception: RuleException) -> str:
-    return f"demonstration {exception.demonstration}, line {exception.line}"
+    return f"demonstrations[{exception.demonstration}], line {exception.line}"
 
 
 def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:

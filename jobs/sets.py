@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from jobs.keys import PREFIX
+from programs import checks
 from schemas.api import CandidateReport, PreconditionSet, RuleChange, SetDiff
 
 CREATE_SCRIPT: Final = """
@@ -153,3 +154,24 @@ def union(stored: Sequence[str], new: Sequence[str]) -> list[str]:
             seen.add(demo)
             out.append(demo)
     return out
+
+
+def set_warnings(spec: str, rules: Mapping[str, Sequence[str]], rejected: Mapping[str, Sequence[str]],
+                 known: Mapping[str, str]) -> dict[str, str]:
+    """Per action of the spec whose rule in this version is empty or not backed by evidence, why: a reviewer's
+    rejection that left it without a rule first (the inference's warning about it is then out of date), then
+    the `known` warning (the inference's: no occurrence, thin evidence), then plainly no rule. An empty rule
+    allows every call, so none is left unsaid."""
+    _, methods = checks.spec_methods(spec)
+    warnings: dict[str, str] = {}
+    for action in (name for name, method in methods.items() if method.stub):
+        gone = list(rejected.get(action, ()))
+        if not rules.get(action) and gone:
+            warnings[action] = (f"empty rule: a reviewer rejected {', '.join(map(repr, gone))} and no rule of "
+                                f"{action} is left, so every call of it is allowed")
+        elif action in known:
+            warnings[action] = known[action]
+        elif not rules.get(action):
+            warnings[action] = (f"empty rule: the set has no rule for {action} (none inferred, or every one "
+                                "removed), so every call of it is allowed")
+    return warnings

@@ -192,7 +192,7 @@ def submitted(response: httpx.Response, kind: JobKind) -> JobStatus:
             id=response.headers.get("X-Job-Id", ""),
             kind=kind,
             status="succeeded",
-            progress=JobProgress(phase="done"),
+            progress=JobProgress(phase="done", done=1, total=1),  # never `done 0 0`: it finished
             result=response.json(),
         )
     raise error_from_response(response)

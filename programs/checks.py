@@ -198,7 +198,46 @@ def check_next_action(spec: str, preconditions: Mapping[str, Sequence[str]], dem
     check_work(trees, max_points)
 
 
-def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: str) -> None:
+def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
+                calls: Sequence[str] = ()) -> None:
     _, methods = spec_methods(spec)
     check_preconditions(methods, preconditions)
-    parse(history, "history")
+    check_calls(methods, preconditions, parse(history, "history"), calls)
+
+
+def _literal_arguments(call: ast.Call) -> bool:
+    """Arguments the sandbox accepts (literals, no `*`/`**`); a call with others it refuses itself."""
+    try:
+        for value in [*call.args, *(k.value for k in call.keywords if k.arg is not None)]:
+            ast.literal_eval(value)
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+        return False
+    return all(k.arg is not None for k in call.keywords)
+
+
+def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Sequence[str]], history: ast.Module,
+                calls: Sequence[str]) -> None:
+    """Every proposed `receiver.method(...)` whose receiver the history creates must be a call of one of the
+    agent's actions (the spec's stubs and the actions given rules): a method its class lacks is an unknown action
+    (with the closest name), and a method that is not an action (an observation, the user's `AFFIRM`) is
+    refused, never approved because no rule guards it. Text that is not such a call (with literal arguments)
+    is left to the sandbox, which refuses it with the reason."""
+    receivers = instance_classes([history], {m.cls for m in methods.values()})
+    actions = {name for name, method in methods.items() if method.stub} | set(preconditions)
+    for index, text in enumerate(calls):
+        try:
+            node = ast.parse(text.strip(), mode="eval").body
+        except (SyntaxError, ValueError, RecursionError, MemoryError):
+            continue
+        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                and isinstance(node.func.value, ast.Name) and node.func.value.id in receivers
+                and _literal_arguments(node)):
+            continue
+        name, field = f"{receivers[node.func.value.id]}.{node.func.attr}", f"calls[{index}]"
+        if name not in methods:
+            raise unknown_action(name, {a: methods[a] for a in actions if a in methods}, field, f" in {field}")
+        if name not in actions:
+            known = ", ".join(sorted(actions)[:20])
+            message = (f"{field}: {name} is not one of the agent's actions (a spec method with a body, not a stub, "
+                       f"and no rule given), so no precondition can judge it; the actions: {known}")
+            raise ProgramProblem(Problem(UNKNOWN_ACTION, field, message))

@@ -160,7 +160,8 @@ class ProgramError(SandboxError):
     message: str
 
     def __str__(self) -> str:
-        place = self.where if self.index is None else f"{self.where} {self.index}"
+        # `demonstrations[2]`: the request's field, as every message names a demonstration
+        place = self.where if self.index is None else f"{self.where}s[{self.index}]"
         at = "" if self.line is None else f", line {self.line}"
         return f"{place}{at}: {self.exc_type}: {self.message}"
 

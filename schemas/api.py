@@ -36,6 +36,7 @@ Ranking = Literal["cautious", "subsumption", "recency", "marginal"]
 Unseen = Literal["refuse", "allow"]
 Decided = Literal["established", "assumed", "zero-shot", "unseen"]
 ModelFor = Literal["thin", "all"]
+Listed = Literal["all", "kept", "none"]
 
 SourceText = Field(max_length=MAX_SOURCE_CHARS)
 
@@ -89,6 +90,12 @@ class InferOptions(_Body):
         "of the spec is what is left, while the enumerator covers the others (without it, every action); 'all': "
         "every action (the paper). On every dev domain both give the same rules (docs/results.md), and 'thin' "
         "samples a fraction of the prompts (generation is most of the time).",
+    )
+    candidates: Listed = Field(
+        default="all",
+        description="Which candidate reports the answer lists: 'all' (default: every candidate with why it was "
+        "kept or dropped; hundreds of KB for a real domain), 'kept' (the kept rules' reports only: with "
+        "`evidence`, what a reviewer reads), 'none'. The rules, warnings and evidence are the same either way.",
     )
     judge: bool = Field(
         default=False,
@@ -297,7 +304,7 @@ class CandidateReport(_Body):
     kept: bool
     reason: str | None = Field(
         default=None,
-        description="Why it was kept or dropped, in words: 'violated at demonstration 3, line 12, ...', 'subsumed "
+        description="Why it was kept or dropped, in words: 'violated at demonstrations[3], line 12, ...', 'subsumed "
         "by ...', 'held at every occurrence, but was already true before the user's last turn: looks like a "
         "phase, not a requirement', 'zero-shot: never demonstrated, kept by model vote', 'kept: ...'. Set for "
         "every candidate the engine reports.",
@@ -339,9 +346,9 @@ class InferResponse(_Body):
     model: ModelInfo | None = Field(default=None, description="None when no generator used a model.")
     warnings: dict[str, str] = Field(
         default_factory=dict,
-        description="Per action, why its rule is not backed by the demonstrations (e.g. `no occurrence`: no "
-        "demonstration calls it, so an empty rule there means no evidence, not 'always allowed'). Empty: every "
-        "action was seen.",
+        description="Per action whose rule is empty (every call allowed) or not backed by enough demonstrated "
+        "calls, why: `no occurrence` (no demonstration calls it), `thin evidence` (fewer than 3 calls in 3 "
+        "demonstrations) or `empty rule` (no candidate passed validation). Absent: a rule learned from evidence.",
     )
     evidence: dict[str, dict[str, RuleEvidence]] = Field(
         default_factory=dict,
@@ -412,7 +419,8 @@ class NextActionRequest(_UsesRules):
     demonstrations: list[str] = Field(
         default_factory=list,
         max_length=MAX_DEMONSTRATIONS,
-        description="Example trajectories shown to the model in its prompt (programs over the spec).",
+        description="Example trajectories shown to the model in its prompt (programs over the spec); their "
+        "argument values are among the calls judged. Empty with `precondition_set`: the set's demonstrations.",
     )
     history: History = Field(description=HISTORY_DESCRIPTION)
     options: NextActionOptions = Field(
@@ -526,6 +534,12 @@ class ValidateResponse(_Body):
     unjudged: dict[str, str] = Field(
         default_factory=dict, description="Rules that could not be judged at all (`action: rule` → why)."
     )
+    raised: dict[str, str] = Field(
+        default_factory=dict,
+        description="Rules that raise instead of answering true or false (`action: rule` → where, and the "
+        "exception: e.g. `AttributeError: 'USER' object has no attribute 'afirmed'` for a misspelt name); a call "
+        "at which a rule raises is refused, so they are in `blocked` too.",
+    )
 
 
 MAX_SET_EDITS = 64
@@ -633,7 +647,9 @@ class PreconditionSet(_Body):
     diff: SetDiff | None = Field(
         default=None, description="For a version made by re-inference: what changed against its base version.")
     warnings: dict[str, str] = Field(
-        default_factory=dict, description="For a version made by re-inference: the inference's warnings per action.")
+        default_factory=dict,
+        description="Per action whose rule is empty (every call allowed) or not backed by the demonstrations, why: "
+        "no rule, a reviewer rejected its only rules, or (a version made by re-inference) the inference's warning.")
 
 
 JobKind = Literal["infer", "next-action", "check", "validate", "reinfer"]

@@ -11,11 +11,20 @@ if [ ! -x .venv/bin/python ]; then
   "$PYTHON" -m venv .venv
 fi
 . .venv/bin/activate
-python -m pip install --quiet --upgrade pip
-# torch first and pinned: an unpinned torch pulls several GB of CUDA packages. TORCH_INDEX names a CPU
-# wheel index where no local wheel is configured (the Dockerfile sets it).
-python -m pip install --quiet "torch==2.13.0" ${TORCH_INDEX:+--extra-index-url "$TORCH_INDEX"}
-python -m pip install --quiet -e ".[${EXTRAS}]"
+# pip runs again only when what it installs could differ: this script, pyproject.toml, the extras or the torch
+# index changed since the last install into this .venv (scripts/serve.sh runs this script at every start).
+STAMP=.venv/.precond-installed
+WANT="$(cat scripts/install.sh pyproject.toml | sha256sum | cut -d' ' -f1) extras=${EXTRAS} index=${TORCH_INDEX:-}"
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$WANT" ]; then
+  echo "install: .venv already has this version's packages; pip skipped (delete $STAMP to reinstall)" >&2
+else
+  python -m pip install --quiet --upgrade pip
+  # torch first and pinned: an unpinned torch pulls several GB of CUDA packages. TORCH_INDEX names a CPU
+  # wheel index where no local wheel is configured (the Dockerfile sets it).
+  python -m pip install --quiet "torch==2.13.0" ${TORCH_INDEX:+--extra-index-url "$TORCH_INDEX"}
+  python -m pip install --quiet -e ".[${EXTRAS}]"
+  echo "$WANT" > "$STAMP"
+fi
 
 # The sandbox's kernel policy is built with libseccomp; without it no untrusted code runs (fail closed).
 if ! ldconfig -p 2>/dev/null | grep -q 'libseccomp\.so\.2'; then

@@ -6,6 +6,7 @@ worker); mapping them all in one module keeps the status codes consistent: bad i
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -91,6 +92,9 @@ def _subclasses(cls: type[engine_errors.PrecondError]) -> list[type[engine_error
     return found
 
 
+_PYDANTIC_PREFIX = re.compile(r"^(Value error|Assertion failed), ")
+"""How pydantic introduces the message of a validator's ValueError: not the service's words."""
+
 _UNION_TAGS = {"text", "events", "openai"}
 """pydantic's names for the forms of `history` (schemas.api.History): not part of the field's path."""
 
@@ -123,10 +127,12 @@ async def _validation(request: Request, exc: Exception) -> JSONResponse:
     first = exc.errors()[0]
     if first.get("type") == "json_invalid":
         return error_response(request, 422, await _json_error(request, first))
-    info = ErrorInfo(
-        type="validation_error", message=str(first.get("msg", "invalid")), field=_field(first["loc"])
-    )
-    return error_response(request, 422, info)
+    field = _field(first["loc"]) or "body"  # the whole body: a form, a list, a bare string
+    message = _PYDANTIC_PREFIX.sub("", str(first.get("msg", "invalid")))
+    kind = request.headers.get("content-type", "")
+    if field == "body" and kind and not kind.startswith("application/json"):
+        message = f"the body must be a JSON object sent as Content-Type: application/json, not {kind[:100]}"
+    return error_response(request, 422, ErrorInfo(type="validation_error", message=message, field=field))
 
 
 async def _http(request: Request, exc: Exception) -> JSONResponse:

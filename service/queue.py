@@ -155,9 +155,8 @@ class JobQueue:
         progress = await read_progress(self.redis, job_id)
         if info is not None:
             state, result, error = _state(info)
-            return JobStatus(
-                id=job_id, kind=kind, status=state, progress=progress, result=result, error=error
-            )
+            done = _done(progress) if state == "succeeded" else progress
+            return JobStatus(id=job_id, kind=kind, status=state, progress=done, result=result, error=error)
         arq_status = await self._arq_status(job_id, queue)
         if arq_status == ArqStatus.not_found:
             cached = await self.cache.get(job_id)
@@ -240,7 +239,9 @@ class JobQueue:
 
 
 def _done(progress: JobProgress) -> JobProgress:
-    return JobProgress(phase="done", done=progress.total, total=progress.total)
+    """A finished job's progress: complete, whatever the last (advisory, asynchronous) report said."""
+    total = max(progress.total, 1)
+    return JobProgress(phase="done", done=total, total=total)
 
 
 NOT_REUSABLE = frozenset({"internal", "resource_limit", "sandbox_failure"})

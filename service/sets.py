@@ -18,14 +18,25 @@ from typing import Any
 
 from arq.connections import ArqRedis
 
-from jobs.sets import APPEND_CONFLICT, APPEND_MISSING, CREATE_SCRIPT, append, index_key, set_key
+from jobs.sets import APPEND_CONFLICT, APPEND_MISSING, CREATE_SCRIPT, append, index_key, normal, set_key
 from schemas.api import PreconditionSet, RuleEdit, ValidateResponse
 from service.errors import ServiceError
 
 _REFERENCE = re.compile(r"^(ps_[0-9a-f]{24})(?:@([1-9][0-9]{0,8}))?$")
+_RAISED = re.compile(r"^(demonstrations\[\d+\], line \d+), args .*?: (\w+(?:Error|Exception)\b.*)$", re.DOTALL)
+"""The sandbox's first violation of a rule that raised: where, then the exception."""
+
+NOT_FOUND_HINT = (
+    "a set is found only with a key of the tenant that made it; sets made while the API was open (no keys) "
+    "belong to the tenant `public`: reach them with a key made by `precond keys create --tenant public` "
+    "(docs/tenants.md)"
+)
+"""The same for every 404 of a set, whoever asks and whether or not the set exists elsewhere: it tells nothing
+about other tenants' sets, and it is the first thing to check after turning keys on."""
+
 
 def not_found(reference: str) -> ServiceError:
-    return ServiceError(404, f"no precondition set {reference[:80]}")
+    return ServiceError(404, f"no precondition set {reference[:80]}; {NOT_FOUND_HINT}")
 
 
 def parse_reference(reference: str) -> tuple[str, int | None]:
@@ -95,12 +106,12 @@ def now() -> str:
 def version_of(
     set_id: str, number: int, spec: str, preconditions: dict[str, list[str]], demonstrations: list[str],
     required: dict[str, list[str]], rejected: dict[str, list[str]], edits: list[RuleEdit],
-    validation: ValidateResponse | None,
+    validation: ValidateResponse | None, warnings: dict[str, str],
 ) -> PreconditionSet:
     return PreconditionSet(
         id=set_id, version=number, latest=number, reference=f"{set_id}@{number}", created=now(), spec=spec,
         preconditions=preconditions, demonstrations=demonstrations, required=required, rejected=rejected,
-        edits=edits, validation=validation,
+        edits=edits, validation=validation, warnings=warnings,
     )
 
 
@@ -111,15 +122,19 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
     required = {a: list(r) for a, r in base.required.items()}
     rejected = {a: list(r) for a, r in base.rejected.items()}
 
+    def has(table: dict[str, list[str]], action: str, rule: str) -> bool:
+        return normal(rule) in {normal(r) for r in table.get(action, [])}
+
     def drop(table: dict[str, list[str]], action: str, rule: str) -> None:
-        if rule in table.get(action, []):
-            table[action].remove(rule)
+        """Every spelling of the rule: `x["a"]` and `x['a']` are one rule (`jobs.sets.normal`)."""
+        if has(table, action, rule):
+            table[action] = [r for r in table[action] if normal(r) != normal(rule)]
             if not table[action]:
                 del table[action]
 
     for index, edit in enumerate(edits):
         action, rule, field = edit.action, edit.rule.strip(), f"edits[{index}]"
-        present = rule in rules.get(action, [])
+        present = has(rules, action, rule)
         if edit.op == "add":
             if present:
                 raise ServiceError(422, f"{field}: {action} already has the rule {rule!r}", "invalid_input",
@@ -130,7 +145,7 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
             if not present:
                 raise ServiceError(422, f"{field}: {action} has no rule {rule!r} to require (add it first)",
                                    "invalid_input", field=field)
-            if rule not in required.get(action, []):
+            if not has(required, action, rule):
                 required.setdefault(action, []).append(rule)
         else:  # remove, reject
             if not present and edit.op == "remove":
@@ -138,7 +153,7 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
                                    field=field)
             drop(rules, action, rule)
             drop(required, action, rule)
-            if edit.op == "reject" and rule not in rejected.get(action, []):
+            if edit.op == "reject" and not has(rejected, action, rule):
                 rejected.setdefault(action, []).append(rule)
     return rules, required, rejected
 
@@ -148,9 +163,20 @@ def blocking_message(validation: ValidateResponse, new_rules: set[tuple[str, str
     blocked = [b for b in validation.blocked if (b.action, b.rule) in new_rules]
     if not blocked:
         return None
+    raising = [b for b in blocked if f"{b.action}: {b.rule}" in validation.raised]
+    if raising:  # a typo (`self.user.afirmed`) is an exception to name, not calls to count
+        first = raising[0]
+        error = validation.raised[f"{first.action}: {first.rule}"]
+        found = _RAISED.match(error)
+        where, exception = found.groups() if found else ("", error)
+        count = sum((b.action, b.rule) == (first.action, first.rule) for b in blocked)
+        message = (f"rule {first.rule!r} of {first.action} raises {exception}" + (f" ({where})" if where else "")
+                   + f" instead of answering true or false, so it refuses every call it raises at ({count} "
+                   "demonstrated call(s)): fix the rule (a misspelt name?), or send force: true to keep it anyway")
+        return message, first
     first = blocked[0]
     more = len(blocked) - 1
-    message = (f"rule {first.rule!r} of {first.action} would have blocked demonstration {first.demonstration}, "
+    message = (f"rule {first.rule!r} of {first.action} would have blocked demonstrations[{first.demonstration}], "
                f"line {first.line} ({first.call})" + (f", and {more} more demonstrated call(s)" if more else "")
                + "; fix the rule, or send force: true to keep it anyway")
     return message, first

@@ -20,6 +20,7 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import FrameType
+from urllib.parse import urlsplit
 
 from jobs.settings import WorkerSettings
 from service.server import GATEWAY_ARGS
@@ -85,6 +86,32 @@ def is_ready(url: str) -> bool:
             return bool(answer.status == 200)
     except (OSError, ValueError):
         return False
+
+
+def unowned_redis_refusal(port: int) -> str:
+    return (f"a Redis without a password answers at {LOCAL_REDIS[0]}:{port}, and precond serve did not start it: "
+            "the queue and the precondition sets (kept without expiry) would go there, readable and writable by "
+            "anyone who can reach it. To use it anyway, say so: --redis-url redis://127.0.0.1:6379/0 (or set "
+            "REDIS_URL); or stop it, and precond serve starts its own password-protected pair on 127.0.0.1")
+
+
+def _shown(url: str) -> str:
+    """A Redis URL as logged: the password replaced by `***`, and whether there is one."""
+    parts = urlsplit(url)
+    host = parts.netloc.rpartition("@")[2]
+    secret = "with a password" if parts.password else "WITHOUT a password"
+    return f"{parts.scheme}://{host}{parts.path} ({secret})"
+
+
+def redis_description(settings: WorkerSettings, private: tuple[PrivateRedis, ...], data_dir: Path) -> str:
+    """Which Redis the processes use, in one line for the operator (never the password)."""
+    if private:
+        queue, cache = private
+        return (f"precond: Redis: started here, 127.0.0.1 only, with a random password per start: queue on port "
+                f"{queue.port} (append-only file in {data_dir}), result cache on port {cache.port}"
+                + ("" if settings.cache_redis_url is None else f"; cache: {_shown(settings.cache_redis_dsn)}"))
+    own_cache = f"; cache: {_shown(settings.cache_redis_dsn)}" if settings.cache_redis_url else " (also the cache)"
+    return f"precond: Redis: queue {_shown(settings.redis_dsn)} from REDIS_URL{own_cache}"
 
 
 @dataclass(frozen=True)
@@ -153,7 +180,9 @@ class Supervisor:
         self.env = dict(os.environ)
         self.children: list[Child] = []
         self.redis: tuple[PrivateRedis, ...] = ()
-        if settings.redis_url is None and not answers(LOCAL_REDIS[0], redis_ports[0]):
+        if settings.redis_url is None and answers(LOCAL_REDIS[0], redis_ports[0]):
+            raise SystemExit(unowned_redis_refusal(redis_ports[0]))
+        if settings.redis_url is None:
             self.redis = private_redis(data_dir, redis_ports, redis_maxmemory, cache_maxmemory)
             queue, cache = self.redis
             self.children += [queue.child(), cache.child()]
@@ -161,8 +190,10 @@ class Supervisor:
             self.env.pop("PRECOND_REDIS_URL", None)
             if settings.cache_redis_url is None:  # an operator's own cache Redis is kept, else ours is used
                 self.env["PRECOND_CACHE_REDIS_URL"] = cache.url
-        elif settings.redis_url is None:
-            self.env["REDIS_URL"] = settings.redis_dsn
+        else:  # an operator's Redis, named by REDIS_URL or --redis-url
+            self.env["REDIS_URL"] = settings.redis_url
+            self.env.pop("PRECOND_REDIS_URL", None)
+        self.redis_used = redis_description(settings, self.redis, data_dir)
         if settings.secret is None and settings.secret_file is None:  # one secret for the processes started here
             self.env["PRECOND_SECRET"] = secrets.token_urlsafe(32)
         gateway = [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS]
@@ -176,6 +207,7 @@ class Supervisor:
     def run(self) -> int:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, self._stop)
+        print(self.redis_used, file=sys.stderr, flush=True)
         redis = [c for c in self.children if c.name.startswith("redis")]
         for child in redis:
             child.start(self.env)

@@ -110,10 +110,12 @@ def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
     hostile_calls = [c.replace("a.", "system.") for c in corpus.CALLS[:-1]] + [
         "system.REQUEST(__import__('os').system('touch " + str(canary_dir / "call") + "'))",
         "system.REQUEST(" + "[" * 5000 + "]" * 5000 + ")",
-        "system." + "R" * 3000 + "()",
     ]
     cases.append({"name": "calls:corpus", "method": post, "path": "/check-actions",
                   "json": check_body(*hostile_calls), "expect": (200,), "check": _all_disallowed})
+    # A well-formed call of a method the class lacks is an unknown action: 422 before anything runs.
+    cases.append({"name": "calls:unknown-method", "method": post, "path": "/check-actions",
+                  "json": check_body("system." + "R" * 3000 + "()"), "expect": (422,)})
     # Mode 'sample' runs the history only to judge a sampled call that parses; the tiny model's samples never
     # do, so those end 200 with nothing verified. Mode 'constrained' (the default) always runs the history in
     # the sandbox, to judge every call the agent could make: 422 or a verdict, never an escape.

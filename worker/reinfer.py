@@ -58,7 +58,8 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
                     f"({first.call}){more}; fix the demonstration, un-require the rule, or send force: true",
                     field=where,
                 )
-        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=job.options)
+        options = job.options.model_copy(update={"candidates": "all"})  # the diff's reasons come from them
+        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=options)
         inferred = engine.infer(request, progress, cancelled)
         merged = sets.merge(base, inferred.preconditions, inferred.candidates, len(demos) - len(base.demonstrations),
                             job.actions)
@@ -85,8 +86,16 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         created=datetime.now(UTC).isoformat(timespec="seconds"), spec=base.spec,
         preconditions=merged.preconditions, demonstrations=demos, required=base.required, rejected=base.rejected,
         edits=[], validation=validation,
-        diff=sets.explain_removed(merged, blocked), warnings=inferred.warnings,
+        diff=sets.explain_removed(merged, blocked),
+        warnings=_warnings(job, merged.preconditions, inferred.warnings),
     )
+
+
+def _warnings(job: ReinferJob, rules: dict[str, list[str]], inferred: dict[str, str]) -> dict[str, str]:
+    """The inference's warnings, the base's for the actions not re-inferred, and every empty rule's."""
+    base = job.base
+    kept = {a: w for a, w in base.warnings.items() if job.actions is not None and a not in job.actions}
+    return sets.set_warnings(base.spec, rules, base.rejected, {**kept, **inferred})
 
 
 async def store(redis: Any, tag: str, job: ReinferJob, version: PreconditionSet) -> PreconditionSet:

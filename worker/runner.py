@@ -38,6 +38,7 @@ from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, QUEUES, done_chann
 from jobs.records import record_queue_time
 from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
+from worker import logs
 from worker.jobs import JobCounts, run_operation
 
 log = logging.getLogger("precond.worker")
@@ -239,7 +240,7 @@ async def _announce(ctx: dict[str, Any]) -> None:
 
 
 def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    logs.configure()
     asyncio.run(WorkerProcess(settings, queues or list(QUEUES)).run())
 
 

@@ -70,7 +70,7 @@ def satisfied(candidate: Candidate, points: list[tuple[int, object, tuple[object
 
 def first_violation(candidate: Candidate, occurrences: list[Occurrence]) -> str | None:
     for occ in occurrences:
-        where = f"demonstration {occ.demo}, line {occ.line}, args {clean(repr(jsonable(occ.args)), 200)}"
+        where = f"demonstrations[{occ.demo}], line {occ.line}, args {clean(repr(jsonable(occ.args)), 200)}"
         if occ.state is None:
             return f"{where}: the state could not be copied"
         try:
@@ -94,7 +94,7 @@ def job_evaluate(payload: dict[str, typing.Any], ctx: Context) -> dict[str, obje
     occurrences: dict[str, list[Occurrence]] = {q: [] for q in wanted}
     programs = []
     for index, source in enumerate(demos):
-        ctx.report.phase(f"demonstration {index}")
+        ctx.report.phase(f"demonstrations[{index}]")
         programs.append(_observe(spec, index, source, wanted, occurrences))
     points_out: dict[str, object] = {}
     budget = int(payload.get("max_points") or 0)

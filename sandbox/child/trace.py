@@ -17,7 +17,7 @@ def job_trace(payload: dict[str, typing.Any], ctx: Context) -> dict[str, object]
     seen: dict[str, dict[str, object]] = {q: {} for q in spec.methods}
     positions = []
     for index, source in enumerate(demos):
-        ctx.report.phase(f"demonstration {index}")
+        ctx.report.phase(f"demonstrations[{index}]")
         program = Program(spec, source, "demonstration", index)
 
         def on_call(method: Method, receiver: object, args: tuple[object, ...], p: Program = program) -> None:

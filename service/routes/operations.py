@@ -57,7 +57,9 @@ ERRORS: dict[int | str, dict[str, Any]] = {
 
 @router.post("/infer-preconditions", response_model=InferResponse, responses=ERRORS)
 async def infer_preconditions(
-    body: Annotated[InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-model"))],
+    body: Annotated[
+        InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-kept", "infer-model"))
+    ],
     request: Request,
     services: ServicesDep,
     tenant: Tenant,
@@ -115,7 +117,9 @@ def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem |
             checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations,
                                      _text(body.history), max_work_points)
         elif isinstance(body, CheckRequest):
-            checks.check_check(body.spec_text(), body.preconditions, _text(body.history))
+            # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
+            checks.check_check(body.spec_text(), body.preconditions, _text(body.history),
+                               [c for c in body.calls if isinstance(c, str)])
     except checks.ProgramProblem as exc:
         return exc.problem
     return None
@@ -125,13 +129,15 @@ async def _with_rules_and_program(
     services: Services, tag: str, body: CheckRequest | NextActionRequest
 ) -> CheckRequest | NextActionRequest | checks.Problem:
     """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
-    tenant has no such set), and a structured history (events or OpenAI messages) and tool calls rendered to
+    tenant has no such set), its demonstrations too for a next action that sends none (they name the argument
+    values the agent could use), and a structured history (events or OpenAI messages) and tool calls rendered to
     program text (literals only)."""
     if body.precondition_set is not None:
         stored = await services.sets.get(tag, body.precondition_set)
-        body = body.model_copy(
-            update={"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
-        )
+        update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
+        if isinstance(body, NextActionRequest) and not body.demonstrations:
+            update["demonstrations"] = stored.demonstrations
+        body = body.model_copy(update=update)
     try:
         if not isinstance(body.history, str):
             history = [e if isinstance(e, dict) else e.model_dump() for e in body.history]
@@ -150,7 +156,7 @@ def _text(history: object) -> str:
 
 def _program_chars(body: BaseModel) -> int:
     texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
-             *getattr(body, "demonstrations", [])]
+             *getattr(body, "demonstrations", []), *getattr(body, "calls", [])]
     return sum(len(text) for text in texts)
 
 

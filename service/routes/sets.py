@@ -9,7 +9,7 @@ from fastapi import APIRouter, Path, Request
 from fastapi.responses import JSONResponse, Response
 
 from jobs import keys
-from jobs.sets import union
+from jobs.sets import normal, set_warnings, union
 from programs import checks
 from schemas.api import (
     MAX_DEMONSTRATIONS,
@@ -28,7 +28,7 @@ from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer
-from service.sets import apply_edits, blocking_message, new_id, version_of
+from service.sets import apply_edits, blocking_message, new_id, not_found, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
 RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -57,7 +57,8 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
-    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation)
+    warnings = set_warnings(body.spec, rules, {}, {})
+    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings)
     stored = await services.sets.create(_tag(services, tenant), version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
@@ -88,8 +89,10 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     new = {(a, r) for a, rs in rules.items() for r in rs} - before
     validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
     _refuse_blocking(validation, new, body.force, "edits")
+    edited = {edit.action for edit in body.edits}
+    known = {action: warning for action, warning in base.warnings.items() if action not in edited}
     version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
-                         body.edits, validation)
+                         body.edits, validation, set_warnings(base.spec, rules, rejected, known))
     stored = await services.sets.append(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
@@ -143,7 +146,7 @@ async def _latest(services: Services, tag: str, set_id: str, base_version: int |
     """The set a new version builds on: a bare id (a version reference is 404), whose latest version must be
     `base_version` when the caller names one (optimistic concurrency: otherwise 409)."""
     if "@" in set_id:
-        raise ServiceError(404, f"no precondition set {set_id[:80]}")
+        raise not_found(set_id)
     base = await services.sets.get(tag, set_id)
     if base_version is not None and base_version != base.latest:
         raise ServiceError(409, f"base_version {base_version} is not the latest version ({base.latest})",
@@ -166,7 +169,15 @@ def _static_check(spec: str, rules: dict[str, list[str]], demonstrations: list[s
     except checks.ProgramProblem as exc:
         problem = exc.problem
         raise ServiceError(422, problem.message, problem.type, field=field or problem.field) from None
-    return {action: list(dict.fromkeys(r.strip() for r in rs)) for action, rs in rules.items() if rs}
+    return {action: _unique(rs) for action, rs in rules.items() if rs}
+
+
+def _unique(rules: list[str]) -> list[str]:
+    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `jobs.sets.normal`), as first written."""
+    first: dict[str, str] = {}
+    for rule in rules:
+        first.setdefault(normal(rule), rule.strip())
+    return list(first.values())
 
 
 def _refuse_blocking(validation: ValidateResponse | None, new: set[tuple[str, str]], force: bool, field: str) -> None:

@@ -40,8 +40,31 @@ def test_infer_prints_the_exceptions_of_kept_rules_on_stderr() -> None:
     result = precond("infer", "-", stdin=json.dumps(request))
     assert result.returncode == 0, result.stderr
     assert "SYSTEM.REQUEST: `not self.user.informed_slot[slot]` holds at" in result.stderr
-    assert f"  demonstration 0, line {at + 2}: system.REQUEST('{slot}')" in result.stderr
+    assert f"  demonstrations[0], line {at + 2}: system.REQUEST('{slot}')" in result.stderr
     assert json.loads(result.stdout)["evidence"]["SYSTEM.REQUEST"]["not self.user.informed_slot[slot]"]
+
+
+def test_infer_can_leave_candidates_out_and_print_a_summary_to_read() -> None:
+    full = precond("infer", str(EXAMPLES / "infer-enumerate.json"))
+    kept = precond("infer", str(EXAMPLES / "infer-enumerate.json"), "--candidates", "kept")
+    assert full.returncode == 0 and kept.returncode == 0, kept.stderr
+    everything, few = json.loads(full.stdout), json.loads(kept.stdout)
+    assert few["preconditions"] == everything["preconditions"] and few["evidence"] == everything["evidence"]
+    assert few["warnings"] == everything["warnings"]
+    assert {a: sorted(c["assertion"] for c in cs) for a, cs in few["candidates"].items()} == {
+        a: sorted(rules) for a, rules in everything["preconditions"].items()}
+    assert len(kept.stdout) * 10 < len(full.stdout)  # 19 KB instead of 490 KB
+    summary = precond("infer", str(EXAMPLES / "infer-enumerate.json"), "--summary")
+    assert summary.returncode == 0, summary.stderr
+    lines = summary.stdout.splitlines()
+    at = lines.index("SYSTEM.REQUEST: 1 rule(s), all must hold")
+    assert lines[at + 1] == "  not self.user.informed_slot[slot]"
+    assert lines[at + 2] == "    evidence: held, holds at 5 of 5 demonstrated calls (confidence 0.65)"
+    assert lines[at + 3].startswith("    decided: established: kept: held at every occurrence")
+    assert lines[at + 4].startswith("  WARNING thin evidence: SYSTEM.REQUEST is called 5 time(s)")
+    at = lines.index("SYSTEM.NOTIFY_FAILURE: 1 rule(s), all must hold")  # never demonstrated: refused
+    assert lines[at + 1] == "  False" and lines[at + 3].startswith("    decided: unseen: ")
+    assert lines[-1].startswith(f"{sum(map(len, everything['preconditions'].values()))} rule(s) for 12 action(s)")
 
 
 def test_check_reads_standard_input() -> None:
@@ -59,6 +82,10 @@ def test_bad_request_exits_2_naming_the_field() -> None:
     result = precond("infer", "-", stdin=bad)
     assert result.returncode == 2
     assert "demonstrations" in result.stderr and "sedd" in result.stderr and result.stdout == ""
+    assert "  options.sedd: Extra inputs are not permitted" in result.stderr.splitlines()
+    neither = precond("check", "-", stdin=json.dumps({"history": "", "calls": ["a.b()"]}))
+    assert neither.returncode == 2
+    assert "  body: give `spec` (with `preconditions`) or `precondition_set`" in neither.stderr.splitlines()
 
 
 def test_program_error_exits_2_with_line() -> None:

@@ -142,3 +142,24 @@ def test_events_refuse_what_is_not_a_call_of_the_spec(tmp_path: Path, event: dic
         assert len(done.stdout.strip().splitlines()) == 4
     else:
         assert done.returncode == 2 and says in done.stderr and str(tmp_path / "events.json") in done.stderr
+
+
+def test_a_spec_file_and_demonstration_files_become_an_infer_request(tmp_path: Path) -> None:
+    example = json.loads((ROOT / "examples" / "infer-enumerate.json").read_text())
+    (tmp_path / "demos").mkdir()
+    (tmp_path / "spec.py").write_text(example["spec"])
+    paths = []
+    for index, demo in enumerate(example["demonstrations"]):
+        paths.append(tmp_path / "demos" / f"d{index}.py")
+        paths[-1].write_text(demo)
+    done = precond("convert", "programs", "--spec", str(tmp_path / "spec.py"), *map(str, paths))
+    assert done.returncode == 0, done.stderr
+    body = InferRequest.model_validate_json(done.stdout)
+    assert body.spec == example["spec"] and body.demonstrations == example["demonstrations"]
+    written = precond("convert", "programs", "--spec", str(tmp_path / "spec.py"), *map(str, paths),
+                      "--request", str(tmp_path / "request.json"))
+    assert written.returncode == 0 and InferRequest.model_validate_json((tmp_path / "request.json").read_text())
+    paths[1].write_text(example["demonstrations"][1] + "system.REQUEST('city'\n")
+    broken = precond("convert", "programs", "--spec", str(tmp_path / "spec.py"), *map(str, paths))
+    assert broken.returncode == 2 and f"error: {paths[1]}: demonstrations[1], line " in broken.stderr
+    assert "SyntaxError" in broken.stderr

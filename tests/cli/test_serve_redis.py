@@ -11,7 +11,7 @@ import redis
 
 from jobs.settings import WorkerSettings
 from service.supervisor import Supervisor
-from stack.local import free_port
+from stack.local import RedisServer, free_port
 
 
 def _supervisor(tmp_path: Path, ports: tuple[int, int]) -> Supervisor:
@@ -65,3 +65,41 @@ def test_serve_starts_two_closed_bounded_redis(tmp_path: Path, monkeypatch: pyte
             if child.process is not None:
                 child.process.terminate()
                 child.process.wait(10)
+
+
+def _clear_redis_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in ("REDIS_URL", "PRECOND_REDIS_URL", "PRECOND_CACHE_REDIS_URL", "PRECOND_REDIS_PASSWORD_FILE"):
+        monkeypatch.delenv(name, raising=False)
+
+
+def test_serve_refuses_an_open_redis_it_did_not_start_unless_named(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A Redis without a password already on the port: the sets would go there, open to anyone; never silently."""
+    _clear_redis_settings(monkeypatch)
+    foreign = RedisServer(tmp_path)
+    foreign.start()
+    try:
+        with pytest.raises(SystemExit) as refused:
+            _supervisor(tmp_path, (foreign.port, free_port()))
+        assert "without a password answers at 127.0.0.1:" in str(refused.value.code)
+        assert "--redis-url" in str(refused.value.code)
+        named = Supervisor(WorkerSettings(redis_url=foreign.url), "127.0.0.1", free_port(), 1, tmp_path / "r",
+                           redis_ports=(foreign.port, free_port()))
+        assert named.env["REDIS_URL"] == foreign.url and not named.redis  # told to: used, nothing started
+        assert named.redis_used == (f"precond: Redis: queue redis://127.0.0.1:{foreign.port}/0 (WITHOUT a "
+                                    "password) from REDIS_URL (also the cache)")
+    finally:
+        foreign.stop()
+
+
+def test_serve_says_which_redis_it_starts_without_its_password(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _clear_redis_settings(monkeypatch)
+    ports = (free_port(), free_port())
+    supervisor = _supervisor(tmp_path, ports)
+    line = supervisor.redis_used
+    assert line.startswith("precond: Redis: started here, 127.0.0.1 only, with a random password per start")
+    assert f"queue on port {ports[0]}" in line and f"result cache on port {ports[1]}" in line
+    assert all(server.password not in line for server in supervisor.redis)

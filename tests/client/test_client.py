@@ -107,6 +107,12 @@ def test_a_202_is_followed_to_completion_with_progress(keyed: KeyedStack) -> Non
     assert "self.user.requested_slot[slot]" in answer.preconditions["SYSTEM.INFORM"]
     assert seen, "the progress callback was never called"
     assert seen[0].status in ("queued", "running") and seen[-1].status == "succeeded"
+    last = seen[-1].progress
+    assert last.phase == "done" and last.done == last.total > 0, last  # never `done 0 0`
+    with Client(keyed.url, api_key=keyed.keys["acme"]) as client:  # the same again: a 200 from the cache
+        cached: list[JobStatus] = []
+        client.infer_preconditions(body, wait=30, progress=cached.append)
+    assert [s.progress.model_dump() for s in cached] == [{"phase": "done", "done": 1, "total": 1}]
     assert len({s.id for s in seen}) == 1 and seen[0].id.startswith("infer-")
 
 

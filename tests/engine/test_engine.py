@@ -225,10 +225,55 @@ def test_an_action_without_occurrence_is_reported_not_silently_empty(
     response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=[demo],
                                          actions=["SYSTEM.REQUEST", "SYSTEM.GOODBYE"],
                                          options={"generators": ["enumerate"]}))
-    assert set(response.warnings) == {"SYSTEM.GOODBYE"}
+    assert set(response.warnings) == {"SYSTEM.GOODBYE", "SYSTEM.REQUEST"}  # REQUEST: called once
     assert response.warnings["SYSTEM.GOODBYE"].startswith("no occurrence: no demonstration calls SYSTEM.GOODBYE")
     assert response.preconditions["SYSTEM.GOODBYE"] == ["False"]  # options.unseen: "refuse" (the default)
     assert "refused" in response.warnings["SYSTEM.GOODBYE"]
+
+
+def _programs(data: dict[str, Any], n: int) -> list[str]:
+    return [demo["program"] for demo in data["demos"][:n]]
+
+
+def test_an_action_seen_too_rarely_or_left_without_a_rule_is_warned_of(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    """NOTIFY_FAILURE (called twice) and REQ_MORE (4 calls, no rule kept) get `[]` under the paper's ranking:
+    each says why, at the top."""
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=_programs(restaurants, 8),
+                                         options={"generators": ["enumerate"], "ranking": "recency"}))
+    assert response.preconditions["SYSTEM.NOTIFY_FAILURE"] == [] and response.preconditions["SYSTEM.REQ_MORE"] == []
+    thin = response.warnings["SYSTEM.NOTIFY_FAILURE"]
+    assert thin.startswith("thin evidence: SYSTEM.NOTIFY_FAILURE is called 2 time(s) in 2 demonstration(s)")
+    assert thin.endswith("its rule is empty: every call of it is allowed")
+    assert response.warnings["SYSTEM.REQ_MORE"].startswith("empty rule: no candidate condition for SYSTEM.REQ_MORE")
+    assert all(a in response.warnings for a, rules in response.preconditions.items() if not rules)
+    assert "SYSTEM.INFORM" not in response.warnings  # demonstrated often, with rules: nothing to say
+
+
+def test_a_rule_resting_on_few_calls_is_warned_of_under_strict_validation(
+    engine: Engine, restaurants: dict[str, Any]
+) -> None:
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=_programs(restaurants, 2),
+                                         options={"generators": ["enumerate"], "tolerance": 0, "ranking": "recency",
+                                                  "unseen": "allow"}))
+    resting = [a for a, rules in response.preconditions.items() if rules and a in response.warnings]
+    assert resting, response.warnings
+    assert all("cannot tell a requirement from a coincidence" in response.warnings[a] for a in resting)
+
+
+@pytest.mark.parametrize(("call", "words"), [
+    ("user.AFFIRM()", "USER.AFFIRM is not one of the agent's actions"),
+    ("system.REQUESTT('city')", "unknown action 'SYSTEM.REQUESTT' in calls[1] (did you mean 'SYSTEM.REQUEST'?)"),
+])
+def test_a_call_of_something_not_an_action_is_refused_never_approved(
+    engine: Engine, restaurants: dict[str, Any], call: str, words: str
+) -> None:
+    request = CheckRequest(spec=restaurants["spec_program"], preconditions={}, calls=["system.GOODBYE()", call],
+                           history="user = USER()\nsystem = SYSTEM(user)\n")
+    with pytest.raises(UnknownAction) as err:
+        engine.check(request)
+    assert err.value.field == "calls[1]" and words in err.value.message
 
 
 def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: dict[str, Any]) -> None:
@@ -258,7 +303,7 @@ def test_every_candidate_says_why_it_was_kept_or_dropped(
     kept = [c for c in reports if c.kept]
     assert kept and all(c.reason.startswith("kept") for c in kept if c.reason)
     reasons = [c.reason or "" for c in reports if not c.kept]
-    assert any(r.startswith("violated at demonstration") and ", line " in r for r in reasons)
+    assert any(r.startswith("violated at demonstrations[") and ", line " in r for r in reasons)
     assert any(r.startswith("subsumed by ") for r in reasons)
     assert any(r.startswith("equivalent to ") for r in reasons)
     if ranking == "recency":
@@ -291,7 +336,7 @@ def test_a_single_slip_does_not_kill_a_true_rule(engine: Engine, restaurants: di
     (exception,) = evidence.exceptions
     assert (exception.demonstration, exception.line, exception.call) == (demo, line, "system.REQUEST('city')")
     report = next(c for c in response.candidates["SYSTEM.REQUEST"] if c.assertion == rule)
-    assert report.kept and report.valid and f"demonstration {demo}, line {line}" in (report.reason or "")
+    assert report.kept and report.valid and f"demonstrations[{demo}], line {line}" in (report.reason or "")
     # the returned program runs the demonstrations except at the recorded exception
     engine._sandbox.trace(response.program, _without_exceptions(demos, response))
 
@@ -326,7 +371,7 @@ def test_thin_evidence_gives_assumed_rules_with_the_cautious_criterion(engine: E
     assert assumed
     for action in assumed:
         assert {e.decided for e in response.evidence[action].values()} == {"assumed"}, action
-        assert response.warnings[action].startswith("assumed:") or "assumed:" in response.warnings[action]
+        assert "its rules are assumed" in response.warnings[action], response.warnings[action]
 
 
 def test_demonstrations_that_refute_every_candidate_give_an_empty_rule_with_reasons(engine: Engine) -> None:

@@ -134,4 +134,4 @@ def test_a_limit_names_the_part_that_was_running() -> None:
     with pytest.raises(LimitExceeded) as caught, Sandbox(Limits(timeout_s=5, cpu_s=1), workers=1) as sandbox:
         sandbox.trace(SPEC, demos)
     assert caught.value.limit in ("cpu", "timeout")
-    assert "demonstration 1" in str(caught.value)
+    assert "demonstrations[1]" in str(caught.value)

@@ -146,6 +146,27 @@ def test_malformed_body_is_422_with_field_path(client: httpx.Client) -> None:
     }
 
 
+def test_a_form_body_is_422_naming_the_body_and_the_content_type(client: httpx.Client) -> None:
+    answer = client.post("/check-actions", data={"spec": "x", "history": "", "calls": "a.b()"})
+    assert answer.status_code == 422
+    error = answer.json()["error"]
+    assert error["field"] == "body" and "application/json" in error["message"]
+    assert "application/x-www-form-urlencoded" in error["message"]
+
+
+@pytest.mark.parametrize(("body", "field", "message"), [
+    ({"history": "", "calls": ["a.b()"]}, "body", "give `spec` (with `preconditions`) or `precondition_set`"),
+    ({"spec": "x", "history": "", "options": {"verify": False}}, "options",
+     "verify: false needs mode 'sample' (mode 'constrained' only returns allowed calls)"),
+])
+def test_a_validator_message_is_the_services_words(client: httpx.Client, body: dict[str, Any], field: str,
+                                                    message: str) -> None:
+    path = "/check-actions" if "calls" in body else "/next-action"
+    answer = client.post(path, json=body)
+    assert answer.status_code == 422
+    assert answer.json()["error"] == {"type": "validation_error", "message": message, "field": field}
+
+
 @pytest.mark.parametrize("tolerance", [-0.01, 0.51, "often", None, "nan"])
 def test_a_tolerance_outside_0_to_half_or_not_a_number_is_422_naming_it(
     client: httpx.Client, tolerance: object
@@ -189,7 +210,7 @@ def test_demonstration_that_raises_is_422_naming_it_and_its_line(client: httpx.C
     assert answer.status_code == 422, answer.text
     assert answer.json()["error"] == {
         "type": "invalid_program",
-        "message": "demonstration 1, line 4: AttributeError: 'USER' object has no attribute 'NOPE'",
+        "message": "demonstrations[1], line 4: AttributeError: 'USER' object has no attribute 'NOPE'",
         "field": "demonstrations[1]",
     }
 
@@ -199,6 +220,17 @@ def test_unknown_action_is_422(client: httpx.Client) -> None:
     assert answer.status_code == 422
     assert answer.json()["error"]["type"] == "unknown_action"
     assert answer.json()["error"]["field"] == "actions[0]"
+
+
+@pytest.mark.parametrize(("call", "words"), [
+    ("user.AFFIRM()", "USER.AFFIRM is not one of the agent's actions"),
+    ("system.REQUESTT('city')", "(did you mean 'SYSTEM.REQUEST'?)"),
+])
+def test_a_proposed_call_of_no_action_is_422_never_approved(client: httpx.Client, call: str, words: str) -> None:
+    answer = client.post("/check-actions", json=check_body("system.GOODBYE()", call), params={"wait": 30})
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["type"] == "unknown_action" and error["field"] == "calls[1]" and words in error["message"]
 
 
 def test_oversized_body_is_413_declared_or_streamed(client: httpx.Client) -> None:

@@ -53,6 +53,7 @@ def test_every_setting_is_documented() -> None:
     ("name", "model"),
     [
         ("infer-enumerate", InferRequest),
+        ("infer-kept", InferRequest),
         ("infer-model", InferRequest),
         ("next-action", NextActionRequest),
         ("check-actions", CheckRequest),

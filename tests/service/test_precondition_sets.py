@@ -14,7 +14,7 @@ import pytest
 
 from jobs.keys import tenant_tag
 from service.sets import index_key, set_key
-from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving
+from stack.local import DEMOS, SPEC, Stack, check_body, example, infer_body, make_stack, serving
 from tests.service.test_tenants import SECRET, client_for, make_key
 
 EVENTS = [
@@ -30,7 +30,8 @@ EVENTS = [
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
     path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
-    return path, {tenant: make_key(path, tenant)[1] for tenant in ("acme", "globex", "small", "initech")}
+    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella")
+    return path, {tenant: make_key(path, tenant)[1] for tenant in tenants}
 
 
 @pytest.fixture(scope="module")
@@ -87,6 +88,7 @@ def test_a_set_from_an_inference_is_stored_versioned_and_owned(
     theirs, missing = globex.get(f"/precondition-sets/{set_id}"), globex.get(f"/precondition-sets/{unknown}")
     assert theirs.status_code == missing.status_code == 404
     assert theirs.json()["error"]["message"].replace(set_id, unknown) == missing.json()["error"]["message"]
+    assert "belong to the tenant `public`" in missing.json()["error"]["message"]  # after turning keys on
     assert globex.post(f"/precondition-sets/{set_id}/versions",
                        json={"edits": [{"op": "reject", "action": "SYSTEM.GOODBYE", "rule": "x"}]}).status_code == 404
     used = globex.post("/check-actions", json={"precondition_set": set_id, "history": EVENTS,
@@ -108,7 +110,7 @@ def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(
     assert refused.status_code == 422, refused.text
     error = refused.json()["error"]
     assert error["type"] == "blocks_demonstration" and error["field"] == "edits"
-    assert "'self.user.selected' of SYSTEM.INFORM would have blocked demonstration " in error["message"]
+    assert "'self.user.selected' of SYSTEM.INFORM would have blocked demonstrations[" in error["message"]
     assert ", line " in error["message"] and "force" in error["message"]
     assert _ok(acme.get(f"/precondition-sets/{set_id}"))["latest"] == 1  # nothing stored
     forced = _ok(acme.post(f"/precondition-sets/{set_id}/versions", json={"edits": [bad], "force": True}), 201)
@@ -144,6 +146,68 @@ def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(
                            params={"wait": 30}))
     assert v2["results"][0]["violations"] == ["self.user.selected"]
     assert latest["results"][0]["allowed"] is True
+
+
+@pytest.fixture()
+def hooli(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    with client_for(stack, keys[1]["hooli"]) as client:
+        yield client
+
+
+def test_an_action_left_without_a_rule_is_warned_of_and_rules_compare_as_code(
+    hooli: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    made = _create(hooli, inferred)
+    assert inferred["preconditions"]["SYSTEM.NOTIFY_FAILURE"] == []
+    assert made["warnings"]["SYSTEM.NOTIFY_FAILURE"].startswith("empty rule: the set has no rule for")
+    assert "SYSTEM.GOODBYE" not in made["warnings"]
+    only = inferred["preconditions"]["SYSTEM.GOODBYE"]
+    assert len(only) == 1
+    # the same rule in other quotes is the same rule: not added twice, and rejected in any spelling
+    twice = hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "add", "action": "SYSTEM.FindRestaurants", "rule": 'self.user.informed_slot["cuisine"]'}]})
+    assert twice.status_code == 422 and "already has the rule" in twice.json()["error"]["message"], twice.text
+    # a misspelt attribute is named as the exception it is, not counted as blocked calls
+    typo = hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "add", "action": "SYSTEM.ReserveRestaurant", "rule": "self.user.afirmed"}]})
+    assert typo.status_code == 422, typo.text
+    message = typo.json()["error"]["message"]
+    assert message.startswith("rule 'self.user.afirmed' of SYSTEM.ReserveRestaurant raises AttributeError: 'USER' "
+                              "object has no attribute 'afirmed' (demonstrations["), message
+    assert "misspelt" in message and "would have blocked" not in message
+    edited = _ok(hooli.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "reject", "action": "SYSTEM.GOODBYE", "rule": only[0]},
+        {"op": "reject", "action": "SYSTEM.FindRestaurants", "rule": 'self.user.informed_slot["cuisine"]'}]}), 201)
+    assert "SYSTEM.GOODBYE" not in edited["preconditions"]
+    assert "SYSTEM.FindRestaurants" not in edited["preconditions"]
+    warning = edited["warnings"]["SYSTEM.GOODBYE"]
+    assert warning.startswith(f"empty rule: a reviewer rejected {only[0]!r} and no rule of SYSTEM.GOODBYE is left")
+    assert warning.endswith("every call of it is allowed")
+    assert "SYSTEM.FindRestaurants" in edited["warnings"]
+    assert edited["warnings"]["SYSTEM.NOTIFY_FAILURE"] == made["warnings"]["SYSTEM.NOTIFY_FAILURE"]
+    duplicate = _ok(hooli.post("/precondition-sets", json={"spec": SPEC, "preconditions": {
+        "SYSTEM.GOODBYE": ["self.user.no_more", "self.user.no_more "], "SYSTEM.CONFIRM": [
+            "self.user.informed_slot['time']", 'self.user.informed_slot["time"]']}}), 201)
+    assert duplicate["preconditions"] == {"SYSTEM.GOODBYE": ["self.user.no_more"],
+                                          "SYSTEM.CONFIRM": ["self.user.informed_slot['time']"]}
+
+
+def test_next_action_on_a_stored_set_lists_arguments_from_its_demonstrations(
+    stack: Stack, keys: tuple[Path, dict[str, str]]
+) -> None:
+    """The set's demonstrations name argument values (slots) the spec and history do not: with the set, the
+    calls judged are those judged when the same demonstrations are sent inline."""
+    inline = example("next-action")
+    inline["options"] = {"return_allowed": True}
+    inline["demonstrations"] = DEMOS
+    with client_for(stack, keys[1]["umbrella"]) as client:  # a tenant of its own: the others are at their bound
+        made = _ok(client.post("/precondition-sets", json={"spec": inline["spec"], "preconditions":
+                                                           inline["preconditions"], "demonstrations": DEMOS}), 201)
+        by_set = {"precondition_set": made["reference"], "history": inline["history"], "options": inline["options"]}
+        direct = _ok(client.post("/next-action", json=inline, params={"wait": 60}))["actions"][0]
+        stored = _ok(client.post("/next-action", json=by_set, params={"wait": 60}))["actions"][0]
+    assert stored["attempts"] == direct["attempts"]
+    assert stored["call"] == direct["call"] and stored["allowed"] == direct["allowed"]
 
 
 def test_sets_per_tenant_are_bounded(stack: Stack, keys: tuple[Path, dict[str, str]], inferred: dict[str, Any]) -> None:
