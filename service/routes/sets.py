@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Request
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from jobs import keys
@@ -18,6 +18,7 @@ from schemas.api import (
     PreconditionSet,
     PreconditionSetCreate,
     PreconditionSetEdit,
+    PreconditionSetList,
     PreconditionSetReinfer,
     ReinferJob,
     ValidateRequest,
@@ -28,7 +29,7 @@ from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer
-from service.sets import apply_edits, blocking_message, new_id, version_of
+from service.sets import Report, apply_edits, blocking_message, new_id, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
 RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -46,6 +47,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 SetReference = Annotated[str, Path(max_length=100, description="`id`, or `id@version`.")]
 SetId = Annotated[str, Path(max_length=100)]
+MAX_LISTED_SETS = 100
 
 
 @router.post("", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
@@ -57,9 +59,18 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
-    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation)
+    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, Report.of(body))
     stored = await services.sets.create(_tag(services, tenant), version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
+
+
+@router.get("", response_model=PreconditionSetList, responses={401: RESPONSES[401]})
+async def list_sets(services: ServicesDep, tenant: Tenant,
+                    offset: Annotated[int, Query(ge=0, le=10**6)] = 0,
+                    limit: Annotated[int, Query(ge=1, le=MAX_LISTED_SETS)] = 20) -> PreconditionSetList:
+    """The tenant's sets, newest first: per set its latest version, actions, and how many rules are `assumed`,
+    `zero-shot` or without evidence (the ones a human should read). `next_offset` pages on."""
+    return await services.sets.summaries(_tag(services, tenant), offset, limit)
 
 
 @router.get("/{reference}", response_model=PreconditionSet, responses=RESPONSES)
@@ -89,7 +100,7 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
     _refuse_blocking(validation, new, body.force, "edits")
     version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
-                         body.edits, validation)
+                         body.edits, validation, Report.of(base))
     stored = await services.sets.append(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
