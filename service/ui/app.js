@@ -1,20 +1,19 @@
 // The review page's entry: which view the address names, and the key dialog. Each view is its own module.
 
-import { forgetKey, hasKey, whenKeyNeeded } from "./api.js";
-import { clear, h } from "./dom.js";
-import { listPage } from "./list.js";
-import { setPage } from "./set.js";
+// Only api.js is imported up front: a set's JSON is requested while the view's modules still load.
+import { api, forgetKey, hasKey, setPath, whenKeyNeeded } from "./api.js";
 
 const main = document.getElementById("main");
 const forget = document.getElementById("forget");
 let servedStatus = document.body.dataset.status;
 
-export function navigate(path) {
+function navigate(path) {
   history.pushState(null, "", path);
   route();
 }
 
-export function notFound(message) {
+async function notFound(message) {
+  const { clear, h } = await import("./dom.js");
   document.title = "Not found · precondition sets";
   clear(main, h("section", { class: "card", id: "not-found" },
     h("h1", {}, "Not found (404)"), h("p", {}, message), h("p", {}, h("a", { href: "/ui/" }, "All precondition sets"))));
@@ -27,23 +26,29 @@ async function route() {
   const match = path.match(/^\/ui\/sets\/([^/]+)$/);
   try {
     if (status === "404") {
-      notFound(match ? `${decodeURIComponent(match[1])} is not a precondition set reference (ps_… or ps_…@n).`
+      await notFound(match ? `${decodeURIComponent(match[1])} is not a precondition set reference (ps_… or ps_…@n).`
         : `There is no page at ${path}.`);
     } else if (path === "/ui/") {
+      const { listPage } = await import("./list.js");
       await listPage(main, navigate);
     } else if (match) {
-      await setPage(main, decodeURIComponent(match[1]), navigate, notFound);
+      const answer = api("GET", setPath(decodeURIComponent(match[1])));
+      answer.catch(() => {});  // settled by the view
+      const { setPage } = await import("./set.js");
+      await setPage(main, answer, navigate, notFound);
     } else {
-      notFound(`There is no page at ${path}.`);
+      await notFound(`There is no page at ${path}.`);
     }
   } catch (error) {
+    const { clear, h } = await import("./dom.js");
     clear(main, h("section", { class: "card" }, h("h1", {}, "The service refused"),
       h("p", { class: "error" }, error.message)));
   }
   forget.hidden = !hasKey();
 }
 
-function askKey(message) {
+async function askKey(message) {
+  const { h } = await import("./dom.js");
   return new Promise((resolve) => {
     const input = h("input", { type: "password", autocomplete: "off", name: "key", placeholder: "pk_…",
       "aria-label": "API key", required: true });

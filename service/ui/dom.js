@@ -57,3 +57,13 @@ export function errorBox(slot, error, ...more) {
   clear(slot, error.message, ...more);
   slot.hidden = false;
 }
+
+/** A link that changes the view without reloading the page (a plain click; others open as usual). */
+export function linkTo(navigate, path) {
+  return (event) => {
+    if (event.button === 0 && !event.ctrlKey && !event.metaKey && !event.shiftKey) {
+      event.preventDefault();
+      navigate(path);
+    }
+  };
+}

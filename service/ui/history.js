@@ -1,8 +1,7 @@
 // The versions of a set, what made each one (edits, a re-inference), and the rules that differ between two.
 
 import { api, setPath } from "./api.js";
-import { clear, h, lazyDetails } from "./dom.js";
-import { follow } from "./list.js";
+import { clear, h, linkTo, lazyDetails } from "./dom.js";
 
 export function historyPanel(set, navigate) {
   return h("section", { class: "card", id: "history" }, h("h2", {}, "Versions"),
@@ -21,7 +20,7 @@ function historyBody(set, navigate) {
 
 function versionList(versions, navigate) {
   return h("ol", { reversed: true, id: "versions" }, versions.map((v) => h("li", {},
-    h("a", { href: `/ui/sets/${v.reference}`, onclick: follow(navigate, `/ui/sets/${v.reference}`) }, `v${v.version}`),
+    h("a", { href: `/ui/sets/${v.reference}`, onclick: linkTo(navigate, `/ui/sets/${v.reference}`) }, `v${v.version}`),
     " ", h("span", { class: "muted" }, v.created.replace("T", " ").replace("+00:00", "")), " · ", madeBy(v))));
 }
 
@@ -52,8 +51,20 @@ function pairs(table) {
   return new Set(Object.entries(table || {}).flatMap(([a, rules]) => rules.map((r) => `${a}\u0000${r}`)));
 }
 
+/** Why a rule came or went, where `newer` is the re-inference of `older` (its `diff` says). */
+function reasons(older, newer) {
+  const why = new Map();
+  if (newer.diff && newer.diff.base_version === older.version) {
+    for (const change of [...newer.diff.added, ...newer.diff.removed]) {
+      if (change.reason) why.set(`${change.action}\u0000${change.rule}`, change.reason);
+    }
+  }
+  return why;
+}
+
 function diff(older, newer) {
   const lines = [];
+  const why = reasons(older, newer);
   const compare = (part, plus, minus) => {
     const before = pairs(older[part]);
     const after = pairs(newer[part]);
@@ -67,6 +78,6 @@ function diff(older, newer) {
   return h("ul", {}, lines.map(([what, pair]) => {
     const [action, rule] = pair.split("\u0000");
     return h("li", { class: what === "added" ? "added" : what === "removed" ? "removed" : "" },
-      `${what}: ${action} `, h("code", {}, rule));
+      `${what}: ${action} `, h("code", {}, rule), why.has(pair) ? h("div", { class: "reason" }, why.get(pair)) : null);
   }));
 }

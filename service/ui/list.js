@@ -1,7 +1,7 @@
 // The tenant's precondition sets, newest first, with what needs a human in each; and a new set from an inference.
 
 import { api } from "./api.js";
-import { clear, h } from "./dom.js";
+import { clear, h, linkTo } from "./dom.js";
 import { inferPanel } from "./infer.js";
 
 const PAGE = 20;
@@ -10,7 +10,7 @@ export async function listPage(main, navigate, offset = 0) {
   document.title = "Precondition sets";
   const page = (await api("GET", `/precondition-sets?offset=${offset}&limit=${PAGE}`)).body;
   const rows = page.sets.map((s) => h("tr", { dataset: { set: s.id } },
-    h("td", {}, h("a", { href: `/ui/sets/${s.id}`, onclick: follow(navigate, `/ui/sets/${s.id}`) }, s.id)),
+    h("td", {}, h("a", { href: `/ui/sets/${s.id}`, onclick: linkTo(navigate, `/ui/sets/${s.id}`) }, s.id)),
     h("td", { class: "num" }, s.latest),
     h("td", {}, s.updated.replace("T", " ").replace("+00:00", " UTC")),
     h("td", {}, h("span", { title: s.actions.join(", ") }, `${s.actions.length}: `,
@@ -36,14 +36,4 @@ export async function listPage(main, navigate, offset = 0) {
       h("p", { class: "muted" }, "Assumed and zero-shot rules are the ones the demonstrations did not settle: "
         + "read them first."), table, pager),
     inferPanel(navigate)));
-}
-
-/** A link that changes the view without reloading the page (a plain click; others open as usual). */
-export function follow(navigate, path) {
-  return (event) => {
-    if (event.button === 0 && !event.ctrlKey && !event.metaKey && !event.shiftKey) {
-      event.preventDefault();
-      navigate(path);
-    }
-  };
 }

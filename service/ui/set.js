@@ -3,18 +3,18 @@
 // Edits make a new version through the API; what it refuses is shown at the rule it concerns.
 
 import { ApiError, api, setPath } from "./api.js";
-import { add, clear, code, errorBox, h, lazyDetails } from "./dom.js";
+import { add, clear, code, errorBox, h, linkTo, lazyDetails } from "./dom.js";
 import { historyPanel } from "./history.js";
-import { follow } from "./list.js";
 import { tryPanel } from "./tryit.js";
 
 const NEEDS_HUMAN = ["assumed", "zero-shot"];
 const ORDER = ["assumed", "zero-shot", "no evidence", "transferred", "established"];
 
-export async function setPage(main, reference, navigate, notFound) {
+/** `answer`: the API's answer for the set, requested before this module was loaded. */
+export async function setPage(main, answer, navigate, notFound) {
   let set;
   try {
-    set = (await api("GET", setPath(reference))).body;
+    set = (await answer).body;
   } catch (problem) {
     if (problem instanceof ApiError && problem.status === 404) return notFound(`${problem.message}.`);
     throw problem;
@@ -75,7 +75,7 @@ function render(set, navigate) {
         h("span", { class: review ? "badge d-zero-shot" : "badge d-established", id: "review-count" },
           `${review} need${review === 1 ? "s" : ""} a human`)),
       editable ? null : h("p", { class: "banner" }, `This is version ${set.version}; edits make a new version from `
-        + "the latest. ", h("a", { href: `/ui/sets/${set.id}`, onclick: follow(navigate, `/ui/sets/${set.id}`) },
+        + "the latest. ", h("a", { href: `/ui/sets/${set.id}`, onclick: linkTo(navigate, `/ui/sets/${set.id}`) },
         `Open version ${set.latest}`)),
       blockedBanner(set)),
     h("div", { class: "layout" },

@@ -250,6 +250,20 @@ def test_an_added_rule_that_blocks_a_demonstration_shows_the_apis_refusal_at_its
 
 
 @needs_browser
+def test_an_edit_on_a_stale_page_shows_the_apis_conflict_at_its_rule(
+    page: Page, acme: httpx.Client, opened: dict[str, Any]
+) -> None:
+    made = opened
+    rule = made["preconditions"]["SYSTEM.GOODBYE"][0]
+    _ok(acme.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "require", "action": "SYSTEM.GOODBYE", "rule": rule}]}), 201)  # meanwhile, elsewhere
+    item = _rule(page, "SYSTEM.GOODBYE", rule)
+    item.locator("button[data-op=remove]").click()
+    expect(item.locator(".error")).to_contain_text("base_version 1 is not the latest version (2)")
+    assert _ok(acme.get(f"/precondition-sets/{made['id']}"))["latest"] == 2
+
+
+@needs_browser
 def test_what_does_not_exist_or_is_not_yours_is_a_not_found_page(
     page: Page, stack: Stack, keys: tuple[Path, dict[str, str]], acme: httpx.Client, inferred: dict[str, Any]
 ) -> None:
