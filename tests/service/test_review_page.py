@@ -13,10 +13,12 @@ from typing import Any
 import httpx
 import pytest
 
+from jobs.keys import tenant_tag
+from jobs.sets import set_key
 from stack import browser
 from stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
 from tests.service import test_precondition_sets as sets_tests
-from tests.service.test_tenants import client_for
+from tests.service.test_tenants import SECRET, client_for
 
 if browser.missing() is None:
     from playwright.sync_api import Browser, Page, expect
@@ -97,6 +99,19 @@ def test_the_list_is_the_tenants_own_newest_first_and_paged(
         assert _ok(globex.get("/precondition-sets"))["total"] == 0  # another tenant's sets are not there
         assert lister.get("/precondition-sets", params={"limit": 0}).status_code == 422
     assert stack.http().get("/precondition-sets").status_code == 401
+
+
+def test_a_set_stored_before_summaries_is_listed_from_its_versions(
+    stack: Stack, acme: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    made = _create(acme, inferred)
+    _ok(acme.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
+        {"op": "remove", "action": "SYSTEM.GOODBYE", "rule": made["preconditions"]["SYSTEM.GOODBYE"][0]}]}), 201)
+    stack.redis.client().hdel(set_key(tenant_tag(SECRET, "acme"), made["id"]), "created", "summary")
+    listed = {s["id"]: s for s in _ok(acme.get("/precondition-sets", params={"limit": 100}))["sets"]}
+    old = listed[made["id"]]
+    assert (old["created"], old["latest"]) == (made["created"], 2)
+    assert old["rules"] == sum(len(r) for r in made["preconditions"].values()) - 1
 
 
 def test_the_page_is_served_without_a_key_outside_the_openapi_document(stack: Stack) -> None:
@@ -309,6 +324,16 @@ def test_an_inference_started_from_the_page_becomes_a_set(
     expect(page.locator("section.action")).to_have_count(len(stored["preconditions"]))
     page.goto(f"{stack.base_url}/ui/")
     expect(page.locator(f"#sets tr[data-set='{stored['id']}']")).to_be_visible()
+    # pasted spec and demonstrations (a line `# ---` between two), model-free: followed through its job
+    page.locator("#infer-spec").fill(SPEC)
+    page.locator("#infer-demos").fill(f"{DEMOS[0]}\n# ---\n{DEMOS[1]}")
+    page.locator("#infer-model-free").check()
+    page.locator("#infer-start").click()
+    expect(page.locator("#infer-progress")).to_be_visible()
+    page.wait_for_url("**/ui/sets/ps_*@1")
+    pasted = _ok(acme.get(f"/precondition-sets/{page.url.rsplit('/', 1)[1]}"))
+    assert [d.strip() for d in pasted["demonstrations"]] == [d.strip() for d in DEMOS]
+    assert pasted["id"] != stored["id"] and pasted["candidates"]
 
 
 @needs_browser
