@@ -265,6 +265,34 @@ def test_an_added_rule_that_blocks_a_demonstration_shows_the_apis_refusal_at_its
 
 
 @needs_browser
+def test_a_rules_exceptions_are_shown_in_the_demonstrations_code(
+    page: Page, stack: Stack, keys: tuple[Path, dict[str, str]], acme: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    line = next(n for n, text in enumerate(DEMOS[0].splitlines(), 1) if text.startswith("system.OFFER("))
+    call = DEMOS[0].splitlines()[line - 1]
+    evidence = json.loads(json.dumps(inferred["evidence"]))
+    evidence["SYSTEM.OFFER"]["self.query_success"] = {  # as a tolerant inference reports a slip in the log
+        "occurrences": 20, "holds": 19, "confidence": 0.8, "verdict": "tolerated", "elsewhere": 40,
+        "holds_elsewhere": 10, "exceptions": [{"demonstration": 0, "position": 9, "line": line, "call": call}]}
+    made = _create(acme, inferred, evidence=evidence)
+    assert made["decided"]["SYSTEM.OFFER"]["self.query_success"] == "established"
+    _open(page, stack, f"/ui/sets/{made['id']}", keys[1]["acme"])
+    item = _rule(page, "SYSTEM.OFFER", "self.query_success")
+    expect(item.locator(".evidence")).to_contain_text("held at 19 of 20 demonstrated calls")
+    exception = item.locator(".exception")
+    expect(exception.locator("figcaption").first).to_contain_text(f"demonstration 0, line {line}")
+    expect(exception.locator(".line.marked")).to_have_attribute("data-line", str(line))
+    expect(exception.locator(".line.marked")).to_contain_text(call)
+    exception.locator("details summary").click()  # the whole demonstration, the same line marked
+    expect(exception.locator("details .line")).to_have_count(len(DEMOS[0].rstrip("\n").splitlines()))
+    expect(exception.locator("details .line.marked")).to_have_attribute("data-line", str(line))
+    # established rules come after the ones that need a human
+    labels = page.locator("section.action[data-action='SYSTEM.OFFER'] li.rule").evaluate_all(
+        "items => items.map(i => i.dataset.decided)")
+    assert labels == sorted(labels, key=lambda label: label == "established")
+
+
+@needs_browser
 def test_an_edit_on_a_stale_page_shows_the_apis_conflict_at_its_rule(
     page: Page, acme: httpx.Client, opened: dict[str, Any]
 ) -> None:
