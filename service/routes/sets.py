@@ -64,7 +64,8 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
 
-@router.get("", response_model=PreconditionSetList, responses={401: RESPONSES[401]})
+@router.get("", response_model=PreconditionSetList, responses={
+    401: RESPONSES[401], 422: {"model": ErrorResponse, "description": "`offset` or `limit` out of range."}})
 async def list_sets(services: ServicesDep, tenant: Tenant,
                     offset: Annotated[int, Query(ge=0, le=10**6)] = 0,
                     limit: Annotated[int, Query(ge=1, le=MAX_LISTED_SETS)] = 20) -> PreconditionSetList:
