@@ -67,3 +67,8 @@ export function linkTo(navigate, path) {
     }
   };
 }
+
+/** An ISO time as the page shows it: "2026-11-24 08:36 UTC". */
+export function when(iso) {
+  return `${iso.slice(0, 10)} ${iso.slice(11, 16)} UTC`;
+}

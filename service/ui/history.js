@@ -1,7 +1,7 @@
 // The versions of a set, what made each one (edits, a re-inference), and the rules that differ between two.
 
 import { api, setPath } from "./api.js";
-import { clear, h, linkTo, lazyDetails } from "./dom.js";
+import { clear, h, lazyDetails, linkTo, when } from "./dom.js";
 
 export function historyPanel(set, navigate) {
   return h("section", { class: "card", id: "history" }, h("h2", {}, "Versions"),
@@ -21,7 +21,7 @@ function historyBody(set, navigate) {
 function versionList(versions, navigate) {
   return h("ol", { reversed: true, id: "versions" }, versions.map((v) => h("li", {},
     h("a", { href: `/ui/sets/${v.reference}`, onclick: linkTo(navigate, `/ui/sets/${v.reference}`) }, `v${v.version}`),
-    " ", h("span", { class: "muted" }, v.created.replace("T", " ").replace("+00:00", "")), " · ", madeBy(v))));
+    " ", h("span", { class: "muted" }, when(v.created)), " · ", madeBy(v))));
 }
 
 function madeBy(version) {

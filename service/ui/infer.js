@@ -76,8 +76,7 @@ export function inferPanel(navigate) {
       h("label", { class: "block", for: "infer-spec" }, "Spec"), fileInto(spec, false), spec,
       h("label", { class: "block", for: "infer-demos" }, "Demonstrations (separated by a line # ---)"),
       fileInto(demos, true), demos,
-      h("div", { class: "row" }, modelFree,
-        h("label", { for: "infer-model-free" }, "model-free (enumerate only: about a second, no code model)")),
+      h("label", { class: "row" }, modelFree, "model-free (enumerate only: about a second, no code model)"),
       h("div", { class: "row" }, start, cancel), bar, phase, error));
 }
 

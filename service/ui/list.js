@@ -1,7 +1,7 @@
 // The tenant's precondition sets, newest first, with what needs a human in each; and a new set from an inference.
 
 import { api } from "./api.js";
-import { clear, h, linkTo } from "./dom.js";
+import { clear, h, linkTo, when } from "./dom.js";
 import { inferPanel } from "./infer.js";
 
 const PAGE = 20;
@@ -12,9 +12,9 @@ export async function listPage(main, navigate, offset = 0) {
   const rows = page.sets.map((s) => h("tr", { dataset: { set: s.id } },
     h("td", {}, h("a", { href: `/ui/sets/${s.id}`, onclick: linkTo(navigate, `/ui/sets/${s.id}`) }, s.id)),
     h("td", { class: "num" }, s.latest),
-    h("td", {}, s.updated.replace("T", " ").replace("+00:00", " UTC")),
-    h("td", {}, h("span", { title: s.actions.join(", ") }, `${s.actions.length}: `,
-      s.actions.slice(0, 4).join(", "), s.actions.length > 4 ? ", …" : "")),
+    h("td", { class: "nowrap" }, when(s.updated)),
+    h("td", { class: "actions", title: s.actions.join(", ") }, `${s.actions.length}: `,
+      s.actions.slice(0, 3).join(", "), s.actions.length > 3 ? ", …" : ""),
     h("td", { class: "num" }, s.rules),
     h("td", { class: "num" }, s.assumed),
     h("td", { class: "num" }, s.zero_shot),
@@ -31,9 +31,9 @@ export async function listPage(main, navigate, offset = 0) {
     page.next_offset !== null
       ? h("button", { onclick: () => listPage(main, navigate, page.next_offset) }, "Older") : null,
     h("span", { class: "muted" }, `${page.total} set${page.total === 1 ? "" : "s"}`));
-  clear(main, h("div", { class: "layout" },
+  clear(main,
     h("section", { class: "card" }, h("h1", {}, "Precondition sets"),
       h("p", { class: "muted" }, "Assumed and zero-shot rules are the ones the demonstrations did not settle: "
         + "read them first."), table, pager),
-    inferPanel(navigate)));
+    inferPanel(navigate));
 }

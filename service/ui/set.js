@@ -3,7 +3,7 @@
 // Edits make a new version through the API; what it refuses is shown at the rule it concerns.
 
 import { ApiError, api, setPath } from "./api.js";
-import { add, clear, code, errorBox, h, linkTo, lazyDetails } from "./dom.js";
+import { add, clear, code, errorBox, h, lazyDetails, linkTo, when } from "./dom.js";
 import { historyPanel } from "./history.js";
 import { tryPanel } from "./tryit.js";
 
@@ -69,7 +69,7 @@ function render(set, navigate) {
       h("h1", {}, set.id),
       h("div", { class: "meta" },
         h("span", {}, `version ${set.version} of ${set.latest}`),
-        h("span", { class: "muted" }, set.created.replace("T", " ").replace("+00:00", " UTC")),
+        h("span", { class: "muted" }, when(set.created)),
         versionPicker(set, navigate),
         h("span", {}, `${labels.length} rules`),
         h("span", { class: review ? "badge d-zero-shot" : "badge d-established", id: "review-count" },
