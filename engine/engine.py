@@ -355,6 +355,9 @@ class Engine:
                 kept = within_budget(picked, evidence)
                 choice = cautious.Choice(kept, {c.representative.expression: "established" for c in kept})
                 cut = [c for c in picked if c not in kept]
+            if not sparse and too_few(info.occurrences):  # strict validation on one or two calls: not established
+                choice = cautious.Choice(choice.chosen, {e: "assumed" if d == "established" else d
+                                                         for e, d in choice.decided.items()}, choice.notes)
             reported, judged, verdicts = _with_composites(choice, results, judged, verdicts, index)
             reasons = {**_screened(verdicts, judged, tolerance, {r.expression: r.reason for r in results}),
                        **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut),
@@ -482,7 +485,8 @@ class Engine:
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
         check_calls(spec, request.preconditions, history, calls)
-        return CheckResponse(results=self._verify(spec, request.preconditions, history, calls))
+        verdicts = self._verify(spec, request.preconditions, history, calls)
+        return CheckResponse(results=[_labelled(v, spec, request.decided) for v in verdicts])
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
     def validate(self, request: ValidateRequest) -> ValidateResponse:
@@ -530,6 +534,15 @@ def _raised(first_violation: str | None) -> bool:
     false answer (`: assertion fails`) or a state it could not copy."""
     return bool(first_violation) and not str(first_violation).endswith(
         (": assertion fails", ": the state could not be copied"))
+
+
+def _labelled(verdict: CallVerdict, spec: Spec, decided: Mapping[str, Mapping[str, str]]) -> CallVerdict:
+    """The verdict with how each rule that refused the call was decided (its action's label for it)."""
+    if not verdict.violations or not decided:
+        return verdict
+    actions = [a for a in decided if a in spec.methods and f".{spec.methods[a].name}(" in verdict.call]
+    labels = {rule: label for a in actions for rule, label in decided[a].items()}
+    return verdict.model_copy(update={"decided": {v: labels[v] for v in verdict.violations if v in labels}})
 
 
 def _spec_of(request: CheckRequest | NextActionRequest) -> str:

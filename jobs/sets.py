@@ -3,34 +3,37 @@ atomic append of a version (the gateway for edits, a worker for re-inference), a
 re-inference with the base version (required rules kept, rejected rules kept out, a diff with reasons).
 
     precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
-    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten)
+    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten);
+                                       `created` (of version 1) and `summary` (of the latest) for the list
 """
 
 from __future__ import annotations
 
 import ast
+import json
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
 from jobs.keys import PREFIX
 from programs import checks
-from schemas.api import CandidateReport, PreconditionSet, RuleChange, SetDiff
+from schemas.api import CandidateReport, PreconditionSet, RuleChange, RuleEvidence, SetDiff
 
 CREATE_SCRIPT: Final = """
 if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
 redis.call('sadd', KEYS[1], ARGV[1])
-redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3])
+redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3], 'created', ARGV[4], 'summary', ARGV[5])
 return 1
 """
-"""Create a set with its version 1 unless the tenant is at its bound: count and write in one step."""
+"""Create a set with its version 1 unless the tenant is at its bound: count and write in one step (with its
+creation time and the summary the list of sets reads, so listing never reads whole versions)."""
 
 APPEND_SCRIPT: Final = """
 local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
 if latest == 0 then return -1 end
 if latest ~= tonumber(ARGV[1]) then return -2 end
 if latest >= tonumber(ARGV[2]) then return -3 end
-redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3])
+redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3], 'summary', ARGV[4])
 return latest + 1
 """
 """Append version latest+1, only if `latest` is still the version it was made from."""
@@ -51,7 +54,51 @@ def set_key(tag: str, set_id: str) -> str:
 async def append(redis: Any, tag: str, version: PreconditionSet, record: str, max_versions: int) -> int:
     """Store `record` (version n's JSON) as version n if n-1 is still the latest: n, or an APPEND_* code."""
     return int(await redis.eval(APPEND_SCRIPT, 1, set_key(tag, version.id), version.version - 1, max_versions,
-                                record))
+                                record, summary(version)))
+
+
+ESTABLISHED_AT: Final = 3
+"""Occurrences below which a rule that held is only assumed: the engine's bound for thin evidence."""
+
+
+def how_decided(evidence: RuleEvidence | None, report: CandidateReport | None) -> str:
+    """How one rule was decided: the engine's own word (`RuleEvidence.decided`); for a report stored before the
+    engine said it, read from the evidence and the candidate's reason."""
+    if evidence is not None and evidence.decided is not None:
+        return evidence.decided
+    reason = (report.reason if report is not None else None) or ""
+    if reason.startswith("kept by the code model's judgment"):
+        return "zero-shot" if "never demonstrated" in reason else "assumed"
+    if reason.startswith("zero-shot") or (evidence is not None and evidence.occurrences == 0):
+        return "zero-shot"
+    if evidence is None:
+        return "no evidence"
+    return "assumed" if evidence.verdict == "thin" or evidence.occurrences < ESTABLISHED_AT else "established"
+
+
+def decided(preconditions: Mapping[str, Sequence[str]], evidence: Mapping[str, Mapping[str, RuleEvidence]],
+            candidates: Mapping[str, Sequence[CandidateReport]]) -> dict[str, dict[str, str]]:
+    """`how_decided` for every rule, its evidence and report matched by canonical text."""
+    labels: dict[str, dict[str, str]] = {}
+    for action, rules in preconditions.items():
+        found = {normal(rule): ev for rule, ev in evidence.get(action, {}).items()}
+        reports = {normal(c.assertion): c for c in candidates.get(action, ())}
+        labels[action] = {rule: how_decided(found.get(normal(rule)), reports.get(normal(rule))) for rule in rules}
+    return labels
+
+
+def summary(version: PreconditionSet) -> str:
+    """The latest version as the list of sets shows it (JSON; the set's creation time is stored apart)."""
+    labels = [label for rules in version.decided.values() for label in rules.values()]
+    known = {*version.preconditions, *version.candidates, *version.warnings, *version.rejected}
+    return json.dumps({
+        "id": version.id, "latest": version.version, "reference": version.reference, "updated": version.created,
+        "actions": sorted(known), "rules": sum(len(r) for r in version.preconditions.values()),
+        "assumed": labels.count("assumed"), "zero_shot": labels.count("zero-shot"),
+        "no_evidence": sum(len(r) for r in version.preconditions.values()) - len(labels) + labels.count("no evidence"),
+        "required": sum(len(r) for r in version.required.values()),
+        "rejected": sum(len(r) for r in version.rejected.values()),
+    })
 
 
 def normal(rule: str) -> str:

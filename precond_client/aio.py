@@ -25,6 +25,7 @@ from schemas.api import (
     NextActionResponse,
     PreconditionSet,
     PreconditionSetCreate,
+    PreconditionSetList,
     RuleEdit,
 )
 
@@ -93,6 +94,12 @@ class AsyncClient:
         body = _core.set_body(_core.validated(request, PreconditionSetCreate))
         answer = await self._send("POST", "/precondition-sets", json=body)
         return PreconditionSet.model_validate(answer.json())
+
+    async def list_sets(self, *, offset: int = 0, limit: int = 20) -> PreconditionSetList:
+        """The tenant's sets, newest first, each with how many rules are assumed, zero-shot or without evidence;
+        `next_offset` pages on."""
+        answer = await self._send("GET", "/precondition-sets", params={"offset": offset, "limit": limit})
+        return PreconditionSetList.model_validate(answer.json())
 
     async def get_set(self, reference: str) -> PreconditionSet:
         """A set's latest version (`id`) or a given one (`id@version`); `NotFound` for none of yours."""

@@ -24,6 +24,7 @@ from schemas.api import (
     NextActionResponse,
     PreconditionSet,
     PreconditionSetCreate,
+    PreconditionSetList,
     RuleEdit,
 )
 
@@ -92,6 +93,12 @@ class Client:
         body = _core.set_body(_core.validated(request, PreconditionSetCreate))
         answer = self._send("POST", "/precondition-sets", json=body)
         return PreconditionSet.model_validate(answer.json())
+
+    def list_sets(self, *, offset: int = 0, limit: int = 20) -> PreconditionSetList:
+        """The tenant's sets, newest first, each with how many rules are assumed, zero-shot or without evidence;
+        `next_offset` pages on."""
+        answer = self._send("GET", "/precondition-sets", params={"offset": offset, "limit": limit})
+        return PreconditionSetList.model_validate(answer.json())
 
     def get_set(self, reference: str) -> PreconditionSet:
         """A set's latest version (`id`) or a given one (`id@version`); `NotFound` for none of yours."""

@@ -480,8 +480,24 @@ class NextActionResponse(_Body):
     model: ModelInfo | None = None
 
 
+Decisions = Annotated[
+    dict[
+        Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)],
+        Annotated[dict[Assertion, Annotated[str, StringConstraints(max_length=20)]],
+                  Field(max_length=MAX_ASSERTIONS_PER_ACTION)],
+    ],
+    Field(max_length=MAX_ACTIONS),
+]
+
+
 class CheckRequest(_UsesRules):
     preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
+    decided: Decisions = Field(
+        default_factory=dict,
+        description="How each rule was decided (action -> rule -> 'established' / 'assumed' / 'zero-shot' / "
+        "'unseen' / ...), named again in the verdicts of the rules that refuse a call. A stored set fills it "
+        "from its inference's report.",
+    )
     history: History = Field(description=HISTORY_DESCRIPTION)
     calls: list[str | ToolCall] = Field(
         min_length=1,
@@ -499,6 +515,11 @@ class CallVerdict(_Body):
         "false with `error` set (naming the rule and the exception), never a silent refusal or approval."
     )
     violations: list[str] = Field(default_factory=list, description="The rules that do not hold.")
+    decided: dict[str, str] = Field(
+        default_factory=dict,
+        description="How each violated rule was decided, where the request (or its stored set) says: an 'assumed' "
+        "rule may be a correlate a reviewer has not confirmed; 'unseen' refuses a never-demonstrated action.",
+    )
     error: str | None = Field(
         default=None,
         description="Why the call could not be judged normally: an exception raised by the call or by a rule "
@@ -553,6 +574,31 @@ class RuleEdit(_Body):
     rule: Assertion = Field(description="The rule: a Python expression, without `assert`.")
 
 
+MAX_REPORTED_CANDIDATES = 2_000
+"""Candidates per action an inference's report may carry into a set (an SGD action gets 60-90)."""
+
+Evidence = Annotated[
+    dict[Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)], dict[Assertion, RuleEvidence]],
+    Field(max_length=MAX_ACTIONS),
+]
+Candidates = Annotated[
+    dict[
+        Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)],
+        Annotated[list[CandidateReport], Field(max_length=MAX_REPORTED_CANDIDATES)],
+    ],
+    Field(max_length=MAX_ACTIONS),
+]
+EVIDENCE_DESCRIPTION = (
+    "From an inference: its `evidence` (per action, per kept rule), kept with the rules so that a reviewer sees "
+    "why each rule is there (the review page, /ui/, shows it)."
+)
+CANDIDATES_DESCRIPTION = (
+    "From an inference: its `candidates`, each with why it was kept or dropped (the alternatives a reviewer may "
+    "prefer)."
+)
+WARNINGS_DESCRIPTION = "From an inference: its `warnings` per action (e.g. no demonstration calls it)."
+
+
 class PreconditionSetCreate(_Body):
     spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
     preconditions: Preconditions = Field(
@@ -563,6 +609,11 @@ class PreconditionSetCreate(_Body):
         default_factory=list, max_length=MAX_DEMONSTRATIONS,
         description="Demonstrations the rules must allow; every version is checked against them (in the sandbox).",
     )
+    evidence: Evidence = Field(default_factory=dict, description=EVIDENCE_DESCRIPTION)
+    candidates: Candidates = Field(default_factory=dict, description=CANDIDATES_DESCRIPTION)
+    warnings: dict[Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)],
+                   Annotated[str, StringConstraints(max_length=MAX_ASSERTION_CHARS)]] = Field(
+        default_factory=dict, max_length=MAX_ACTIONS, description=WARNINGS_DESCRIPTION)
     force: bool = Field(default=False, description="Store even when a rule blocks a demonstrated call.")
 
 
@@ -650,6 +701,44 @@ class PreconditionSet(_Body):
         default_factory=dict,
         description="Per action whose rule is empty (every call allowed) or not backed by the demonstrations, why: "
         "no rule, a reviewer rejected its only rules, or (a version made by re-inference) the inference's warning.")
+    evidence: dict[str, dict[str, RuleEvidence]] = Field(
+        default_factory=dict, description="The inference's evidence per action and rule (carried to later "
+        "versions): occurrences, holds, exceptions, confidence.")
+    candidates: dict[str, list[CandidateReport]] = Field(
+        default_factory=dict, description="The inference's candidates per action, kept or dropped, with why.")
+    decided: dict[str, dict[str, str]] = Field(
+        default_factory=dict, description="How each rule of this version was decided: 'established' (the "
+        "demonstrations back it), 'assumed' (held at fewer than 3 demonstrated calls, or judged a requirement by "
+        "the code model where the evidence left it open), 'zero-shot' (never demonstrated: the code model's "
+        "guess), 'transferred', or "
+        "'no evidence' (written by hand, or stored without an inference's report). The ones that need a human "
+        "are the assumed and zero-shot rules.")
+
+
+class PreconditionSetSummary(_Body):
+    """One line of `GET /precondition-sets`: what a reviewer needs to pick a set, without its programs."""
+
+    id: str
+    actions: list[str] = Field(description="The actions the set knows: with rules, reported by its inference, or "
+                               "with rejected rules.")
+    reference: str = Field(description="`id@latest`.")
+    latest: int = Field(description="The set's latest version, which the counts describe.")
+    created: str = Field(description="When version 1 was made (UTC, ISO 8601).")
+    updated: str = Field(description="When the latest version was made.")
+    rules: int = Field(description="Rules in the latest version.")
+    assumed: int = Field(description="Rules decided 'assumed'.")
+    zero_shot: int = Field(description="Rules decided 'zero-shot'.")
+    no_evidence: int = Field(description="Rules with no evidence (by hand, or stored without a report).")
+    required: int = 0
+    rejected: int = 0
+
+
+class PreconditionSetList(_Body):
+    sets: list[PreconditionSetSummary] = Field(description="Newest first (by creation).")
+    total: int = Field(description="The tenant's sets.")
+    offset: int
+    limit: int
+    next_offset: int | None = Field(default=None, description="The `offset` of the next page; null on the last.")
 
 
 JobKind = Literal["infer", "next-action", "check", "validate", "reinfer"]

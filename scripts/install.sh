@@ -44,3 +44,13 @@ if [ "${PRECOND_INSTALL_REDIS:-1}" = 1 ] && ! command -v redis-server >/dev/null
     echo "warning: redis-server not found; install it (e.g. apt-get install redis-server)" >&2
   fi
 fi
+
+# The review page (/ui/) is tested in a real browser: Debian's Chromium, driven by Playwright (a dev extra) with
+# `executable_path` (Playwright's own browser download is not used). Only where the dev extra is installed.
+if [[ ",${EXTRAS}," == *",dev,"* ]] && ! command -v chromium >/dev/null 2>&1; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    apt-get update -qq && apt-get install -y -qq chromium >/dev/null
+  else
+    echo "warning: chromium not found; the review page's browser tests will be skipped (apt-get install chromium)" >&2
+  fi
+fi

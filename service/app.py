@@ -24,7 +24,7 @@ from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.queue import JobQueue
 from service.quotas import Quotas
-from service.routes import health, operations, sets
+from service.routes import health, operations, sets, ui
 from service.routes import jobs as job_routes
 from service.sets import SetStore
 
@@ -70,7 +70,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     app = FastAPI(
         title="Precondition reasoning service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
     )
-    for router in (operations.router, sets.router, job_routes.router, health.router):
+    for router in (operations.router, sets.router, job_routes.router, health.router, ui.router):
         app.include_router(router)
     errors.install(app, settings.retry_after_s)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)

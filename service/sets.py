@@ -11,15 +11,36 @@ a re-inference makes.
 
 from __future__ import annotations
 
+import json
 import re
 import secrets
+from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
 from arq.connections import ArqRedis
 
-from jobs.sets import APPEND_CONFLICT, APPEND_MISSING, CREATE_SCRIPT, append, index_key, normal, set_key
-from schemas.api import PreconditionSet, RuleEdit, ValidateResponse
+from jobs.sets import (
+    APPEND_CONFLICT,
+    APPEND_MISSING,
+    CREATE_SCRIPT,
+    append,
+    decided,
+    index_key,
+    normal,
+    set_key,
+    summary,
+)
+from schemas.api import (
+    CandidateReport,
+    PreconditionSet,
+    PreconditionSetCreate,
+    PreconditionSetList,
+    PreconditionSetSummary,
+    RuleEdit,
+    RuleEvidence,
+    ValidateResponse,
+)
 from service.errors import ServiceError
 
 _REFERENCE = re.compile(r"^(ps_[0-9a-f]{24})(?:@([1-9][0-9]{0,8}))?$")
@@ -61,7 +82,8 @@ class SetStore:
     async def create(self, tag: str, version: PreconditionSet) -> PreconditionSet:
         record = self._record(version)
         made = await self.redis.eval(  # type: ignore[no-untyped-call]
-            CREATE_SCRIPT, 2, index_key(tag), set_key(tag, version.id), version.id, self.max_sets, record
+            CREATE_SCRIPT, 2, index_key(tag), set_key(tag, version.id), version.id, self.max_sets, record,
+            version.created, summary(version),
         )
         if not made:
             raise ServiceError(422, f"this tenant stores {self.max_sets} precondition sets already, the bound "
@@ -95,6 +117,31 @@ class SetStore:
         return PreconditionSet.model_validate_json(raw).model_copy(update={"latest": int(latest)})
 
 
+    async def summaries(self, tag: str, offset: int, limit: int) -> PreconditionSetList:
+        """The tenant's sets, newest first, from each set's stored summary (never its versions, except for a set
+        stored before summaries were kept: its latest version is read once here)."""
+        ids = sorted(member.decode() for member in await self.redis.smembers(index_key(tag)))
+        async with self.redis.pipeline(transaction=False) as pipe:
+            for set_id in ids:
+                pipe.hmget(set_key(tag, set_id), ["created", "summary"])
+            rows = await pipe.execute()
+        found = []
+        for set_id, (created, stored) in zip(ids, rows, strict=True):
+            if stored is None:
+                try:
+                    latest = await self.get(tag, set_id)
+                    first = latest if latest.latest == 1 else await self.get(tag, f"{set_id}@1")
+                except ServiceError:  # gone meanwhile
+                    continue
+                created, stored = first.created.encode(), summary(latest).encode()
+            found.append(PreconditionSetSummary(created=(created or b"").decode(), **json.loads(stored)))
+        found.sort(key=lambda s: (s.created, s.id), reverse=True)
+        page = found[offset:offset + limit]
+        more = offset + limit < len(found)
+        return PreconditionSetList(sets=page, total=len(found), offset=offset, limit=limit,
+                                   next_offset=offset + limit if more else None)
+
+
 def new_id() -> str:
     return f"ps_{secrets.token_hex(12)}"
 
@@ -106,13 +153,29 @@ def now() -> str:
 def version_of(
     set_id: str, number: int, spec: str, preconditions: dict[str, list[str]], demonstrations: list[str],
     required: dict[str, list[str]], rejected: dict[str, list[str]], edits: list[RuleEdit],
-    validation: ValidateResponse | None, warnings: dict[str, str],
+    validation: ValidateResponse | None, warnings: dict[str, str], report: Report | None = None,
 ) -> PreconditionSet:
+    """Version `number`; `report` is what the inference said about the rules (carried from version to version)."""
+    report = report or Report()
     return PreconditionSet(
         id=set_id, version=number, latest=number, reference=f"{set_id}@{number}", created=now(), spec=spec,
         preconditions=preconditions, demonstrations=demonstrations, required=required, rejected=rejected,
-        edits=edits, validation=validation, warnings=warnings,
+        edits=edits, validation=validation, warnings=warnings, evidence=report.evidence,
+        candidates=report.candidates, decided=decided(preconditions, report.evidence, report.candidates),
     )
+
+
+@dataclass(frozen=True)
+class Report:
+    """An inference's report on its rules, as a set keeps it."""
+
+    evidence: dict[str, dict[str, RuleEvidence]] = field(default_factory=dict)
+    candidates: dict[str, list[CandidateReport]] = field(default_factory=dict)
+    warnings: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, version: PreconditionSet | PreconditionSetCreate) -> Report:
+        return cls(version.evidence, version.candidates, version.warnings)
 
 
 def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str, list[str]], dict[str, list[str]],

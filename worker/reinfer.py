@@ -81,13 +81,16 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         unjudged={k: v for k, v in report.unjudged.items() if tuple(k.split(": ", 1)) in final},
     )
     number = base.latest + 1
+    evidence = {**base.evidence, **inferred.evidence}  # actions not re-inferred keep what was said of them
+    candidates = {**base.candidates, **inferred.candidates}
     return PreconditionSet(
         id=base.id, version=number, latest=number, reference=f"{base.id}@{number}",
         created=datetime.now(UTC).isoformat(timespec="seconds"), spec=base.spec,
         preconditions=merged.preconditions, demonstrations=demos, required=base.required, rejected=base.rejected,
         edits=[], validation=validation,
         diff=sets.explain_removed(merged, blocked),
-        warnings=_warnings(job, merged.preconditions, inferred.warnings),
+        warnings=_warnings(job, merged.preconditions, inferred.warnings), evidence=evidence,
+        candidates=candidates, decided=sets.decided(merged.preconditions, evidence, candidates),
     )
 
 

@@ -137,6 +137,8 @@ async def _with_rules_and_program(
         update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
         if isinstance(body, NextActionRequest) and not body.demonstrations:
             update["demonstrations"] = stored.demonstrations
+        if isinstance(body, CheckRequest):
+            update["decided"] = stored.decided
         body = body.model_copy(update=update)
     try:
         if not isinstance(body.history, str):

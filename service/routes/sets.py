@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Request
+from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from jobs import keys
@@ -18,6 +18,7 @@ from schemas.api import (
     PreconditionSet,
     PreconditionSetCreate,
     PreconditionSetEdit,
+    PreconditionSetList,
     PreconditionSetReinfer,
     ReinferJob,
     ValidateRequest,
@@ -28,7 +29,7 @@ from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer
-from service.sets import apply_edits, blocking_message, new_id, not_found, version_of
+from service.sets import Report, apply_edits, blocking_message, new_id, not_found, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
 RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -46,6 +47,7 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
 }
 SetReference = Annotated[str, Path(max_length=100, description="`id`, or `id@version`.")]
 SetId = Annotated[str, Path(max_length=100)]
+MAX_LISTED_SETS = 100
 
 
 @router.post("", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
@@ -57,22 +59,40 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
-    warnings = set_warnings(body.spec, rules, {}, {})
-    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings)
+    report = Report.of(body)
+    warnings = set_warnings(body.spec, rules, {}, report.warnings)
+    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings,
+                         report)
     stored = await services.sets.create(_tag(services, tenant), version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
 
+@router.get("", response_model=PreconditionSetList, responses={
+    401: RESPONSES[401], 422: {"model": ErrorResponse, "description": "`offset` or `limit` out of range."}})
+async def list_sets(services: ServicesDep, tenant: Tenant,
+                    offset: Annotated[int, Query(ge=0, le=10**6)] = 0,
+                    limit: Annotated[int, Query(ge=1, le=MAX_LISTED_SETS)] = 20) -> PreconditionSetList:
+    """The tenant's sets, newest first: per set its latest version, actions, and how many rules are `assumed`,
+    `zero-shot` or without evidence (the ones a human should read). `next_offset` pages on."""
+    return await services.sets.summaries(_tag(services, tenant), offset, limit)
+
+
 @router.get("/{reference}", response_model=PreconditionSet, responses=RESPONSES)
-async def get_set(reference: SetReference, services: ServicesDep, tenant: Tenant) -> PreconditionSet:
+async def get_set(reference: SetReference, services: ServicesDep, tenant: Tenant) -> Response:
     """The latest version (`id`) or a given one (`id@version`)."""
-    return await services.sets.get(_tag(services, tenant), reference)
+    return _as_json(await services.sets.get(_tag(services, tenant), reference))
 
 
 @router.get("/{set_id}/versions/{number}", response_model=PreconditionSet, responses=RESPONSES)
 async def get_version(set_id: SetId, number: Annotated[int, Path(ge=1, le=10**9)], services: ServicesDep,
-                      tenant: Tenant) -> PreconditionSet:
-    return await services.sets.get(_tag(services, tenant), f"{set_id}@{number}")
+                      tenant: Tenant) -> Response:
+    return _as_json(await services.sets.get(_tag(services, tenant), f"{set_id}@{number}"))
+
+
+def _as_json(version: PreconditionSet) -> Response:
+    """Serialised by pydantic at once: a version with an inference's candidates is hundreds of KB, and FastAPI's
+    re-validation and generic encoding of a returned model took 35 ms of the review page's 300."""
+    return Response(version.model_dump_json(), media_type="application/json")
 
 
 @router.post("/{set_id}/versions", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
@@ -92,7 +112,7 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     edited = {edit.action for edit in body.edits}
     known = {action: warning for action, warning in base.warnings.items() if action not in edited}
     version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
-                         body.edits, validation, set_warnings(base.spec, rules, rejected, known))
+                         body.edits, validation, set_warnings(base.spec, rules, rejected, known), Report.of(base))
     stored = await services.sets.append(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 

@@ -71,6 +71,10 @@ def test_sets_round_trip_with_the_blocking_client(keyed: KeyedStack) -> None:
         assert bad.value.field == "demonstrations[1]"
         with pytest.raises(NotFound):
             client.get_set("ps_" + "0" * 24)
+        listed = client.list_sets(limit=100)
+        mine = next(s for s in listed.sets if s.id == made.id)
+        assert mine.latest == 3 and mine.rules == sum(map(len, redone.preconditions.values()))
+        assert mine.no_evidence == 0 and mine.assumed > 0  # re-inferred: evidence; two dialogs: rules assumed
     with Client(keyed.url, api_key=keyed.keys["cli"]) as other, pytest.raises(NotFound):
         other.reinfer_set(made.id, [DEMOS[1]], options=ENUMERATE)  # another tenant's set: not found
 
@@ -84,6 +88,7 @@ def test_the_async_client_has_the_same_helpers(keyed: KeyedStack) -> None:
             redone = await client.reinfer_set(made.id, [DEMOS[1]], actions=["SYSTEM.INFORM"], options=ENUMERATE)
             verdicts = await client.check_with_set(redone.id, HISTORY, ["system.GOODBYE()"])
             assert (await client.get_set(f"{made.id}@2")).preconditions == edited.preconditions
+            assert made.id in {s.id for s in (await client.list_sets(limit=100)).sets}
             return edited, redone, [v.allowed for v in verdicts.results]
 
     edited, redone, allowed = asyncio.run(run())

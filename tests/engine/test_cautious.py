@@ -208,3 +208,13 @@ def test_dialog_acts_keep_only_what_enabled_them(engine: Engine) -> None:
 ])
 def test_polarity_tells_established_facts_from_not_yet_conditions(expression: str, expected: str) -> None:
     assert polarity(expression) == expected
+
+
+def test_a_refusal_says_how_the_refusing_rule_was_decided(engine: Engine) -> None:
+    response = _infer(engine, CARD_SPEC, CARD_DEMOS)
+    decided = {a: {rule: e.decided or "" for rule, e in rules.items()} for a, rules in response.evidence.items()}
+    verdict = engine.check(CheckRequest(spec=CARD_SPEC, preconditions=response.preconditions, decided=decided,
+                                        history=CONFIRMED_FIRST, calls=["system.BLOCK_CARD()"])).results[0]
+    assert not verdict.allowed
+    assert verdict.decided["self.identity_verified"] == "assumed"
+    assert set(verdict.decided) == set(verdict.violations)

@@ -1,0 +1,82 @@
+// Try a version: an event history (actor, act, args) and a few calls, judged by /check-actions with this
+// version's rules. Arguments stay literals: a word is a string, JSON scalars (2, true, null, "a, b") are values.
+
+import { api, follow } from "./api.js";
+import { clear, errorBox, h } from "./dom.js";
+
+export function tryPanel(set) {
+  const { actors, acts } = vocabulary(set.spec);
+  const events = h("div", { class: "events", id: "try-events" });
+  const calls = h("textarea", { id: "try-calls", placeholder: "system.REQUEST('city')\none call per line" });
+  const results = h("div", { id: "try-results" });
+  const error = h("div", { class: "error", role: "alert", hidden: true, id: "try-error" });
+  const addEvent = () => events.append(eventRow());
+
+  async function check(event) {
+    event.preventDefault();
+    error.hidden = true;
+    clear(results);
+    let body;
+    try {
+      body = { precondition_set: set.reference, history: [...events.children].map(readEvent),
+        calls: calls.value.split("\n").map((c) => c.trim()).filter(Boolean) };
+      if (!body.calls.length) throw new Error("write at least one call");
+      const verdicts = await follow(await api("POST", "/check-actions?wait=10", body));
+      clear(results, verdicts.results.map(verdict));
+    } catch (problem) {
+      errorBox(error, problem);
+    }
+  }
+
+  addEvent();
+  return h("section", { class: "card", id: "try" },
+    h("h2", {}, "Try it"),
+    h("p", { class: "muted" }, `What happened (events), then calls to judge with ${set.reference}.`),
+    h("datalist", { id: "try-actors" }, actors.map((a) => h("option", { value: a }))),
+    h("datalist", { id: "try-acts" }, acts.map((a) => h("option", { value: a }))),
+    h("form", { onsubmit: check }, events,
+      h("div", { class: "row" }, h("button", { type: "button", id: "try-add-event", onclick: addEvent }, "+ event")),
+      h("label", { class: "block", for: "try-calls" }, "Calls"), calls,
+      h("div", { class: "row" }, h("button", { class: "primary", type: "submit", id: "try-check" }, "Check"))),
+    error, results);
+}
+
+function eventRow() {
+  const row = h("div", { class: "event" },
+    h("input", { name: "actor", placeholder: "actor", list: "try-actors", "aria-label": "actor" }),
+    h("input", { name: "act", placeholder: "act", list: "try-acts", "aria-label": "act" }),
+    h("input", { name: "args", placeholder: "args: city, 2", "aria-label": "arguments" }),
+    h("button", { type: "button", "aria-label": "remove event", onclick: () => row.remove() }, "×"));
+  return row;
+}
+
+function readEvent(row, index) {
+  const value = (name) => row.querySelector(`[name=${name}]`).value.trim();
+  if (!value("actor") || !value("act")) throw new Error(`event ${index + 1}: give its actor and act`);
+  return { actor: value("actor"), act: value("act"), args: parseArgs(value("args")) };
+}
+
+function parseArgs(text) {
+  if (!text) return [];
+  try {
+    const values = JSON.parse(`[${text}]`);
+    if (values.every((v) => v === null || ["string", "number", "boolean"].includes(typeof v))) return values;
+  } catch { /* words, not JSON: each comma-separated part is a string */ }
+  return text.split(",").map((part) => part.trim());
+}
+
+function verdict(result) {
+  const allowed = result.allowed;
+  return h("div", { class: `verdict ${allowed ? "allowed" : "refused"}`, dataset: { call: result.call } },
+    h("strong", {}, allowed ? "allowed" : "refused"), " ", h("code", {}, result.call),
+    result.violations.length ? h("div", {}, "violates: ", result.violations.map((v, i) => [i ? ", " : "",
+      h("code", {}, v)])) : null,
+    result.error ? h("div", {}, result.error) : null);
+}
+
+/** Suggestions only (the API judges every event): the spec's classes as actors and its methods as acts. */
+function vocabulary(spec) {
+  const actors = [...spec.matchAll(/^class\s+(\w+)/gm)].map((m) => m[1].toLowerCase());
+  const acts = [...new Set([...spec.matchAll(/^\s+def\s+([A-Za-z]\w*)\s*\(/gm)].map((m) => m[1]))];
+  return { actors, acts };
+}
