@@ -32,7 +32,9 @@ the change, every action with every argument value is judged by the ground-truth
 (evaluation/counterfactual.py). `unsafe` = share of the ground truth's refusals that the inferred rules allow;
 `over` = share of the ground truth's allowances that they refuse; both macro over the actions that have such
 points. `F1` is the paper's metric on the unchanged test trajectories. Config names: evaluation/configs.py
-(`cautious` is the default ranking, `unseen=allow` the paper's treatment of never-demonstrated actions).
+(`cautious` is the default ranking, `unseen=allow` the paper's treatment of never-demonstrated actions). The
+tables above this section were measured before `cautious` and `options.unseen` existed: a config name there
+meant `unseen=allow` (never-demonstrated actions got no rule).
 """
 
 
