@@ -142,10 +142,12 @@ def safety_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
     if not scored:
         return None
     fig, ax = plt.subplots(figsize=(8, 5))
-    for config in dict.fromkeys(r["config"] for r in scored):
+    markers = "os^vD<>Pp*"
+    for k, config in enumerate(dict.fromkeys(r["config"] for r in scored)):
         mine = [r for r in scored if r["config"] == config]
         f1 = sum(r["f1"] for r in mine) / len(mine)
-        ax.scatter([r["over_refuse"] for r in mine], [r["unsafe_allow"] for r in mine], label=f"{config} (F1 {f1:.2f})")
+        ax.scatter([r["over_refuse"] for r in mine], [r["unsafe_allow"] for r in mine], label=f"{config} (F1 {f1:.2f})",
+                   marker=markers[k % len(markers)], s=90 - 6 * k, alpha=0.75)
     ax.set_xlabel("over_refuse (share of the truth's allowances refused)")
     ax.set_ylabel("unsafe_allow (share of the truth's refusals allowed)")
     ax.set_xlim(-0.02, 1.02)
