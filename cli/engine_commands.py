@@ -140,9 +140,12 @@ def summary_lines(response: InferResponse) -> list[str]:
                 lines.append(f"    evidence: {evidence.verdict}, holds at {evidence.holds} of "
                              f"{evidence.occurrences} demonstrated calls (confidence {evidence.confidence:.2f})")
                 lines += _exceptions(evidence, "    refuses ")
-            label = f"{evidence.decided}: " if evidence is not None and evidence.decided else ""
-            if reasons.get(rule) or label:  # its counts are the evidence line's
-                lines.append(f"    decided: {label}{str(reasons.get(rule) or '').split('; held at ')[0]}")
+            label = evidence.decided if evidence is not None and evidence.decided else ""
+            reason = str(reasons.get(rule) or "").split("; held at ")[0]  # its counts are the evidence line's
+            if reason.startswith(f"{label}:"):
+                reason = reason[len(label) + 1:].strip()
+            if reason or label:
+                lines.append(f"    decided: {label}{': ' if label and reason else ''}{reason}")
         if action in response.warnings:
             lines.append(f"  WARNING {response.warnings[action]}")
     kept = sum(len(r) for r in response.preconditions.values())

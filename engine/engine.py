@@ -355,15 +355,14 @@ class Engine:
                 kept = within_budget(picked, evidence)
                 choice = cautious.Choice(kept, {c.representative.expression: "established" for c in kept})
                 cut = [c for c in picked if c not in kept]
-            if not sparse and too_few(info.occurrences):  # strict validation on one or two calls: not established
-                choice = cautious.Choice(choice.chosen, {e: "assumed" if d == "established" else d
-                                                         for e, d in choice.decided.items()}, choice.notes)
             reported, judged, verdicts = _with_composites(choice, results, judged, verdicts, index)
             reasons = {**_screened(verdicts, judged, tolerance, {r.expression: r.reason for r in results}),
                        **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut),
                        **_decided_reasons(choice)}
-            ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts,
-                                    choice.decided)
+            decided = dict(choice.decided)
+            if not sparse and too_few(info.occurrences):  # strict validation on a few calls: not established
+                decided = {e: "assumed" if d == "established" else d for e, d in decided.items()}
+            ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts, decided)
         return ranked
 
     def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,

@@ -60,7 +60,8 @@ def test_infer_can_leave_candidates_out_and_print_a_summary_to_read() -> None:
     at = lines.index("SYSTEM.REQUEST: 1 rule(s), all must hold")
     assert lines[at + 1] == "  not self.user.informed_slot[slot]"
     assert lines[at + 2] == "    evidence: held, holds at 5 of 5 demonstrated calls (confidence 0.65)"
-    assert lines[at + 3].startswith("    decided: established: kept: held at every occurrence")
+    # 5 calls in 2 demonstrations: too few dialogs to establish it
+    assert lines[at + 3].startswith("    decided: assumed: kept: held at every occurrence")
     assert lines[at + 4].startswith("  WARNING thin evidence: SYSTEM.REQUEST is called 5 time(s)")
     at = lines.index("SYSTEM.NOTIFY_FAILURE: 1 rule(s), all must hold")  # never demonstrated: refused
     assert lines[at + 1] == "  False" and lines[at + 3].startswith("    decided: unseen: ")

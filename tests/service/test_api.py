@@ -125,6 +125,7 @@ def test_check_actions_does_not_queue_behind_model_jobs(client: httpx.Client) ->
         "call": "system.FindRestaurants()",
         "allowed": False,
         "violations": ["self.user.informed_slot['cuisine']"],
+        "decided": {},  # rules sent inline, without an inference's report
         "error": None,
     }
     assert inform["allowed"] is False and inform["violations"] == ["self.user.requested_slot[slot]"]

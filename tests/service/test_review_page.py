@@ -49,6 +49,20 @@ def _create(client: httpx.Client, inferred: dict[str, Any], **extra: Any) -> dic
 
 # -- the API the page reads --------------------------------------------------------------------------------------
 
+def test_check_actions_with_a_set_names_how_each_refusing_rule_was_decided(
+    acme: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    made = _create(acme, inferred)
+    refused = _ok(acme.post("/check-actions", params={"wait": 30}, json={
+        "precondition_set": made["reference"], "history": [{"actor": "user", "act": "INFORM", "args": ["city"]}],
+        "calls": ["system.FindRestaurants()", "system.NOTIFY_FAILURE()"]}))
+    for verdict in refused["results"]:
+        assert not verdict["allowed"] and verdict["violations"], verdict
+        action = "SYSTEM." + verdict["call"].split(".")[1].split("(")[0]
+        assert verdict["decided"] == {rule: made["decided"][action][rule] for rule in verdict["violations"]}
+    assert refused["results"][1]["decided"] == {"False": "unseen"}  # never demonstrated: refused, and says why
+
+
 def test_a_set_keeps_its_inference_report_and_says_how_each_rule_was_decided(
     acme: httpx.Client, inferred: dict[str, Any]
 ) -> None:
