@@ -216,20 +216,24 @@ def load(data: Path) -> Converted:
 class GuardConfig:
     ranking: str
     tolerance: float | None
+    unseen: str = "refuse"
 
     @property
     def name(self) -> str:
-        return f"{self.ranking}/tolerance={'default' if self.tolerance is None else f'{self.tolerance:g}'}"
+        tolerance = "default" if self.tolerance is None else f"{self.tolerance:g}"
+        return f"{self.ranking}/tolerance={tolerance}" + ("" if self.unseen == "refuse" else f"/unseen={self.unseen}")
 
 
-CONFIGS = (GuardConfig("recency", None), GuardConfig("recency", 0.0), GuardConfig("marginal", 0.0),
-           GuardConfig("subsumption", 0.0), GuardConfig("marginal", 0.25), GuardConfig("recency", 0.25))
+CONFIGS = (GuardConfig("cautious", None), GuardConfig("cautious", None, "allow"),
+           GuardConfig("recency", None, "allow"), GuardConfig("recency", 0.0, "allow"),
+           GuardConfig("marginal", 0.0, "allow"), GuardConfig("subsumption", 0.0, "allow"),
+           GuardConfig("marginal", 0.25, "allow"), GuardConfig("recency", 0.25, "allow"))
 
 
 def infer_request(converted: Converted, config: GuardConfig) -> InferRequest:
     """Demonstrations: the successful runs' programs only (no label, no reward, goes in)."""
     demos = [t.program for t in converted.trajectories if t.reward == 1.0]
-    options: dict[str, Any] = {"generators": ["enumerate"], "ranking": config.ranking}
+    options: dict[str, Any] = {"generators": ["enumerate"], "ranking": config.ranking, "unseen": config.unseen}
     if config.tolerance is not None:
         options["tolerance"] = config.tolerance
     return InferRequest(spec=converted.spec, demonstrations=demos, actions=[f"AGENT.{w}" for w in WRITES],
