@@ -387,14 +387,19 @@ def write_noise_section(store: JsonCache, out: Path) -> None:
     rows = (store.get("results", "preconditions") or {"rows": []})["rows"]
     img = out.parent / "img"
     img.mkdir(parents=True, exist_ok=True)
-    section = noise_section(rows, img)
+    replace_section(out, NOISE_HEADING, noise_section(rows, img), before="## Policy")
+
+
+def replace_section(out: Path, heading: str, section: str, before: str) -> None:
+    """Write `section` (starting with `heading`) in place of the report's section of that heading, or, when the
+    report has none, in front of the section headed `before` (at the end without one)."""
     text = out.read_text(encoding="utf-8") if out.exists() else ""
-    start = text.find(NOISE_HEADING)
+    start = text.find(heading)
     if start < 0:
-        anchor = text.find("## Policy")
+        anchor = text.find(before)
         start = end = anchor if anchor >= 0 else len(text)
     else:
-        following = text.find("\n## ", start + len(NOISE_HEADING))
+        following = text.find("\n## ", start + len(heading))
         end = following + 1 if following >= 0 else len(text)
     out.write_text(text[:start] + section + "\n" + text[end:], encoding="utf-8")
 

@@ -114,14 +114,8 @@ def section(rows: Sequence[dict[str, Any]], img: Path, default: str) -> str:
 
 def write_section(rows: Sequence[dict[str, Any]], out: Path, default: str) -> None:
     """Replace (or add, before the noise section) this section of an existing report."""
+    from evaluation.report import replace_section
+
     img = out.parent / "img"
     img.mkdir(parents=True, exist_ok=True)
-    text = out.read_text(encoding="utf-8") if out.exists() else ""
-    start = text.find(HEADING)
-    if start < 0:
-        anchor = text.find("## Noise and sparsity")
-        start = end = anchor if anchor >= 0 else len(text)
-    else:
-        following = text.find("\n## ", start + len(HEADING))
-        end = following + 1 if following >= 0 else len(text)
-    out.write_text(text[:start] + section(rows, img, default) + "\n" + text[end:], encoding="utf-8")
+    replace_section(out, HEADING, section(rows, img, default), before="## Noise and sparsity")

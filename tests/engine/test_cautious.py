@@ -51,7 +51,9 @@ def _card_dialog(first: str, second: str) -> str:
 CARD_DEMOS = [_card_dialog("name", "dob"), _card_dialog("dob", "name"), _card_dialog("name", "dob"),
               _card_dialog("dob", "name")]
 
-BANK_SPEC = """from collections import defaultdict
+def _service_spec(call: str, answer: str, result: str, extra: str = "") -> str:
+    """A user who states an intent and gives slots, a system that asks, calls one service and reads its answer."""
+    return f"""from collections import defaultdict
 class USER:
   def __init__(self):
     self.intent = defaultdict(lambda: False)
@@ -62,54 +64,31 @@ class USER:
 class SYSTEM:
   def __init__(self, user):
     self.user = user
-    self.balance = None
+    self.{result} = None
   def REQUEST(self, slot): pass
-  def LOOKUP_BALANCE(self): pass
-  def INFORM_BALANCE(self): pass
-  def balance_result(self, amount): self.balance = amount
+  def {call}(self): pass
+{extra}  def {answer}(self, value): self.{result} = value
 """
 
 
-def _bank_dialog(credentials: Sequence[str]) -> str:
-    steps = ["user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('balance')"]
-    for slot in credentials:
+BANK_SPEC = _service_spec("LOOKUP_BALANCE", "balance_result", "balance", "  def INFORM_BALANCE(self): pass\n")
+
+
+def _service_dialog(intent: str, slots: Sequence[str], service: Sequence[str]) -> str:
+    steps = ["user = USER()", "system = SYSTEM(user)", f"user.INFORM_INTENT({intent!r})"]
+    for slot in slots:
         steps += [f"system.REQUEST({slot!r})", f"user.INFORM({slot!r})"]
-    steps += ["system.LOOKUP_BALANCE()", "system.balance_result(120)", "system.INFORM_BALANCE()"]
-    return "\n".join(steps) + "\n"
+    return "\n".join([*steps, *service]) + "\n"
 
 
 ACCOUNT = ("account", "pin")
 SECURITY = ("dob", "answer1", "answer2")
-BANK_DEMOS = [_bank_dialog(c) for c in (ACCOUNT, SECURITY, ACCOUNT, SECURITY, ACCOUNT, SECURITY)]
+LOOKUP = ("system.LOOKUP_BALANCE()", "system.balance_result(120)", "system.INFORM_BALANCE()")
+BANK_DEMOS = [_service_dialog("balance", c, LOOKUP) for c in (ACCOUNT, SECURITY) * 3]
 
-SEARCH_SPEC = """from collections import defaultdict
-class USER:
-  def __init__(self):
-    self.intent = defaultdict(lambda: False)
-    self.informed = defaultdict(lambda: False)
-  def INFORM_INTENT(self, intent): self.intent[intent] = True
-  def INFORM(self, slot): self.informed[slot] = True
-
-class SYSTEM:
-  def __init__(self, user):
-    self.user = user
-    self.results = None
-  def REQUEST(self, slot): pass
-  def SEARCH(self): pass
-  def OFFER(self): pass
-  def search_result(self, n): self.results = n
-"""
-
-
-def _search_dialog(slots: Sequence[str]) -> str:
-    steps = ["user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('find_flight')"]
-    for slot in slots:
-        steps += [f"system.REQUEST({slot!r})", f"user.INFORM({slot!r})"]
-    steps += ["system.SEARCH()", "system.search_result(3)", "system.OFFER()"]
-    return "\n".join(steps) + "\n"
-
-
-SEARCH_DEMOS = [_search_dialog(s) for s in (("city", "date"), ("date", "city"), ("city", "date"), ("date", "city"))]
+SEARCH_SPEC = _service_spec("SEARCH", "search_result", "results", "  def OFFER(self): pass\n")
+SEARCH = ("system.SEARCH()", "system.search_result(3)", "system.OFFER()")
+SEARCH_DEMOS = [_service_dialog("find_flight", s, SEARCH) for s in (("city", "date"), ("date", "city")) * 2]
 
 
 @pytest.fixture(scope="module")
