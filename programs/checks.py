@@ -42,9 +42,16 @@ def parse(source: str, field: str) -> ast.Module:
     except SyntaxError as exc:
         message = f"{field}, line {exc.lineno}: SyntaxError: {exc.msg}"
         raise ProgramProblem(Problem(INVALID_PROGRAM, field, message)) from exc
-    except (ValueError, RecursionError, MemoryError) as exc:
+    except RecursionError as exc:
+        raise too_deep(field) from exc
+    except (ValueError, MemoryError) as exc:
         message = f"{field}: cannot be parsed: {type(exc).__name__}"
         raise ProgramProblem(Problem(INVALID_PROGRAM, field, message)) from exc
+
+
+def too_deep(field: str) -> ProgramProblem:
+    message = f"{field}: an expression is nested too deeply to be checked (split long chains such as 1+1+...+1)"
+    return ProgramProblem(Problem(INVALID_PROGRAM, field, message))
 
 
 def spec_methods(source: str) -> tuple[ast.Module, dict[str, Method]]:
@@ -162,11 +169,14 @@ def check_work(trees: Sequence[ast.Module], max_points: int | None) -> None:
         return
     steps = sum(len(main_body(tree)) for tree in trees)
     arguments: dict[str, set[str]] = {}
-    for tree in trees:
+    for index, tree in enumerate(trees):
         for node in ast.walk(tree):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
                 call = ast.Call(func=ast.Name("f"), args=node.args, keywords=node.keywords)
-                arguments.setdefault(node.func.attr, set()).add(ast.dump(call))
+                try:  # ast.dump recurses: a flat chain of 1,500 additions parses, yet overflows it
+                    arguments.setdefault(node.func.attr, set()).add(ast.dump(call))
+                except RecursionError:
+                    raise too_deep(f"demonstrations[{index}]") from None
     if not arguments:
         return
     method, values = max(arguments.items(), key=lambda item: len(item[1]))

@@ -1,0 +1,193 @@
+"""One tenant must not take the shared service from the others (issue 28, second attack round).
+
+Each test is an attack of one class on a real stack (Redis, the gateway, a worker with the real engine and
+sandbox), from a tenant with a key of its own; each failed on the code before the fix. None of them depends on
+the uid (they attack the gateway's and the worker's own code, not the sandbox's kernel boundary, which
+tests/sandbox/test_boundary.py attacks as root and as `nobody`). Latencies under attack are measured by
+`python bench/service_bench.py --attacks`, never asserted here.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+from stack import harness
+from stack.keyed import KeyedStack, keyed_stack
+from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving
+
+TENANTS = ("attacker-corp", "victim-corp", "prober-corp", "filler-corp")
+SET_BYTES_PER_TENANT = 60_000
+
+
+@pytest.fixture(scope="module")
+def keyed(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Iterator[KeyedStack]:
+    with keyed_stack(
+        tmp_path_factory.mktemp("shared"), tiny_model_dir, TENANTS, workers=1,
+        PRECOND_TENANT_RATE_PER_S="5", PRECOND_TENANT_BURST="30",
+        PRECOND_MAX_SET_BYTES_PER_TENANT=str(SET_BYTES_PER_TENANT), PRECOND_MAX_BODY_BYTES="4194304",
+    ) as keyed:
+        yield keyed
+
+
+def client(keyed: KeyedStack, tenant: str | None, timeout: float = 60) -> httpx.Client:
+    headers = {} if tenant is None else {"Authorization": f"Bearer {keyed.keys[tenant]}"}
+    return httpx.Client(base_url=keyed.url, headers=headers, timeout=timeout)
+
+
+def deep_demonstration(terms: int = 1_500) -> str:
+    """Parses (the parser's limit is far higher), but every recursive walk of its tree overflows the stack."""
+    return "user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST(" + "+".join(["1"] * terms) + ")\n"
+
+
+# ---- class 1: a request that parses but crashes the gateway's checks ---------------------------------------
+
+
+def test_a_deeply_nested_demonstration_is_a_422_not_a_500(keyed: KeyedStack) -> None:
+    with client(keyed, "attacker-corp") as http:
+        inferred = http.post("/infer-preconditions", json=infer_body(demonstrations=[deep_demonstration()]))
+        created = http.post("/precondition-sets", json={"spec": SPEC, "demonstrations": [DEMOS[0]]})
+        assert created.status_code == 201, created.text
+        reinferred = http.post(f"/precondition-sets/{created.json()['id']}/reinfer",
+                               json={"demonstrations": [deep_demonstration()], "options": {"generators": ["enumerate"]}})
+    for answer in (inferred, reinferred):
+        assert answer.status_code == 422, answer.text
+        error = answer.json()["error"]
+        assert error["field"].startswith("demonstrations") and "nested too deeply" in error["message"], error
+
+
+def test_many_unknown_fields_cost_one_error_not_the_gateways_memory(keyed: KeyedStack) -> None:
+    body = infer_body()
+    filler = "".join(f'"{i:x}":0,' for i in range(400_000))
+    raw = ("{" + filler + httpx.Request("POST", "/", json=body).content.decode()[1:]).encode()
+    assert len(raw) < 4_194_304
+    pid = harness.gateway_pid(keyed.stack)
+    before = harness.rss_kib(pid)
+    with client(keyed, "attacker-corp") as http:
+        answer = http.post("/infer-preconditions", content=raw, headers={"Content-Type": "application/json"})
+    grown_mib = (harness.rss_kib(pid) - before) / 1024
+    assert answer.status_code == 422 and answer.json()["error"]["field"] == "0", answer.text
+    assert grown_mib < 150, f"the gateway grew by {grown_mib:.0f} MiB for one request"
+
+
+# ---- class 2: limits before work -------------------------------------------------------------------------
+
+
+def test_a_set_over_its_size_is_refused_before_its_demonstrations_are_parsed(keyed: KeyedStack) -> None:
+    """3.8 MB of demonstrations, the last one broken: the size bound answers (413) before any parse (a 422
+    for the broken one would mean every demonstration was parsed first, on the gateway's event loop)."""
+    demonstrations = [DEMOS[0] * 3] * 180 + ["system.REQUEST(("]
+    with client(keyed, "attacker-corp") as http:
+        answer = http.post("/precondition-sets", json={"spec": SPEC, "demonstrations": demonstrations})
+    assert answer.status_code == 413, answer.text
+    assert "PRECOND_MAX_SET_BYTES" in answer.json()["error"]["message"]
+
+
+# ---- class 3: who the other tenants are, without a key -----------------------------------------------------
+
+
+def test_metrics_without_a_key_name_no_tenant(keyed: KeyedStack) -> None:
+    with client(keyed, "victim-corp") as http:
+        assert http.post("/check-actions", json=check_body()).status_code == 200
+        http.post("/infer-preconditions", json=infer_body(demonstrations=[deep_demonstration()]))
+    with client(keyed, None) as http:
+        metrics = http.get("/metrics")
+    assert metrics.status_code == 200 and "precond_http_requests" in metrics.text
+    leaked = [tenant for tenant in TENANTS if tenant in metrics.text]
+    assert leaked == [], leaked
+
+
+@pytest.fixture
+def redis_down(tmp_path: Path, tiny_model_dir: Path) -> Iterator[Stack]:
+    stack = make_stack(tmp_path, tiny_model_dir)
+    with serving(stack, workers=0):
+        stack.redis.stop()
+        yield stack
+
+
+def test_ready_with_redis_down_does_not_show_where_redis_is(redis_down: Stack) -> None:
+    with redis_down.http() as http:
+        answers = [http.get("/ready"), http.post("/check-actions", json=check_body())]
+    for answer in answers:
+        assert answer.status_code == 503, answer.text
+        assert str(redis_down.redis.port) not in answer.text and "127.0.0.1" not in answer.text, answer.text
+
+
+# ---- class 4: stored sets fill the shared queue Redis -------------------------------------------------------
+
+
+def test_a_tenants_stored_sets_are_bounded_in_bytes_and_others_still_store(keyed: KeyedStack) -> None:
+    body = {"spec": SPEC, "demonstrations": [DEMOS[0], DEMOS[1]]}  # about 20 KB a set
+    with client(keyed, "filler-corp") as http:
+        codes = [http.post("/precondition-sets", json=body) for _ in range(5)]
+    refused = [a for a in codes if a.status_code != 201]
+    assert refused and refused[0].status_code == 422, [a.status_code for a in codes]
+    error = refused[0].json()["error"]
+    assert error["type"] == "sets_limited" and "PRECOND_MAX_SET_BYTES_PER_TENANT" in error["message"], error
+    with client(keyed, "victim-corp") as http:
+        assert http.post("/precondition-sets", json=body).status_code == 201
+
+
+# ---- class 6: a poison job ---------------------------------------------------------------------------------
+
+POISON_SPEC = ("class A:\n  def __init__(self):\n    self.x = 0\n  def act(self, a, b, c, d): pass\n"
+               "  def q(self, " + ", ".join(f"p{i}" for i in range(14)) + "): return p0\n")
+
+
+def test_a_poison_job_does_not_kill_its_worker(keyed: KeyedStack) -> None:
+    """449 bytes that made the worker build 4^14 argument lists; the test stops the worker at 1 GiB (what
+    the old code passed in about a second) rather than let it take the machine."""
+    stack = keyed.stack
+    (pid,) = stack.worker_pids()
+    peak, stop = [0], threading.Event()
+
+    def guard() -> None:
+        while not stop.wait(0.05):
+            peak[0] = max(peak[0], harness.tree_rss_kib(pid))
+            if peak[0] > 1024 * 1024:
+                harness.sigkill(pid)
+                return
+
+    watcher = threading.Thread(target=guard, daemon=True)
+    watcher.start()
+    body: dict[str, Any] = {"spec": POISON_SPEC, "demonstrations": ["a = A()\na.act(1, 2, 3, 4)\n"],
+                            "options": {"generators": ["enumerate"]}}
+    try:
+        with client(keyed, "attacker-corp", timeout=120) as http:
+            answer = http.post("/infer-preconditions", json=body, params={"wait": 60})
+    finally:
+        stop.set()
+        watcher.join()
+    assert harness.alive(pid), f"the worker died (peak {peak[0] // 1024} MiB)"
+    assert answer.status_code == 200, answer.text
+    assert peak[0] < 1024 * 1024
+
+
+# ---- class 7: rate limits on every route, failed authentications per source -------------------------------
+
+
+def test_every_route_is_rate_limited(keyed: KeyedStack) -> None:
+    with client(keyed, "prober-corp") as http:
+        job_polls = [http.get("/jobs/nothing-here").status_code for _ in range(40)]
+        set_reads = [http.get("/precondition-sets/nothing-here").status_code for _ in range(40)]
+    assert 429 in job_polls and 429 in set_reads, (job_polls, set_reads)
+
+
+@pytest.fixture
+def guessed(tmp_path: Path, tiny_model_dir: Path) -> Iterator[KeyedStack]:
+    with keyed_stack(tmp_path, tiny_model_dir, ("acme",), workers=0) as keyed:
+        yield keyed
+
+
+def test_failed_authentications_are_throttled_per_source(guessed: KeyedStack) -> None:
+    with httpx.Client(base_url=guessed.url, timeout=30) as http:
+        answers = [http.get("/jobs/x", headers={"Authorization": f"Bearer pk_guess{i}"}) for i in range(300)]
+    codes = [a.status_code for a in answers]
+    assert codes.count(401) <= 40 and 429 in codes, codes
+    throttled = next(a for a in answers if a.status_code == 429)
+    assert throttled.json()["error"]["type"] == "auth_limited" and int(throttled.headers["Retry-After"]) >= 1
