@@ -182,6 +182,13 @@ class WorkerSettings(QueueSettings):
         description="Largest answer a job may return; above it the job fails with `response_too_large` (422).",
     )
     check_timeout_s: float = Field(default=60.0, gt=0, description="Longest a check-actions job may run.")
+    job_max_memory_mb: int = Field(
+        default=1024, ge=64,
+        description="How much a job may grow the worker's own resident memory (what the engine builds there, "
+        "outside the sandbox's limits) over its size when the job started; above it the job fails alone "
+        "(`resource_limit`, 422) and the worker goes on. With `PRECOND_PRELOAD_MODEL=false`, set it above the "
+        "model's size (the first model job loads it).",
+    )
     job_max_tries: int = Field(
         default=3, ge=1, description="Runs of a job before it fails (worker deaths count)."
     )

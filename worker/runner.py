@@ -39,6 +39,7 @@ from jobs.records import record_queue_time
 from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
 from worker.jobs import JobCounts, run_operation
+from worker.memory import MemoryGuard
 
 log = logging.getLogger("precond.worker")
 
@@ -67,6 +68,7 @@ class WorkerProcess:
         self.model_error: str | None = None
         self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
         self.cache: ResultCache | None = None  # on the cache Redis, opened in run()
+        self.memory = MemoryGuard(settings.job_max_memory_mb * 1024 * 1024)
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -82,10 +84,12 @@ class WorkerProcess:
             else [asyncio.create_task(self._serve(queue, self.engine)) for queue in self.queues]
         )
         heartbeat = asyncio.create_task(self._heartbeat(redis))
+        self.memory.start()
         if self.engine is not None and self.settings.preload_model and MODEL_QUEUE in self.queues:
             tasks.append(asyncio.create_task(self._preload()))
         await asyncio.gather(*tasks)
         heartbeat.cancel()
+        self.memory.stop()
         await self._forget(redis)
         if cache_redis is not redis:
             await cache_redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
@@ -118,7 +122,7 @@ class WorkerProcess:
             handle_signals=False,
             job_completion_wait=s.drain_s,
             health_check_interval=60,
-            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache},
+            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory},
             on_job_start=self._claim,
             after_job_end=self._job_ended,
         )

@@ -53,8 +53,8 @@ def test_a_deeply_nested_demonstration_is_a_422_not_a_500(keyed: KeyedStack) -> 
         inferred = http.post("/infer-preconditions", json=infer_body(demonstrations=[deep_demonstration()]))
         created = http.post("/precondition-sets", json={"spec": SPEC, "demonstrations": [DEMOS[0]]})
         assert created.status_code == 201, created.text
-        reinferred = http.post(f"/precondition-sets/{created.json()['id']}/reinfer",
-                               json={"demonstrations": [deep_demonstration()], "options": {"generators": ["enumerate"]}})
+        more = {"demonstrations": [deep_demonstration()], "options": {"generators": ["enumerate"]}}
+        reinferred = http.post(f"/precondition-sets/{created.json()['id']}/reinfer", json=more)
     for answer in (inferred, reinferred):
         assert answer.status_code == 422, answer.text
         error = answer.json()["error"]
