@@ -142,9 +142,20 @@ class GatewaySettings(QueueSettings):
         description="Let tenants share cached results of identical requests (each tenant's own by default).",
     )
     tenant_rate_per_s: float = Field(
-        default=50.0, gt=0, description="Requests per second one tenant may send (a token bucket, 429 above)."
+        default=50.0, gt=0,
+        description="Requests per second one tenant may send, on every route that needs a key (a token bucket, "
+        "429 above).",
     )
     tenant_burst: int = Field(default=100, ge=1, description="Requests one tenant may send at once.")
+    auth_failures_per_s: float = Field(
+        default=1.0, gt=0,
+        description="Failed authentications (missing, unknown, revoked or expired key) one source address may "
+        "make per second (a token bucket shared by all gateways); past it every request of that address is "
+        "429 `auth_limited` until a token is back, before its key is looked at.",
+    )
+    auth_failure_burst: int = Field(
+        default=20, ge=1, description="Failed authentications one source address may make at once."
+    )
     tenant_max_jobs: int = Field(
         default=32, ge=1, description="Jobs one tenant may have queued or running at once (429 above)."
     )

@@ -23,7 +23,7 @@ from service.deps import Services
 from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.queue import JobQueue
-from service.quotas import Quotas
+from service.quotas import AuthLimit, Quotas
 from service.routes import health, operations, sets
 from service.routes import jobs as job_routes
 from service.sets import SetStore
@@ -58,7 +58,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         cache = ResultCache(cache_redis, settings.cache_ttl_s, secret)
         completions = Completions(dsn)
         completions.start()
-        quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs)
+        auth = AuthLimit(settings.auth_failures_per_s, settings.auth_failure_burst)
+        quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs, auth)
         queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, quotas, settings.result_ttl_s)
         store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes)
         app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store)

@@ -6,6 +6,7 @@ worker); mapping them all in one module keeps the status codes consistent: bad i
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -18,6 +19,8 @@ from starlette.exceptions import HTTPException
 
 from schemas import errors as engine_errors
 from schemas.api import ErrorInfo, ErrorResponse
+
+log = logging.getLogger("precond.gateway")
 
 _TYPE_BY_STATUS = {
     400: "bad_request",
@@ -137,8 +140,12 @@ async def _http(request: Request, exc: Exception) -> JSONResponse:
 
 
 def _redis_down(retry_after_s: int) -> Any:
+    """503 without the reason's text: redis-py names the address it could not reach, which no caller (with
+    or without a key) should learn; the log keeps it."""
+
     async def handler(request: Request, exc: Exception) -> JSONResponse:
-        info = ErrorInfo(type="unavailable", message=f"queue backend unreachable: {exc}")
+        log.warning("queue backend unreachable (request %s): %s", request_id(request), exc)
+        info = ErrorInfo(type="unavailable", message="queue backend unreachable; retry later")
         return error_response(request, 503, info, headers={"Retry-After": str(retry_after_s)})
 
     return handler

@@ -46,8 +46,8 @@ class RequestContext:
             await self.app(scope, receive, send_with_id)
         finally:
             route = getattr(scope.get("route"), "path", "unmatched")
-            tenant = str(scope["state"].get("tenant", "-"))
-            self.metrics.requests.labels(route, scope["method"], str(status), tenant).inc()
+            tag = str(scope["state"].get("tenant_tag", "-"))  # never the name: /metrics needs no key
+            self.metrics.requests.labels(route, scope["method"], str(status), tag).inc()
             self.metrics.latency.labels(route, scope["method"]).observe(time.perf_counter() - started)
 
 

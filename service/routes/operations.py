@@ -24,12 +24,11 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
 )
-from service.auth import Tenant
+from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples
 from service.queue import QueueFull
-from service.quotas import Refusal
 
 router = APIRouter(tags=["operations"])
 
@@ -160,8 +159,7 @@ async def answer(
     wait: float | None,
 ) -> Response:
     settings = services.settings
-    tag = keys.tenant_tag(services.secret, tenant)
-    await _refuse_over_limit(services, tenant, await services.quotas.take_request(tag, tenant))
+    tag = keys.tenant_tag(services.secret, tenant)  # the request's rate was taken with its key (service.auth)
     if isinstance(body, CheckRequest | NextActionRequest):
         prepared = await _with_rules_and_program(services, tag, body)
         if isinstance(prepared, checks.Problem):
@@ -182,16 +180,14 @@ async def answer(
         problem = await asyncio.to_thread(_programs_problem, body, settings.max_work_points)
     if problem is not None:
         if problem.type == checks.WORK_BUDGET:
-            services.metrics.rejections.labels(tenant, "work").inc()
+            services.metrics.rejections.labels(tag, "work").inc()
         info = ErrorInfo(type=problem.type, message=problem.message, field=problem.field)
         return error_response(request, 422, info)
-    await _refuse_over_limit(
-        services, tenant, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
-    )
+    refuse(services, tag, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s))
     try:
         await services.queue.submit(kind, job_id, payload, tag, cache_key)
     except QueueFull as full:
-        services.metrics.rejections.labels(tenant, "queue").inc()
+        services.metrics.rejections.labels(tag, "queue").inc()
         raise ServiceError(
             429, f"queue limit: queue {full} is full", "queue_full",
             headers={"Retry-After": str(settings.retry_after_s)},
@@ -201,13 +197,6 @@ async def answer(
     if status is None:
         raise ServiceError(503, "the job vanished from the queue backend", headers={"Retry-After": "1"})
     return respond(request, status)
-
-
-async def _refuse_over_limit(services: Services, tenant: str, refusal: Refusal | None) -> None:
-    if refusal is not None:
-        services.metrics.rejections.labels(tenant, refusal.limit).inc()
-        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
-                           headers={"Retry-After": str(refusal.retry_after_s)})
 
 
 def respond(request: Request, status: JobStatus) -> Response:

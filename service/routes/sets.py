@@ -23,7 +23,7 @@ from schemas.api import (
     ValidateRequest,
     ValidateResponse,
 )
-from service.auth import Tenant
+from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
@@ -190,10 +190,7 @@ async def _validate(services: Services, tenant: str, spec: str, rules: dict[str,
     if cached is not None:
         return ValidateResponse.model_validate(cached)
     tag = _tag(services, tenant)
-    refusal = await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
-    if refusal is not None:
-        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
-                           headers={"Retry-After": str(refusal.retry_after_s)})
+    refuse(services, tag, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s))
     try:
         await services.queue.submit("validate", job_id, payload, tag, cache_key)
     except QueueFull as full:
