@@ -162,7 +162,7 @@ class GatewaySettings(QueueSettings):
     max_sets_per_tenant: int = Field(
         default=100, ge=0,
         description="Precondition sets one tenant may store (422 above). Sets live in the queue Redis without "
-        "expiry; with the two bounds below and PRECOND_MAX_BODY_BYTES they bound its memory per tenant.",
+        "expiry; PRECOND_MAX_SET_BYTES_PER_TENANT bounds the bytes of all of them.",
     )
     max_set_versions: int = Field(
         default=50, ge=1, description="Versions one precondition set may have (422 above: create a new set)."
@@ -171,6 +171,17 @@ class GatewaySettings(QueueSettings):
         default=1_000_000, ge=1_000,
         description="Size of one stored version (spec, rules, demonstrations as JSON) in bytes (413 above).",
     )
+    max_set_bytes_per_tenant: int = Field(
+        default=32_000_000, ge=1_000,
+        description="Bytes all of one tenant's stored precondition sets may take, every version counted (422 "
+        "`sets_limited` above). Sets never expire and live in the queue Redis, whose memory every tenant's jobs "
+        "need: size it for this times the number of tenants (keys file) plus the queue's own needs.",
+    )
+    check_processes: int = Field(default=2, ge=1, description=(
+        "Processes per gateway that parse and check large requests' programs (spec, demonstrations, history) off "
+        "the event loop: parsing holds Python's GIL, so a thread would stall every other client."))
+    tenant_check_processes: int = Field(default=1, ge=1, description=(
+        "Of those, how many one tenant's requests may use at once (the rest wait in its own line)."))
     max_work_points: int = Field(
         default=2_000_000,
         ge=1,

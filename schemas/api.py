@@ -574,6 +574,8 @@ class ReinferJob(_Body):
     force: bool = False
     max_versions: int = Field(ge=1)
     max_bytes: int = Field(ge=1)
+    max_tenant_bytes: int | None = Field(default=None, ge=1, description="Bytes of all the tenant's sets; None: "
+                                         "unbounded (a job queued by a gateway that did not send it).")
 
 
 class PreconditionSet(_Body):

@@ -19,6 +19,7 @@ from starlette.exceptions import HTTPException
 
 from schemas import errors as engine_errors
 from schemas.api import ErrorInfo, ErrorResponse
+from service.offload import PoolBroken
 
 log = logging.getLogger("precond.gateway")
 
@@ -162,6 +163,11 @@ def _redis_full(retry_after_s: int) -> Any:
     return handler
 
 
+async def _check_pool_broken(request: Request, exc: Exception) -> JSONResponse:
+    info = ErrorInfo(type="unavailable", message=str(exc))
+    return error_response(request, 503, info, headers={"Retry-After": "1"})
+
+
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
     # Starlette answers unhandled exceptions from its outermost middleware, outside RequestContext, so the
     # request id header is set here: a 500 is exactly the response whose id the client must be able to quote.
@@ -175,4 +181,5 @@ def install(app: FastAPI, retry_after_s: int) -> None:
     for exc in (RedisConnectionError, RedisTimeoutError):
         app.add_exception_handler(exc, _redis_down(retry_after_s))
     app.add_exception_handler(OutOfMemoryError, _redis_full(retry_after_s))
+    app.add_exception_handler(PoolBroken, _check_pool_broken)
     app.add_exception_handler(Exception, _internal)

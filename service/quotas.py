@@ -24,6 +24,7 @@ from typing import Final
 
 from arq.connections import ArqRedis
 from arq.constants import job_key_prefix
+from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from jobs.keys import PREFIX
 
@@ -119,11 +120,16 @@ class Quotas:
         self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
 
     async def _take(self, key: str, rate: float, burst: int) -> int | None:
-        """A token from the bucket at `key`, or the seconds until the next one."""
+        """A token from the bucket at `key`, or the seconds until the next one. While the queue Redis is full
+        (noeviction refuses the bucket's write) the request goes on uncounted: reading a job's state must keep
+        working then, and every request that would write is refused by that Redis anyway."""
         now = datetime.now(UTC).timestamp()
-        allowed, tokens = await self.redis.eval(  # type: ignore[no-untyped-call]
-            _TAKE_TOKEN, 1, key, rate, burst, now
-        )
+        try:
+            allowed, tokens = await self.redis.eval(  # type: ignore[no-untyped-call]
+                _TAKE_TOKEN, 1, key, rate, burst, now
+            )
+        except OutOfMemoryError:
+            return None
         return None if allowed else max(1, math.ceil((1 - float(tokens)) / rate))
 
     async def take_request(self, tag: str, tenant: str) -> Refusal | None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import asyncio
+from collections.abc import Callable
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
@@ -11,7 +11,6 @@ from pydantic import BaseModel
 
 from jobs import keys
 from programs import checks
-from programs.history import render as render_history
 from schemas.api import (
     CheckRequest,
     CheckResponse,
@@ -24,6 +23,7 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
 )
+from service import offload
 from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
@@ -100,23 +100,16 @@ async def check_actions(
     return await answer(services, request, tenant, "check", body, None, wait)
 
 
-INLINE_CHECK_CHARS = 100_000
-"""Programs up to this size are parsed on the event loop (well under a millisecond); larger ones in a thread."""
-
-
-def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem | None:
-    """Every program of the request parsed (never run) before anything is queued, and its work estimated:
-    422 now, not a failed job after the wait in the queue."""
-    try:
-        if isinstance(body, InferRequest):
-            checks.check_infer(body.spec, body.demonstrations, body.actions, max_work_points)
-        elif isinstance(body, NextActionRequest):
-            checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations,
-                                     _text(body.history), max_work_points)
-        elif isinstance(body, CheckRequest):
-            checks.check_check(body.spec_text(), body.preconditions, _text(body.history))
-    except checks.ProgramProblem as exc:
-        return exc.problem
+def _program_check(body: BaseModel, max_work_points: int) -> tuple[Callable[..., None], tuple[Any, ...]] | None:
+    """The static check of the request's programs (parsed, never run) and its work estimate, as a function and
+    its arguments for the check pool: 422 before anything is queued, not a failed job after the wait."""
+    if isinstance(body, InferRequest):
+        return checks.check_infer, (body.spec, body.demonstrations, body.actions, max_work_points)
+    if isinstance(body, NextActionRequest):
+        return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
+                                          _text(body.history), max_work_points)
+    if isinstance(body, CheckRequest):
+        return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history))
     return None
 
 
@@ -131,10 +124,11 @@ async def _with_rules_and_program(
             update={"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
         )
     if not isinstance(body.history, str):
-        try:
-            program = render_history(body.spec_text(), [event.model_dump() for event in body.history])
-        except checks.ProgramProblem as exc:
-            return exc.problem
+        events = [event.model_dump() for event in body.history]
+        chars = len(body.spec_text()) + sum(len(e.act) + sum(len(str(a)) for a in e.args) for e in body.history)
+        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), events)
+        if isinstance(program, checks.Problem):
+            return program
         body = body.model_copy(update={"history": program})
     return body
 
@@ -174,10 +168,9 @@ async def answer(
     services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
     if cached is not None:  # only a request that passed the checks below and ran has a cached result
         return JSONResponse(cached, headers={"X-Job-Id": job_id})
-    if _program_chars(body) <= INLINE_CHECK_CHARS:
-        problem = _programs_problem(body, settings.max_work_points)
-    else:
-        problem = await asyncio.to_thread(_programs_problem, body, settings.max_work_points)
+    check = _program_check(body, settings.max_work_points)
+    problem = None if check is None else await services.checks.run(
+        tag, _program_chars(body), offload.problem_of, check[0], *check[1])
     if problem is not None:
         if problem.type == checks.WORK_BUDGET:
             services.metrics.rejections.labels(tag, "work").inc()

@@ -23,6 +23,7 @@ from schemas.api import (
     ValidateRequest,
     ValidateResponse,
 )
+from service import offload
 from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
@@ -53,7 +54,7 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     """Store rules as version 1 of a new set, by hand or from an inference (its `preconditions`, with the `spec`
     and `demonstrations` it was inferred from). Rules that would block a demonstrated call are refused (422,
     naming the rule and the demonstration) unless `force`; the report is kept in `validation`."""
-    rules = _static_check(body.spec, body.preconditions, body.demonstrations)
+    rules = await _static_check(services, tenant, body.spec, body.preconditions, body.demonstrations)
     validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
@@ -83,7 +84,7 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     tag = _tag(services, tenant)
     base = await _latest(services, tag, set_id, body.base_version)
     rules, required, rejected = apply_edits(base, body.edits)
-    rules = _static_check(base.spec, rules, [], field="edits")
+    rules = await _static_check(services, tenant, base.spec, rules, [], field="edits")
     before = {(a, r) for a, rs in base.preconditions.items() for r in rs}
     new = {(a, r) for a, rs in rules.items() for r in rs} - before
     validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
@@ -116,25 +117,23 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
     `required_kept`, `rejected_suppressed`."""
     tag = _tag(services, tenant)
     base = await _latest(services, tag, set_id, body.base_version)
-    for index, demonstration in enumerate(body.demonstrations):
-        try:
-            checks.parse(demonstration, f"demonstrations[{index}]")
-        except checks.ProgramProblem as exc:
-            raise ServiceError(422, exc.problem.message, exc.problem.type, field=exc.problem.field) from None
     demonstrations = union(base.demonstrations, body.demonstrations)
     if len(demonstrations) > MAX_DEMONSTRATIONS:
         raise ServiceError(422, f"the set's {len(base.demonstrations)} demonstrations and these would be "
                            f"{len(demonstrations)}, over {MAX_DEMONSTRATIONS}", "invalid_input",
                            field="demonstrations")
-    try:
-        checks.check_infer(base.spec, demonstrations, body.actions, services.settings.max_work_points)
-    except checks.ProgramProblem as exc:
-        problem = exc.problem
-        field = "actions" if problem.field.startswith("actions") else "demonstrations"
-        raise ServiceError(422, problem.message, problem.type, field=field) from None
+    chars = len(base.spec) + sum(map(len, demonstrations))
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(tag, chars, offload.problem_of, checks.check_reinfer, base.spec,
+                                        body.demonstrations, demonstrations, body.actions,
+                                        services.settings.max_work_points)
+    if problem is not None:
+        field = problem.field if problem.field.startswith(("actions", "demonstrations[")) else "demonstrations"
+        raise ServiceError(422, problem.message, problem.type, field=field)
     job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=body.options,
                      force=body.force,
-                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes)
+                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
+                     max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
     model = keys.model_identity() if "model" in body.options.generators else None
     return await answer(services, request, tenant, "reinfer", job, model, wait)
 
@@ -155,17 +154,16 @@ def _tag(services: Services, tenant: str) -> str:
     return keys.tenant_tag(services.secret, tenant)
 
 
-def _static_check(spec: str, rules: dict[str, list[str]], demonstrations: list[str],
-                  field: str | None = None) -> dict[str, list[str]]:
-    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations."""
-    try:
-        _, methods = checks.spec_methods(spec)
-        checks.check_preconditions(methods, rules)
-        for index, demonstration in enumerate(demonstrations):
-            checks.parse(demonstration, f"demonstrations[{index}]")
-    except checks.ProgramProblem as exc:
-        problem = exc.problem
-        raise ServiceError(422, problem.message, problem.type, field=field or problem.field) from None
+async def _static_check(services: Services, tenant: str, spec: str, rules: dict[str, list[str]],
+                        demonstrations: list[str], field: str | None = None) -> dict[str, list[str]]:
+    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations; after the
+    size bound (413 before any parse), in the check pool when large (parsing holds the event loop)."""
+    chars = len(spec) + sum(map(len, demonstrations)) + sum(len(r) for rs in rules.values() for r in rs)
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(_tag(services, tenant), chars, offload.problem_of, checks.check_set, spec,
+                                        rules, demonstrations)
+    if problem is not None:
+        raise ServiceError(422, problem.message, problem.type, field=field or problem.field)
     return {action: list(dict.fromkeys(r.strip() for r in rs)) for action, rs in rules.items() if rs}
 
 

@@ -81,7 +81,7 @@ def test_many_unknown_fields_cost_one_error_not_the_gateways_memory(keyed: Keyed
 def test_a_set_over_its_size_is_refused_before_its_demonstrations_are_parsed(keyed: KeyedStack) -> None:
     """3.8 MB of demonstrations, the last one broken: the size bound answers (413) before any parse (a 422
     for the broken one would mean every demonstration was parsed first, on the gateway's event loop)."""
-    demonstrations = [DEMOS[0] * 3] * 180 + ["system.REQUEST(("]
+    demonstrations = [DEMOS[0] * 25] * 180 + ["system.REQUEST(("]  # 180 x 20 KB
     with client(keyed, "attacker-corp") as http:
         answer = http.post("/precondition-sets", json={"spec": SPEC, "demonstrations": demonstrations})
     assert answer.status_code == 413, answer.text
@@ -122,7 +122,7 @@ def test_ready_with_redis_down_does_not_show_where_redis_is(redis_down: Stack) -
 
 
 def test_a_tenants_stored_sets_are_bounded_in_bytes_and_others_still_store(keyed: KeyedStack) -> None:
-    body = {"spec": SPEC, "demonstrations": [DEMOS[0], DEMOS[1]]}  # about 20 KB a set
+    body = {"spec": SPEC, "demonstrations": [DEMOS[0] * 20, DEMOS[1] * 20]}  # about 28 KB a set
     with client(keyed, "filler-corp") as http:
         codes = [http.post("/precondition-sets", json=body) for _ in range(5)]
     refused = [a for a in codes if a.status_code != 201]
