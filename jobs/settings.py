@@ -221,6 +221,12 @@ class WorkerSettings(QueueSettings):
         "queue, so they never wait behind model jobs) run beside them.",
     )
     check_concurrency: int = Field(default=4, ge=1, description="check-actions jobs one worker runs at once.")
+    tenant_max_running: int | None = Field(
+        default=None, ge=1,
+        description="Jobs of one tenant one worker runs at once on each queue, so that the rest of its slots "
+        "stay for the other tenants (fair order decides who goes next, but reserves nothing). Unset: half the "
+        "queue's concurrency, at least 1.",
+    )
     worker_poll_s: float = Field(
         default=0.1, gt=0, description="How often an idle worker polls the model queue (infer, next-action)."
     )
@@ -249,6 +255,10 @@ class WorkerSettings(QueueSettings):
         if self.heartbeat_ttl_s is not None and self.heartbeat_ttl_s <= self.heartbeat_s:
             raise ValueError("PRECOND_HEARTBEAT_TTL_S must be longer than PRECOND_HEARTBEAT_S")
         return self
+
+    def tenant_slots(self, concurrency: int) -> int:
+        """Slots of a queue with `concurrency` slots that one tenant may hold."""
+        return min(concurrency, self.tenant_max_running or max(1, concurrency // 2))
 
     @property
     def heartbeat_lease_s(self) -> float:

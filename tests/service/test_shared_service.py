@@ -10,6 +10,7 @@ tests/sandbox/test_boundary.py attacks as root and as `nobody`). Latencies under
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,7 +20,7 @@ import pytest
 
 from stack import harness
 from stack.keyed import KeyedStack, keyed_stack
-from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving
+from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 
 TENANTS = ("attacker-corp", "victim-corp", "prober-corp", "filler-corp")
 SET_BYTES_PER_TENANT = 60_000
@@ -29,9 +30,11 @@ SET_BYTES_PER_TENANT = 60_000
 def keyed(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Iterator[KeyedStack]:
     with keyed_stack(
         tmp_path_factory.mktemp("shared"), tiny_model_dir, TENANTS, workers=1,
-        PRECOND_TENANT_RATE_PER_S="5", PRECOND_TENANT_BURST="30",
+        PRECOND_TENANT_RATE_PER_S="20", PRECOND_TENANT_BURST="30",
         PRECOND_MAX_SET_BYTES_PER_TENANT=str(SET_BYTES_PER_TENANT), PRECOND_MAX_BODY_BYTES="4194304",
     ) as keyed:
+        with keyed.stack.http() as http:  # the worker loads its model first (a start that holds its event loop)
+            wait_until(lambda: http.get("/ready").status_code == 200, 60, "the worker's model to load")
         yield keyed
 
 
@@ -133,6 +136,38 @@ def test_a_tenants_stored_sets_are_bounded_in_bytes_and_others_still_store(keyed
         assert http.post("/precondition-sets", json=body).status_code == 201
 
 
+# ---- class 5: starvation by waiting -----------------------------------------------------------------------
+
+SLEEPING_HISTORY = ("import typing\ntyping.sys.modules['time'].sleep(5)\n"  # waits, spends no CPU
+                    "user = USER()\nsystem = SYSTEM(user)\n")
+
+
+def test_a_tenants_waiting_checks_leave_slots_for_the_others(keyed: KeyedStack) -> None:
+    """Six checks that only wait, from one tenant, and once they hold what they can, another tenant's check: it
+    is answered while all six still wait (before, they held every check slot and it waited for them to end)."""
+    with client(keyed, "attacker-corp") as http:
+        slow = []
+        for seed in range(6):
+            body = check_body(f"system.REQUEST('slow{seed}')")
+            body["history"] = SLEEPING_HISTORY
+            answer = http.post("/check-actions", json=body, params={"wait": 0})
+            assert answer.status_code == 202, answer.text
+            slow.append(answer.headers["X-Job-Id"])
+
+        def states() -> list[str]:
+            return [http.get(f"/jobs/{job_id}").json()["status"] for job_id in slow]
+
+        queue = keyed.stack.redis.client()
+        running = [f"arq:in-progress:{job_id}" for job_id in slow]
+        wait_until(lambda: queue.exists(*running) >= 2, 10, "the slow checks to start")
+        time.sleep(1)  # time for a worker without a share to start all it can
+        with client(keyed, "victim-corp") as victim:
+            answered = victim.post("/check-actions", json=check_body("system.REQUEST('time')"), params={"wait": 30})
+        after = states()
+    assert answered.status_code == 200, answered.text
+    assert set(after) <= {"queued", "running"}, after
+
+
 # ---- class 6: a poison job ---------------------------------------------------------------------------------
 
 POISON_SPEC = ("class A:\n  def __init__(self):\n    self.x = 0\n  def act(self, a, b, c, d): pass\n"
@@ -173,8 +208,8 @@ def test_a_poison_job_does_not_kill_its_worker(keyed: KeyedStack) -> None:
 
 def test_every_route_is_rate_limited(keyed: KeyedStack) -> None:
     with client(keyed, "prober-corp") as http:
-        job_polls = [http.get("/jobs/nothing-here").status_code for _ in range(40)]
-        set_reads = [http.get("/precondition-sets/nothing-here").status_code for _ in range(40)]
+        job_polls = [http.get("/jobs/nothing-here").status_code for _ in range(60)]
+        set_reads = [http.get("/precondition-sets/nothing-here").status_code for _ in range(60)]
     assert 429 in job_polls and 429 in set_reads, (job_polls, set_reads)
 
 
