@@ -13,6 +13,7 @@ This module imports only the standard library and `programs` at its top: the poo
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import multiprocessing
 from collections.abc import Callable, Mapping, Sequence
@@ -27,6 +28,40 @@ log = logging.getLogger("precond.gateway")
 INLINE_CHARS = 16_000
 """Program text (spec, demonstrations, history) checked on the event loop: a few milliseconds at most."""
 T = TypeVar("T")
+
+
+MAX_JSON_VALUES = 100_000
+"""JSON values (objects, arrays, scalars, keys) of one body. A real 4 MB request is a few large strings; 400,000
+tiny members are only work (pydantic made an error object of each, and the gateway grew by 465 MiB)."""
+INLINE_BODY_BYTES = 64 * 1024
+"""Bodies parsed on the event loop; larger ones in the pool (`json.loads` holds the GIL too)."""
+
+
+def _too_many_values(value: Any) -> bool:
+    count, todo = 0, [value]
+    while todo:
+        item = todo.pop()
+        count += 1 + (len(item) if isinstance(item, dict) else 0)
+        if count > MAX_JSON_VALUES:
+            return True
+        if isinstance(item, dict):
+            todo.extend(item.values())
+        elif isinstance(item, list):
+            todo.extend(item)
+    return False
+
+
+def parsed_json(body: bytes) -> Any:
+    """The body as JSON; a `(message, position)` tuple when it is not JSON, `None` when it has too many values.
+    (A parsed body comes back as a list holding it, so that a body that is itself a JSON tuple-like array or
+    null is never mistaken for one of those.)"""
+    try:
+        value = json.loads(body)
+    except json.JSONDecodeError as exc:
+        return (exc.msg, exc.pos)
+    except (ValueError, RecursionError) as exc:
+        return (type(exc).__name__, 0)
+    return None if _too_many_values(value) else [value]
 
 
 class PoolBroken(RuntimeError):

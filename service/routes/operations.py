@@ -28,9 +28,10 @@ from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples
+from service.middleware import OffloadedBodyRoute
 from service.queue import QueueFull
 
-router = APIRouter(tags=["operations"])
+router = APIRouter(tags=["operations"], route_class=OffloadedBodyRoute)
 
 Wait = Annotated[
     float | None,

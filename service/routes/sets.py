@@ -27,11 +27,12 @@ from service import offload
 from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
+from service.middleware import OffloadedBodyRoute
 from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer
 from service.sets import apply_edits, blocking_message, new_id, version_of
 
-router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
+router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"], route_class=OffloadedBodyRoute)
 RESPONSES: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},

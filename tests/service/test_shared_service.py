@@ -13,12 +13,18 @@ import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
 
 from stack import harness
+from stack.attacks import (
+    POISON_BODY,
+    SLEEPING_HISTORY,
+    deep_demonstration,
+    oversized_set_body,
+    unknown_fields_body,
+)
 from stack.keyed import KeyedStack, keyed_stack
 from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 
@@ -43,11 +49,6 @@ def client(keyed: KeyedStack, tenant: str | None, timeout: float = 60) -> httpx.
     return httpx.Client(base_url=keyed.url, headers=headers, timeout=timeout)
 
 
-def deep_demonstration(terms: int = 1_500) -> str:
-    """Parses (the parser's limit is far higher), but every recursive walk of its tree overflows the stack."""
-    return "user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST(" + "+".join(["1"] * terms) + ")\n"
-
-
 # ---- class 1: a request that parses but crashes the gateway's checks ---------------------------------------
 
 
@@ -65,16 +66,15 @@ def test_a_deeply_nested_demonstration_is_a_422_not_a_500(keyed: KeyedStack) -> 
 
 
 def test_many_unknown_fields_cost_one_error_not_the_gateways_memory(keyed: KeyedStack) -> None:
-    body = infer_body()
-    filler = "".join(f'"{i:x}":0,' for i in range(400_000))
-    raw = ("{" + filler + httpx.Request("POST", "/", json=body).content.decode()[1:]).encode()
+    raw = unknown_fields_body()
     assert len(raw) < 4_194_304
     pid = harness.gateway_pid(keyed.stack)
     before = harness.rss_kib(pid)
     with client(keyed, "attacker-corp") as http:
         answer = http.post("/infer-preconditions", content=raw, headers={"Content-Type": "application/json"})
     grown_mib = (harness.rss_kib(pid) - before) / 1024
-    assert answer.status_code == 422 and answer.json()["error"]["field"] == "0", answer.text
+    assert answer.status_code == 422, answer.text
+    assert "more than 100,000 JSON values" in answer.json()["error"]["message"], answer.text
     assert grown_mib < 150, f"the gateway grew by {grown_mib:.0f} MiB for one request"
 
 
@@ -84,9 +84,8 @@ def test_many_unknown_fields_cost_one_error_not_the_gateways_memory(keyed: Keyed
 def test_a_set_over_its_size_is_refused_before_its_demonstrations_are_parsed(keyed: KeyedStack) -> None:
     """3.8 MB of demonstrations, the last one broken: the size bound answers (413) before any parse (a 422
     for the broken one would mean every demonstration was parsed first, on the gateway's event loop)."""
-    demonstrations = [DEMOS[0] * 25] * 180 + ["system.REQUEST(("]  # 180 x 20 KB
     with client(keyed, "attacker-corp") as http:
-        answer = http.post("/precondition-sets", json={"spec": SPEC, "demonstrations": demonstrations})
+        answer = http.post("/precondition-sets", json=oversized_set_body())
     assert answer.status_code == 413, answer.text
     assert "PRECOND_MAX_SET_BYTES" in answer.json()["error"]["message"]
 
@@ -138,10 +137,6 @@ def test_a_tenants_stored_sets_are_bounded_in_bytes_and_others_still_store(keyed
 
 # ---- class 5: starvation by waiting -----------------------------------------------------------------------
 
-SLEEPING_HISTORY = ("import typing\ntyping.sys.modules['time'].sleep(5)\n"  # waits, spends no CPU
-                    "user = USER()\nsystem = SYSTEM(user)\n")
-
-
 def test_a_tenants_waiting_checks_leave_slots_for_the_others(keyed: KeyedStack) -> None:
     """Six checks that only wait, from one tenant, and once they hold what they can, another tenant's check: it
     is answered while all six still wait (before, they held every check slot and it waited for them to end)."""
@@ -170,10 +165,6 @@ def test_a_tenants_waiting_checks_leave_slots_for_the_others(keyed: KeyedStack) 
 
 # ---- class 6: a poison job ---------------------------------------------------------------------------------
 
-POISON_SPEC = ("class A:\n  def __init__(self):\n    self.x = 0\n  def act(self, a, b, c, d): pass\n"
-               "  def q(self, " + ", ".join(f"p{i}" for i in range(14)) + "): return p0\n")
-
-
 def test_a_poison_job_does_not_kill_its_worker(keyed: KeyedStack) -> None:
     """449 bytes that made the worker build 4^14 argument lists; the test stops the worker at 1 GiB (what
     the old code passed in about a second) rather than let it take the machine."""
@@ -190,11 +181,9 @@ def test_a_poison_job_does_not_kill_its_worker(keyed: KeyedStack) -> None:
 
     watcher = threading.Thread(target=guard, daemon=True)
     watcher.start()
-    body: dict[str, Any] = {"spec": POISON_SPEC, "demonstrations": ["a = A()\na.act(1, 2, 3, 4)\n"],
-                            "options": {"generators": ["enumerate"]}}
     try:
         with client(keyed, "attacker-corp", timeout=120) as http:
-            answer = http.post("/infer-preconditions", json=body, params={"wait": 60})
+            answer = http.post("/infer-preconditions", json=POISON_BODY, params={"wait": 60})
     finally:
         stop.set()
         watcher.join()
