@@ -50,7 +50,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
           "description": "Malformed body, input the engine cannot use, or over the work budget."},
     429: {"model": ErrorResponse,
           "description": "A limit: the tenant's request rate (`rate_limited`), its jobs queued or running "
-          "(`jobs_limited`), or the queue's length (`queue_full`); see Retry-After."},
+          "(`jobs_limited`), the queue's length (`queue_full`), or failed authentications from this address "
+          "(`auth_limited`); see Retry-After."},
     503: {"model": ErrorResponse, "description": "Queue backend unreachable or model unavailable."},
 }
 

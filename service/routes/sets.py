@@ -42,7 +42,8 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorResponse, "description": "A version over PRECOND_MAX_SET_BYTES."},
     422: {"model": ErrorResponse, "description": "Malformed body or rule (field names it, e.g. `edits[2]`), a rule "
           "that would block a demonstrated call (unless `force`), or over a bound (`sets_limited`)."},
-    429: {"model": ErrorResponse, "description": "A limit of the tenant or the check queue (see Retry-After)."},
+    429: {"model": ErrorResponse, "description": "A limit of the tenant (request rate, jobs), of failed "
+          "authentications from this address, or of the check queue (see Retry-After)."},
     503: {"model": ErrorResponse, "description": "Queue backend unreachable, or the check against the "
           "demonstrations did not finish in time (retry: its result is cached)."},
 }
