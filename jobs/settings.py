@@ -153,6 +153,12 @@ class GatewaySettings(QueueSettings):
         "make per second (a token bucket shared by all gateways); past it every request of that address is "
         "429 `auth_limited` until a token is back, before its key is looked at.",
     )
+    open_rate_per_s: float = Field(
+        default=50.0, gt=0,
+        description="Requests per second one source address may send to the routes open without a key "
+        "(/health, /ready, /metrics; a token bucket per gateway process, 429 above).",
+    )
+    open_burst: int = Field(default=100, ge=1, description="Requests one source address may send to them at once.")
     auth_failure_burst: int = Field(
         default=20, ge=1, description="Failed authentications one source address may make at once."
     )

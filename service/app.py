@@ -24,7 +24,7 @@ from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.offload import CheckPool
 from service.queue import JobQueue
-from service.quotas import AuthLimit, Quotas
+from service.quotas import AuthLimit, Quotas, SourceBuckets
 from service.routes import health, operations, sets
 from service.routes import jobs as job_routes
 from service.sets import SetStore
@@ -65,7 +65,9 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes,
                          settings.max_set_bytes_per_tenant)
         pool = CheckPool(settings.check_processes, settings.tenant_check_processes)
-        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool)
+        open_rate = SourceBuckets(settings.open_rate_per_s, settings.open_burst)
+        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool,
+                                      open_rate)
         yield
         pool.close()
         await completions.close()

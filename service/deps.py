@@ -14,7 +14,7 @@ from service.auth import KeyStore
 from service.metrics import Metrics
 from service.offload import CheckPool
 from service.queue import JobQueue
-from service.quotas import Quotas
+from service.quotas import Quotas, SourceBuckets
 from service.sets import SetStore
 
 
@@ -30,6 +30,7 @@ class Services:
     keys: KeyStore | None
     sets: SetStore
     checks: CheckPool
+    open_rate: SourceBuckets
 
 
 async def _services(request: Request) -> Services:

@@ -114,6 +114,29 @@ class AuthLimit:
 MAX_BLOCKED_SOURCES: Final = 10_000
 
 
+class SourceBuckets:
+    """Token buckets per source address kept in this process, for the routes open without a key (`/health`,
+    `/ready`, `/metrics`): they must answer while Redis is down, so their rate cannot live there."""
+
+    def __init__(self, rate_per_s: float, burst: int) -> None:
+        self.rate_per_s, self.burst = rate_per_s, burst
+        self._buckets: dict[str, tuple[float, float]] = {}  # source -> (tokens, at)
+
+    def take(self, source: str) -> Refusal | None:
+        now = datetime.now(UTC).timestamp()
+        if len(self._buckets) >= MAX_BLOCKED_SOURCES:  # keep only the empty ones (a forgotten bucket is full)
+            self._buckets = {s: b for s, b in self._buckets.items() if b[0] + (now - b[1]) * self.rate_per_s < 1}
+        tokens, at = self._buckets.get(source, (float(self.burst), now))
+        tokens = min(float(self.burst), tokens + (now - at) * self.rate_per_s)
+        if tokens < 1:
+            self._buckets[source] = (tokens, now)
+            wait = max(1, math.ceil((1 - tokens) / self.rate_per_s))
+            return Refusal("rate", f"rate limit: this address may call the open routes {self.rate_per_s:g} "
+                                   f"times/s (bursts of {self.burst})", wait)
+        self._buckets[source] = (tokens - 1, now)
+        return None
+
+
 class Quotas:
     def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int, auth: AuthLimit) -> None:
         self.redis, self.rate_per_s, self.burst, self.max_jobs, self.auth = redis, rate_per_s, burst, max_jobs, auth
