@@ -78,6 +78,16 @@ def test_many_unknown_fields_cost_one_error_not_the_gateways_memory(keyed: Keyed
     assert grown_mib < 150, f"the gateway grew by {grown_mib:.0f} MiB for one request"
 
 
+def test_a_large_body_that_is_not_json_says_where(keyed: KeyedStack) -> None:
+    """Parsed in the check pool (over 64 KiB), and answered as the event loop's parse answers a small one."""
+    raw = httpx.Request("POST", "/", json=infer_body(spec=SPEC + "#" * 100_000)).content[:-1] + b",}"
+    with client(keyed, "attacker-corp") as http:
+        answer = http.post("/infer-preconditions", content=raw, headers={"Content-Type": "application/json"})
+    error = answer.json()["error"]
+    assert answer.status_code == 422 and error["field"] == "body", answer.text
+    assert error["message"].startswith("body is not valid JSON") and "line 1, column" in error["message"], error
+
+
 # ---- class 2: limits before work -------------------------------------------------------------------------
 
 
