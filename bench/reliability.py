@@ -9,7 +9,9 @@ Scenarios: crash (200 infer jobs, a worker SIGKILLed 6 times, then
 the same without kills), redis (SIGTERM and SIGKILL restart with the
 append-only file), hostile (the hostile corpus over HTTP, production sandbox limits), fuzz (schemathesis,
 all operations), overload (48 clients on one worker, queue bound 8), shutdown (SIGTERM mid-job, drain longer
-and shorter than the job). Each runs on its own redis-server + gateway + workers on free loopback ports,
+and shorter than the job), attacks (one tenant runs each attack of issue 28 while another measures its uncached
+check-actions and enumerate-only inference latencies, /health, the gateway's resident size and worker
+deaths: stack/attacks.py). Each runs on its own redis-server + gateway + workers on free loopback ports,
 with the tiny random model of stack/tiny_model.py (model-free enumerate jobs do the real work).
 """
 
@@ -25,8 +27,10 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stack import scenarios  # noqa: E402
+from stack import attacks, scenarios  # noqa: E402
 from stack.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
+from stack.keyed import keyed_stack  # noqa: E402
+from stack.local import wait_until  # noqa: E402
 from stack.tiny_model import build_tiny_model  # noqa: E402
 
 FULL: dict[str, dict[str, Any]] = {
@@ -35,6 +39,7 @@ FULL: dict[str, dict[str, Any]] = {
     "fuzz": {"max_examples": 100},
     "overload": {"clients": 48, "duration_s": 60.0, "millions": 5},
     "shutdown": {"millions": 90},
+    "attacks": {"duration_s": 30.0},
 }
 QUICK: dict[str, dict[str, Any]] = {
     "crash": {"jobs": 40, "kills": 3, "millions": 3},
@@ -42,6 +47,7 @@ QUICK: dict[str, dict[str, Any]] = {
     "fuzz": {"max_examples": 15},
     "overload": {"clients": 24, "duration_s": 12.0, "millions": 3},
     "shutdown": {"millions": 90},
+    "attacks": {"duration_s": 10.0},
 }
 
 
@@ -84,12 +90,19 @@ def run(name: str, size: dict[str, Any], tmp: Path, model: Path, quick: bool) ->
             with scenario_stack("shutdown-drain" if covers else "shutdown-handback", sub, model) as stack:
                 shutdowns.append(scenarios.graceful_shutdown(stack, drain_covers_job=covers, **size))
         return shutdowns
+    if name == "attacks":
+        settings = {"PRECOND_MAX_BODY_BYTES": "4194304", "SANDBOX_TIMEOUT_S": "10", "SANDBOX_CPU_S": "10"}
+        with keyed_stack(where, model, ("victim", "attacker"), workers=1, **settings) as keyed:
+            with keyed.stack.http() as http:
+                wait_until(lambda: http.get("/ready").status_code == 200, 120, "the worker's model to load")
+            return attacks.tenant_attacks(keyed, **size)
     raise SystemExit(f"unknown scenario {name}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("names", nargs="*", default=["crash", "redis", "hostile", "fuzz", "overload", "shutdown"])
+    parser.add_argument("names", nargs="*",
+                        default=["crash", "redis", "hostile", "fuzz", "overload", "shutdown", "attacks"])
     parser.add_argument("--quick", action="store_true", help="the CI sizes (and CI's short sandbox limits)")
     parser.add_argument("--json", type=Path, help="write all figures here")
     parser.add_argument("--keep", action="store_true", help="keep the temp dir (logs, schemathesis reports)")

@@ -9,6 +9,7 @@ conditions a small model never writes.
 from __future__ import annotations
 
 import ast
+import itertools
 from collections import defaultdict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -21,6 +22,10 @@ from sandbox.types import ActionInfo
 MAX_KEYS = 40
 MAX_CONSTANTS_PER_PARAM = 8
 MAX_DEPTH = 2
+MAX_QUERY_CALLS = 64
+"""Argument lists tried per pure query: the choices multiply per parameter (4 action parameters and a query of
+14 parameters are 4^14 = 268 million lists), and they are built here, in the worker, outside every sandbox
+limit; so only the first lists of the product are made."""
 MAPPING_FACTORIES = {"defaultdict", "dict", "OrderedDict", "Counter"}
 SET_FACTORIES = {"set", "frozenset"}
 SEQUENCE_FACTORIES = {"list", "tuple", "deque"}
@@ -206,10 +211,7 @@ def _query_arguments(query_params: Sequence[str], action_params: Sequence[str], 
         constants = facts.constants.get(name, [])
         few = 0 < len(constants) <= MAX_CONSTANTS_PER_PARAM
         options.append([repr(c) for c in constants] if few else list(action_params))
-    calls = [""]
-    for choices in options:
-        calls = [f"{prefix}, {c}" if prefix else c for prefix in calls for c in choices]
-    return calls if options else [""]
+    return [", ".join(args) for args in itertools.islice(itertools.product(*options), MAX_QUERY_CALLS)]
 
 
 def _with_negation(expression: str) -> tuple[str, str]:

@@ -6,12 +6,14 @@ from engine.engine import Engine
 from engine.settings import ModelSettings, SandboxSettings
 
 
-def build_engine(with_model: bool = True) -> Engine:
-    """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models).
+def build_engine(with_model: bool = True, min_sandbox_workers: int = 1) -> Engine:
+    """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models). The sandbox
+    gets `SANDBOX_WORKERS` fork servers, or `min_sandbox_workers` (a queue worker's job slots) if more.
 
     Raises SandboxUnavailable where untrusted code cannot be confined: no engine runs without its sandbox.
     """
-    sandbox = SandboxSettings().build()
+    settings = SandboxSettings()
+    sandbox = settings.model_copy(update={"workers": max(settings.workers, min_sandbox_workers)}).build()
     if not with_model:
         return Engine(sandbox, None)
 

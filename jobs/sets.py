@@ -3,6 +3,7 @@ atomic append of a version (the gateway for edits, a worker for re-inference), a
 re-inference with the base version (required rules kept, rejected rules kept out, a diff with reasons).
 
     precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
+    precond:set-bytes:<tenant tag>     bytes of all the tenant's stored versions (bounded per tenant)
     precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten);
                                        `created` (of version 1) and `summary` (of the latest) for the list
 """
@@ -19,28 +20,40 @@ from jobs.keys import PREFIX
 from programs import checks
 from schemas.api import CandidateReport, PreconditionSet, RuleChange, RuleEvidence, SetDiff
 
-CREATE_SCRIPT: Final = """
+_TENANT_BYTES = """
+local function over_bytes(key, record, bound)
+  return bound > 0 and tonumber(redis.call('get', key) or '0') + #record > bound
+end
+"""
+
+CREATE_SCRIPT: Final = _TENANT_BYTES + """
 if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
+if over_bytes(KEYS[3], ARGV[3], tonumber(ARGV[4])) then return -4 end
 redis.call('sadd', KEYS[1], ARGV[1])
-redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3], 'created', ARGV[4], 'summary', ARGV[5])
+redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3], 'created', ARGV[5], 'summary', ARGV[6])
+redis.call('incrby', KEYS[3], #ARGV[3])
 return 1
 """
-"""Create a set with its version 1 unless the tenant is at its bound: count and write in one step (with its
-creation time and the summary the list of sets reads, so listing never reads whole versions)."""
+"""Create a set with its version 1 unless the tenant is at its bound of sets or bytes: count and write in one
+step (with its creation time and the summary the list of sets reads, so listing never reads whole versions)."""
 
-APPEND_SCRIPT: Final = """
+APPEND_SCRIPT: Final = _TENANT_BYTES + """
 local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
 if latest == 0 then return -1 end
 if latest ~= tonumber(ARGV[1]) then return -2 end
 if latest >= tonumber(ARGV[2]) then return -3 end
-redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3], 'summary', ARGV[4])
+if over_bytes(KEYS[2], ARGV[3], tonumber(ARGV[4])) then return -4 end
+redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3], 'summary', ARGV[5])
+redis.call('incrby', KEYS[2], #ARGV[3])
 return latest + 1
 """
-"""Append version latest+1, only if `latest` is still the version it was made from."""
+"""Append version latest+1, only if `latest` is still the version it was made from and the tenant's stored
+bytes stay within its bound."""
 
 APPEND_MISSING: Final = -1
 APPEND_CONFLICT: Final = -2
 APPEND_FULL: Final = -3
+TENANT_BYTES_FULL: Final = -4
 
 
 def index_key(tag: str) -> str:
@@ -51,10 +64,21 @@ def set_key(tag: str, set_id: str) -> str:
     return f"{PREFIX}:set:{tag}:{set_id}"
 
 
-async def append(redis: Any, tag: str, version: PreconditionSet, record: str, max_versions: int) -> int:
-    """Store `record` (version n's JSON) as version n if n-1 is still the latest: n, or an APPEND_* code."""
-    return int(await redis.eval(APPEND_SCRIPT, 1, set_key(tag, version.id), version.version - 1, max_versions,
-                                record, summary(version)))
+def bytes_key(tag: str) -> str:
+    return f"{PREFIX}:set-bytes:{tag}"
+
+
+def tenant_bytes_message(max_tenant_bytes: int) -> str:
+    return (f"this tenant's precondition sets would take more than {max_tenant_bytes:,} bytes, the bound "
+            "(PRECOND_MAX_SET_BYTES_PER_TENANT)")
+
+
+async def append(redis: Any, tag: str, version: PreconditionSet, record: str, max_versions: int,
+                 max_tenant_bytes: int | None) -> int:
+    """Store `record` (version n's JSON) as version n if n-1 is still the latest and the tenant's sets stay within
+    `max_tenant_bytes` (None: unbounded): n, or an APPEND_* / TENANT_BYTES_FULL code."""
+    return int(await redis.eval(APPEND_SCRIPT, 2, set_key(tag, version.id), bytes_key(tag), version.version - 1,
+                                max_versions, record, max_tenant_bytes or 0, summary(version)))
 
 
 ESTABLISHED_AT: Final = 3

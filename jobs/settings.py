@@ -142,16 +142,33 @@ class GatewaySettings(QueueSettings):
         description="Let tenants share cached results of identical requests (each tenant's own by default).",
     )
     tenant_rate_per_s: float = Field(
-        default=50.0, gt=0, description="Requests per second one tenant may send (a token bucket, 429 above)."
+        default=50.0, gt=0,
+        description="Requests per second one tenant may send, on every route that needs a key (a token bucket, "
+        "429 above).",
     )
     tenant_burst: int = Field(default=100, ge=1, description="Requests one tenant may send at once.")
+    auth_failures_per_s: float = Field(
+        default=1.0, gt=0,
+        description="Failed authentications (missing, unknown, revoked or expired key) one source address may "
+        "make per second (a token bucket shared by all gateways); past it every request of that address is "
+        "429 `auth_limited` until a token is back, before its key is looked at.",
+    )
+    open_rate_per_s: float = Field(
+        default=50.0, gt=0,
+        description="Requests per second one source address may send to the routes open without a key "
+        "(/health, /ready, /metrics; a token bucket per gateway process, 429 above).",
+    )
+    open_burst: int = Field(default=100, ge=1, description="Requests one source address may send to them at once.")
+    auth_failure_burst: int = Field(
+        default=20, ge=1, description="Failed authentications one source address may make at once."
+    )
     tenant_max_jobs: int = Field(
         default=32, ge=1, description="Jobs one tenant may have queued or running at once (429 above)."
     )
     max_sets_per_tenant: int = Field(
         default=100, ge=0,
         description="Precondition sets one tenant may store (422 above). Sets live in the queue Redis without "
-        "expiry; with the two bounds below and PRECOND_MAX_BODY_BYTES they bound its memory per tenant.",
+        "expiry; PRECOND_MAX_SET_BYTES_PER_TENANT bounds the bytes of all of them.",
     )
     max_set_versions: int = Field(
         default=50, ge=1, description="Versions one precondition set may have (422 above: create a new set)."
@@ -160,6 +177,17 @@ class GatewaySettings(QueueSettings):
         default=1_000_000, ge=1_000,
         description="Size of one stored version (spec, rules, demonstrations as JSON) in bytes (413 above).",
     )
+    max_set_bytes_per_tenant: int = Field(
+        default=32_000_000, ge=1_000,
+        description="Bytes all of one tenant's stored precondition sets may take, every version counted (422 "
+        "`sets_limited` above). Sets never expire and live in the queue Redis, whose memory every tenant's jobs "
+        "need: size it for this times the number of tenants (keys file) plus the queue's own needs.",
+    )
+    check_processes: int = Field(default=2, ge=1, description=(
+        "Processes per gateway that parse and check large requests' programs (spec, demonstrations, history) off "
+        "the event loop: parsing holds Python's GIL, so a thread would stall every other client."))
+    tenant_check_processes: int = Field(default=1, ge=1, description=(
+        "Of those, how many one tenant's requests may use at once (the rest wait in its own line)."))
     max_work_points: int = Field(
         default=2_000_000,
         ge=1,
@@ -182,6 +210,13 @@ class WorkerSettings(QueueSettings):
         description="Largest answer a job may return; above it the job fails with `response_too_large` (422).",
     )
     check_timeout_s: float = Field(default=60.0, gt=0, description="Longest a check-actions job may run.")
+    job_max_memory_mb: int = Field(
+        default=1024, ge=64,
+        description="How much a job may grow the worker's own resident memory (what the engine builds there, "
+        "outside the sandbox's limits) over its size when the job started; above it the job fails alone "
+        "(`resource_limit`, 422) and the worker goes on. With `PRECOND_PRELOAD_MODEL=false`, set it above the "
+        "model's size (the first model job loads it).",
+    )
     job_max_tries: int = Field(
         default=3, ge=1, description="Runs of a job before it fails (worker deaths count)."
     )
@@ -192,6 +227,12 @@ class WorkerSettings(QueueSettings):
         "queue, so they never wait behind model jobs) run beside them.",
     )
     check_concurrency: int = Field(default=4, ge=1, description="check-actions jobs one worker runs at once.")
+    tenant_max_running: int | None = Field(
+        default=None, ge=1,
+        description="Jobs of one tenant one worker runs at once on each queue, so that the rest of its slots "
+        "stay for the other tenants (fair order decides who goes next, but reserves nothing). Unset: half the "
+        "queue's concurrency, at least 1.",
+    )
     worker_poll_s: float = Field(
         default=0.1, gt=0, description="How often an idle worker polls the model queue (infer, next-action)."
     )
@@ -220,6 +261,10 @@ class WorkerSettings(QueueSettings):
         if self.heartbeat_ttl_s is not None and self.heartbeat_ttl_s <= self.heartbeat_s:
             raise ValueError("PRECOND_HEARTBEAT_TTL_S must be longer than PRECOND_HEARTBEAT_S")
         return self
+
+    def tenant_slots(self, concurrency: int) -> int:
+        """Slots of a queue with `concurrency` slots that one tenant may hold."""
+        return min(concurrency, self.tenant_max_running or max(1, concurrency // 2))
 
     @property
     def heartbeat_lease_s(self) -> float:

@@ -42,9 +42,16 @@ def parse(source: str, field: str) -> ast.Module:
     except SyntaxError as exc:
         message = f"{field}, line {exc.lineno}: SyntaxError: {exc.msg}"
         raise ProgramProblem(Problem(INVALID_PROGRAM, field, message)) from exc
-    except (ValueError, RecursionError, MemoryError) as exc:
+    except RecursionError as exc:
+        raise too_deep(field) from exc
+    except (ValueError, MemoryError) as exc:
         message = f"{field}: cannot be parsed: {type(exc).__name__}"
         raise ProgramProblem(Problem(INVALID_PROGRAM, field, message)) from exc
+
+
+def too_deep(field: str) -> ProgramProblem:
+    message = f"{field}: an expression is nested too deeply to be checked (split long chains such as 1+1+...+1)"
+    return ProgramProblem(Problem(INVALID_PROGRAM, field, message))
 
 
 def spec_methods(source: str) -> tuple[ast.Module, dict[str, Method]]:
@@ -56,9 +63,18 @@ def spec_methods(source: str) -> tuple[ast.Module, dict[str, Method]]:
     return tree, methods
 
 
+MAX_SUGGESTION_CHARS = 100
+MAX_SUGGESTION_CANDIDATES = 200
+"""Bounds of the "did you mean" search: difflib's cost grows with the product of the lengths, so a long unknown
+name against 900 long method names held the gateway for seconds. Past them the hint is left out."""
+
+
 def did_you_mean(name: str, known: Iterable[str]) -> str:
     """" (did you mean 'SYSTEM.REQUEST'?)" for the closest known name, or "" when none is close."""
-    close = difflib.get_close_matches(name, list(known), n=1, cutoff=0.6)
+    if len(name) > MAX_SUGGESTION_CHARS:
+        return ""
+    near = [k for k in known if len(k) <= 2 * MAX_SUGGESTION_CHARS][:MAX_SUGGESTION_CANDIDATES]
+    close = difflib.get_close_matches(name, near, n=1, cutoff=0.6)
     if not close and "." not in name:  # `REQUEST` for `SYSTEM.REQUEST`: compare the method names
         close = [k for k in known if k.rsplit(".", 1)[-1] == name][:1]
     return f" (did you mean {close[0]!r}?)" if close else ""
@@ -162,11 +178,14 @@ def check_work(trees: Sequence[ast.Module], max_points: int | None) -> None:
         return
     steps = sum(len(main_body(tree)) for tree in trees)
     arguments: dict[str, set[str]] = {}
-    for tree in trees:
+    for index, tree in enumerate(trees):
         for node in ast.walk(tree):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
                 call = ast.Call(func=ast.Name("f"), args=node.args, keywords=node.keywords)
-                arguments.setdefault(node.func.attr, set()).add(ast.dump(call))
+                try:  # ast.dump recurses: a flat chain of 1,500 additions parses, yet overflows it
+                    arguments.setdefault(node.func.attr, set()).add(ast.dump(call))
+                except RecursionError:
+                    raise too_deep(f"demonstrations[{index}]") from None
     if not arguments:
         return
     method, values = max(arguments.items(), key=lambda item: len(item[1]))
@@ -196,6 +215,23 @@ def check_next_action(spec: str, preconditions: Mapping[str, Sequence[str]], dem
     trees = [parse(d, f"demonstrations[{i}]") for i, d in enumerate(demonstrations)]
     parse(history, "history")
     check_work(trees, max_points)
+
+
+def check_set(spec: str, preconditions: Mapping[str, Sequence[str]], demonstrations: Sequence[str]) -> None:
+    """A precondition set's version: the spec, every rule (known action, one expression), the demonstrations."""
+    _, methods = spec_methods(spec)
+    check_preconditions(methods, preconditions)
+    for index, demonstration in enumerate(demonstrations):
+        parse(demonstration, f"demonstrations[{index}]")
+
+
+def check_reinfer(spec: str, new: Sequence[str], union: Sequence[str], actions: Sequence[str] | None,
+                  max_points: int | None) -> None:
+    """A re-inference: its new demonstrations (named by their index in the request), then the inference on the
+    union of the stored and the new ones."""
+    for index, demonstration in enumerate(new):
+        parse(demonstration, f"demonstrations[{index}]")
+    check_infer(spec, union, actions, max_points)
 
 
 def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: str,

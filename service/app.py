@@ -22,8 +22,9 @@ from service.completions import Completions
 from service.deps import Services
 from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
+from service.offload import CheckPool
 from service.queue import JobQueue
-from service.quotas import Quotas
+from service.quotas import AuthLimit, Quotas, SourceBuckets
 from service.routes import health, operations, sets, ui
 from service.routes import jobs as job_routes
 from service.sets import SetStore
@@ -58,11 +59,17 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         cache = ResultCache(cache_redis, settings.cache_ttl_s, secret)
         completions = Completions(dsn)
         completions.start()
-        quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs)
+        auth = AuthLimit(settings.auth_failures_per_s, settings.auth_failure_burst)
+        quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs, auth)
         queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, quotas, settings.result_ttl_s)
-        store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes)
-        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store)
+        store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes,
+                         settings.max_set_bytes_per_tenant)
+        pool = CheckPool(settings.check_processes, settings.tenant_check_processes)
+        open_rate = SourceBuckets(settings.open_rate_per_s, settings.open_burst)
+        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool,
+                                      open_rate)
         yield
+        pool.close()
         await completions.close()
         for connection in {id(redis): redis, id(cache_redis): cache_redis}.values():
             await connection.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose

@@ -21,12 +21,17 @@ import tempfile
 from dataclasses import asdict, dataclass
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from jobs.keys import tenant_tag
 from service.errors import ServiceError
+
+if TYPE_CHECKING:  # deps builds Services from a KeyStore: a runtime import would be circular
+    from service.deps import Services
+    from service.quotas import Refusal
 
 log = logging.getLogger("precond.auth")
 OPEN_TENANT = "public"
@@ -129,18 +134,41 @@ def unauthorized(message: str) -> ServiceError:
     return ServiceError(401, message, "unauthorized", headers={"WWW-Authenticate": "Bearer"})
 
 
+def _tenant_of(store: KeyStore, credentials: HTTPAuthorizationCredentials | None) -> str:
+    if credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
+        raise unauthorized("missing API key: send the header 'Authorization: Bearer <key>'")
+    return store.tenant(credentials.credentials)
+
+
+def refuse(services: Services, tag: str, refusal: Refusal | None) -> None:
+    """A 429 naming the limit (`rate_limited`, `jobs_limited`, `auth_limited`), counted under the tenant's tag."""
+    if refusal is not None:
+        services.metrics.rejections.labels(tag, refusal.limit).inc()
+        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
+                           headers={"Retry-After": str(refusal.retry_after_s)})
+
+
 async def authenticate(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> str:
-    """The caller's tenant: from its key when keys are configured, else the one open tenant."""
-    store: KeyStore | None = request.app.state.services.keys
-    if store is None:
+    """The caller's tenant: from its key when keys are configured, else the one open tenant. Every route that
+    needs a key takes a token of its tenant's request rate here; a source address that failed to authenticate
+    too often is refused before its key is looked at (the source is the TCP peer: behind a reverse proxy, let
+    uvicorn take it from X-Forwarded-For with `--forwarded-allow-ips`)."""
+    services: Services = request.app.state.services
+    if services.keys is None:
         tenant = OPEN_TENANT
-    elif credentials is None or credentials.scheme.lower() != "bearer" or not credentials.credentials:
-        raise unauthorized("missing API key: send the header 'Authorization: Bearer <key>'")
     else:
-        tenant = store.tenant(credentials.credentials)
-    request.state.tenant = tenant
+        source = request.client.host if request.client is not None else "-"
+        refuse(services, "-", services.quotas.auth_blocked(source))
+        try:
+            tenant = _tenant_of(services.keys, credentials)
+        except ServiceError:
+            refuse(services, "-", await services.quotas.auth_failed(source))
+            raise
+    tag = tenant_tag(services.secret, tenant)
+    request.state.tenant, request.state.tenant_tag = tenant, tag  # metrics show the tag, never the name
+    refuse(services, tag, await services.quotas.take_request(tag, tenant))
     return tenant
 
 

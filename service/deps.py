@@ -12,8 +12,9 @@ from jobs.cache import ResultCache
 from jobs.settings import GatewaySettings
 from service.auth import KeyStore
 from service.metrics import Metrics
+from service.offload import CheckPool
 from service.queue import JobQueue
-from service.quotas import Quotas
+from service.quotas import Quotas, SourceBuckets
 from service.sets import SetStore
 
 
@@ -28,6 +29,8 @@ class Services:
     secret: bytes
     keys: KeyStore | None
     sets: SetStore
+    checks: CheckPool
+    open_rate: SourceBuckets
 
 
 async def _services(request: Request) -> Services:

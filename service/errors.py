@@ -6,6 +6,7 @@ worker); mapping them all in one module keeps the status codes consistent: bad i
 
 from __future__ import annotations
 
+import logging
 import re
 from typing import Any
 
@@ -19,6 +20,9 @@ from starlette.exceptions import HTTPException
 
 from schemas import errors as engine_errors
 from schemas.api import ErrorInfo, ErrorResponse
+from service.offload import PoolBroken
+
+log = logging.getLogger("precond.gateway")
 
 _TYPE_BY_STATUS = {
     400: "bad_request",
@@ -143,8 +147,12 @@ async def _http(request: Request, exc: Exception) -> JSONResponse:
 
 
 def _redis_down(retry_after_s: int) -> Any:
+    """503 without the reason's text: redis-py names the address it could not reach, which no caller (with
+    or without a key) should learn; the log keeps it."""
+
     async def handler(request: Request, exc: Exception) -> JSONResponse:
-        info = ErrorInfo(type="unavailable", message=f"queue backend unreachable: {exc}")
+        log.warning("queue backend unreachable (request %s): %s", request_id(request), exc)
+        info = ErrorInfo(type="unavailable", message="queue backend unreachable; retry later")
         return error_response(request, 503, info, headers={"Retry-After": str(retry_after_s)})
 
     return handler
@@ -161,6 +169,11 @@ def _redis_full(retry_after_s: int) -> Any:
     return handler
 
 
+async def _check_pool_broken(request: Request, exc: Exception) -> JSONResponse:
+    info = ErrorInfo(type="unavailable", message=str(exc))
+    return error_response(request, 503, info, headers={"Retry-After": "1"})
+
+
 async def _internal(request: Request, exc: Exception) -> JSONResponse:
     # Starlette answers unhandled exceptions from its outermost middleware, outside RequestContext, so the
     # request id header is set here: a 500 is exactly the response whose id the client must be able to quote.
@@ -174,4 +187,5 @@ def install(app: FastAPI, retry_after_s: int) -> None:
     for exc in (RedisConnectionError, RedisTimeoutError):
         app.add_exception_handler(exc, _redis_down(retry_after_s))
     app.add_exception_handler(OutOfMemoryError, _redis_full(retry_after_s))
+    app.add_exception_handler(PoolBroken, _check_pool_broken)
     app.add_exception_handler(Exception, _internal)

@@ -48,11 +48,12 @@ class Metrics:
     def __init__(self) -> None:
         self.registry = CollectorRegistry()
         self.requests = Counter(
-            "precond_http_requests", "HTTP requests by tenant (`-`: not authenticated).",
+            "precond_http_requests", "HTTP requests by tenant tag (the HMAC of its name, as in its job ids; `-`: "
+            "not authenticated).",
             ["route", "method", "status", "tenant"], registry=self.registry,
         )
         self.rejections = Counter(
-            "precond_rejections", "Requests refused before any work, by tenant and reason "
+            "precond_rejections", "Requests refused before any work, by tenant tag and reason "
             "(rate, jobs, queue, work).", ["tenant", "reason"], registry=self.registry,
         )
         self.latency = Histogram(

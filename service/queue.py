@@ -22,6 +22,7 @@ from arq.constants import (
 )
 from arq.jobs import Job, JobResult, serialize_result
 from arq.jobs import JobStatus as ArqStatus
+from arq.worker import JobExecutionFailed
 from redis.exceptions import RedisError
 
 from jobs.cache import ResultCache
@@ -263,4 +264,8 @@ def _state(info: JobResult) -> tuple[Any, dict[str, Any] | None, ErrorInfo | Non
         return outcome.status, outcome.result, None if outcome.error is None else bounded(outcome.error)
     if isinstance(info.result, asyncio.CancelledError):
         return "cancelled", None, ErrorInfo(type="cancelled", message="the job was cancelled")
+    if isinstance(info.result, JobExecutionFailed) and "retries exceeded" in str(info.result):
+        return "failed", None, ErrorInfo(type="internal", message=(
+            f"the job was started {info.job_try - 1} times (PRECOND_JOB_MAX_TRIES) and its worker never finished "
+            "it (it died or was stopped each time); it is not run again"))
     return "failed", None, bounded(ErrorInfo(type="internal", message=f"job failed: {info.result!r}"))

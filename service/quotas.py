@@ -1,6 +1,9 @@
 """Per-tenant limits and fair ordering, kept in Redis so that every gateway sees the same counts.
 
-- A token bucket per tenant bounds its request rate (`PRECOND_TENANT_RATE_PER_S`, `PRECOND_TENANT_BURST`).
+- A token bucket per tenant bounds its request rate on every route (`PRECOND_TENANT_RATE_PER_S`,
+  `PRECOND_TENANT_BURST`), and one per source address its failed authentications
+  (`PRECOND_AUTH_FAILURES_PER_S`, `PRECOND_AUTH_FAILURE_BURST`): a source whose bucket is empty gets 429
+  before its key is even looked at, on every gateway process that saw it fail.
 - A set per tenant of its unfinished jobs bounds how many it may have queued or running
   (`PRECOND_TENANT_MAX_JOBS`); a job leaves the set once arq's job key is gone (done, failed or cancelled).
 - Fair ordering: arq serves a queue in score order, and a job's score here is its tenant's *virtual start
@@ -21,6 +24,7 @@ from typing import Final
 
 from arq.connections import ArqRedis
 from arq.constants import job_key_prefix
+from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from jobs.keys import PREFIX
 
@@ -80,13 +84,17 @@ return score
 class Refusal:
     """Which limit a request hit, for its 429."""
 
-    limit: str  # "rate" | "jobs"
+    limit: str  # "rate" | "jobs" | "auth"
     message: str
     retry_after_s: int
 
 
 def _rate_key(tag: str) -> str:
     return f"{PREFIX}:tenant:{tag}:rate"
+
+
+def _auth_key(source: str) -> str:
+    return f"{PREFIX}:source:{source}:auth-failures"
 
 
 def _jobs_key(tag: str) -> str:
@@ -97,20 +105,85 @@ def _fair_key(queue: str) -> str:
     return f"{PREFIX}:fair:{queue}"
 
 
+@dataclass(frozen=True)
+class AuthLimit:
+    failures_per_s: float
+    burst: int
+
+
+MAX_BLOCKED_SOURCES: Final = 10_000
+
+
+class SourceBuckets:
+    """Token buckets per source address kept in this process, for the routes open without a key (`/health`,
+    `/ready`, `/metrics`): they must answer while Redis is down, so their rate cannot live there."""
+
+    def __init__(self, rate_per_s: float, burst: int) -> None:
+        self.rate_per_s, self.burst = rate_per_s, burst
+        self._buckets: dict[str, tuple[float, float]] = {}  # source -> (tokens, at)
+
+    def take(self, source: str) -> Refusal | None:
+        now = datetime.now(UTC).timestamp()
+        if len(self._buckets) >= MAX_BLOCKED_SOURCES:  # keep only the empty ones (a forgotten bucket is full)
+            self._buckets = {s: b for s, b in self._buckets.items() if b[0] + (now - b[1]) * self.rate_per_s < 1}
+        tokens, at = self._buckets.get(source, (float(self.burst), now))
+        tokens = min(float(self.burst), tokens + (now - at) * self.rate_per_s)
+        if tokens < 1:
+            self._buckets[source] = (tokens, now)
+            wait = max(1, math.ceil((1 - tokens) / self.rate_per_s))
+            return Refusal("rate", f"rate limit: this address may call the open routes {self.rate_per_s:g} "
+                                   f"times/s (bursts of {self.burst})", wait)
+        self._buckets[source] = (tokens - 1, now)
+        return None
+
+
 class Quotas:
-    def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int) -> None:
-        self.redis, self.rate_per_s, self.burst, self.max_jobs = redis, rate_per_s, burst, max_jobs
+    def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int, auth: AuthLimit) -> None:
+        self.redis, self.rate_per_s, self.burst, self.max_jobs, self.auth = redis, rate_per_s, burst, max_jobs, auth
+        self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
+
+    async def _take(self, key: str, rate: float, burst: int) -> int | None:
+        """A token from the bucket at `key`, or the seconds until the next one. While the queue Redis is full
+        (noeviction refuses the bucket's write) the request goes on uncounted: reading a job's state must keep
+        working then, and every request that would write is refused by that Redis anyway."""
+        now = datetime.now(UTC).timestamp()
+        try:
+            allowed, tokens = await self.redis.eval(  # type: ignore[no-untyped-call]
+                _TAKE_TOKEN, 1, key, rate, burst, now
+            )
+        except OutOfMemoryError:
+            return None
+        return None if allowed else max(1, math.ceil((1 - float(tokens)) / rate))
 
     async def take_request(self, tag: str, tenant: str) -> Refusal | None:
-        now = datetime.now(UTC).timestamp()
-        allowed, tokens = await self.redis.eval(  # type: ignore[no-untyped-call]
-            _TAKE_TOKEN, 1, _rate_key(tag), self.rate_per_s, self.burst, now
-        )
-        if allowed:
+        wait = await self._take(_rate_key(tag), self.rate_per_s, self.burst)
+        if wait is None:
             return None
-        wait = math.ceil((1 - float(tokens)) / self.rate_per_s)
         return Refusal("rate", f"rate limit: tenant {tenant!r} may send {self.rate_per_s:g} requests/s "
-                               f"(bursts of {self.burst})", max(1, wait))
+                               f"(bursts of {self.burst})", wait)
+
+    def auth_blocked(self, source: str) -> Refusal | None:
+        """Whether this source used up its failed authentications (no Redis: checked before every key)."""
+        until = self._blocked.get(source)
+        now = datetime.now(UTC).timestamp()
+        if until is None or until <= now:
+            return None
+        return self._auth_refusal(math.ceil(until - now))
+
+    async def auth_failed(self, source: str) -> Refusal | None:
+        """Count one failed authentication of `source`; a refusal once its bucket is empty."""
+        wait = await self._take(_auth_key(source), self.auth.failures_per_s, self.auth.burst)
+        if wait is None:
+            return None
+        now = datetime.now(UTC).timestamp()
+        if len(self._blocked) >= MAX_BLOCKED_SOURCES:
+            self._blocked = {s: until for s, until in self._blocked.items() if until > now}
+        self._blocked[source] = now + wait
+        return self._auth_refusal(wait)
+
+    def _auth_refusal(self, wait: int) -> Refusal:
+        return Refusal("auth", f"too many failed authentications from this address: at most "
+                               f"{self.auth.failures_per_s:g}/s (bursts of {self.auth.burst})", max(1, wait))
 
     async def admit_job(self, tag: str, tenant: str, job_id: str, retry_after_s: int) -> Refusal | None:
         """Count a new job against its tenant's cap; a job the tenant already has (identical request) is free."""

@@ -24,12 +24,15 @@ from jobs.sets import (
     APPEND_CONFLICT,
     APPEND_MISSING,
     CREATE_SCRIPT,
+    TENANT_BYTES_FULL,
     append,
+    bytes_key,
     decided,
     index_key,
     normal,
     set_key,
     summary,
+    tenant_bytes_message,
 )
 from schemas.api import (
     CandidateReport,
@@ -69,8 +72,16 @@ def parse_reference(reference: str) -> tuple[str, int | None]:
 
 
 class SetStore:
-    def __init__(self, redis: ArqRedis, max_sets: int, max_versions: int, max_bytes: int) -> None:
+    def __init__(self, redis: ArqRedis, max_sets: int, max_versions: int, max_bytes: int,
+                 max_tenant_bytes: int) -> None:
         self.redis, self.max_sets, self.max_versions, self.max_bytes = redis, max_sets, max_versions, max_bytes
+        self.max_tenant_bytes = max_tenant_bytes
+
+    def refuse_oversized(self, chars: int) -> None:
+        """413 before any work for a version whose texts alone pass the bound (its JSON is at least as long)."""
+        if chars > self.max_bytes:
+            raise ServiceError(413, f"this version would take at least {chars:,} bytes, over the bound of "
+                               f"{self.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="body")
 
     def _record(self, version: PreconditionSet) -> str:
         text = version.model_dump_json()  # `latest` as it was then; readers replace it with the current one
@@ -82,9 +93,11 @@ class SetStore:
     async def create(self, tag: str, version: PreconditionSet) -> PreconditionSet:
         record = self._record(version)
         made = await self.redis.eval(  # type: ignore[no-untyped-call]
-            CREATE_SCRIPT, 2, index_key(tag), set_key(tag, version.id), version.id, self.max_sets, record,
-            version.created, summary(version),
+            CREATE_SCRIPT, 3, index_key(tag), set_key(tag, version.id), bytes_key(tag), version.id, self.max_sets,
+            record, self.max_tenant_bytes, version.created, summary(version),
         )
+        if made == TENANT_BYTES_FULL:
+            raise ServiceError(422, tenant_bytes_message(self.max_tenant_bytes), "sets_limited")
         if not made:
             raise ServiceError(422, f"this tenant stores {self.max_sets} precondition sets already, the bound "
                                "(PRECOND_MAX_SETS_PER_TENANT)", "sets_limited")
@@ -92,7 +105,9 @@ class SetStore:
 
     async def append(self, tag: str, version: PreconditionSet) -> PreconditionSet:
         record = self._record(version)
-        answer = await append(self.redis, tag, version, record, self.max_versions)
+        answer = await append(self.redis, tag, version, record, self.max_versions, self.max_tenant_bytes)
+        if answer == TENANT_BYTES_FULL:
+            raise ServiceError(422, tenant_bytes_message(self.max_tenant_bytes), "sets_limited")
         if answer == APPEND_MISSING:
             raise not_found(version.id)
         if answer == APPEND_CONFLICT:

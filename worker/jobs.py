@@ -13,7 +13,9 @@ import json
 import threading
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 from pydantic import BaseModel
@@ -38,6 +40,7 @@ from schemas.api import (
     ValidateRequest,
 )
 from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
+from worker.memory import MemoryGuard
 from worker.reinfer import reinfer, store
 
 ProgressFn = Callable[[str, int, int], None]
@@ -100,13 +103,13 @@ def _operate(
 
 def _outcome(
     engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn,
-    max_response_bytes: int, scope: str,
+    max_response_bytes: int, scope: str, memory: Callable[[], AbstractContextManager[None]],
 ) -> tuple[Outcome, bool]:
     """A finished job's outcome, and whether a sandbox limit stopped it. A result larger than the bound is
     refused here, before Redis stores it twice (result and cache) and a client has to read it. The engine runs
     in the job's tenant's cache scope (engine/scope.py): its model reuses only that tenant's prompt prefixes."""
     try:
-        with scoped(scope):
+        with memory(), scoped(scope):
             result = _operate(engine, kind, body, progress, cancelled).model_dump(mode="json")
     except PrecondError as exc:
         error = ErrorInfo(type=exc.kind, message=exc.message, field=exc.field)
@@ -137,12 +140,13 @@ async def run_operation(
     settings: WorkerSettings = ctx["settings"]
     redis: Redis[bytes] = ctx["redis"]
     job_id: str = ctx["job_id"]
+    guard: MemoryGuard = ctx["memory"]
     loop = asyncio.get_running_loop()
     reporter = ProgressReporter(redis, job_id, kind, loop, settings.result_ttl_s)
     stop = threading.Event()
     future = loop.run_in_executor(
         None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set, settings.max_response_bytes,
-        owner_of(job_id) or job_id,
+        owner_of(job_id) or job_id, partial(guard.running, job_id),
     )
     try:
         outcome, sandbox_limit = await asyncio.shield(future)

@@ -107,7 +107,9 @@ async def store(redis: Any, tag: str, job: ReinferJob, version: PreconditionSet)
     if len(record.encode()) > job.max_bytes:
         raise SetsLimited(f"the re-inferred version takes {len(record.encode()):,} bytes, over the bound of "
                           f"{job.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="demonstrations")
-    answer = await sets.append(redis, tag, version, record, job.max_versions)
+    answer = await sets.append(redis, tag, version, record, job.max_versions, job.max_tenant_bytes)
+    if answer == sets.TENANT_BYTES_FULL:
+        raise SetsLimited(sets.tenant_bytes_message(job.max_tenant_bytes or 0))
     if answer == sets.APPEND_CONFLICT:
         mine = await _stored_by_an_earlier_run(redis, tag, version)
         if mine is not None:

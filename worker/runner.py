@@ -21,6 +21,7 @@ import os
 import signal
 import socket
 import uuid
+from collections import Counter
 from datetime import UTC, datetime
 from typing import Any
 
@@ -40,8 +41,36 @@ from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
 from worker import logs
 from worker.jobs import JobCounts, run_operation
+from worker.memory import MemoryGuard
 
 log = logging.getLogger("precond.worker")
+
+
+class TenantShareWorker(Worker):
+    """An arq worker that runs at most `tenant_slots` jobs of one tenant at once, so the rest of its slots stay
+    for the others. Fair scores (docs/tenants.md) decide who goes next, but reserve nothing: six checks that
+    only wait (a history that sleeps) held all four check slots, and another tenant's check waited 15 s.
+
+    arq starts every id it read, blocking for a free slot in between; here only as many ids as there are free
+    slots are started, in score order, skipping tenants at their share (their jobs stay queued, for another
+    worker or a later poll)."""
+
+    def __init__(self, *args: Any, tenant_slots: int, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.tenant_slots = tenant_slots
+
+    async def start_jobs(self, job_ids: list[bytes]) -> None:
+        running = Counter(owner_of(job_id) for job_id, task in self.tasks.items() if not task.done())
+        chosen: list[bytes] = []
+        for raw in job_ids:
+            if len(chosen) >= self.max_jobs - self.job_counter:
+                break
+            job_id = raw.decode()
+            tag = owner_of(job_id)
+            if job_id not in self.tasks and running[tag] < self.tenant_slots:  # a started job stays queued
+                running[tag] += 1
+                chosen.append(raw)
+        await super().start_jobs(chosen)
 
 
 class WorkerProcess:
@@ -53,7 +82,9 @@ class WorkerProcess:
         self.engine: Engine | None = None
         self.sandbox, self.sandbox_error = "unavailable", None
         try:
-            self.engine = build_engine(with_model=MODEL_QUEUE in queues)
+            # A fork server per job slot: a job that waits in the sandbox (a history that sleeps) must hold only
+            # its own slot's server, never one another tenant's job needs.
+            self.engine = build_engine(with_model=MODEL_QUEUE in queues, min_sandbox_workers=self.slots())
         except SandboxUnavailable as exc:  # fail closed: stay visible (heartbeat, /ready says why), take no job
             log.error("untrusted code cannot be confined here, so this worker takes no job: %s", exc)
             self.sandbox_error = str(exc)
@@ -68,6 +99,12 @@ class WorkerProcess:
         self.model_error: str | None = None
         self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
         self.cache: ResultCache | None = None  # on the cache Redis, opened in run()
+        self.memory = MemoryGuard(settings.job_max_memory_mb * 1024 * 1024)
+
+    def slots(self) -> int:
+        """Jobs this process runs at once: check slots, and a model slot and a model-free slot per concurrency."""
+        s = self.settings
+        return sum(s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency for queue in self.queues)
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -83,10 +120,12 @@ class WorkerProcess:
             else [asyncio.create_task(self._serve(queue, self.engine)) for queue in self.queues]
         )
         heartbeat = asyncio.create_task(self._heartbeat(redis))
+        self.memory.start()
         if self.engine is not None and self.settings.preload_model and MODEL_QUEUE in self.queues:
             tasks.append(asyncio.create_task(self._preload()))
         await asyncio.gather(*tasks)
         heartbeat.cancel()
+        self.memory.stop()
         await self._forget(redis)
         if cache_redis is not redis:
             await cache_redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
@@ -102,15 +141,15 @@ class WorkerProcess:
         model = queue == MODEL_QUEUE
         timeout = s.check_timeout_s if queue == CHECK_QUEUE else s.job_timeout_s
         max_jobs = s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency
-        return Worker(
+        return TenantShareWorker(
             functions=[func(run_operation, name=JOB_FUNCTION, timeout=timeout)],
             queue_name=queue,
             redis_settings=RedisSettings.from_dsn(s.redis_dsn),
             max_jobs=max_jobs,
-            # Read no more jobs per poll than can start: arq starts a whole read batch (100 by default) in
-            # order before it polls again, which would put a newcomer behind a flood's next 100 jobs whatever
-            # their fair scores say (docs/tenants.md).
-            queue_read_limit=max_jobs,
+            # Read twice the slots, so that a newcomer's job is seen behind a tenant at its share; only as many
+            # as can start are started (TenantShareWorker), the rest stay queued in their fair order.
+            queue_read_limit=2 * max_jobs,
+            tenant_slots=s.tenant_slots(max_jobs),
             job_timeout=timeout,
             keep_result=s.result_ttl_s,
             max_tries=s.job_max_tries,
@@ -119,7 +158,7 @@ class WorkerProcess:
             handle_signals=False,
             job_completion_wait=s.drain_s,
             health_check_interval=60,
-            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache},
+            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory},
             on_job_start=self._claim,
             after_job_end=self._job_ended,
         )

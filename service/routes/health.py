@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends, Request
 from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from redis.exceptions import RedisError
@@ -13,10 +13,19 @@ from redis.exceptions import RedisError
 from jobs.heartbeats import live_workers
 from jobs.keys import QUEUES
 from jobs.records import read_stats
+from service.auth import refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError
 
-router = APIRouter(tags=["health"])
+
+async def _open_rate(request: Request) -> None:
+    """The open routes' rate per source address (in this process: they must answer without Redis)."""
+    services: Services = request.app.state.services
+    source = request.client.host if request.client is not None else "-"
+    refuse(services, "-", services.open_rate.take(source))
+
+
+router = APIRouter(tags=["health"], dependencies=[Depends(_open_rate)])
 HEALTH_PEEK_S = 0.5
 
 

@@ -17,6 +17,8 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
     404: {"model": ErrorResponse, "description": "No such job of yours (another tenant's job is not found either), "
           "or its result expired."},
+    429: {"model": ErrorResponse, "description": "The tenant's request rate (`rate_limited`), or too many failed "
+          "authentications from this address (`auth_limited`); see Retry-After."},
 }
 
 

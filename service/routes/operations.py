@@ -2,14 +2,15 @@
 
 from __future__ import annotations
 
-import asyncio
+import json
+from collections.abc import Callable
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
 
-from convert.openai import call_lines, structured_history
+from convert.openai import call_lines
 from jobs import keys
 from programs import checks
 from schemas.api import (
@@ -24,14 +25,15 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
 )
-from service.auth import Tenant
+from service import offload
+from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples
+from service.middleware import OffloadedBodyRoute
 from service.queue import QueueFull
-from service.quotas import Refusal
 
-router = APIRouter(tags=["operations"])
+router = APIRouter(tags=["operations"], route_class=OffloadedBodyRoute)
 
 Wait = Annotated[
     float | None,
@@ -50,7 +52,8 @@ ERRORS: dict[int | str, dict[str, Any]] = {
           "description": "Malformed body, input the engine cannot use, or over the work budget."},
     429: {"model": ErrorResponse,
           "description": "A limit: the tenant's request rate (`rate_limited`), its jobs queued or running "
-          "(`jobs_limited`), or the queue's length (`queue_full`); see Retry-After."},
+          "(`jobs_limited`), the queue's length (`queue_full`), or failed authentications from this address "
+          "(`auth_limited`); see Retry-After."},
     503: {"model": ErrorResponse, "description": "Queue backend unreachable or model unavailable."},
 }
 
@@ -103,25 +106,18 @@ async def check_actions(
     return await answer(services, request, tenant, "check", body, None, wait)
 
 
-INLINE_CHECK_CHARS = 100_000
-"""Programs up to this size are parsed on the event loop (well under a millisecond); larger ones in a thread."""
-
-
-def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem | None:
-    """Every program of the request parsed (never run) before anything is queued, and its work estimated:
-    422 now, not a failed job after the wait in the queue."""
-    try:
-        if isinstance(body, InferRequest):
-            checks.check_infer(body.spec, body.demonstrations, body.actions, max_work_points)
-        elif isinstance(body, NextActionRequest):
-            checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations,
-                                     _text(body.history), max_work_points)
-        elif isinstance(body, CheckRequest):
-            # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
-            checks.check_check(body.spec_text(), body.preconditions, _text(body.history),
-                               [c for c in body.calls if isinstance(c, str)])
-    except checks.ProgramProblem as exc:
-        return exc.problem
+def _program_check(body: BaseModel, max_work_points: int) -> tuple[Callable[..., None], tuple[Any, ...]] | None:
+    """The static check of the request's programs (parsed, never run) and its work estimate, as a function and
+    its arguments for the check pool: 422 before anything is queued, not a failed job after the wait."""
+    if isinstance(body, InferRequest):
+        return checks.check_infer, (body.spec, body.demonstrations, body.actions, max_work_points)
+    if isinstance(body, NextActionRequest):
+        return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
+                                          _text(body.history), max_work_points)
+    if isinstance(body, CheckRequest):
+        # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
+        return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
+                                    [c for c in body.calls if isinstance(c, str)])
     return None
 
 
@@ -140,15 +136,19 @@ async def _with_rules_and_program(
         if isinstance(body, CheckRequest):
             update["decided"] = stored.decided
         body = body.model_copy(update=update)
-    try:
-        if not isinstance(body.history, str):
-            history = [e if isinstance(e, dict) else e.model_dump() for e in body.history]
-            body = body.model_copy(update={"history": structured_history(body.spec_text(), history)})
-        if isinstance(body, CheckRequest) and not all(isinstance(c, str) for c in body.calls):
-            calls = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
-            body = body.model_copy(update={"calls": call_lines(body.spec_text(), calls)})
-    except checks.ProgramProblem as exc:
-        return exc.problem
+    if not isinstance(body.history, str):
+        history = [e if isinstance(e, dict) else e.model_dump() for e in body.history]
+        chars = len(body.spec_text()) + sum(len(json.dumps(e, default=str)) for e in history)
+        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history)
+        if isinstance(program, checks.Problem):
+            return program
+        body = body.model_copy(update={"history": program})
+    if isinstance(body, CheckRequest) and not all(isinstance(c, str) for c in body.calls):
+        try:
+            calls = call_lines(body.spec_text(), [c if isinstance(c, str) else c.model_dump() for c in body.calls])
+        except checks.ProgramProblem as exc:
+            return exc.problem
+        body = body.model_copy(update={"calls": calls})
     return body
 
 
@@ -172,8 +172,7 @@ async def answer(
     wait: float | None,
 ) -> Response:
     settings = services.settings
-    tag = keys.tenant_tag(services.secret, tenant)
-    await _refuse_over_limit(services, tenant, await services.quotas.take_request(tag, tenant))
+    tag = keys.tenant_tag(services.secret, tenant)  # the request's rate was taken with its key (service.auth)
     if isinstance(body, CheckRequest | NextActionRequest):
         prepared = await _with_rules_and_program(services, tag, body)
         if isinstance(prepared, checks.Problem):
@@ -188,22 +187,19 @@ async def answer(
     services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
     if cached is not None:  # only a request that passed the checks below and ran has a cached result
         return JSONResponse(cached, headers={"X-Job-Id": job_id})
-    if _program_chars(body) <= INLINE_CHECK_CHARS:
-        problem = _programs_problem(body, settings.max_work_points)
-    else:
-        problem = await asyncio.to_thread(_programs_problem, body, settings.max_work_points)
+    check = _program_check(body, settings.max_work_points)
+    problem = None if check is None else await services.checks.run(
+        tag, _program_chars(body), offload.problem_of, check[0], *check[1])
     if problem is not None:
         if problem.type == checks.WORK_BUDGET:
-            services.metrics.rejections.labels(tenant, "work").inc()
+            services.metrics.rejections.labels(tag, "work").inc()
         info = ErrorInfo(type=problem.type, message=problem.message, field=problem.field)
         return error_response(request, 422, info)
-    await _refuse_over_limit(
-        services, tenant, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
-    )
+    refuse(services, tag, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s))
     try:
         await services.queue.submit(kind, job_id, payload, tag, cache_key)
     except QueueFull as full:
-        services.metrics.rejections.labels(tenant, "queue").inc()
+        services.metrics.rejections.labels(tag, "queue").inc()
         raise ServiceError(
             429, f"queue limit: queue {full} is full", "queue_full",
             headers={"Retry-After": str(settings.retry_after_s)},
@@ -213,13 +209,6 @@ async def answer(
     if status is None:
         raise ServiceError(503, "the job vanished from the queue backend", headers={"Retry-After": "1"})
     return respond(request, status)
-
-
-async def _refuse_over_limit(services: Services, tenant: str, refusal: Refusal | None) -> None:
-    if refusal is not None:
-        services.metrics.rejections.labels(tenant, refusal.limit).inc()
-        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
-                           headers={"Retry-After": str(refusal.retry_after_s)})
 
 
 def respond(request: Request, status: JobStatus) -> Response:

@@ -24,14 +24,16 @@ from schemas.api import (
     ValidateRequest,
     ValidateResponse,
 )
-from service.auth import Tenant
+from service import offload
+from service.auth import Tenant, refuse
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
+from service.middleware import OffloadedBodyRoute
 from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer
 from service.sets import Report, apply_edits, blocking_message, new_id, not_found, version_of
 
-router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
+router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"], route_class=OffloadedBodyRoute)
 RESPONSES: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
@@ -41,7 +43,8 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorResponse, "description": "A version over PRECOND_MAX_SET_BYTES."},
     422: {"model": ErrorResponse, "description": "Malformed body or rule (field names it, e.g. `edits[2]`), a rule "
           "that would block a demonstrated call (unless `force`), or over a bound (`sets_limited`)."},
-    429: {"model": ErrorResponse, "description": "A limit of the tenant or the check queue (see Retry-After)."},
+    429: {"model": ErrorResponse, "description": "A limit of the tenant (request rate, jobs), of failed "
+          "authentications from this address, or of the check queue (see Retry-After)."},
     503: {"model": ErrorResponse, "description": "Queue backend unreachable, or the check against the "
           "demonstrations did not finish in time (retry: its result is cached)."},
 }
@@ -55,7 +58,7 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant:
     """Store rules as version 1 of a new set, by hand or from an inference (its `preconditions`, with the `spec`
     and `demonstrations` it was inferred from). Rules that would block a demonstrated call are refused (422,
     naming the rule and the demonstration) unless `force`; the report is kept in `validation`."""
-    rules = _static_check(body.spec, body.preconditions, body.demonstrations)
+    rules = await _static_check(services, tenant, body.spec, body.preconditions, body.demonstrations)
     validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
@@ -104,7 +107,7 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     tag = _tag(services, tenant)
     base = await _latest(services, tag, set_id, body.base_version)
     rules, required, rejected = apply_edits(base, body.edits)
-    rules = _static_check(base.spec, rules, [], field="edits")
+    rules = await _static_check(services, tenant, base.spec, rules, [], field="edits")
     before = {(a, r) for a, rs in base.preconditions.items() for r in rs}
     new = {(a, r) for a, rs in rules.items() for r in rs} - before
     validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
@@ -139,25 +142,23 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
     `required_kept`, `rejected_suppressed`."""
     tag = _tag(services, tenant)
     base = await _latest(services, tag, set_id, body.base_version)
-    for index, demonstration in enumerate(body.demonstrations):
-        try:
-            checks.parse(demonstration, f"demonstrations[{index}]")
-        except checks.ProgramProblem as exc:
-            raise ServiceError(422, exc.problem.message, exc.problem.type, field=exc.problem.field) from None
     demonstrations = union(base.demonstrations, body.demonstrations)
     if len(demonstrations) > MAX_DEMONSTRATIONS:
         raise ServiceError(422, f"the set's {len(base.demonstrations)} demonstrations and these would be "
                            f"{len(demonstrations)}, over {MAX_DEMONSTRATIONS}", "invalid_input",
                            field="demonstrations")
-    try:
-        checks.check_infer(base.spec, demonstrations, body.actions, services.settings.max_work_points)
-    except checks.ProgramProblem as exc:
-        problem = exc.problem
-        field = "actions" if problem.field.startswith("actions") else "demonstrations"
-        raise ServiceError(422, problem.message, problem.type, field=field) from None
+    chars = len(base.spec) + sum(map(len, demonstrations))
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(tag, chars, offload.problem_of, checks.check_reinfer, base.spec,
+                                        body.demonstrations, demonstrations, body.actions,
+                                        services.settings.max_work_points)
+    if problem is not None:
+        field = problem.field if problem.field.startswith(("actions", "demonstrations[")) else "demonstrations"
+        raise ServiceError(422, problem.message, problem.type, field=field)
     job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=body.options,
                      force=body.force,
-                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes)
+                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
+                     max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
     model = keys.model_identity() if "model" in body.options.generators else None
     return await answer(services, request, tenant, "reinfer", job, model, wait)
 
@@ -178,17 +179,16 @@ def _tag(services: Services, tenant: str) -> str:
     return keys.tenant_tag(services.secret, tenant)
 
 
-def _static_check(spec: str, rules: dict[str, list[str]], demonstrations: list[str],
-                  field: str | None = None) -> dict[str, list[str]]:
-    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations."""
-    try:
-        _, methods = checks.spec_methods(spec)
-        checks.check_preconditions(methods, rules)
-        for index, demonstration in enumerate(demonstrations):
-            checks.parse(demonstration, f"demonstrations[{index}]")
-    except checks.ProgramProblem as exc:
-        problem = exc.problem
-        raise ServiceError(422, problem.message, problem.type, field=field or problem.field) from None
+async def _static_check(services: Services, tenant: str, spec: str, rules: dict[str, list[str]],
+                        demonstrations: list[str], field: str | None = None) -> dict[str, list[str]]:
+    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations; after the
+    size bound (413 before any parse), in the check pool when large (parsing holds the event loop)."""
+    chars = len(spec) + sum(map(len, demonstrations)) + sum(len(r) for rs in rules.values() for r in rs)
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(_tag(services, tenant), chars, offload.problem_of, checks.check_set, spec,
+                                        rules, demonstrations)
+    if problem is not None:
+        raise ServiceError(422, problem.message, problem.type, field=field or problem.field)
     return {action: _unique(rs) for action, rs in rules.items() if rs}
 
 
@@ -221,10 +221,7 @@ async def _validate(services: Services, tenant: str, spec: str, rules: dict[str,
     if cached is not None:
         return ValidateResponse.model_validate(cached)
     tag = _tag(services, tenant)
-    refusal = await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s)
-    if refusal is not None:
-        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
-                           headers={"Retry-After": str(refusal.retry_after_s)})
+    refuse(services, tag, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s))
     try:
         await services.queue.submit("validate", job_id, payload, tag, cache_key)
     except QueueFull as full:

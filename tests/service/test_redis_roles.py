@@ -263,9 +263,11 @@ def test_every_key_expires_or_is_bounded(stack: Stack) -> None:
         for name in names:
             if name in BOUNDED_KEYS:
                 continue
-            if name.startswith(("precond:set:", "precond:sets:")):  # a client's data: bounded, never expired
+            if name.startswith(("precond:set:", "precond:sets:", "precond:set-bytes:")):  # a client's data: bounded
                 fields = GatewaySettings.model_fields
-                if name.startswith("precond:sets:"):
+                if name.startswith("precond:set-bytes:"):  # one counter per tenant
+                    assert int(queue.get(name) or 0) <= int(fields["max_set_bytes_per_tenant"].default)
+                elif name.startswith("precond:sets:"):
                     assert queue.scard(name) <= int(fields["max_sets_per_tenant"].default)
                 else:  # `latest` and one field per version
                     assert queue.hlen(name) <= int(fields["max_set_versions"].default) + 1

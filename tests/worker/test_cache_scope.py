@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 from engine.scope import current
 from jobs.keys import job_id, owner_of, tenant_tag
 from schemas.api import CheckRequest, CheckResponse
 from worker.jobs import _outcome
+from worker.memory import MemoryGuard
 
 
 class SeesScope:
@@ -26,6 +28,6 @@ def test_the_engine_runs_in_the_jobs_tenant_scope_and_leaves_it_after() -> None:
     secret = b"s" * 32
     ident = job_id("check", body, None, secret, "tenant-a")
     outcome, _ = _outcome(engine, "check", body, lambda *a: None, lambda: False,  # type: ignore[arg-type]
-                          10**6, owner_of(ident) or ident)
+                          10**6, owner_of(ident) or ident, partial(MemoryGuard(2**30).running, ident))
     assert outcome.status == "succeeded", outcome
     assert engine.seen == [tenant_tag(secret, "tenant-a")] and current() == ""
