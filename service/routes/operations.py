@@ -7,7 +7,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from convert.openai import call_lines, structured_history
 from jobs import keys
@@ -17,12 +17,14 @@ from schemas.api import (
     CheckResponse,
     ErrorInfo,
     ErrorResponse,
+    InferOptions,
     InferRequest,
     InferResponse,
     JobKind,
     JobStatus,
     NextActionRequest,
     NextActionResponse,
+    PriorSource,
 )
 from service.auth import Tenant
 from service.deps import Services, ServicesDep
@@ -152,6 +154,22 @@ async def _with_rules_and_program(
     return body
 
 
+async def with_prior_sets(services: Services, tag: str, options: InferOptions) -> InferOptions:
+    """The options with the tenant's stored sets named in `prior_sets` resolved to their rules (404 for a set
+    that is not the tenant's), so that the worker never reads a set and the job id depends on the rules
+    themselves, not on a reference whose latest version may change."""
+    sources = list(options.prior_sources)
+    for reference in options.prior_sets:
+        stored = await services.sets.get(tag, reference)
+        sources.append(PriorSource(source=stored.reference, rules=stored.preconditions))
+    try:
+        return InferOptions.model_validate(
+            {**options.model_dump(), "prior_sets": [], "prior_sources": [s.model_dump() for s in sources]})
+    except ValidationError as exc:
+        raise ServiceError(422, f"options.prior_sets: {exc.errors()[0]['msg']}", "invalid_input",
+                           field="options.prior_sets") from None
+
+
 def _text(history: object) -> str:
     return history if isinstance(history, str) else ""
 
@@ -174,6 +192,8 @@ async def answer(
     settings = services.settings
     tag = keys.tenant_tag(services.secret, tenant)
     await _refuse_over_limit(services, tenant, await services.quotas.take_request(tag, tenant))
+    if isinstance(body, InferRequest) and body.options.prior_sets:
+        body = body.model_copy(update={"options": await with_prior_sets(services, tag, body.options)})
     if isinstance(body, CheckRequest | NextActionRequest):
         prepared = await _with_rules_and_program(services, tag, body)
         if isinstance(prepared, checks.Problem):

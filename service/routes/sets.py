@@ -28,7 +28,7 @@ from service.auth import Tenant
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.queue import QueueFull
-from service.routes.operations import ERRORS, Wait, answer
+from service.routes.operations import ERRORS, Wait, answer, with_prior_sets
 from service.sets import Report, apply_edits, blocking_message, new_id, not_found, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"])
@@ -155,7 +155,8 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
         problem = exc.problem
         field = "actions" if problem.field.startswith("actions") else "demonstrations"
         raise ServiceError(422, problem.message, problem.type, field=field) from None
-    job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=body.options,
+    options = await with_prior_sets(services, tag, body.options) if body.options.prior_sets else body.options
+    job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=options,
                      force=body.force,
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes)
     model = keys.model_identity() if "model" in body.options.generators else None
