@@ -21,13 +21,12 @@ from dataclasses import dataclass, field
 
 from engine.cautious import Choice
 from engine.ranking import ActionEvidence, Candidate, Cluster
-from engine.spec import Spec
+from engine.spec import Spec, as_error
 from programs import checks
 from sandbox.types import CandidateResult
 from schemas.api import Decided, InferOptions, Verdict
-from schemas.errors import InvalidInput, InvalidProgram
+from schemas.errors import InvalidInput
 
-INLINE_SOURCE = "options.prior_rules"
 SURVIVING: tuple[Verdict, ...] = ("held", "tolerated", "chance")
 """Verdicts of a prior that holds at the demonstrated calls (a 'chance' one is common elsewhere too: the calls
 cannot refute it, and the other services' evidence is what speaks for it)."""
@@ -71,15 +70,17 @@ def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstra
     if options.prior_sets:
         raise InvalidInput("prior_sets are resolved by the service: send their rules in options.prior_sources here",
                            field="options.prior_sets")
-    sources = [(INLINE_SOURCE, "options.prior_rules", options.prior_rules)] + [
-        (s.source, f"options.prior_sources[{k}].rules", s.rules) for k, s in enumerate(options.prior_sources)]
+    sources = options.priors()
+    try:
+        checks.check_prior_rules([(where, table) for _, where, table in sources])
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
     literals = _literals([spec.source, *demonstrations])
     attributes = _attributes(spec.tree)
     found = Priors()
-    for source, where, table in sources:
+    for source, _, table in sources:
         for action, rules in table.items():
-            for index, rule in enumerate(rules):
-                _check(rule, f"{where}[{action}][{index}]")
+            for rule in rules:
                 why = None if action in actions else "no such action here"
                 why = why or _undefined(rule, _parameters(spec, action), attributes, literals)
                 if why is not None:
@@ -95,28 +96,6 @@ def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstra
 def _parameters(spec: Spec, action: str) -> tuple[str, ...]:
     method = spec.methods[action]
     return (*method.positional, *method.kwonly)
-
-
-def _check(rule: str, where: str) -> None:
-    problem = checks.expression_problem(rule)
-    if problem is None and any(_foreign_call(n) for n in ast.walk(ast.parse(rule.strip(), mode="eval"))):
-        problem = ("calls something other than a method of the state (a prior is a condition over the state and "
-                   "the action's arguments)")
-    if problem is not None:
-        raise InvalidProgram(f"{where}: {problem}", field=where)
-
-
-def _foreign_call(node: ast.AST) -> bool:
-    """A call of anything but a method reached from `self` (a spec's query, `self.is_visible(obj)`), or code
-    that defines or binds something."""
-    if isinstance(node, ast.Lambda | ast.NamedExpr):
-        return True
-    if not isinstance(node, ast.Call):
-        return False
-    func = node.func
-    while isinstance(func, ast.Attribute):
-        func = func.value
-    return not (isinstance(func, ast.Name) and func.id == "self" and isinstance(node.func, ast.Attribute))
 
 
 def _undefined(rule: str, params: Sequence[str], attributes: set[str], literals: set[object]) -> str | None:

@@ -163,6 +163,11 @@ class InferOptions(_Body):
         "occurs at least 3 times (fewer: treated as never demonstrated). README: 'Evidence-weighted validation'.",
     )
 
+    def priors(self) -> list[tuple[str, str, dict[str, list[str]]]]:
+        """(source, the field that holds them, action -> rules) of every prior source of the request."""
+        return [("options.prior_rules", "options.prior_rules", self.prior_rules)] + [
+            (s.source, f"options.prior_sources[{k}].rules", s.rules) for k, s in enumerate(self.prior_sources)]
+
     @model_validator(mode="after")
     def _bounded_priors(self) -> InferOptions:
         total = sum(len(r) for r in self.prior_rules.values()) + sum(

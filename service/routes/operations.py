@@ -115,6 +115,7 @@ def _programs_problem(body: BaseModel, max_work_points: int) -> checks.Problem |
     try:
         if isinstance(body, InferRequest):
             checks.check_infer(body.spec, body.demonstrations, body.actions, max_work_points)
+            checks.check_prior_rules([(where, rules) for _, where, rules in body.options.priors()])
         elif isinstance(body, NextActionRequest):
             checks.check_next_action(body.spec_text(), body.preconditions, body.demonstrations,
                                      _text(body.history), max_work_points)
