@@ -28,9 +28,10 @@ HEADING = "## Prior rules from the tenant's other services (leave one domain out
 TEXT = """Each SGD dev domain is inferred with the default configuration (`{config}`) twice: alone, and with priors =
 the rules that configuration inferred for the other three domains (`options.prior_sources`, one vote each; their
 inferred rules, never their ground truth). `F1` is the paper's metric on the test dialogs, `unsafe` / `over` the
-counterfactual metric ({variants} variants per test dialog, seed {seed}); `s` the inference's wall time. The ALFWorld
-control transfers ALFWorld's inferred rules to every SGD domain (`alfworld = unchanged` when the rules are the same
-as without priors). Regenerate: `precond eval transfer`.
+counterfactual metric ({variants} variants per test dialog, seed {seed}). The ALFWorld control transfers ALFWorld's
+inferred rules to every SGD domain (`alfworld = unchanged` when the rules are the same as without priors). What priors
+add to an inference's time: `python bench/priors_bench.py` (priors never enter a prompt, so the model-free inference
+is where their cost shows). Regenerate: `precond eval transfer`.
 """
 
 
@@ -104,9 +105,9 @@ def _fmt(value: float | None) -> str:
 
 
 def table(rows: Sequence[dict[str, Any]]) -> str:
-    lines = ["| domain | without priors F1 / unsafe / over / s | with priors F1 / unsafe / over / s | alfworld |",
+    lines = ["| domain | without priors F1 / unsafe / over | with priors F1 / unsafe / over | alfworld |",
              "|---|---|---|---|"]
-    keys = ("f1", "unsafe_allow", "over_refuse", "wall_s")
+    keys = ("f1", "unsafe_allow", "over_refuse")
     means: dict[str, list[list[float]]] = {"without": [], "with": []}
     for row in rows:
         cells = []
