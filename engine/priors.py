@@ -80,12 +80,12 @@ def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstra
     found = Priors()
     for source, _, table in sources:
         for action, rules in table.items():
+            if action not in actions:  # another service's action, or one this request does not infer
+                continue
             for rule in rules:
-                why = None if action in actions else "no such action here"
-                why = why or _undefined(rule, _parameters(spec, action), attributes, literals)
+                why = _undefined(rule, _parameters(spec, action), attributes, literals)
                 if why is not None:
-                    if action in actions:
-                        found.dropped.setdefault(action, []).append(f"{rule!r} from {source}: {why}")
+                    found.dropped.setdefault(action, []).append(f"{rule!r} from {source}: {why}")
                     continue
                 prior = found.rules.setdefault(action, {}).setdefault(canonical(rule), Prior(rule.strip()))
                 if source not in prior.sources:
@@ -111,7 +111,7 @@ def _undefined(rule: str, params: Sequence[str], attributes: set[str], literals:
         if isinstance(node, ast.Attribute) and node.attr not in attributes:
             return f"names the attribute {node.attr!r}, which no class of this spec sets"
         if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) \
-                and node.slice.value not in literals:
+                and isinstance(node.slice.value, str) and node.slice.value not in literals:
             return f"names {node.slice.value!r}, which neither the spec nor a demonstration mentions"
     return None
 

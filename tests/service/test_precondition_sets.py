@@ -361,6 +361,14 @@ def test_prior_sets_are_the_tenants_own_resolved_before_queueing(
                    if e.get("decided") == "transferred"}
         assert sources == {made["reference"]}
         assert answer["preconditions"] == inferred["preconditions"]  # the demonstrations agree with the set
+        # the job is the resolved rules': a new version of the set named without a version is another job
+        latest = body | {"options": body["options"] | {"prior_sets": [made["id"]]}}
+        before = stark.post("/infer-preconditions", json=latest, params={"wait": 60}).headers["X-Job-Id"]
+        action, rules = next((a, r) for a, r in made["preconditions"].items() if r)
+        _ok(stark.post(f"/precondition-sets/{made['id']}/versions",
+                       json={"edits": [{"op": "remove", "action": action, "rule": rules[0]}]}), 201)
+        after = stark.post("/infer-preconditions", json=latest, params={"wait": 60}).headers["X-Job-Id"]
+        assert before != after
         for client, reference in ((globex, made["reference"]), (stark, "ps_" + "0" * 24)):
             refused = client.post("/infer-preconditions", json=body | {"options": body["options"] | {
                 "prior_sets": [reference]}})
