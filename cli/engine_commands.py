@@ -19,7 +19,17 @@ import typer
 from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
-from schemas.api import CheckRequest, InferRequest, InferResponse, Listed, NextActionRequest, RuleEvidence
+from schemas.api import (
+    MAX_SOURCE_NAME_CHARS,
+    CheckRequest,
+    InferOptions,
+    InferRequest,
+    InferResponse,
+    Listed,
+    NextActionRequest,
+    PriorSource,
+    RuleEvidence,
+)
 from schemas.errors import PrecondError, ResourceLimit
 
 RequestFile = Annotated[Path, typer.Argument(help="Request body as JSON ('-' for standard input).")]
@@ -140,10 +150,12 @@ def summary_lines(response: InferResponse) -> list[str]:
                 lines.append(f"    evidence: {evidence.verdict}, holds at {evidence.holds} of "
                              f"{evidence.occurrences} demonstrated calls (confidence {evidence.confidence:.2f})")
                 lines += _exceptions(evidence, "    refuses ")
-            label = evidence.decided if evidence is not None and evidence.decided else ""
+            label: str = evidence.decided if evidence is not None and evidence.decided else ""
+            if evidence is not None and evidence.source:
+                label = f"{evidence.decided} (from {evidence.source})"
             reason = str(reasons.get(rule) or "").split("; held at ")[0]  # its counts are the evidence line's
-            if reason.startswith(f"{label}:"):
-                reason = reason[len(label) + 1:].strip()
+            if evidence is not None and evidence.decided and reason.startswith(f"{evidence.decided}:"):
+                reason = reason[len(evidence.decided) + 1:].strip()
             if reason or label:
                 lines.append(f"    decided: {label}{': ' if label and reason else ''}{reason}")
         if action in response.warnings:
@@ -197,10 +209,21 @@ Candidates = Annotated[
 ]
 
 
+PriorRules = Annotated[
+    list[Path] | None,
+    typer.Option("--prior-rules", help="Rules learned for another service, as priors (`options.prior_sources`, one "
+                 "vote per file, named by it): a JSON object of action -> rules, or an inference's answer or a "
+                 "stored set (its `preconditions`); repeatable.", show_default=False),
+]
+
+
 def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None, summary: Summary = False,
-          candidates: Candidates = None) -> None:
+          candidates: Candidates = None, prior_rules: PriorRules = None) -> None:
     """Infer verified preconditions for the spec's actions from the demonstrations."""
     body = _load(request, InferRequest)
+    if prior_rules:
+        sources = [*body.options.prior_sources, *(_prior_source(path) for path in prior_rules)]
+        body = _with_options(body, {"prior_sources": [s.model_dump() for s in sources]})
     listed = candidates or ("kept" if summary and body.options.candidates == "none" else None)
     if listed:
         body = body.model_copy(update={"options": body.options.model_copy(update={"candidates": listed})})
@@ -210,6 +233,30 @@ def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None, s
 
     engine = build_engine(with_model="model" in body.options.generators)
     _run(engine.infer, body, summary=summary)
+
+
+def _prior_source(path: Path) -> PriorSource:
+    """A file of rules as one prior source: `{action: [rules]}`, or anything with `preconditions`."""
+    try:
+        loaded = json.loads(path.read_text(encoding="utf-8"))
+        rules = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
+        return PriorSource.model_validate({"source": path.name[:MAX_SOURCE_NAME_CHARS], "rules": rules})
+    except OSError as exc:
+        _fail(f"cannot read {path}: {exc.strerror}", 2)
+    except json.JSONDecodeError as exc:
+        _fail(f"--prior-rules {path}: not JSON: {exc}", 2)
+    except ValidationError as exc:
+        _fail(f"--prior-rules {path}: not rules per action:\n" + "\n".join(_problems(exc)), 2)
+    raise AssertionError("unreachable")
+
+
+def _with_options(body: InferRequest, update: dict[str, Any]) -> InferRequest:
+    """The request with options changed, validated again (the bound on prior rules counts them all)."""
+    try:
+        return body.model_copy(update={"options": InferOptions.model_validate({**body.options.model_dump(), **update})})
+    except ValidationError as exc:
+        _fail("invalid options:\n" + "\n".join(_problems(exc)), 2)
+    raise AssertionError("unreachable")
 
 
 def next_action(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:

@@ -22,6 +22,8 @@ DataOption = Annotated[
                  "../shared/data); repeatable."),
 ]
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
+VariantsOption = Annotated[int, typer.Option(min=1, max=32, help="Changed copies of each test trajectory.")]
+SeedOption = Annotated[int, typer.Option(min=0, help="Seed of the changes.")]
 EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
 REPORT = Path("docs/results.md")
 
@@ -322,8 +324,8 @@ def counterfactual(
     data: DataOption = None,
     configs: Annotated[str, typer.Option(help="Config names or grids (see evaluation/configs.py).")]
     = "",
-    variants: Annotated[int, typer.Option(min=1, max=32, help="Changed copies of each test trajectory.")] = 4,
-    seed: Annotated[int, typer.Option(min=0, help="Seed of the changes.")] = 0,
+    variants: VariantsOption = 4,
+    seed: SeedOption = 0,
     cache_dir: CacheOption = DEFAULT_CACHE,
     out: Annotated[Path, typer.Option(help="Report whose counterfactual section is (re)written.")] = REPORT,
 ) -> None:
@@ -343,6 +345,33 @@ def counterfactual(
     typer.echo(f"\nwrote the counterfactual section of {out}")
 
 
+def transfer(
+    config: Annotated[str, typer.Option(help="The configuration inferred with and without priors.")]
+    = "model+enumerate/cautious",
+    force: Annotated[bool, typer.Option(help="Infer again (for timings) instead of reading the cache.")] = False,
+    out: Annotated[Path, typer.Option(help="Report whose transfer section is (re)written.")] = REPORT,
+    data: DataOption = None, cache_dir: CacheOption = DEFAULT_CACHE, variants: VariantsOption = 4,
+    seed: SeedOption = 0,
+) -> None:
+    """Prior rules, leave one SGD domain out: F1 and counterfactual safety with and without the other domains'
+    inferred rules, and the ALFWorld control (evaluation/transfer.py)."""
+    from evaluation.configs import parse_config
+    from evaluation.scoring import Satisfaction
+    from evaluation.transfer import evaluate, table, write_section
+
+    store = JsonCache(cache_dir)
+    chosen = parse_config(config)
+    domains = _domains(data, "state")
+    sgd = [d for d in domains if d.benchmark == "sgd"]
+    alfworld = next((d for d in domains if d.benchmark == "alfworld"), None)
+    rows = evaluate(sgd, alfworld, chosen, store, Satisfaction(_sandbox(), store),
+                    lambda: _engine(chosen.uses_model).infer, variants, seed, force)
+    store.put(rows, "results", "transfer")
+    write_section(rows, out)
+    typer.echo(table(rows))
+    typer.echo(f"\nwrote the transfer section of {out}")
+
+
 def register(app: typer.Typer) -> None:
     group = typer.Typer(help="Evaluate precondition inference and the policy on the development data.",
                         no_args_is_help=True)
@@ -351,6 +380,7 @@ def register(app: typer.Typer) -> None:
     group.command("next-action")(next_action)
     group.command("next-action-alfworld")(next_action_alfworld)
     group.command("counterfactual")(counterfactual)
+    group.command("transfer")(transfer)
     group.command("tools")(tools)
     group.command("report")(report)
     group.command("all")(run_all)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from convert.openai import call_lines, structured_history
-from engine import cautious, judge, prompting
+from engine import cautious, judge, priors, prompting
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
 from engine.freshness import Access, writes_at
@@ -162,6 +162,8 @@ class Ranked:
     verdicts: Mapping[str, Verdict] = field(default_factory=dict)
     decided: Mapping[str, Decided] = field(default_factory=dict)
     """How each chosen rule was decided (`engine.cautious.Choice`), by its expression."""
+    transferred: Mapping[str, str] = field(default_factory=dict)
+    """The sources of each chosen rule transferred from the priors (`engine.priors`), by its expression."""
 
 
 class Timer:
@@ -217,6 +219,7 @@ class Engine:
         actions = resolve_actions(spec, request.actions)
         demo_trees = [parse_source(d, f"demonstrations[{i}]") for i, d in enumerate(request.demonstrations)]
         demos = list(request.demonstrations)
+        prior = priors.collect(request.options, spec, actions, demos)
         progress("trace", 0, 1)
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos)
@@ -230,6 +233,8 @@ class Engine:
         if "enumerate" in request.options.generators:
             with timer.phase("enumerate"):
                 self._enumerate(spec, actions, demo_trees, trace, proposals)
+        for action in actions:  # after the generators: without priors, nothing changes
+            proposals.add(action, prior.expressions(action), "prior", 0)
         self._check_cancel(cancelled)
         progress("validate", 0, 1)
         with timer.phase("validate"):
@@ -237,7 +242,8 @@ class Engine:
             evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            ranked = self._rank(actions, trace, evaluated, proposals, request.options, writes_at(spec, trace))
+            ranked = self._rank(actions, trace, evaluated, proposals, request.options, writes_at(spec, trace),
+                                prior)
         if request.options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
@@ -252,7 +258,7 @@ class Engine:
         decided = {a: {rule: ranked[a].decided.get(rule, "unseen" if rule == UNSEEN_RULE else "established")
                        for rule in preconditions[a]} for a in actions}
         warnings = rule_warnings(actions, occurrences, preconditions, decided, model_info is not None,
-                                 request.options.tolerance, request.options.unseen)
+                                 request.options.tolerance, request.options.unseen, prior.dropped)
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, stats=response.stats,
@@ -310,6 +316,7 @@ class Engine:
         proposals: Proposals,
         options: InferOptions,
         writes: Mapping[tuple[int, int], frozenset[Access]],
+        prior: priors.Priors | None = None,
     ) -> dict[str, Ranked]:
         ranked: dict[str, Ranked] = {}
         turns = _previous_turns(trace)
@@ -355,21 +362,27 @@ class Engine:
                 kept = within_budget(picked, evidence)
                 choice = cautious.Choice(kept, {c.representative.expression: "established" for c in kept})
                 cut = [c for c in picked if c not in kept]
+            if not sparse and too_few(info.occurrences):  # strict validation on one or two calls: not established
+                choice = cautious.Choice(choice.chosen, {e: "assumed" if d == "established" else d
+                                                         for e, d in choice.decided.items()}, choice.notes)
+            transferred: dict[str, str] = {}
+            if prior is not None and prior.rules.get(action):
+                choice = _with_priors(choice, prior, action, results, verdicts, evidence, sparse)
+                transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items()
+                               if d == "transferred"}
             reported, judged, verdicts = _with_composites(choice, results, judged, verdicts, index)
             reasons = {**_screened(verdicts, judged, tolerance, {r.expression: r.reason for r in results}),
-                       **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut),
-                       **_decided_reasons(choice)}
-            decided = dict(choice.decided)
-            if not sparse and too_few(info.occurrences):  # strict validation on a few calls: not established
-                decided = {e: "assumed" if d == "established" else d for e, d in decided.items()}
-            ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts, decided)
+                       **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut)}
+            reasons |= _decided_reasons(choice, reasons)
+            ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts,
+                                    choice.decided, transferred)
         return ranked
 
     def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,
                evaluated: EvaluateResult, ranked: dict[str, Ranked], options: InferOptions) -> dict[str, Ranked]:
         """Let the code model settle what the evidence left open (`engine.judge`), one question per action."""
-        questions = [q for a in actions
-                     if (q := _question(a, ranked[a], trace, len(evaluated.points.get(a, ())), options)) is not None]
+        questions = [q for a in actions if not ranked[a].transferred
+                     and (q := _question(a, ranked[a], trace, len(evaluated.points.get(a, ())), options)) is not None]
         if not questions:
             return ranked
         model = self.model()
@@ -655,6 +668,16 @@ def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: A
                            choice.notes)
 
 
+def _with_priors(choice: cautious.Choice, prior: priors.Priors, action: str, results: Sequence[CandidateResult],
+                 verdicts: Mapping[str, Verdict], evidence: ActionEvidence, sparse: bool) -> cautious.Choice:
+    """The hook of `engine.priors`: the surviving priors most sources name, preferred where the evidence does not
+    decide."""
+    found = list(prior.rules[action].values())
+    best = priors.preferred(found, {r.expression: r for r in results}, verdicts, evidence, bool(evidence.occurrences),
+                            sparse)
+    return priors.prefer(choice, best, priors.support(found), sparse)
+
+
 def _with_composites(choice: cautious.Choice, results: Sequence[CandidateResult], judged: dict[str, Evidence],
                      verdicts: dict[str, Verdict], index: OccurrenceIndex
                      ) -> tuple[Sequence[CandidateResult], dict[str, Evidence], dict[str, Verdict]]:
@@ -672,11 +695,12 @@ def _with_composites(choice: cautious.Choice, results: Sequence[CandidateResult]
     return (*results, *composed), judged, verdicts
 
 
-def _decided_reasons(choice: cautious.Choice) -> dict[str, str]:
-    """The reason of a rule that only the cautious criterion keeps: composed, or assumed."""
+def _decided_reasons(choice: cautious.Choice, ranked: Mapping[str, str]) -> dict[str, str]:
+    """The reason of a rule that only the cautious criterion keeps: composed, or assumed (a rule the ranking kept
+    for what enabled the calls, assumed only for how few they were, keeps the ranking's reason)."""
     reasons = {e: f"kept: {note}" for e, note in choice.notes.items()}
     for expression, decided in choice.decided.items():
-        if decided == "assumed" and expression not in reasons:
+        if decided == "assumed" and expression not in reasons and not ranked.get(expression, "").startswith("kept"):
             reasons[expression] = (
                 "assumed: held at every demonstrated call and nothing shows the call can happen without it, though "
                 "the evidence cannot tell it from a correlate (true long before, common everywhere, or implied by "
@@ -809,10 +833,12 @@ def _reports(
             reason = f"{reason}; {describe(found, [_where(x) for x in evidence.exceptions])}"
         is_kept = result.expression in kept
         if evidence is not None and is_kept:
-            evidence = evidence.model_copy(update={"decided": ranked.decided.get(result.expression, "established")})
+            evidence = evidence.model_copy(update={"decided": ranked.decided.get(result.expression, "established"),
+                                                   "source": ranked.transferred.get(result.expression)})
+        origin = origins.get(result.expression)
         reports.append(CandidateReport(
             assertion=result.expression,
-            source="enumerate" if origins.get(result.expression) == "enumerate" else "model",
+            source="enumerate" if origin == "enumerate" else "prior" if origin == "prior" else "model",
             valid=is_kept or (result.expression in valid and fate in ("held", "tolerated")),
             cluster=cluster_of.get(result.expression),
             support=result.satisfied.bit_count(),

@@ -45,6 +45,8 @@ def _consequence(outcome: Outcome) -> str:
     if any(outcome.decided.get(rule) == "unseen" for rule in outcome.rules):
         return ("every call of it is refused (options.unseen: 'refuse') until a rule is written or learned from "
                 "demonstrations that show it")
+    if any(outcome.decided.get(rule) == "transferred" for rule in outcome.rules):
+        return "its rule is transferred from the prior rules (learned for other services; `evidence` names them)"
     if outcome.occurrences and outcome.tolerance <= 0:
         return "its rule holds at those few calls, which cannot tell a requirement from a coincidence"
     if outcome.assumed:
@@ -103,9 +105,10 @@ def rule_warnings(
     model: bool,
     tolerance: float,
     unseen: Unseen = "refuse",
+    dropped_priors: Mapping[str, Sequence[str]] | None = None,
 ) -> dict[str, str]:
-    """Per action whose rule is empty, assumed or not learned from enough demonstrated calls, why; others are
-    absent."""
+    """Per action whose rule is empty, assumed or not learned from enough demonstrated calls, why, and the prior
+    rules that did not apply to it (`engine.priors`); others are absent."""
     warnings: dict[str, str] = {}
     for action in actions:
         outcome = Outcome(action, occurrences.get(action, ()), preconditions.get(action, ()), model, tolerance,
@@ -114,4 +117,7 @@ def rule_warnings(
             if (warning := case(outcome)) is not None:
                 warnings[action] = warning
                 break
+        if dropped := (dropped_priors or {}).get(action):
+            listed = f"prior rules that do not apply here were dropped: {_listed(list(dropped))}"
+            warnings[action] = f"{warnings[action]}; {listed}" if action in warnings else listed
     return warnings

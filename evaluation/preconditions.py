@@ -59,9 +59,14 @@ def build_request(domain: Domain, config: InferConfig) -> InferRequest:
 
 
 def _run_engine(infer: InferFn, domain: Domain, config: InferConfig) -> Inference:
+    return run_request(infer, build_request(domain, config))
+
+
+def run_request(infer: InferFn, request: InferRequest) -> Inference:
+    """One inference as the cache keeps it; an engine error is the result's `error`, not an exception."""
     start = time.perf_counter()
     try:
-        response = infer(build_request(domain, config))
+        response = infer(request)
     except PrecondError as exc:
         return Inference({}, {}, time.perf_counter() - start, None, f"{exc.kind}: {exc.message}")
     wall = time.perf_counter() - start

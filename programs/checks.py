@@ -208,6 +208,42 @@ def check_infer(spec: str, demonstrations: Sequence[str], actions: Sequence[str]
     check_work(trees, max_points)
 
 
+def check_prior_rules(sources: Sequence[tuple[str, Mapping[str, Sequence[str]]]]) -> None:
+    """Each prior rule (`sources`: the field that holds them, and action -> rules) is one expression that calls
+    nothing but methods reached from `self` (a spec's query); raises ProgramProblem naming the rule."""
+    for where, table in sources:
+        for action, rules in table.items():
+            for index, rule in enumerate(rules):
+                problem = expression_problem(rule)
+                if problem is None and any(_foreign_call(n) for n in ast.walk(ast.parse(rule.strip(), mode="eval"))):
+                    problem = ("calls something other than a method of the state (a prior is a condition over the "
+                               "state and the action's arguments)")
+                if problem is not None:
+                    field = f"{where}[{action}][{index}]"
+                    raise ProgramProblem(Problem(INVALID_PROGRAM, field, f"{field}: {problem}"))
+
+
+def check_infer_with_priors(spec: str, demonstrations: Sequence[str], actions: Sequence[str] | None,
+                            max_points: int | None,
+                            priors: Sequence[tuple[str, Mapping[str, Sequence[str]]]] = ()) -> None:
+    """`check_infer`, then the request's prior rules (`check_prior_rules`): one call for the gateway's check pool."""
+    check_infer(spec, demonstrations, actions, max_points)
+    check_prior_rules(priors)
+
+
+def _foreign_call(node: ast.AST) -> bool:
+    """A call of anything but a method reached from `self` (`self.is_visible(obj)`), or code that defines or
+    binds something."""
+    if isinstance(node, ast.Lambda | ast.NamedExpr):
+        return True
+    if not isinstance(node, ast.Call):
+        return False
+    func = node.func
+    while isinstance(func, ast.Attribute):
+        func = func.value
+    return not (isinstance(func, ast.Name) and func.id == "self" and isinstance(node.func, ast.Attribute))
+
+
 def check_next_action(spec: str, preconditions: Mapping[str, Sequence[str]], demonstrations: Sequence[str],
                       history: str, max_points: int | None = None) -> None:
     _, methods = spec_methods(spec)

@@ -34,7 +34,7 @@ MAX_LISTED_EXCEPTIONS = 20
 Generator = Literal["model", "enumerate"]
 Ranking = Literal["cautious", "subsumption", "recency", "marginal"]
 Unseen = Literal["refuse", "allow"]
-Decided = Literal["established", "assumed", "zero-shot", "unseen"]
+Decided = Literal["established", "assumed", "zero-shot", "unseen", "transferred"]
 ModelFor = Literal["thin", "all"]
 Listed = Literal["all", "kept", "none"]
 
@@ -68,6 +68,21 @@ Preconditions = Annotated[
     Field(max_length=MAX_ACTIONS),
 ]
 """Action (`Class.method`) → assertions; every bound is enforced here, before any work is queued."""
+
+SET_REFERENCE = r"^ps_[0-9a-f]{24}(@[1-9][0-9]{0,8})?$"
+MAX_PRIOR_RULES = 512
+"""Prior rules one inference may carry, all sources together: each is executed on every demonstration."""
+MAX_PRIOR_SOURCES = 8
+MAX_SOURCE_NAME_CHARS = 200
+
+
+class PriorSource(_Body):
+    """Rules learned elsewhere (another service's stored set or inference): one vote among the priors."""
+
+    source: str = Field(min_length=1, max_length=MAX_SOURCE_NAME_CHARS,
+                        description="Where the rules come from, as the transferred rules name it (`ps_...@n`, a "
+                        "request id, a file name).")
+    rules: Preconditions = Field(description="Action (`Class.method`) → rules, as an inference's `preconditions`.")
 
 
 class InferOptions(_Body):
@@ -113,6 +128,26 @@ class InferOptions(_Body):
         "demonstrated, and whether a condition that only described the episode's phase is required. It scores "
         "the validated candidates (never adopts anything unexecuted) and decides only when confident.",
     )
+    prior_rules: Preconditions = Field(
+        default_factory=dict,
+        description="Rules learned for other services (e.g. the `preconditions` of another inference or a stored "
+        "set's rules): candidates, not verdicts. Each applies to the action of the same name, runs on these "
+        "demonstrations like any candidate and is refuted when they contradict it; where they do not decide (an "
+        "action never or thinly demonstrated, a correlate, an alternative reading of the same state) a prior "
+        "that holds at every demonstrated call is preferred, and its rule says `decided: transferred`. A rule "
+        "naming what this spec does not define is dropped (`warnings` says why). README: 'Prior rules'.",
+    )
+    prior_sets: list[Annotated[str, StringConstraints(pattern=SET_REFERENCE)]] = Field(
+        default_factory=list, max_length=MAX_PRIOR_SOURCES,
+        description="Your own stored precondition sets (`ps_...@n`, or `ps_...` for the latest) whose rules are "
+        "priors, one vote each; resolved by the service before the job is queued (another tenant's set is a 404).",
+    )
+    prior_sources: list[PriorSource] = Field(
+        default_factory=list, max_length=MAX_PRIOR_SOURCES,
+        description="Priors from several sources, each one vote: where sources disagree on an action, the rules "
+        "most of them name that the demonstrations do not refute are preferred. The service fills it from "
+        "`prior_sets`.",
+    )
     samples_per_prompt: int = Field(default=4, ge=1, le=64)
     prompts_per_action: int = Field(
         default=2, ge=1, le=MAX_DEMONSTRATIONS, description="How many demonstrations to vary across prompts."
@@ -138,6 +173,23 @@ class InferOptions(_Body):
         "occurs at least 3 times (fewer: treated as never demonstrated). README: 'Evidence-weighted validation'.",
     )
 
+    def priors(self) -> list[tuple[str, str, dict[str, list[str]]]]:
+        """(source, the field that holds them, action -> rules) of every prior source of the request."""
+        return [("options.prior_rules", "options.prior_rules", self.prior_rules)] + [
+            (s.source, f"options.prior_sources[{k}].rules", s.rules) for k, s in enumerate(self.prior_sources)]
+
+    @model_validator(mode="after")
+    def _bounded_priors(self) -> InferOptions:
+        total = sum(len(r) for r in self.prior_rules.values()) + sum(
+            len(r) for s in self.prior_sources for r in s.rules.values())
+        if total > MAX_PRIOR_RULES:
+            raise ValueError(f"{total} prior rules (options.prior_rules and options.prior_sources together): at "
+                             f"most {MAX_PRIOR_RULES}")
+        if len(self.prior_sets) + len(self.prior_sources) > MAX_PRIOR_SOURCES:
+            raise ValueError(f"more than {MAX_PRIOR_SOURCES} prior sources (options.prior_sets and "
+                             "options.prior_sources together)")
+        return self
+
 
 SPEC_DESCRIPTION = (
     "The program spec: Python classes whose attributes summarise the history, observation methods, and "
@@ -159,7 +211,6 @@ HISTORY_DESCRIPTION = (
 )
 MAX_HISTORY_EVENTS = 2_000
 MAX_EVENT_ARGS = 32
-SET_REFERENCE = r"^ps_[0-9a-f]{24}(@[1-9][0-9]{0,8})?$"
 PRECONDITION_SET_DESCRIPTION = (
     "A stored precondition set (`POST /precondition-sets`) to use instead of `spec` + `preconditions`: "
     "`id@version`, or `id` for its latest version. Another tenant's set is not found (404)."
@@ -301,13 +352,19 @@ class RuleEvidence(_Body):
         description="For a kept rule, how it was decided: 'established' (the evidence decides: it enabled the "
         "demonstrated calls), 'assumed' (kept because it could not be ruled out: a fact that held at every call "
         "but may be a correlate; review it), 'zero-shot' (the code model's guess, no evidence), 'unseen' (the "
-        "action was never demonstrated and `options.unseen` is 'refuse').",
+        "action was never demonstrated and `options.unseen` is 'refuse'), 'transferred' (a prior rule, "
+        "`options.prior_rules` or `prior_sets`, that the demonstrations did not refute and could not decide "
+        "against: `source` says where it was learned).",
+    )
+    source: str | None = Field(
+        default=None, max_length=4 * MAX_SOURCE_NAME_CHARS,
+        description="For a transferred rule: the prior sources that name it (`ps_...@n`, `options.prior_rules`).",
     )
 
 
 class CandidateReport(_Body):
     assertion: str
-    source: Generator
+    source: Literal["model", "enumerate", "prior"]
     valid: bool = Field(description="Passed validation: held at every occurrence, or within `options.tolerance`.")
     cluster: int | None = None
     support: int = Field(description="|C_h|: demonstration points (position x arguments) where it holds.")

@@ -8,7 +8,7 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
-from pydantic import BaseModel
+from pydantic import BaseModel, ValidationError
 
 from convert.openai import call_lines
 from jobs import keys
@@ -18,12 +18,14 @@ from schemas.api import (
     CheckResponse,
     ErrorInfo,
     ErrorResponse,
+    InferOptions,
     InferRequest,
     InferResponse,
     JobKind,
     JobStatus,
     NextActionRequest,
     NextActionResponse,
+    PriorSource,
 )
 from service import offload
 from service.auth import Tenant, refuse
@@ -110,7 +112,8 @@ def _program_check(body: BaseModel, max_work_points: int) -> tuple[Callable[...,
     """The static check of the request's programs (parsed, never run) and its work estimate, as a function and
     its arguments for the check pool: 422 before anything is queued, not a failed job after the wait."""
     if isinstance(body, InferRequest):
-        return checks.check_infer, (body.spec, body.demonstrations, body.actions, max_work_points)
+        return checks.check_infer_with_priors, (body.spec, body.demonstrations, body.actions, max_work_points,
+                                                [(where, rules) for _, where, rules in body.options.priors()])
     if isinstance(body, NextActionRequest):
         return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
                                           _text(body.history), max_work_points)
@@ -152,6 +155,22 @@ async def _with_rules_and_program(
     return body
 
 
+async def with_prior_sets(services: Services, tag: str, options: InferOptions) -> InferOptions:
+    """The options with the tenant's stored sets named in `prior_sets` resolved to their rules (404 for a set
+    that is not the tenant's), so that the worker never reads a set and the job id depends on the rules
+    themselves, not on a reference whose latest version may change."""
+    sources = list(options.prior_sources)
+    for reference in options.prior_sets:
+        stored = await services.sets.get(tag, reference)
+        sources.append(PriorSource(source=stored.reference, rules=stored.preconditions))
+    try:
+        return InferOptions.model_validate(
+            {**options.model_dump(), "prior_sets": [], "prior_sources": [s.model_dump() for s in sources]})
+    except ValidationError as exc:
+        raise ServiceError(422, f"options.prior_sets: {exc.errors()[0]['msg']}", "invalid_input",
+                           field="options.prior_sets") from None
+
+
 def _text(history: object) -> str:
     return history if isinstance(history, str) else ""
 
@@ -173,6 +192,8 @@ async def answer(
 ) -> Response:
     settings = services.settings
     tag = keys.tenant_tag(services.secret, tenant)  # the request's rate was taken with its key (service.auth)
+    if isinstance(body, InferRequest) and body.options.prior_sets:
+        body = body.model_copy(update={"options": await with_prior_sets(services, tag, body.options)})
     if isinstance(body, CheckRequest | NextActionRequest):
         prepared = await _with_rules_and_program(services, tag, body)
         if isinstance(prepared, checks.Problem):

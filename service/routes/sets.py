@@ -30,7 +30,7 @@ from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.middleware import OffloadedBodyRoute
 from service.queue import QueueFull
-from service.routes.operations import ERRORS, Wait, answer
+from service.routes.operations import ERRORS, Wait, answer, with_prior_sets
 from service.sets import Report, apply_edits, blocking_message, new_id, not_found, version_of
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"], route_class=OffloadedBodyRoute)
@@ -147,6 +147,7 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
         raise ServiceError(422, f"the set's {len(base.demonstrations)} demonstrations and these would be "
                            f"{len(demonstrations)}, over {MAX_DEMONSTRATIONS}", "invalid_input",
                            field="demonstrations")
+    options = await with_prior_sets(services, tag, body.options) if body.options.prior_sets else body.options
     chars = len(base.spec) + sum(map(len, demonstrations))
     services.sets.refuse_oversized(chars)
     problem = await services.checks.run(tag, chars, offload.problem_of, checks.check_reinfer, base.spec,
@@ -155,7 +156,7 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
     if problem is not None:
         field = problem.field if problem.field.startswith(("actions", "demonstrations[")) else "demonstrations"
         raise ServiceError(422, problem.message, problem.type, field=field)
-    job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=body.options,
+    job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=options,
                      force=body.force,
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
                      max_tenant_bytes=services.settings.max_set_bytes_per_tenant)

@@ -124,6 +124,8 @@ function ruleItem(set, action, rule, editable, edit) {
     h("div", { class: "rule-head" },
       h("code", {}, rule),
       h("span", { class: `badge d-${label.replace(/\s+/g, "-")}`, title: "how it was decided" }, label),
+      evidence && evidence.source ? h("span", { class: "source", title: "where the prior rule was learned" },
+        `from ${evidence.source}`) : null,
       required ? h("span", { class: "badge required" }, "required") : null,
       h("span", { class: "buttons" },
         required ? null : button("require", "Require"), button("reject", "Reject", "danger"),

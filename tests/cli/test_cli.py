@@ -68,6 +68,22 @@ def test_infer_can_leave_candidates_out_and_print_a_summary_to_read() -> None:
     assert lines[-1].startswith(f"{sum(map(len, everything['preconditions'].values()))} rule(s) for 12 action(s)")
 
 
+def test_infer_takes_prior_rules_from_files_and_names_them(tmp_path: Path) -> None:
+    """Another service's answer as priors: NOTIFY_FAILURE, never demonstrated here, takes its rule."""
+    other = tmp_path / "buses.json"
+    other.write_text(json.dumps({"preconditions": {"SYSTEM.NOTIFY_FAILURE": ["not self.query_success"]}}))
+    summary = precond("infer", str(EXAMPLES / "infer-enumerate.json"), "--summary", "--prior-rules", str(other))
+    assert summary.returncode == 0, summary.stderr
+    lines = summary.stdout.splitlines()
+    at = lines.index("SYSTEM.NOTIFY_FAILURE: 1 rule(s), all must hold")
+    assert lines[at + 1] == "  not self.query_success"
+    assert lines[at + 3].startswith("    decided: transferred (from buses.json): ")
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps({"SYSTEM.GOODBYE": [1]}))
+    refused = precond("infer", str(EXAMPLES / "infer-enumerate.json"), "--prior-rules", str(broken))
+    assert refused.returncode == 2 and "--prior-rules" in refused.stderr and "broken.json" in refused.stderr
+
+
 def test_check_reads_standard_input() -> None:
     request = json.loads((EXAMPLES / "check-actions.json").read_text())
     request["calls"].append("system.GOODBYE()")  # no precondition given for GOODBYE: allowed

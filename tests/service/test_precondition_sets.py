@@ -30,7 +30,7 @@ EVENTS = [
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
     path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
-    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella")
+    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella", "stark")
     return path, {tenant: make_key(path, tenant)[1] for tenant in tenants}
 
 
@@ -345,3 +345,39 @@ def test_reinference_keeps_required_rules_keeps_rejected_out_and_reports_a_diff(
     assert bad.status_code == 422 and bad.json()["error"]["field"] == "demonstrations[1]", bad.text
     shape = acme.post(f"/precondition-sets/{set_id}/reinfer", json={"demonstrations": [], "options": ENUMERATE})
     assert shape.status_code == 422 and shape.json()["error"]["field"] == "demonstrations", shape.text
+
+
+def test_prior_sets_are_the_tenants_own_resolved_before_queueing(
+    stack: Stack, keys: tuple[Path, dict[str, str]], inferred: dict[str, Any]
+) -> None:
+    """Another tenant's set (or one that does not exist) is a 404 here as everywhere; the tenant's own set's rules
+    become priors, and the rules they decide name the set."""
+    with client_for(stack, keys[1]["stark"]) as stark, client_for(stack, keys[1]["globex"]) as globex:
+        made = _create(stark, inferred)
+        body = infer_body(seed=32)
+        body["options"]["prior_sets"] = [made["reference"]]
+        answer = _ok(stark.post("/infer-preconditions", json=body, params={"wait": 60}))
+        sources = {e["source"] for rules in answer["evidence"].values() for e in rules.values()
+                   if e.get("decided") == "transferred"}
+        assert sources == {made["reference"]}
+        assert answer["preconditions"] == inferred["preconditions"]  # the demonstrations agree with the set
+        # the job is the resolved rules': a new version of the set named without a version is another job
+        latest = body | {"options": body["options"] | {"prior_sets": [made["id"]]}}
+        before = stark.post("/infer-preconditions", json=latest, params={"wait": 60}).headers["X-Job-Id"]
+        action, rules = next((a, r) for a, r in made["preconditions"].items() if r)
+        _ok(stark.post(f"/precondition-sets/{made['id']}/versions",
+                       json={"edits": [{"op": "remove", "action": action, "rule": rules[0]}]}), 201)
+        after = stark.post("/infer-preconditions", json=latest, params={"wait": 60}).headers["X-Job-Id"]
+        assert before != after
+        for client, reference in ((globex, made["reference"]), (stark, "ps_" + "0" * 24)):
+            refused = client.post("/infer-preconditions", json=body | {"options": body["options"] | {
+                "prior_sets": [reference]}})
+            assert refused.status_code == 404, refused.text
+        calls = body | {"options": body["options"] | {"prior_sets": [], "prior_rules": {
+            "SYSTEM.GOODBYE": ["self.user.no_more", "__import__('os').system('id')"]}}}
+        bad = stark.post("/infer-preconditions", json=calls)
+        assert bad.status_code == 422 and bad.json()["error"]["field"] == "options.prior_rules[SYSTEM.GOODBYE][1]"
+        many = body | {"options": body["options"] | {"prior_sets": [], "prior_rules": {
+            f"SYSTEM.A{i}": ["self.user.no_more"] * 32 for i in range(17)}}}
+        over = stark.post("/infer-preconditions", json=many)
+        assert over.status_code == 422 and "at most 512" in over.text, over.text

@@ -401,3 +401,17 @@ def test_no_key_reaches_a_log(stack: Stack, keys: tuple[Path, dict[str, str]]) -
     """Last in the module: every key was used by now, through the API and the page."""
     logs = "".join(path.read_text(errors="replace") for path in stack.logs.glob("*.log"))
     assert not [tenant for tenant, key in keys[1].items() if key in logs]
+
+
+@needs_browser
+def test_a_transferred_rule_shows_where_it_was_learned(
+    page: Page, stack: Stack, keys: tuple[Path, dict[str, str]], acme: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    evidence = json.loads(json.dumps(inferred["evidence"]))
+    evidence["SYSTEM.OFFER"]["self.query_success"] |= {"decided": "transferred", "source": "ps_buses@3, ps_homes@1"}
+    made = _create(acme, inferred, evidence=evidence)
+    assert made["decided"]["SYSTEM.OFFER"]["self.query_success"] == "transferred"
+    _open(page, stack, f"/ui/sets/{made['id']}", keys[1]["acme"])
+    item = _rule(page, "SYSTEM.OFFER", "self.query_success")
+    expect(item.locator(".badge").first).to_have_text("transferred")
+    expect(item.locator(".source")).to_have_text("from ps_buses@3, ps_homes@1")
