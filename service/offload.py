@@ -16,6 +16,7 @@ import asyncio
 import json
 import logging
 import multiprocessing
+import os
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -90,6 +91,15 @@ def rendered(spec: str, history: Sequence[Mapping[str, Any]]) -> str | checks.Pr
         return checks.too_deep("history").problem
 
 
+CHECK_NICENESS = 10
+
+
+def _yield_to_the_gateway() -> None:
+    """A check process runs below the gateway's priority: parsing one tenant's megabytes must not take the CPU
+    from the event loop that answers everyone else (and `/health`) on a machine with few cores."""
+    os.nice(CHECK_NICENESS)
+
+
 class CheckPool:
     def __init__(self, processes: int, per_tenant: int) -> None:
         self.processes, self.per_tenant = processes, per_tenant
@@ -98,7 +108,8 @@ class CheckPool:
 
     def _start(self) -> ProcessPoolExecutor:
         # spawn: a fresh interpreter that imports only this module, never a fork of the gateway's threads
-        return ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_yield_to_the_gateway)
 
     async def run(self, tag: str, chars: int, function: Callable[..., T], *args: Any) -> T:
         """`function(*args)` on the loop when the request is small, else in the pool in the tenant's line."""
