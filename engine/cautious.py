@@ -32,7 +32,16 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from engine.evidence import CHANCE_ALPHA, Evidence
-from engine.ranking import ActionEvidence, Candidate, Cluster, enabled_at, enabling_rate, informative, subsumption
+from engine.ranking import (
+    ActionEvidence,
+    Candidate,
+    Cluster,
+    cluster,
+    enabled_at,
+    enabling_rate,
+    informative,
+    subsumption,
+)
 from sandbox.types import Point
 from schemas.api import Decided
 
@@ -112,18 +121,11 @@ def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_poin
     established."""
     mask = evidence.occurrence_mask
     every = [c for c in candidates if mask and not mask & ~c.satisfied]
-    shared = [c for c in informative(_clusters(every), n_points) if polarity(c.representative.expression) == "positive"]
+    shared = [c for c in informative(cluster(every), n_points) if polarity(c.representative.expression) == "positive"]
     if tool_call:
         return shared
     index = {point: bit for bit, point in enumerate(evidence.points)}
     return [c for c in shared if enabling_rate(c, evidence, index) > 0]
-
-
-def _clusters(candidates: Sequence[Candidate]) -> list[Cluster]:
-    groups: dict[int, list[Candidate]] = {}
-    for candidate in candidates:
-        groups.setdefault(candidate.satisfied, []).append(candidate)
-    return [Cluster(tuple(members)) for members in groups.values()]
 
 
 def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: bool) -> tuple[Cluster | None, str]:
