@@ -84,6 +84,7 @@ class JobQueue:
         self.max_jobs = max_jobs
         self.quotas = quotas
         self.result_ttl_s = result_ttl_s
+        self._admissions: dict[str, asyncio.Lock] = {}  # one per queue (a handful: jobs.keys.QUEUE_BY_KIND)
 
     def _job(self, job_id: str, queue: str) -> Job:
         return Job(job_id, self.redis, _queue_name=queue)
@@ -108,8 +109,15 @@ class JobQueue:
     async def submit(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str) -> None:
         """Enqueue unless the same job exists: identical requests then share the one already there. The
         job's place in its queue is its tenant's fair start (service.quotas), and its result is cached
-        under `cache_key`."""
+        under `cache_key`. One admission per queue at a time in this process: the depth check and the
+        enqueue are then one step for its requests, so the queue overshoots its bound only by what other
+        gateway processes enqueue at the same instant (and `_over_bound` takes those back)."""
         queue = queue_for(kind, body)
+        async with self._admissions.setdefault(queue, asyncio.Lock()):
+            await self._admit(kind, job_id, body, tenant_tag, cache_key, queue)
+
+    async def _admit(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
+                     queue: str) -> None:
         job = self._job(job_id, queue)
         if await self.depth(queue) >= self.max_jobs and await self._arq_status(job_id, queue) == ArqStatus.not_found:
             raise QueueFull(queue)
