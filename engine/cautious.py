@@ -56,6 +56,7 @@ class Choice:
     chosen: list[Cluster]
     decided: dict[str, Decided] = field(default_factory=dict)
     notes: dict[str, str] = field(default_factory=dict)  # expression -> why it was kept, in words
+    search: str = ""  # the disjunction search stopped at its bound: what it looked at, in words
 
 
 def polarity(expression: str) -> str:
@@ -94,17 +95,20 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     chosen = triggers(clusters, evidence)
     decided: dict[str, Decided] = {c.representative.expression: "established" for c in chosen}
     notes: dict[str, str] = {}
+    search = ""
     if not chosen:
-        found, note = disjunction(atoms, evidence, tool_call)
+        found, note, cut = disjunction(atoms, evidence, tool_call)
         if found is not None:
             chosen = [found]
             decided[found.representative.expression] = "established"
             notes[found.representative.expression] = note
+        if cut:
+            search = f"disjunction search bounded: {note}"
     if tool_call:
         for c in assumed(common, evidence, {c.satisfied for c in chosen}):
             chosen.append(c)
             decided[c.representative.expression] = "assumed"
-    return Choice(chosen, decided, notes)
+    return Choice(chosen, decided, notes, search)
 
 
 def assumed(clusters: Sequence[Cluster], evidence: ActionEvidence, kept: set[int]) -> list[Cluster]:
@@ -128,9 +132,11 @@ def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_poin
     return [c for c in shared if enabling_rate(c, evidence, index) > 0]
 
 
-def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: bool) -> tuple[Cluster | None, str]:
+def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: bool
+                ) -> tuple[Cluster | None, str, bool]:
     """A greedy cover of the calls by the positive conditions made true just before them, at most MAX_TERMS
-    terms, each covering calls no earlier term covers; None unless two or more terms cover every call."""
+    terms, each covering calls no earlier term covers; None unless two or more terms cover every call. Also
+    what happened, in words, and whether the search stopped at MAX_DISJUNCTION_ATOMS."""
     index = {point: bit for bit, point in enumerate(evidence.points)}
     positive = [c for c in atoms if polarity(c.representative.expression) == "positive"]
     cut = len(positive) > MAX_DISJUNCTION_ATOMS
@@ -148,7 +154,7 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
         uncovered -= {k for k in uncovered if (best.satisfied >> (bits[k] or 0)) & 1}
     budget = f" (the search looked at the first {MAX_DISJUNCTION_ATOMS} of {len(atoms)} conditions)" if cut else ""
     if uncovered or len(terms) < 2:
-        return None, f"no disjunction of at most {MAX_TERMS} triggers covers every call{budget}"
+        return None, f"no disjunction of at most {MAX_TERMS} triggers covers every call{budget}", cut
     conjuncts = [_term(t, positive, evidence, index, bits) if tool_call else [t] for t in terms]
     expression = " or ".join(_parenthesised(term) for term in conjuncts)
     satisfied = 0
@@ -162,9 +168,9 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
                       (satisfied & ~mask).bit_count())
     if counts.chance() >= CHANCE_ALPHA:
         return None, (f"the disjunction {expression!r} holds about as often where the action was not taken "
-                      f"(p = {counts.chance():.2f}): not separated from chance{budget}")
+                      f"(p = {counts.chance():.2f}): not separated from chance{budget}"), cut
     note = f"a disjunction: each term was made true before the calls it covers{budget}"
-    return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), note
+    return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), note, cut
 
 
 def _term(trigger: Cluster, positive: Sequence[Cluster], evidence: ActionEvidence, index: Mapping[Point, int],

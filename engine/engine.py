@@ -12,7 +12,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from convert.openai import call_lines, structured_history
@@ -164,6 +164,8 @@ class Ranked:
     """How each chosen rule was decided (`engine.cautious.Choice`), by its expression."""
     transferred: Mapping[str, str] = field(default_factory=dict)
     """The sources of each chosen rule transferred from the priors (`engine.priors`), by its expression."""
+    search: str = ""
+    """Where the disjunction search stopped at its bound (`engine.cautious.MAX_DISJUNCTION_ATOMS`), in words."""
 
 
 class Timer:
@@ -242,8 +244,8 @@ class Engine:
             evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            ranked = self._rank(actions, trace, evaluated, proposals, request.options, writes_at(spec, trace),
-                                prior)
+            writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
+            ranked = self._rank(actions, trace, evaluated, proposals, request.options, writes, prior)
         if request.options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
@@ -259,6 +261,9 @@ class Engine:
                        for rule in preconditions[a]} for a in actions}
         warnings = rule_warnings(actions, occurrences, preconditions, decided, model_info is not None,
                                  request.options.tolerance, request.options.unseen, prior.dropped)
+        for action in actions:  # a disjunction search cut at its bound says so, whatever was kept
+            if ranked[action].search:
+                warnings[action] = "; ".join(w for w in (warnings.get(action), ranked[action].search) if w)
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, stats=response.stats,
@@ -321,6 +326,7 @@ class Engine:
         ranked: dict[str, Ranked] = {}
         turns = _previous_turns(trace)
         criterion, tolerance = options.ranking, options.tolerance
+        tool_calls = _tool_calls(trace) if criterion == "cautious" else set()
         for action in actions:
             results = evaluated.results.get(action, ())
             points = evaluated.points.get(action, ())
@@ -347,14 +353,14 @@ class Engine:
                 choice = _zero_shot(valid, votes, info.params)
                 if criterion == "cautious" and info.occurrences:
                     choice = _with_thin(choice, candidates("held", "tolerated", "thin", "chance", "refuted"),
-                                        evidence, len(points), _answered(trace, action))
+                                        evidence, len(points), action in tool_calls)
             elif criterion == "cautious":
                 clusters = informative(cluster(valid), len(points))
                 common = informative(cluster(candidates("held", "tolerated", "chance")), len(points))
                 atoms = informative(cluster(candidates("held", "tolerated", "chance", "refuted")), len(points))
-                found = cautious.choose(clusters, common, atoms, evidence, _answered(trace, action))
+                found = cautious.choose(clusters, common, atoms, evidence, action in tool_calls)
                 kept = within_budget(found.chosen, evidence)
-                choice = cautious.Choice(kept, found.decided, found.notes)
+                choice = cautious.Choice(kept, found.decided, found.notes, found.search)
                 cut = [c for c in found.chosen if c not in kept]
             else:
                 clusters = informative(cluster(valid), len(points))
@@ -363,8 +369,8 @@ class Engine:
                 choice = cautious.Choice(kept, {c.representative.expression: "established" for c in kept})
                 cut = [c for c in picked if c not in kept]
             if not sparse and too_few(info.occurrences):  # strict validation on one or two calls: not established
-                choice = cautious.Choice(choice.chosen, {e: "assumed" if d == "established" else d
-                                                         for e, d in choice.decided.items()}, choice.notes)
+                choice = replace(choice, decided={e: "assumed" if d == "established" else d
+                                                  for e, d in choice.decided.items()})
             transferred: dict[str, str] = {}
             if prior is not None and prior.rules.get(action):
                 choice = _with_priors(choice, prior, action, results, verdicts, evidence, sparse)
@@ -375,7 +381,7 @@ class Engine:
                        **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut)}
             reasons |= _decided_reasons(choice, reasons)
             ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts,
-                                    choice.decided, transferred)
+                                    choice.decided, transferred, choice.search)
         return ranked
 
     def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,
@@ -663,9 +669,8 @@ def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: A
     coincidence)."""
     kept = {c.satisfied for c in choice.chosen}
     extra = [c for c in cautious.thin_rules(judged, evidence, n_points, tool_call) if c.satisfied not in kept]
-    return cautious.Choice([*choice.chosen, *extra],
-                           {**choice.decided, **{c.representative.expression: "assumed" for c in extra}},
-                           choice.notes)
+    return replace(choice, chosen=[*choice.chosen, *extra],
+                   decided={**choice.decided, **{c.representative.expression: "assumed" for c in extra}})
 
 
 def _with_priors(choice: cautious.Choice, prior: priors.Priors, action: str, results: Sequence[CandidateResult],
@@ -721,19 +726,25 @@ def _receiver(source: str) -> str | None:
     return None
 
 
-def _answered(trace: TraceResult, action: str) -> bool:
-    """A tool call: at least half of its calls are answered by an observation on the same object (a service's
-    result, `system.set_query_status(True)` after `system.FindBus()`), not by another party's turn."""
-    occurrences = trace.actions[action].occurrences
+def _tool_calls(trace: TraceResult) -> set[str]:
+    """The actions that are tool calls: at least half of their calls are answered by an observation on the same
+    object (a service's result, `system.set_query_status(True)` after `system.FindBus()`), not by another
+    party's turn. Read once per inference from the trace's statements."""
     acting = {(o.demo, o.position) for info in trace.actions.values() if info.stub for o in info.occurrences}
-    answered = 0
-    for occ in occurrences:
-        steps = trace.positions[occ.demo]
-        following = occ.position + 1
-        if following < len(steps) and (occ.demo, following) not in acting \
-                and _receiver(steps[following].source) == _receiver(steps[occ.position].source):
-            answered += 1
-    return bool(occurrences) and answered * 2 >= len(occurrences)
+    tools: set[str] = set()
+    for action, info in trace.actions.items():
+        if not info.stub:
+            continue
+        answered = 0
+        for occ in info.occurrences:
+            steps = trace.positions[occ.demo]
+            following = occ.position + 1
+            if following < len(steps) and (occ.demo, following) not in acting \
+                    and _receiver(steps[following].source) == _receiver(steps[occ.position].source):
+                answered += 1
+        if info.occurrences and answered * 2 >= len(info.occurrences):
+            tools.add(action)
+    return tools
 
 
 def _verdict(result: CandidateResult, evidence: Evidence, tolerance: float) -> Verdict:

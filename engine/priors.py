@@ -23,6 +23,7 @@ from engine.cautious import Choice
 from engine.ranking import ActionEvidence, Candidate, Cluster
 from engine.spec import Spec, as_error
 from programs import checks
+from programs.checks import normal
 from sandbox.types import CandidateResult
 from schemas.api import Decided, InferOptions, Verdict
 from schemas.errors import InvalidInput
@@ -52,15 +53,8 @@ class Priors:
         return [p.expression for p in self.rules.get(action, {}).values()]
 
     def source_of(self, action: str, expression: str) -> str | None:
-        prior = self.rules.get(action, {}).get(canonical(expression))
+        prior = self.rules.get(action, {}).get(normal(expression))
         return ", ".join(prior.sources) if prior else None
-
-
-def canonical(expression: str) -> str:
-    try:
-        return ast.unparse(ast.parse(expression.strip(), mode="eval"))
-    except (SyntaxError, ValueError, RecursionError):
-        return expression.strip()
 
 
 def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstrations: Sequence[str]) -> Priors:
@@ -87,7 +81,7 @@ def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstra
                 if why is not None:
                     found.dropped.setdefault(action, []).append(f"{rule!r} from {source}: {why}")
                     continue
-                prior = found.rules.setdefault(action, {}).setdefault(canonical(rule), Prior(rule.strip()))
+                prior = found.rules.setdefault(action, {}).setdefault(normal(rule), Prior(rule.strip()))
                 if source not in prior.sources:
                     prior.sources.append(source)
     return found
@@ -195,12 +189,12 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
         return choice
     prior_decided: dict[str, Decided] = {c.expression: "transferred" for c in chosen_priors}
     if sparse:
-        return Choice([Cluster((c,)) for c in chosen_priors], prior_decided, _notes(chosen_priors))
-    by_text = {canonical(c.expression): c for c in chosen_priors}
-    own = {canonical(c.representative.expression): c for c in choice.chosen}
+        return Choice([Cluster((c,)) for c in chosen_priors], prior_decided, _notes(chosen_priors), choice.search)
+    by_text = {normal(c.expression): c for c in chosen_priors}
+    own = {normal(c.representative.expression): c for c in choice.chosen}
     agreed = [by_text[t] for t in by_text if t in own]
     settled = [state_read(c.expression) for c in agreed]
-    others = [c for c in chosen_priors if canonical(c.expression) not in own
+    others = [c for c in chosen_priors if normal(c.expression) not in own
               and not any(_about(state_read(c.expression), s) for s in settled)]
     readings = [c for c in others if any(choice.decided.get(k.representative.expression) == "established"
                                          and _about(state_read(k.representative.expression), state_read(c.expression))
@@ -209,16 +203,17 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
     transferred = [*agreed, *readings, *joining]
     if not transferred:
         return choice
-    replaced = {canonical(c.expression) for c in agreed}
+    replaced = {normal(c.expression) for c in agreed}
     states = [*settled, *(state_read(r.expression) for r in readings)]
     kept = [c for c in choice.chosen if choice.decided.get(c.representative.expression) == "established"
-            and canonical(c.representative.expression) not in replaced
+            and normal(c.representative.expression) not in replaced
             and not any(_about(state_read(c.representative.expression), s) for s in states)]
     decided: dict[str, Decided] = {c.representative.expression: choice.decided[c.representative.expression]
                                    for c in kept}
     decided.update({c.expression: "transferred" for c in transferred})
     notes = {e: n for e, n in choice.notes.items() if e in decided}
-    return Choice([*kept, *(Cluster((c,)) for c in transferred)], decided, {**notes, **_notes(transferred)})
+    return Choice([*kept, *(Cluster((c,)) for c in transferred)], decided, {**notes, **_notes(transferred)},
+                  choice.search)
 
 
 def _about(state: frozenset[tuple[str, object]], other: frozenset[tuple[str, object]]) -> bool:

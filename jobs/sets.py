@@ -10,7 +10,6 @@ re-inference with the base version (required rules kept, rejected rules kept out
 
 from __future__ import annotations
 
-import ast
 import json
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
@@ -18,6 +17,7 @@ from typing import Any, Final
 
 from jobs.keys import PREFIX
 from programs import checks
+from programs.checks import normal as normal  # re-exported: the sets code compares rules by it
 from schemas.api import CandidateReport, PreconditionSet, RuleChange, RuleEvidence, SetDiff
 
 _TENANT_BYTES = """
@@ -123,14 +123,6 @@ def summary(version: PreconditionSet) -> str:
         "required": sum(len(r) for r in version.required.values()),
         "rejected": sum(len(r) for r in version.rejected.values()),
     })
-
-
-def normal(rule: str) -> str:
-    """A rule's canonical text (`ast.unparse`), so `self.a and  self.b` and `self.a and self.b` are one rule."""
-    try:
-        return ast.unparse(ast.parse(rule.strip(), mode="eval"))
-    except (SyntaxError, ValueError, RecursionError):
-        return rule.strip()
 
 
 def _has(table: Mapping[str, Sequence[str]], action: str, rule: str) -> bool:

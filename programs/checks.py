@@ -313,3 +313,12 @@ def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Seque
             message = (f"{field}: {name} is not one of the agent's actions (a spec method with a body, not a stub, "
                        f"and no rule given), so no precondition can judge it; the actions: {known}")
             raise ProgramProblem(Problem(UNKNOWN_ACTION, field, message))
+
+
+def normal(rule: str) -> str:
+    """A rule's canonical text (`ast.unparse`): `x["a"]` and `x['a']`, or `self.a and  self.b` and
+    `self.a and self.b`, are one rule wherever rules are compared (sets, re-inference, priors)."""
+    try:
+        return ast.unparse(ast.parse(rule.strip(), mode="eval"))
+    except (SyntaxError, ValueError, RecursionError):
+        return rule.strip()
