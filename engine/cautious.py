@@ -10,16 +10,23 @@ the permissive side silently. For each action it keeps:
    (`ranking.enabling_rate` with `engine/freshness.py`), among themselves subsumption-minimal (a trigger that
    a phase subsumes on the demonstrated points is still the trigger: a success notice follows the success,
    not the confirmation before it). Conditions on the action's own arguments count as established.
-2. When no single condition is such a trigger at the calls: a *disjunction* of triggers, found by a greedy
-   cover of the calls with the conditions made true before them ("anything else?" after a "no, thanks" or
-   after "that's all"); for a tool call each term is a conjunction (two alternative credential sets).
-3. *Assumed* rules, for tool calls only (an action whose calls a service answers, like a search or a card
-   block): every positive fact (a slot informed, an identity verified, an intent stated: `polarity`) that held
-   at every demonstrated call, though it was true long before (a phase), true almost everywhere (not separated
+2. When no single condition is such a trigger at the calls, or the triggers leave some calls unexplained (they
+   held there as a phase): a *disjunction* of triggers, found by a greedy cover of the calls with the
+   conditions made true before them ("anything else?" after a "no, thanks", after a declined offer or after
+   a failure); for a tool call each term is a conjunction (two alternative credential sets). A term is a
+   positive fact, or a negative one that an observation since the agent's previous turn wrote (the service
+   answered no: news, unlike "nothing was asked yet"). A trigger that at every call it enabled only re-read
+   what another term states about the same state (`query_success is not None` beside `not query_success`)
+   is replaced by the disjunction.
+3. *Assumed* rules for tool calls (an action whose calls a service answers, like a search or a card block):
+   every positive fact (a slot informed, an identity verified, an intent stated: `polarity`) that held at
+   every demonstrated call, though it was true long before (a phase), true almost everywhere (not separated
    from chance) or implied by another rule *on the demonstrated points* (which is not implication). Nothing
    shows the call can happen without it, so the guard keeps it and says so; a reviewer can drop it.
-   Dialog acts do not get them: acting on a phase there costs a re-ask, not a blocked card, and they are
-   what an assistant says most (docs/results.md measures both sides).
+   A dialog act gets them only about what it speaks of, when it speaks of what the user gave (`spoken_of`:
+   a confirmation of the city needs the city; an offer of what a search found does not need the user's
+   words): acting on any other phase there costs a re-ask, not a blocked card, and dialog acts are what an
+   assistant says most (docs/results.md measures both sides).
 
 Actions demonstrated too thinly to learn from get every positive fact their few calls share, assumed
 (`thin_rules`); never-demonstrated actions are `options.unseen`'s business (engine.engine).
@@ -32,6 +39,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from engine.evidence import CHANCE_ALPHA, Evidence
+from engine.freshness import ANY, Access, reads, refreshed
 from engine.ranking import (
     ActionEvidence,
     Candidate,
@@ -96,19 +104,91 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     decided: dict[str, Decided] = {c.representative.expression: "established" for c in chosen}
     notes: dict[str, str] = {}
     search = ""
-    if not chosen:
-        found, note, cut = disjunction(atoms, evidence, tool_call)
+    if not chosen or unexplained(chosen, evidence):
+        found, terms, note, cut = disjunction(atoms, evidence, tool_call)
         if found is not None:
-            chosen = [found]
-            decided[found.representative.expression] = "established"
-            notes[found.representative.expression] = note
+            weak = restated(chosen, found, terms, evidence)
+            chosen = [c for c in chosen if c not in weak] + [found]
+            decided = {c.representative.expression: "established" for c in chosen}
+            notes[found.representative.expression] = note + (
+                f"; it replaces {', '.join(repr(c.representative.expression) for c in weak)}, which only "
+                "re-read at some calls what the disjunction's terms made true there" if weak else "")
         if cut:
             search = f"disjunction search bounded: {note}"
-    if tool_call:
-        for c in assumed(common, evidence, {c.satisfied for c in chosen}):
-            chosen.append(c)
-            decided[c.representative.expression] = "assumed"
+    kept = {c.satisfied for c in chosen}
+    for c in assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept):
+        chosen.append(c)
+        decided[c.representative.expression] = "assumed"
     return Choice(chosen, decided, notes, search)
+
+
+def spoken_of(clusters: Sequence[Cluster], atoms: Sequence[Cluster], evidence: ActionEvidence, kept: set[int]
+              ) -> list[Cluster]:
+    """A dialog act's assumed rules, when it speaks of what the user gave (at most of its calls the fact about
+    its own argument held: `informed_slot[slot]` at a CONFIRM, not at an OFFER of what a search found): the
+    positive facts held at every call about the values it is demonstrated with (`informed_slot['city']`).
+    Confirming a city the user never gave is the unguarded state a phase hides: the slots were given long
+    before the confirmation, so no trigger names them."""
+    n = len(evidence.occurrences)
+    given = {ref for c in atoms for ref in _own_lookups(c.representative.expression, evidence.params)
+             if n and (c.satisfied & evidence.occurrence_mask).bit_count() * 2 > n}
+    values = {value for occ in evidence.occurrences for value in occ.args if isinstance(value, str)}
+    return [c for c in assumed(clusters, evidence, kept)
+            if any(ref in given and key in values for ref, key in _lookups(c.representative.expression))]
+
+
+def _own_lookups(expression: str, params: Sequence[str]) -> set[str]:
+    """`self.user.informed_slot[slot]` (a parameter as the key, positive) -> {'self.user.informed_slot'}."""
+    node = _parsed(expression)
+    if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Name) and node.slice.id in params:
+        return {ast.unparse(node.value)}
+    return set()
+
+
+def _lookups(expression: str) -> set[tuple[str, str]]:
+    """The literal string keys a condition looks up, with what they are looked up in."""
+    node = _parsed(expression)
+    return {(ast.unparse(n.value), n.slice.value) for n in ast.walk(node) if isinstance(n, ast.Subscript)
+            and isinstance(n.slice, ast.Constant) and isinstance(n.slice.value, str)} if node else set()
+
+
+def _parsed(expression: str) -> ast.expr | None:
+    try:
+        return ast.parse(expression, mode="eval").body
+    except (SyntaxError, RecursionError, ValueError):
+        return None
+
+
+def unexplained(chosen: Sequence[Cluster], evidence: ActionEvidence) -> bool:
+    """Whether some calls were enabled by none of the triggers (each held there, but as a phase)."""
+    index = {point: bit for bit, point in enumerate(evidence.points)}
+    explained: set[int] = set()
+    for c in chosen:
+        if enabling_rate(c, evidence, index) >= 1.0:
+            return False
+        explained |= {k for k, fate in enumerate(enabled_at(c, evidence, index)) if fate}
+    return len(explained) < len(evidence.occurrences)
+
+
+def restated(chosen: Sequence[Cluster], found: Cluster, terms: Sequence[Cluster], evidence: ActionEvidence
+             ) -> list[Cluster]:
+    """Triggers that, at every call they enabled, only re-read news another of the disjunction's terms states
+    about the same state (`query_success is not None` where `not query_success` was made true by a failure):
+    the disjunction replaces them."""
+    index = {point: bit for bit, point in enumerate(evidence.points)}
+    out = []
+    for c in chosen:
+        read = reads(c.representative.expression)
+        fates = enabled_at(c, evidence, index)
+        others = [t for t in terms if t.satisfied != c.satisfied and _overlaps(read, reads(t.representative.expression))]
+        news = set().union(*(_made(t, evidence, index) for t in others)) if others else set()
+        if others and {k for k, fate in enumerate(fates) if fate} <= news:
+            out.append(c)
+    return out
+
+
+def _overlaps(a: frozenset[Access], b: frozenset[Access]) -> bool:
+    return any(x == y and (k is ANY or j is ANY or k == j) for x, k in a for y, j in b)
 
 
 def assumed(clusters: Sequence[Cluster], evidence: ActionEvidence, kept: set[int]) -> list[Cluster]:
@@ -133,20 +213,22 @@ def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_poin
 
 
 def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: bool
-                ) -> tuple[Cluster | None, str, bool]:
+                ) -> tuple[Cluster | None, list[Cluster], str, bool]:
     """A greedy cover of the calls by the positive conditions made true just before them, at most MAX_TERMS
     terms, each covering calls no earlier term covers; None unless two or more terms cover every call. Also
     what happened, in words, and whether the search stopped at MAX_DISJUNCTION_ATOMS."""
     index = {point: bit for bit, point in enumerate(evidence.points)}
     positive = [c for c in atoms if polarity(c.representative.expression) == "positive"]
-    cut = len(positive) > MAX_DISJUNCTION_ATOMS
-    positive = positive[:MAX_DISJUNCTION_ATOMS]
-    made = {c.satisfied: {k for k, fate in enumerate(enabled_at(c, evidence, index)) if fate} for c in positive}
+    negative = [c for c in atoms if evidence.writes and c not in positive]  # news only: `_made`
+    cut = len(positive) + len(negative) > MAX_DISJUNCTION_ATOMS
+    positive, negative = positive[:MAX_DISJUNCTION_ATOMS], negative[:max(0, MAX_DISJUNCTION_ATOMS - len(positive))]
+    made = {c.satisfied: _made(c, evidence, index) for c in (*positive, *negative)}
+    usable = [*positive, *negative]
     bits = [index.get(occ) for occ in evidence.occurrences]
     uncovered = {k for k, bit in enumerate(bits) if bit is not None}
     terms: list[Cluster] = []
     while uncovered and len(terms) < MAX_TERMS:
-        best = max(positive, key=lambda c: (len(made[c.satisfied] & uncovered),
+        best = max(usable, key=lambda c: (len(made[c.satisfied] & uncovered),
                                             -len(c.representative.expression)), default=None)
         if best is None or not made[best.satisfied] & uncovered:
             break
@@ -154,7 +236,7 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
         uncovered -= {k for k in uncovered if (best.satisfied >> (bits[k] or 0)) & 1}
     budget = f" (the search looked at the first {MAX_DISJUNCTION_ATOMS} of {len(atoms)} conditions)" if cut else ""
     if uncovered or len(terms) < 2:
-        return None, f"no disjunction of at most {MAX_TERMS} triggers covers every call{budget}", cut
+        return None, terms, f"no disjunction of at most {MAX_TERMS} triggers covers every call{budget}", cut
     conjuncts = [_term(t, positive, evidence, index, bits) if tool_call else [t] for t in terms]
     expression = " or ".join(_parenthesised(term) for term in conjuncts)
     satisfied = 0
@@ -167,10 +249,25 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
     counts = Evidence(mask.bit_count(), (satisfied & mask).bit_count(), len(evidence.points) - mask.bit_count(),
                       (satisfied & ~mask).bit_count())
     if counts.chance() >= CHANCE_ALPHA:
-        return None, (f"the disjunction {expression!r} holds about as often where the action was not taken "
-                      f"(p = {counts.chance():.2f}): not separated from chance{budget}"), cut
+        return None, terms, (f"the disjunction {expression!r} holds about as often where the action was not taken "
+                             f"(p = {counts.chance():.2f}): not separated from chance{budget}"), cut
     note = f"a disjunction: each term was made true before the calls it covers{budget}"
-    return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), note, cut
+    return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), terms, note, cut
+
+
+def _made(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> set[int]:
+    """The calls a condition enabled. A negative condition ("no success") counts only where an observation since
+    the agent's previous turn wrote what it reads: the service answered no, which is news; that nothing was
+    asked yet is not."""
+    fates = enabled_at(c, evidence, index)
+    if polarity(c.representative.expression) == "positive":
+        return {k for k, fate in enumerate(fates) if fate}
+    read = reads(c.representative.expression)
+    return {k for k, fate in enumerate(fates)
+            if fate and refreshed(read, evidence.occurrences[k],
+                                  evidence.previous_turn.get((evidence.occurrences[k].demo,
+                                                              evidence.occurrences[k].position), 0),
+                                  evidence.writes)}
 
 
 def _term(trigger: Cluster, positive: Sequence[Cluster], evidence: ActionEvidence, index: Mapping[Point, int],
