@@ -92,7 +92,19 @@ def _negated(node: ast.expr) -> bool:
 def triggers(clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
     index = {point: bit for bit, point in enumerate(evidence.points)}
     enabled = [c for c in clusters if enabling_rate(c, evidence, index) > 0]
-    return subsumption(enabled, evidence.occurrence_mask)
+    minimal = subsumption(enabled, evidence.occurrence_mask)
+    valued = {access for c in minimal if not _presence(c.representative.expression)
+              for access in reads(c.representative.expression)}
+    return [c for c in minimal if not (_presence(c.representative.expression)
+                                       and reads(c.representative.expression) <= valued)]
+
+
+def _presence(expression: str) -> bool:
+    """`x is None` / `x is not None`: that an answer exists, beside a trigger that tests what it said (`not x`),
+    which carries the news; the presence test alone would refuse before anything was asked."""
+    node = _parsed(expression)
+    return (isinstance(node, ast.Compare) and len(node.ops) == 1 and isinstance(node.ops[0], ast.Is | ast.IsNot)
+            and isinstance(node.comparators[0], ast.Constant) and node.comparators[0].value is None)
 
 
 def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequence[Cluster],
@@ -107,7 +119,7 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     if not chosen or unexplained(chosen, evidence):
         found, terms, note, cut = disjunction(atoms, evidence, tool_call)
         if found is not None:
-            weak = restated(chosen, found, terms, evidence)
+            weak = restated(chosen, terms, evidence)
             chosen = [c for c in chosen if c not in weak] + [found]
             decided = {c.representative.expression: "established" for c in chosen}
             notes[found.representative.expression] = note + (
@@ -170,8 +182,7 @@ def unexplained(chosen: Sequence[Cluster], evidence: ActionEvidence) -> bool:
     return len(explained) < len(evidence.occurrences)
 
 
-def restated(chosen: Sequence[Cluster], found: Cluster, terms: Sequence[Cluster], evidence: ActionEvidence
-             ) -> list[Cluster]:
+def restated(chosen: Sequence[Cluster], terms: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
     """Triggers that, at every call they enabled, only re-read news another of the disjunction's terms states
     about the same state (`query_success is not None` where `not query_success` was made true by a failure):
     the disjunction replaces them."""
@@ -180,7 +191,8 @@ def restated(chosen: Sequence[Cluster], found: Cluster, terms: Sequence[Cluster]
     for c in chosen:
         read = reads(c.representative.expression)
         fates = enabled_at(c, evidence, index)
-        others = [t for t in terms if t.satisfied != c.satisfied and _overlaps(read, reads(t.representative.expression))]
+        others = [t for t in terms
+                  if t.satisfied != c.satisfied and _overlaps(read, reads(t.representative.expression))]
         news = set().union(*(_made(t, evidence, index) for t in others)) if others else set()
         if others and {k for k, fate in enumerate(fates) if fate} <= news:
             out.append(c)
