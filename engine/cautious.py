@@ -118,8 +118,8 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     search = ""
     if not chosen or unexplained(chosen, evidence):
         found, terms, note, cut = disjunction(atoms, evidence, tool_call)
-        if found is not None:
-            weak = restated(chosen, terms, evidence)
+        weak = restated(chosen, terms, evidence) if found is not None else []
+        if found is not None and (weak or not chosen):  # beside triggers that stay, it would only repeat them
             chosen = [c for c in chosen if c not in weak] + [found]
             decided = {c.representative.expression: "established" for c in chosen}
             notes[found.representative.expression] = note + (
@@ -183,20 +183,39 @@ def unexplained(chosen: Sequence[Cluster], evidence: ActionEvidence) -> bool:
 
 
 def restated(chosen: Sequence[Cluster], terms: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
-    """Triggers that, at every call they enabled, only re-read news another of the disjunction's terms states
-    about the same state (`query_success is not None` where `not query_success` was made true by a failure):
-    the disjunction replaces them."""
+    """Triggers that, at every call they enabled, only re-read news the disjunction's terms state: another term
+    about the same state (`query_success is not None` where `not query_success` was made true by a failure),
+    or, for a presence test, which says no more than that some answer came, any term. The disjunction
+    replaces them."""
     index = {point: bit for bit, point in enumerate(evidence.points)}
     out = []
     for c in chosen:
-        read = reads(c.representative.expression)
-        fates = enabled_at(c, evidence, index)
-        others = [t for t in terms
-                  if t.satisfied != c.satisfied and _overlaps(read, reads(t.representative.expression))]
+        read = _leaves(c.representative.expression)
+        enabled = {k for k, fate in enumerate(enabled_at(c, evidence, index)) if fate}
+        others = [t for t in terms if t.satisfied != c.satisfied and (
+            _presence(c.representative.expression) or _overlaps(read, _leaves(t.representative.expression)))]
         news = set().union(*(_made(t, evidence, index) for t in others)) if others else set()
-        if others and {k for k, fate in enumerate(fates) if fate} <= news:
+        if others and enabled <= news:
             out.append(c)
     return out
+
+
+def _leaves(expression: str) -> frozenset[Access]:
+    """The state a condition tests, without the objects it passes through (`self.user` in
+    `self.user.informed_slot['date']`), so that two conditions about the same user do not overlap."""
+    node = _parsed(expression)
+    if node is None:
+        return frozenset()
+    inner = {id(n.value) for n in ast.walk(node) if isinstance(n, ast.Attribute | ast.Subscript)}
+    found: set[Access] = set()
+    for n in ast.walk(node):
+        if id(n) in inner:
+            continue
+        if isinstance(n, ast.Subscript) and isinstance(n.value, ast.Attribute):
+            found.add((n.value.attr, n.slice.value if isinstance(n.slice, ast.Constant) else ANY))
+        elif isinstance(n, ast.Attribute):
+            found.add((n.attr, ANY))
+    return frozenset(found)
 
 
 def _overlaps(a: frozenset[Access], b: frozenset[Access]) -> bool:
@@ -230,6 +249,7 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
     terms, each covering calls no earlier term covers; None unless two or more terms cover every call. Also
     what happened, in words, and whether the search stopped at MAX_DISJUNCTION_ATOMS."""
     index = {point: bit for bit, point in enumerate(evidence.points)}
+    atoms = [c for c in atoms if not _presence(c.representative.expression)]  # the value is the news
     positive = [c for c in atoms if polarity(c.representative.expression) == "positive"]
     negative = [c for c in atoms if evidence.writes and c not in positive]  # news only: `_made`
     cut = len(positive) + len(negative) > MAX_DISJUNCTION_ATOMS
@@ -245,7 +265,7 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
         if best is None or not made[best.satisfied] & uncovered:
             break
         terms.append(best)
-        uncovered -= {k for k in uncovered if (best.satisfied >> (bits[k] or 0)) & 1}
+        uncovered -= made[best.satisfied]  # the calls it enabled (where it merely held, something else did)
     budget = f" (the search looked at the first {MAX_DISJUNCTION_ATOMS} of {len(atoms)} conditions)" if cut else ""
     if uncovered or len(terms) < 2:
         return None, terms, f"no disjunction of at most {MAX_TERMS} triggers covers every call{budget}", cut

@@ -90,6 +90,53 @@ SEARCH_SPEC = _service_spec("SEARCH", "search_result", "results", "  def OFFER(s
 SEARCH = ("system.SEARCH()", "system.search_result(3)", "system.OFFER()")
 SEARCH_DEMOS = [_service_dialog("find_flight", s, SEARCH) for s in (("city", "date"), ("date", "city")) * 2]
 
+SHOP_SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.intent = defaultdict(lambda: False)
+    self.informed = defaultdict(lambda: False)
+    self.selected = False
+    self.thanked = False
+    self.declined = False
+  def INFORM_INTENT(self, intent): self.intent[intent] = True
+  def INFORM(self, slot): self.informed[slot] = True
+  def SELECT(self): self.selected = True
+  def THANK(self): self.thanked = True
+  def DECLINE(self): self.declined = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user = user
+    self.success = None
+  def REQUEST(self, slot): pass
+  def SEARCH(self): pass
+  def OFFER(self): pass
+  def CONFIRM(self, slot): pass
+  def BOOK(self): pass
+  def REQ_MORE(self): pass
+  def NOTIFY(self): pass
+  def answer(self, ok): self.success = ok
+"""
+
+
+def _shop_dialog(ending: str) -> str:
+    """The user gives both slots up front; the search answers; then the dialog ends one of three ways."""
+    steps = ["user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('book')", "user.INFORM('city')",
+             "user.INFORM('date')", "system.SEARCH()"]
+    if ending == "failed":
+        steps += ["system.answer(False)", "system.REQ_MORE()"]
+        return "\n".join(steps) + "\n"
+    steps += ["system.answer(True)", "system.OFFER()", "user.SELECT()", "system.CONFIRM('city')",
+              "system.CONFIRM('date')"]
+    if ending == "declined":
+        steps += ["user.DECLINE()", "system.REQ_MORE()"]
+    else:
+        steps += ["system.BOOK()", "system.answer(True)", "system.NOTIFY()", "user.THANK()", "system.REQ_MORE()"]
+    return "\n".join(steps) + "\n"
+
+
+SHOP_DEMOS = [_shop_dialog(e) for e in ("failed", "booked", "failed", "declined", "failed", "booked")]
+
 
 @pytest.fixture(scope="module")
 def engine() -> Iterator[Engine]:
@@ -197,3 +244,37 @@ def test_a_refusal_says_how_the_refusing_rule_was_decided(engine: Engine) -> Non
     assert not verdict.allowed
     assert verdict.decided["self.identity_verified"] == "assumed"
     assert set(verdict.decided) == set(verdict.violations)
+
+
+def test_a_confirmation_keeps_the_slots_it_confirms_given_long_before(engine: Engine) -> None:
+    """Every demonstration gave city and date up front, so only the selection enabled the confirmation; a guard
+    must still refuse to confirm a city the user never gave."""
+    response = _infer(engine, SHOP_SPEC, SHOP_DEMOS)
+    rules = response.preconditions
+    assert response.evidence["SYSTEM.CONFIRM"]["self.user.informed['city']"].decided == "assumed"
+    no_city = _events(("user", "INFORM_INTENT", ["book"]), ("user", "INFORM", ["date"]), ("system", "SEARCH", []),
+                      ("system", "answer", [True]), ("user", "SELECT", []))
+    given = [*_events(("user", "INFORM", ["city"])), *no_city]
+    assert not _allowed(engine, SHOP_SPEC, rules, no_city, "system.CONFIRM('date')")
+    assert _allowed(engine, SHOP_SPEC, rules, given, "system.CONFIRM('date')")
+    paper = _infer(engine, SHOP_SPEC, SHOP_DEMOS, ranking="recency").preconditions
+    assert _allowed(engine, SHOP_SPEC, paper, no_city, "system.CONFIRM('date')")
+    # an offer speaks of what the search found, not of what the user said: no slot is assumed there
+    assert all(e.decided == "established" for e in response.evidence["SYSTEM.OFFER"].values())
+
+
+def test_anything_else_after_a_failure_a_thanks_or_a_decline_is_a_disjunction_of_that_news(engine: Engine) -> None:
+    """`success is not None` held at every "anything else?" and was renewed at the failures; it would allow the
+    question right after a successful search, which no demonstration shows. The failure itself (the service
+    answered no: news, though a negative condition), the thanks and the decline are what enabled the calls."""
+    response = _infer(engine, SHOP_SPEC, SHOP_DEMOS)
+    rules = response.preconditions
+    assert rules["SYSTEM.REQ_MORE"] == ["not self.success or self.user.thanked or self.user.declined"]
+    searched = _events(("user", "INFORM_INTENT", ["book"]), ("user", "INFORM", ["city"]), ("system", "SEARCH", []),
+                       ("system", "answer", [True]))
+    failed = [*searched[:-1], *_events(("system", "answer", [False]))]
+    assert not _allowed(engine, SHOP_SPEC, rules, searched, "system.REQ_MORE()")
+    assert _allowed(engine, SHOP_SPEC, rules, failed, "system.REQ_MORE()")
+    assert _allowed(engine, SHOP_SPEC, rules, [*searched, *_events(("user", "THANK", []))], "system.REQ_MORE()")
+    paper = _infer(engine, SHOP_SPEC, SHOP_DEMOS, ranking="recency").preconditions
+    assert _allowed(engine, SHOP_SPEC, paper, searched, "system.REQ_MORE()")
