@@ -182,7 +182,8 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
       beside the prior `not self.query_success`) is another reading of it, which the calls cannot tell apart:
       the prior's reading replaces it (and a rule the demonstrations and a prior agree on settles the
       reading of its state: no other prior, no other established rule about it);
-    * assumed rules (correlates) give way when a prior is transferred;
+    * assumed rules stay unless a prior reads their state: another service's rule says what it requires,
+      not that this one's correlates are not required;
     * a prior the ranking passed over (a phase, a common fact) joins when two or more sources name it.
     """
     if not chosen_priors:
@@ -205,7 +206,7 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
         return choice
     replaced = {normal(c.expression) for c in agreed}
     states = [*settled, *(state_read(r.expression) for r in readings)]
-    kept = [c for c in choice.chosen if choice.decided.get(c.representative.expression) == "established"
+    kept = [c for c in choice.chosen if choice.decided.get(c.representative.expression) in ("established", "assumed")
             and normal(c.representative.expression) not in replaced
             and not any(_about(state_read(c.representative.expression), s) for s in states)]
     decided: dict[str, Decided] = {c.representative.expression: choice.decided[c.representative.expression]
