@@ -28,6 +28,7 @@ from service.quotas import AuthLimit, Quotas, SourceBuckets
 from service.routes import health, operations, sets, ui
 from service.routes import jobs as job_routes
 from service.sets import SetStore
+from service.worker_view import WorkerView
 
 log = logging.getLogger("precond.gateway")
 DESCRIPTION = """Infer verified action preconditions from demonstrations with a code model, pick next actions
@@ -66,9 +67,11 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
                          settings.max_set_bytes_per_tenant)
         pool = CheckPool(settings.check_processes, settings.tenant_check_processes)
         open_rate = SourceBuckets(settings.open_rate_per_s, settings.open_burst)
+        workers = WorkerView(redis)
         app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool,
-                                      open_rate)
+                                      open_rate, workers)
         yield
+        workers.close()
         pool.close()
         await completions.close()
         for connection in {id(redis): redis, id(cache_redis): cache_redis}.values():

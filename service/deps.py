@@ -16,6 +16,7 @@ from service.offload import CheckPool
 from service.queue import JobQueue
 from service.quotas import Quotas, SourceBuckets
 from service.sets import SetStore
+from service.worker_view import WorkerView
 
 
 @dataclass(frozen=True)
@@ -31,6 +32,7 @@ class Services:
     sets: SetStore
     checks: CheckPool
     open_rate: SourceBuckets
+    workers: WorkerView
 
 
 async def _services(request: Request) -> Services:

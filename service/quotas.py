@@ -137,12 +137,23 @@ class SourceBuckets:
         return None
 
 
+def _remember(blocked: dict[str, float], who: str, until: float, now: float) -> None:
+    """Note until when `who` is refused, keeping at most MAX_BLOCKED_SOURCES live entries."""
+    if len(blocked) >= MAX_BLOCKED_SOURCES:
+        for stale in [k for k, t in blocked.items() if t <= now]:
+            del blocked[stale]
+        if len(blocked) >= MAX_BLOCKED_SOURCES:
+            return  # all live: this one is asked of Redis each time, as before
+    blocked[who] = until
+
+
 class Quotas:
     def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int, auth: AuthLimit) -> None:
         self.redis, self.rate_per_s, self.burst, self.max_jobs, self.auth = redis, rate_per_s, burst, max_jobs, auth
         self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
+        self._empty: dict[str, float] = {}  # tenant tag -> until its rate bucket has a token again
 
-    async def _take(self, key: str, rate: float, burst: int) -> int | None:
+    async def _take(self, key: str, rate: float, burst: int) -> float | None:
         """A token from the bucket at `key`, or the seconds until the next one. While the queue Redis is full
         (noeviction refuses the bucket's write) the request goes on uncounted: reading a job's state must keep
         working then, and every request that would write is refused by that Redis anyway."""
@@ -153,14 +164,23 @@ class Quotas:
             )
         except OutOfMemoryError:
             return None
-        return None if allowed else max(1, math.ceil((1 - float(tokens)) / rate))
+        return None if allowed else max(0.0, (1 - float(tokens)) / rate)
 
     async def take_request(self, tag: str, tenant: str) -> Refusal | None:
-        wait = await self._take(_rate_key(tag), self.rate_per_s, self.burst)
-        if wait is None:
-            return None
+        """A token of the tenant's rate. While this process knows the bucket is empty, the refusal costs no
+        Redis round trip: a tenant flooding past its rate must not cost the others the shared Redis's time."""
+        now = datetime.now(UTC).timestamp()
+        until = self._empty.get(tag, 0.0)
+        if until > now:
+            wait = until - now
+        else:
+            taken = await self._take(_rate_key(tag), self.rate_per_s, self.burst)
+            if taken is None:
+                return None
+            wait = taken
+            _remember(self._empty, tag, now + wait, now)
         return Refusal("rate", f"rate limit: tenant {tenant!r} may send {self.rate_per_s:g} requests/s "
-                               f"(bursts of {self.burst})", wait)
+                               f"(bursts of {self.burst})", max(1, math.ceil(wait)))
 
     def auth_blocked(self, source: str) -> Refusal | None:
         """Whether this source used up its failed authentications (no Redis: checked before every key)."""
@@ -172,13 +192,12 @@ class Quotas:
 
     async def auth_failed(self, source: str) -> Refusal | None:
         """Count one failed authentication of `source`; a refusal once its bucket is empty."""
-        wait = await self._take(_auth_key(source), self.auth.failures_per_s, self.auth.burst)
-        if wait is None:
+        taken = await self._take(_auth_key(source), self.auth.failures_per_s, self.auth.burst)
+        if taken is None:
             return None
+        wait = max(1, math.ceil(taken))  # a whole second at least: a penalty, not just the next token
         now = datetime.now(UTC).timestamp()
-        if len(self._blocked) >= MAX_BLOCKED_SOURCES:
-            self._blocked = {s: until for s, until in self._blocked.items() if until > now}
-        self._blocked[source] = now + wait
+        _remember(self._blocked, source, now + wait, now)
         return self._auth_refusal(wait)
 
     def _auth_refusal(self, wait: int) -> Refusal:
