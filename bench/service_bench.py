@@ -8,12 +8,15 @@ Every request carries an API key (two tenants, `quiet` and `flood`). Measures
   * cache-hit throughput: `wrk` (Debian package `wrk`) POSTing one cached check-actions body with a Lua
     script; falls back to an httpx asyncio client when wrk is not installed (the table says which);
   * check-actions latency, uncached: sequential requests whose calls differ, so every one is a new job;
+  * the same against a stored precondition set, with a history of 40 events (what a dialog system sends);
   * next-action latency through the gateway, uncached (a different seed per request);
   * fairness: the quiet tenant's uncached check-actions latency alone, and while the other tenant has
     `--flood` check-actions jobs queued (and how long those take to drain: what a first-come-first-served
     queue would have made the quiet tenant wait).
-`--root DIR` runs gateway and worker from another checkout (e.g. `git archive HEAD | tar -x -C DIR`), to
-compare versions on the same machine; `--env K=V` passes settings (e.g. PRECOND_WORKER_POLL_S=0.02).
+`--root DIR` runs gateway and worker from another checkout (e.g. `git archive HEAD | tar -x -C DIR`); given
+twice or more, every checkout is measured in turn in one invocation and the table has a column per checkout
+(`--root OLD --root .`: before and after on the same machine). `--env K=V` passes settings (e.g.
+PRECOND_CHECK_POLL_S=0.05).
 """
 
 from __future__ import annotations
@@ -136,6 +139,31 @@ def latencies(base: str, path: str, bodies: list[dict[str, Any]], warmup: int, k
             "mean_ms": statistics.mean(ms)}
 
 
+def dialog_events(n: int) -> list[dict[str, Any]]:
+    """A dialog of `n` events: the user gives slots, the system asks for the next (literals only)."""
+    slots = ["city", "cuisine", "price_range", "date", "time", "party_size", "location", "phone_number"]
+    events: list[dict[str, Any]] = [{"actor": "user", "act": "INFORM_INTENT", "args": ["FindRestaurants"]}]
+    while len(events) < n:
+        slot = slots[len(events) % len(slots)]
+        events.append({"actor": "system", "act": "REQUEST", "args": [slot]})
+        events.append({"actor": "user", "act": "INFORM", "args": [slot]})
+    return events[:n]
+
+
+def stored_set_checks(base: str, check: dict[str, Any], args: argparse.Namespace, key: str) -> dict[str, float]:
+    """check-actions naming a stored set (its rules are the example's) over a 40-event history, uncached."""
+    with httpx.Client(base_url=base, timeout=60, headers=auth(key)) as client:
+        rules = {"spec": check["spec"], "preconditions": check["preconditions"]}
+        answer = client.post("/precondition-sets", json=rules)
+        if answer.status_code != 201:
+            raise SystemExit(f"/precondition-sets: {answer.status_code} {answer.text[:300]}")
+        reference = answer.json()["id"]
+    history = dialog_events(40)
+    bodies = [{"precondition_set": reference, "history": history, "calls": [f"system.REQUEST('set_{i}')"]}
+              for i in range(args.check_n + 5)]
+    return latencies(base, "/check-actions", bodies, warmup=5, key=key)
+
+
 def fairness(base: str, check: dict[str, Any], keys: dict[str, str], args: argparse.Namespace) -> dict[str, Any]:
     """The quiet tenant's latency alone, then behind `args.flood` queued jobs of the other tenant."""
     def quiet(tag: str) -> dict[str, float]:
@@ -220,7 +248,8 @@ def cache_hits_httpx(base: str, body: dict[str, Any], args: argparse.Namespace, 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default="tiny", help='"tiny" (random test model), "embedded", or a path')
-    parser.add_argument("--root", type=Path, default=ROOT, help="checkout to run gateway and worker from")
+    parser.add_argument("--root", type=Path, action="append",
+                        help="checkout to run gateway and worker from (repeat to compare; default: this one)")
     parser.add_argument("--env", action="append", default=[], metavar="K=V", help="extra settings")
     parser.add_argument("--check-n", type=int, default=200, help="uncached check-actions requests")
     parser.add_argument("--next-n", type=int, default=30, help="uncached next-action requests")
@@ -231,16 +260,20 @@ def main() -> None:
     parser.add_argument("--fair-n", type=int, default=50, help="the quiet tenant's requests, alone and flooded")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
-    args.root = args.root.resolve()
+    roots = [root.resolve() for root in args.root or [ROOT]]
 
     check = json.loads((EXAMPLES / "check-actions.json").read_text())
     next_action = json.loads((EXAMPLES / "next-action.json").read_text())
-    results: dict[str, Any] = {"model": args.model, "root": str(args.root), "env": args.env, "cpus": os.cpu_count()}
-    with tempfile.TemporaryDirectory(prefix="service-bench-") as name:
-        keys = make_keys(Path(name) / "keys.jsonl")
-        with stack(args, Path(name)) as base:
-            measure(base, Path(name), keys, check, next_action, args, results)
-    report(results, args)
+    runs = []
+    for root in roots:
+        args.root = root
+        results: dict[str, Any] = {"model": args.model, "root": str(root), "env": args.env, "cpus": os.cpu_count()}
+        with tempfile.TemporaryDirectory(prefix="service-bench-") as name:
+            keys = make_keys(Path(name) / "keys.jsonl")
+            with stack(args, Path(name)) as base:
+                measure(base, Path(name), keys, check, next_action, args, results)
+        runs.append(results)
+    report(runs, args)
 
 
 def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], next_action: dict[str, Any],
@@ -249,6 +282,7 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
     # check-actions, uncached: one new call per request (a fresh job each time).
     bodies = [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
     results["check_actions_uncached"] = latencies(base, "/check-actions", bodies, warmup=5, key=key)
+    results["stored_set_40_events"] = stored_set_checks(base, check, args, key)
     # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
     bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
     results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
@@ -263,31 +297,38 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
     results["load_average"] = os.getloadavg()
 
 
-def report(results: dict[str, Any], args: argparse.Namespace) -> None:
-    rows = [
-        ("cache hit, check-actions", f"{results['cache_hit']['requests_per_s']:.0f} req/s",
-         f"p50 {results['cache_hit']['p50_ms']:.1f} ms, p99 {results['cache_hit'].get('p99_ms', 0):.1f} ms",
-         results["cache_hit"]["tool"]),
-    ]
+def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
+    """(row label, cell) pairs of one checkout's results."""
+    hit = results["cache_hit"]
+    rows = [("cache hit, check-actions (" + hit["tool"] + ")",
+             f"{hit['requests_per_s']:.0f} req/s, p50 {hit['p50_ms']:.1f} ms, p99 {hit.get('p99_ms', 0):.1f} ms")]
     for key, label in (("check_actions_uncached", "check-actions, uncached"),
+                       ("stored_set_40_events", "check-actions, stored set, 40 events, uncached"),
                        ("next_action_uncached", "next-action, uncached")):
         r = results[key]
-        rows.append((label, f"p50 {r['p50_ms']:.1f} ms", f"p95 {r['p95_ms']:.1f} ms",
-                     f"n={r['n']} sequential, httpx"))
+        rows.append((f"{label} (n={r['n']} sequential)", f"p50 {r['p50_ms']:.1f} ms, p95 {r['p95_ms']:.1f} ms"))
     fair = results["fairness"]
     for key, label in (("quiet_alone", "quiet tenant, alone"), ("quiet_during_flood", "quiet tenant, flooded")):
         r = fair[key]
-        rows.append((label, f"p50 {r['p50_ms']:.1f} ms", f"p99 {r['p99_ms']:.1f} ms",
-                     f"n={r['n']} check-actions; {fair['flood_jobs']} flood jobs drained in "
-                     f"{fair['flood_drain_s']:.1f} s"))
-    width = [max(len(row[i]) for row in rows) for i in range(4)]
-    print(f"model: {args.model}; root: {args.root}; env: {args.env or '-'}; load avg {results['load_average']}")
-    for row in rows:
-        print("  ".join(cell.ljust(w) for cell, w in zip(row, width, strict=True)))
-    if results["cache_hit"].get("errors"):
-        print("wrk:", "; ".join(results["cache_hit"]["errors"]))
+        rows.append((f"{label} (n={r['n']})", f"p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms"))
+    rows.append((f"{fair['flood_jobs']} flood jobs drained", f"{fair['flood_drain_s']:.1f} s"))
+    return rows
+
+
+def report(runs: list[dict[str, Any]], args: argparse.Namespace) -> None:
+    table = [rows_of(results) for results in runs]
+    header = ("", *(str(Path(results["root"]).name) or "/" for results in runs))
+    lines = [header] + [(label, *(column[i][1] for column in table)) for i, (label, _) in enumerate(table[0])]
+    width = [max(len(line[i]) for line in lines) for i in range(len(header))]
+    print(f"model: {args.model}; env: {args.env or '-'}; roots: {', '.join(r['root'] for r in runs)}")
+    print("load average after each: " + "; ".join(str(r["load_average"]) for r in runs))
+    for line in lines:
+        print("  ".join(cell.ljust(w) for cell, w in zip(line, width, strict=True)))
+    for results in runs:
+        if results["cache_hit"].get("errors"):
+            print(f"wrk ({results['root']}):", "; ".join(results["cache_hit"]["errors"]))
     if args.json:
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+        args.json.write_text(json.dumps(runs, indent=2) + "\n")
 
 
 if __name__ == "__main__":

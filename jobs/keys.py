@@ -11,12 +11,12 @@ from __future__ import annotations
 import hashlib
 import hmac
 import json
+import os
 import re
 from functools import lru_cache
 from importlib import metadata
 from typing import Any, Final
 
-from engine.settings import ModelSettings
 from schemas.api import JobKind
 
 PREFIX: Final = "precond"
@@ -50,6 +50,7 @@ RUNNING_KEY: Final = f"{PREFIX}:running"
 UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 """Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
 DONE_PREFIX: Final = f"{PREFIX}:done:"
+WAKE_PREFIX: Final = f"{PREFIX}:wake:"
 
 _JOB_ID = re.compile(r"^(infer|next-action|check|validate|reinfer)-([0-9a-f]{16})-[0-9a-f]{48}$")
 SHARED: Final = "shared"
@@ -66,6 +67,12 @@ def progress_key(job_id: str) -> str:
 def done_channel(job_id: str) -> str:
     """Pub/sub channel on which a worker announces that the job's result is stored."""
     return f"{DONE_PREFIX}{job_id}"
+
+
+def wake_channel(queue: str) -> str:
+    """Pub/sub channel on which a gateway tells idle workers that `queue` has a new job (advisory: workers
+    still poll, less often)."""
+    return f"{WAKE_PREFIX}{queue}"
 
 
 def worker_key(worker_id: str) -> str:
@@ -97,18 +104,22 @@ def tenant_tag(secret: bytes, tenant: str) -> str:
     return hmac.new(secret, b"tenant\0" + tenant.encode(), hashlib.sha256).hexdigest()[:16]
 
 
+MODEL_ENV_PREFIX: Final = "MODEL_"
+"""The workers' model settings (`engine.settings.ModelSettings`) are the environment variables with this
+prefix, read case-insensitively and from nowhere else."""
+
+
 @lru_cache(maxsize=1)
 def model_identity() -> str:
-    """What makes a model answer differ: the `MODEL_*` settings this deployment sets and the code version
+    """What makes a model answer differ: the `MODEL_*` variables this deployment sets and the code version
     that loads them, as `[version, [[variable, value], ...]]`.
 
-    `engine.settings` imports no torch, so the gateway reads the same class the workers load the model
-    with; compose gives gateway and workers one environment block for this reason.
+    Read from the environment itself, not through the workers' settings class, so that computing a job id
+    loads neither the engine nor the sandbox into the gateway; compose gives gateway and workers one
+    environment block for this reason. A variable the model ignores only splits the cache, never merges it.
     """
-    settings = ModelSettings()
-    prefix = str(ModelSettings.model_config.get("env_prefix", ""))
-    explicit = settings.model_dump(mode="json", include=settings.model_fields_set)
-    model_env = sorted((f"{prefix}{name.upper()}", str(value)) for name, value in explicit.items())
+    model_env = sorted((name.upper(), value) for name, value in os.environ.items()
+                       if name.upper().startswith(MODEL_ENV_PREFIX))
     return json.dumps([metadata.version("precondition-service"), model_env])
 
 

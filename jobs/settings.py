@@ -234,13 +234,15 @@ class WorkerSettings(QueueSettings):
         "queue's concurrency, at least 1.",
     )
     worker_poll_s: float = Field(
-        default=0.1, gt=0, description="How often an idle worker polls the model queue (infer, next-action)."
+        default=0.1, gt=0, description="How often an idle worker reads the model queue (infer, next-action) when no "
+        "new-job notice wakes it first (a gateway publishes one with every job it enqueues)."
     )
     check_poll_s: float = Field(
         default=0.01,
         gt=0,
-        description="How often an idle worker polls the check queue: a check job takes milliseconds, so "
-        "this wait is most of check-actions' latency (each poll is a few cheap Redis commands).",
+        description="How often an idle worker reads the check queue when no new-job notice wakes it first "
+        "(a gateway publishes one with every job it enqueues): the most a lost notice adds to a check's "
+        "latency (each read is a few cheap Redis commands).",
     )
     drain_s: int = Field(
         default=30, ge=0, description="On SIGTERM, how long a worker lets running jobs finish."

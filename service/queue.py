@@ -26,7 +26,7 @@ from arq.worker import JobExecutionFailed
 from redis.exceptions import RedisError
 
 from jobs.cache import ResultCache
-from jobs.keys import JOB_FUNCTION, QUEUE_BY_KIND, QUEUES_BY_KIND, done_channel, kind_of, queue_for
+from jobs.keys import JOB_FUNCTION, QUEUE_BY_KIND, QUEUES_BY_KIND, done_channel, kind_of, queue_for, wake_channel
 from jobs.records import Outcome, read_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions
@@ -114,10 +114,14 @@ class JobQueue:
         gateway processes enqueue at the same instant (and `_over_bound` takes those back)."""
         queue = queue_for(kind, body)
         async with self._admissions.setdefault(queue, asyncio.Lock()):
-            await self._admit(kind, job_id, body, tenant_tag, cache_key, queue)
+            enqueued = await self._admit(kind, job_id, body, tenant_tag, cache_key, queue)
+        if enqueued:  # wake an idle worker now rather than at its next poll; advisory: workers still poll
+            with contextlib.suppress(RedisError, OSError):
+                await self.redis.publish(wake_channel(queue), b"1")
 
     async def _admit(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
-                     queue: str) -> None:
+                     queue: str) -> bool:
+        """Enqueue (True), or find the same job already there (False); QueueFull past the bound."""
         job = self._job(job_id, queue)
         if await self.depth(queue) >= self.max_jobs and await self._arq_status(job_id, queue) == ArqStatus.not_found:
             raise QueueFull(queue)
@@ -128,6 +132,7 @@ class JobQueue:
             enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key)
         if enqueued is not None and await self._over_bound(queue, job_id):
             raise QueueFull(queue)
+        return enqueued is not None
 
     async def _over_bound(self, queue: str, job_id: str) -> bool:
         """Take back a job that concurrent submissions pushed past the bound (the depth check above is not

@@ -29,13 +29,24 @@ from arq import func
 from arq.connections import RedisSettings
 from arq.worker import Worker
 from redis.asyncio import Redis
+from redis.asyncio.client import PubSub
 from redis.exceptions import RedisError
 
 from engine.engine import Engine
 from engine.factory import build_engine
 from jobs.cache import ResultCache
 from jobs.heartbeats import Heartbeat, beat, claim, new_claim, release
-from jobs.keys import CHECK_QUEUE, JOB_FUNCTION, MODEL_QUEUE, QUEUES, done_channel, kind_of, owner_of, worker_key
+from jobs.keys import (
+    CHECK_QUEUE,
+    JOB_FUNCTION,
+    MODEL_QUEUE,
+    QUEUES,
+    done_channel,
+    kind_of,
+    owner_of,
+    wake_channel,
+    worker_key,
+)
 from jobs.records import record_queue_time
 from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
@@ -48,16 +59,24 @@ log = logging.getLogger("precond.worker")
 
 class TenantShareWorker(Worker):
     """An arq worker that runs at most `tenant_slots` jobs of one tenant at once, so the rest of its slots stay
-    for the others. Fair scores (docs/tenants.md) decide who goes next, but reserve nothing: six checks that
-    only wait (a history that sleeps) held all four check slots, and another tenant's check waited 15 s.
+    for the others, and that is woken by the gateway's notice of a new job instead of waiting out its poll.
 
-    arq starts every id it read, blocking for a free slot in between; here only as many ids as there are free
-    slots are started, in score order, skipping tenants at their share (their jobs stay queued, for another
-    worker or a later poll)."""
+    Fair scores (docs/tenants.md) decide who goes next, but reserve nothing: six checks that only wait (a
+    history that sleeps) held all four check slots, and another tenant's check waited 15 s. arq starts every
+    id it read, blocking for a free slot in between; here only as many ids as there are free slots are
+    started, in score order, skipping tenants at their share (their jobs stay queued, for another worker or a
+    later poll).
 
-    def __init__(self, *args: Any, tenant_slots: int, **kwargs: Any) -> None:
-        super().__init__(*args, **kwargs)
+    arq sleeps `poll_delay` between reads of the queue, and for a check that sleep was most of its latency.
+    Here the read runs again as soon as a gateway publishes on the queue's wake channel or a slot frees up,
+    and at the latest after `idle_poll_s` (a lost notice costs no more than arq's own poll)."""
+
+    def __init__(self, *args: Any, tenant_slots: int, idle_poll_s: float, **kwargs: Any) -> None:
+        super().__init__(*args, poll_delay=0, **kwargs)
         self.tenant_slots = tenant_slots
+        self.idle_poll_s = idle_poll_s
+        self._woken = asyncio.Event()
+        self._listener: asyncio.Task[None] | None = None
 
     async def start_jobs(self, job_ids: list[bytes]) -> None:
         running = Counter(owner_of(job_id) for job_id, task in self.tasks.items() if not task.done())
@@ -71,6 +90,52 @@ class TenantShareWorker(Worker):
                 running[tag] += 1
                 chosen.append(raw)
         await super().start_jobs(chosen)
+
+    async def _poll_iteration(self) -> None:
+        if self._listener is None:  # subscribe before the first read: a job enqueued before then is read below
+            self._listener = asyncio.create_task(self._listen(await self._subscribe()))
+        self._woken.clear()  # a notice that comes during the read below makes the next read start at once
+        await super()._poll_iteration()
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(self._woken.wait(), self.idle_poll_s)
+
+    def _release_sem_dec_counter_on_complete(self) -> None:
+        super()._release_sem_dec_counter_on_complete()
+        self._woken.set()  # a slot is free: read the queue now, a job may be waiting for exactly that slot
+
+    async def _subscribe(self) -> PubSub | None:
+        pubsub = self.pool.pubsub()
+        try:
+            await pubsub.subscribe(wake_channel(self.queue_name))
+        except (RedisError, OSError) as exc:
+            self._lost(exc)
+            return None
+        return pubsub
+
+    async def _listen(self, pubsub: PubSub | None) -> None:
+        """Wake on the gateway's notices until the connection fails (then arq's pace, until the next worker)."""
+        if pubsub is None:
+            return
+        try:
+            while True:
+                if await pubsub.get_message(ignore_subscribe_messages=True, timeout=self.idle_poll_s) is not None:
+                    self._woken.set()
+        except (RedisError, OSError) as exc:
+            self._lost(exc)
+        finally:
+            with contextlib.suppress(RedisError, OSError):
+                await pubsub.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
+
+    def _lost(self, exc: Exception) -> None:
+        log.warning("queue %s: new-job notices lost (%s); reading it every %ss", self.queue_name, exc,
+                    self.idle_poll_s)
+
+    async def close(self) -> None:
+        if self._listener is not None:
+            self._listener.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._listener
+        await super().close()
 
 
 class WorkerProcess:
@@ -153,7 +218,7 @@ class WorkerProcess:
             job_timeout=timeout,
             keep_result=s.result_ttl_s,
             max_tries=s.job_max_tries,
-            poll_delay=s.worker_poll_s if model else s.check_poll_s,
+            idle_poll_s=s.worker_poll_s if model else s.check_poll_s,
             allow_abort_jobs=True,
             handle_signals=False,
             job_completion_wait=s.drain_s,
