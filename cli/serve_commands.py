@@ -40,7 +40,7 @@ def serve(
     Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
     other unless --no-auth says so.
     """
-    from service.supervisor import Supervisor
+    from cli.supervisor import Supervisor
 
     settings = get_gateway_settings()
     if settings.api_keys_file is None:

@@ -2,7 +2,7 @@
 
 For a single machine without an orchestrator. Children are restarted when they die, and all of them are
 stopped (SIGTERM, then SIGKILL after the drain period) when the supervisor gets SIGINT or SIGTERM. Only the
-standard library is used, so it adds nothing to what the gateway imports.
+standard library is used (and the gateway's command line), so starting the tree loads no engine.
 """
 
 from __future__ import annotations

@@ -8,6 +8,7 @@ alone, and `programs/` (imported by the sandbox's stdlib-only child) uses the st
 from __future__ import annotations
 
 import ast
+import subprocess
 import sys
 from pathlib import Path
 
@@ -28,8 +29,6 @@ FORBIDDEN: dict[str, set[str]] = {
     "precond_client": set(PROJECT) - {"precond_client", "schemas"},  # light: installable without the service
     "convert": set(PROJECT) - {"convert", "programs", "schemas"},
 }
-JOBS_MAY_IMPORT_FROM_ENGINE = {"engine.settings"}
-"""The model settings are part of every job id; `engine.settings` imports neither torch nor the engine."""
 
 
 def imports(package: str) -> list[tuple[str, str]]:
@@ -51,7 +50,6 @@ def test_package_imports_only_what_its_layer_allows(package: str) -> None:
     wrong = [
         f"{file}: {module}" for file, module in imports(package)
         if module.split(".")[0] in FORBIDDEN[package]
-        and not (package == "jobs" and module in JOBS_MAY_IMPORT_FROM_ENGINE)
     ]
     assert not wrong, f"{package}/ must not import these (see README, How it fits together):\n" + "\n".join(wrong)
 
@@ -83,3 +81,24 @@ def test_the_sandbox_child_is_stdlib_only_and_apart_from_the_worker_side() -> No
         if module.split(".")[0] not in {*sys.stdlib_module_names, "programs", "__future__", "sandbox/child"}
     ]
     assert not outside, outside
+
+
+def loaded_by(statement: str) -> set[str]:
+    """Top-level packages a fresh interpreter has loaded after `statement` (what an import drags in, not only
+    what the files name)."""
+    code = f"import sys\n{statement}\nprint(' '.join(sorted({{m.split('.')[0] for m in sys.modules}})))"
+    result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
+                            check=True)
+    return set(result.stdout.split())
+
+
+@pytest.mark.parametrize(("statement", "never"), [
+    ("from service.app import create_app; create_app", {"sandbox", "engine", "worker", "torch", "transformers"}),
+    ("import jobs.keys, jobs.records, jobs.heartbeats, jobs.cache", {"sandbox", "engine", "service", "worker",
+                                                                     "torch"}),
+    ("import worker.runner", {"service", "cli", "torch", "transformers"}),
+])
+def test_importing_a_layer_loads_nothing_below_or_above_it(statement: str, never: set[str]) -> None:
+    """The gateway computes job ids and checks programs without the engine or the sandbox, and the worker loads
+    the model code only when it builds a model, never at import."""
+    assert not loaded_by(statement) & never

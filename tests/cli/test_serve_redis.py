@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import redis
 
+from cli.supervisor import Supervisor
 from jobs.settings import WorkerSettings
-from service.supervisor import Supervisor
 from stack.local import RedisServer, free_port
 
 

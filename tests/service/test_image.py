@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
 ENTRY_POINTS = (
     "cli.main",  # `precond serve|worker|keys` (CMD, compose's keys and workers)
     "service.app",  # the gateway (uvicorn service.app:create_app)
-    "service.supervisor",  # `precond serve` imports it when it starts
+    "cli.supervisor",  # `precond serve` imports it when it starts
     "worker.runner",  # `precond worker`
     "engine.factory",  # `precond infer|check` in-process
     "precond_client",  # `precond infer --server URL`

@@ -4,25 +4,12 @@ Redis, and that the limits let a tenant through again once its bucket has a toke
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator
-from pathlib import Path
 
-import pytest
 from arq.connections import ArqRedis
 from redis.asyncio import ConnectionPool
 
 from service.quotas import MAX_BLOCKED_SOURCES, AuthLimit, Quotas, _remember
 from stack.local import RedisServer
-
-
-@pytest.fixture()
-def redis_server(tmp_path: Path) -> Iterator[RedisServer]:
-    server = RedisServer(tmp_path)
-    server.start()
-    try:
-        yield server
-    finally:
-        server.stop()
 
 
 def _quotas(server: RedisServer, rate: float, burst: int) -> Quotas:

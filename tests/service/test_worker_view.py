@@ -4,25 +4,12 @@ scan a second, and the view still says what the heartbeats say."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Iterator
-from pathlib import Path
 
-import pytest
 from redis.asyncio import Redis
 
 from jobs.keys import worker_key
 from service.worker_view import UNKNOWN, WorkerView
 from stack.local import RedisServer
-
-
-@pytest.fixture()
-def redis_server(tmp_path: Path) -> Iterator[RedisServer]:
-    server = RedisServer(tmp_path)
-    server.start()
-    try:
-        yield server
-    finally:
-        server.stop()
 
 
 def _beat(sandbox: str) -> str:

@@ -1,0 +1,29 @@
+"""The job id's model part: the gateway reads the same `MODEL_*` variables the workers load the model with."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from engine.settings import ModelSettings
+from jobs import keys
+
+
+def test_the_gateway_reads_the_variables_the_model_settings_read() -> None:
+    assert ModelSettings.model_config.get("env_prefix") == keys.MODEL_ENV_PREFIX
+    assert ModelSettings.model_config.get("env_file") is None  # the environment is the only source
+
+
+def test_a_model_setting_changes_the_identity_and_other_variables_do_not(monkeypatch: pytest.MonkeyPatch) -> None:
+    identity = keys.model_identity.__wrapped__
+    for name in [n for n in os.environ if n.upper().startswith("MODEL_")]:
+        monkeypatch.delenv(name)
+    bare = identity()
+    monkeypatch.setenv("PRECOND_SOMETHING", "1")
+    assert identity() == bare
+    monkeypatch.setenv("model_path", "/models/other")  # read case-insensitively, like pydantic-settings
+    changed = json.loads(identity())
+    assert changed[1] == [["MODEL_PATH", "/models/other"]]
+    assert ModelSettings().path == "/models/other"
