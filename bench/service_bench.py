@@ -50,7 +50,7 @@ TENANTS = ("quiet", "flood")
 
 
 def make_keys(path: Path) -> dict[str, str]:
-    from service.auth import KeyRecord, digest, new_key, write_records
+    from service.api_keys import KeyRecord, digest, new_key, write_records
 
     keys, records = {}, []
     for tenant in TENANTS:

@@ -12,13 +12,13 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from convert.openai import call_lines, structured_history
 from engine import cautious, judge, priors, prompting
 from engine.enumeration import StateModel, enumerate_atoms
-from engine.evidence import Evidence, OccurrenceIndex, describe, gather, thin, too_few, verdict
+from engine.evidence import Evidence, OccurrenceIndex, describe, gather, strict, thin, too_few, verdict
 from engine.freshness import Access, writes_at
 from engine.next_action import NextActionPlanner
 from engine.notices import rule_warnings
@@ -34,6 +34,7 @@ from engine.ranking import (
     within_budget,
     zero_shot,
 )
+from engine.report import UNSEEN_RULE, Proposals, Ranked, listed, report_of
 from engine.spec import (
     Spec,
     as_error,
@@ -50,7 +51,6 @@ from sandbox.types import (
     CandidateResult,
     EvaluateResult,
     LimitExceeded,
-    Point,
     ProgramError,
     SandboxCancelled,
     SandboxCrashed,
@@ -59,10 +59,8 @@ from sandbox.types import (
 )
 from schemas.api import (
     MAX_CALL_CHARS,
-    MAX_LISTED_EXCEPTIONS,
     Blocked,
     CallVerdict,
-    CandidateReport,
     CheckRequest,
     CheckResponse,
     Decided,
@@ -70,15 +68,9 @@ from schemas.api import (
     InferOptions,
     InferRequest,
     InferResponse,
-    InferStats,
-    Listed,
     ModelInfo,
     NextActionRequest,
     NextActionResponse,
-    RuleEvidence,
-    RuleException,
-    StageCounts,
-    ValidateRequest,
     ValidateResponse,
     Verdict,
 )
@@ -99,7 +91,6 @@ ProgressFn = Callable[[str, int, int], None]
 ModelLoader = Callable[[], "CodeModel"]
 T = TypeVar("T")
 
-UNSEEN_RULE = "False"  # `options.unseen: "refuse"`: a never-demonstrated action is refused until a rule exists
 SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
 
 
@@ -125,47 +116,6 @@ def sandbox_call(fn: Callable[..., T], *args: object) -> T:
         raise Cancelled("job cancelled") from exc
     except (SandboxCrashed, SandboxUnavailable) as exc:
         raise SandboxFailure(f"the sandbox failed, not the request (try again): {exc}") from exc
-
-
-@dataclass
-class Proposals:
-    """Candidate expressions per action with where they came from, deduplicated across generators."""
-
-    source: dict[str, dict[str, str]] = field(default_factory=dict)
-    votes: dict[str, dict[str, int]] = field(default_factory=dict)
-    sampled: dict[str, int] = field(default_factory=dict)
-
-    def add(
-        self, action: str, expressions: Sequence[str], origin: str, sampled: int, votes: dict[str, int] | None = None
-    ) -> None:
-        known = self.source.setdefault(action, {})
-        self.sampled[action] = self.sampled.get(action, 0) + sampled
-        for expression in expressions:
-            known.setdefault(expression, origin)
-        tally = self.votes.setdefault(action, {})
-        for expression, n in (votes or {}).items():
-            tally[expression] = tally.get(expression, 0) + n
-
-
-@dataclass(frozen=True)
-class Ranked:
-    """One action's candidates after validation and ranking: data that reports and counts are built from."""
-
-    results: Sequence[CandidateResult]
-    valid: list[Candidate]
-    clusters: list[Cluster]
-    chosen: list[Cluster]
-    reasons: Mapping[str, str] = field(default_factory=dict)
-    """Why ranking kept or dropped each valid candidate (`ranking.explain`), and why evidence-weighted
-    validation refuted the others (`_screened`)."""
-    evidence: Mapping[str, Evidence] = field(default_factory=dict)
-    verdicts: Mapping[str, Verdict] = field(default_factory=dict)
-    decided: Mapping[str, Decided] = field(default_factory=dict)
-    """How each chosen rule was decided (`engine.cautious.Choice`), by its expression."""
-    transferred: Mapping[str, str] = field(default_factory=dict)
-    """The sources of each chosen rule transferred from the priors (`engine.priors`), by its expression."""
-    search: str = ""
-    """Where the disjunction search stopped at its bound (`engine.cautious.MAX_DISJUNCTION_ATOMS`), in words."""
 
 
 class Timer:
@@ -255,7 +205,7 @@ class Engine:
         with timer.phase("verify"):
             exempt = _exceptions_of(chosen, ranked)
             program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
-        response = _response(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
+        response = report_of(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
         occurrences = {a: trace.actions[a].occurrences for a in actions}
         decided = {a: {rule: ranked[a].decided.get(rule, "unseen" if rule == UNSEEN_RULE else "established")
                        for rule in preconditions[a]} for a in actions}
@@ -267,7 +217,7 @@ class Engine:
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, stats=response.stats,
-            candidates=_listed(response.candidates, request.options.candidates),
+            candidates=listed(response.candidates, request.options.candidates),
             model=model_info, warnings=warnings, evidence=response.evidence,
         )
 
@@ -507,14 +457,15 @@ class Engine:
         return CheckResponse(results=[_labelled(v, spec, request.decided) for v in verdicts])
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
-    def validate(self, request: ValidateRequest) -> ValidateResponse:
+    def validate(self, spec_text: str, preconditions: dict[str, list[str]],
+                 demonstrations: Sequence[str]) -> ValidateResponse:
         """Every demonstrated call each rule would have refused (demonstration, line), from where it holds."""
-        spec = parse_spec(request.spec)
-        check_preconditions(spec, request.preconditions)
-        demos = list(request.demonstrations)
+        spec = parse_spec(spec_text)
+        check_preconditions(spec, preconditions)
+        demos = list(demonstrations)
         for i, demo in enumerate(demos):
             parse_source(demo, f"demonstrations[{i}]")
-        rules = {action: list(dict.fromkeys(r)) for action, r in request.preconditions.items() if r}
+        rules = {action: list(dict.fromkeys(r)) for action, r in preconditions.items() if r}
         trace = sandbox_call(self._sandbox.trace, spec.source, demos)
         evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, rules)
         blocked: list[Blocked] = []
@@ -749,7 +700,7 @@ def _tool_calls(trace: TraceResult) -> set[str]:
 
 def _verdict(result: CandidateResult, evidence: Evidence, tolerance: float) -> Verdict:
     """Tolerance 0 is the paper's validation exactly: the sandbox's own verdict at every occurrence."""
-    if tolerance <= 0:
+    if strict(tolerance):
         return "held" if result.status == "valid" else "refuted"
     return verdict(evidence, tolerance)
 
@@ -758,7 +709,7 @@ def _screened(verdicts: Mapping[str, Verdict], judged: Mapping[str, Evidence], t
               first_violation: Mapping[str, str | None]) -> dict[str, str]:
     """Why evidence-weighted validation turned a candidate away (strict validation: the sandbox says why),
     naming the first violated occurrence (demonstration, line) as the sandbox found it."""
-    if tolerance <= 0:
+    if strict(tolerance):
         return {}
     reasons: dict[str, str] = {}
     for expression, fate in verdicts.items():
@@ -785,124 +736,3 @@ def _exceptions_of(chosen: Mapping[str, Sequence[str]], ranked: Mapping[str, Ran
     return steps
 
 
-@dataclass(frozen=True)
-class _Report:
-    candidates: dict[str, list[CandidateReport]]
-    stats: InferStats
-    evidence: dict[str, dict[str, RuleEvidence]]
-
-
-def _response(
-    actions: Sequence[str],
-    proposals: Proposals,
-    ranked: Mapping[str, Ranked],
-    preconditions: Mapping[str, Sequence[str]],
-    dropped: Mapping[str, Mapping[str, str]],
-    seconds: dict[str, float],
-    trace: TraceResult,
-) -> _Report:
-    """Candidate reports, stage counts and kept rules' evidence of an inference, built in one place from what
-    the phases returned."""
-    candidates: dict[str, list[CandidateReport]] = {}
-    counts: dict[str, StageCounts] = {}
-    evidence: dict[str, dict[str, RuleEvidence]] = {}
-    for action in actions:
-        r = ranked[action]
-        origins = proposals.source.get(action, {})
-        candidates[action] = _reports(r, origins, preconditions[action], dropped.get(action, {}), trace)
-        reports = {c.assertion: c.evidence for c in candidates[action]}
-        evidence[action] = {rule: found for rule in preconditions[action] if (found := reports.get(rule))}
-        counts[action] = StageCounts(
-            sampled=proposals.sampled.get(action, 0), parsed=len(origins), valid=len(r.valid),
-            clusters=len(r.clusters), kept=len(preconditions[action]),
-        )
-    total = StageCounts(**{
-        name: sum(getattr(c, name) for c in counts.values()) for name in StageCounts.model_fields
-    })
-    return _Report(candidates, InferStats(actions=counts, total=total, seconds=seconds), evidence)
-
-
-def _listed(candidates: dict[str, list[CandidateReport]], which: Listed) -> dict[str, list[CandidateReport]]:
-    """The candidate reports the caller asked for (`options.candidates`): all, the kept rules' only, or none."""
-    if which == "all":
-        return candidates
-    return {a: [c for c in reports if c.kept] for a, reports in candidates.items()} if which == "kept" else {}
-
-
-def _reports(
-    ranked: Ranked, origins: dict[str, str], kept: Sequence[str], dropped: Mapping[str, str], trace: TraceResult
-) -> list[CandidateReport]:
-    cluster_of = {m.expression: i for i, c in enumerate(ranked.clusters) for m in c.members}
-    valid = {c.expression for c in ranked.valid}
-    reports = []
-    for result in ranked.results:
-        found = ranked.evidence.get(result.expression)
-        fate = ranked.verdicts.get(result.expression)
-        evidence = None if found is None or fate is None else _rule_evidence(found, fate, trace)
-        reason = _reason(result, ranked.reasons, dropped)
-        if evidence is not None and fate in ("held", "tolerated") and found is not None and found.occurrences:
-            reason = f"{reason}; {describe(found, [_where(x) for x in evidence.exceptions])}"
-        is_kept = result.expression in kept
-        if evidence is not None and is_kept:
-            evidence = evidence.model_copy(update={"decided": ranked.decided.get(result.expression, "established"),
-                                                   "source": ranked.transferred.get(result.expression)})
-        origin = origins.get(result.expression)
-        reports.append(CandidateReport(
-            assertion=result.expression,
-            source="enumerate" if origin == "enumerate" else "prior" if origin == "prior" else "model",
-            valid=is_kept or (result.expression in valid and fate in ("held", "tolerated")),
-            cluster=cluster_of.get(result.expression),
-            support=result.satisfied.bit_count(),
-            kept=is_kept,
-            reason=reason,
-            evidence=evidence,
-        ))
-    if UNSEEN_RULE in kept and not any(r.expression == UNSEEN_RULE for r in ranked.results):
-        reports.append(_unseen_report())
-    return reports
-
-
-def _unseen_report() -> CandidateReport:
-    return CandidateReport(
-        assertion=UNSEEN_RULE, source="enumerate", valid=True, support=0, kept=True,
-        reason="kept: no demonstration calls this action and options.unseen is 'refuse': every call is refused "
-               "until a rule is written (or learned from demonstrations that show it)",
-        evidence=RuleEvidence(occurrences=0, holds=0, confidence=0.0, verdict="thin", decided="unseen"),
-    )
-
-
-def _rule_evidence(evidence: Evidence, fate: Verdict, trace: TraceResult) -> RuleEvidence:
-    """The API's form; exceptions are listed only for rules that passed validation (a refuted candidate can
-    fail at hundreds of calls, and its count says enough)."""
-    listed = evidence.exceptions[:MAX_LISTED_EXCEPTIONS] if fate in ("held", "tolerated") else ()
-    return RuleEvidence(
-        occurrences=evidence.occurrences, holds=evidence.holds, exceptions=[_exception(p, trace) for p in listed],
-        elsewhere=evidence.elsewhere, holds_elsewhere=evidence.holds_elsewhere,
-        confidence=round(evidence.confidence, 4), verdict=fate,
-    )
-
-
-def _exception(point: Point, trace: TraceResult) -> RuleException:
-    steps = trace.positions[point.demo] if 0 <= point.demo < len(trace.positions) else ()
-    step = steps[point.position] if 0 <= point.position < len(steps) else None
-    return RuleException(demonstration=point.demo, position=point.position,
-                         line=step.line if step else None,
-                         call=step.source.strip()[:MAX_CALL_CHARS] if step else None)
-
-
-def _where(exception: RuleException) -> str:
-    return f"demonstrations[{exception.demonstration}], line {exception.line}"
-
-
-def _reason(result: CandidateResult, ranked: Mapping[str, str], dropped: Mapping[str, str]) -> str:
-    """Every candidate's fate in words: dropped at verification, rejected by the sandbox, ranked or screened
-    (evidence-weighted validation), or violated (strict validation)."""
-    if result.expression in dropped:
-        return dropped[result.expression]
-    if result.status == "rejected":
-        return f"rejected before judging: {result.reason or 'unknown reason'}"
-    if result.expression in ranked:
-        return ranked[result.expression]
-    if result.status == "invalid":
-        return f"violated at {result.reason}" if result.reason else "violated at a demonstrated occurrence"
-    return "valid, but not considered by the ranking"

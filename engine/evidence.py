@@ -165,12 +165,23 @@ def strongly_separated(evidence: Evidence) -> bool:
             and evidence.confidence > 0.5 and evidence.chance() < STRONG_ALPHA)
 
 
+def strict(tolerance: float) -> bool:
+    """Tolerance 0 is the paper's strict validation: a rule must hold at every demonstrated call, and nothing
+    of the evidence weighting below applies."""
+    return tolerance <= 0
+
+
+def exception_budget(tolerance: float, occurrences: int) -> int:
+    """The demonstrated calls a rule (or the rules of one action together) may refuse at this tolerance."""
+    return math.floor(tolerance * occurrences + 1e-9)
+
+
 def verdict(evidence: Evidence, tolerance: float) -> Verdict:
     """Whether the evidence backs the rule; tolerance 0 is the paper's strict validation and nothing more."""
     exceptions = evidence.occurrences - evidence.holds
-    if tolerance <= 0:
+    if strict(tolerance):
         return "refuted" if exceptions else "held"
-    if exceptions > math.floor(tolerance * evidence.occurrences + 1e-9) and not strongly_separated(evidence):
+    if exceptions > exception_budget(tolerance, evidence.occurrences) and not strongly_separated(evidence):
         return "refuted"
     if evidence.occurrences < MIN_OCCURRENCES:
         return "thin"

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from engine.evidence import MIN_DIALOGS, MIN_OCCURRENCES, too_few
+from engine.evidence import MIN_DIALOGS, MIN_OCCURRENCES, strict, too_few
 from sandbox.types import Point
 from schemas.api import Decided, Unseen
 
@@ -47,7 +47,7 @@ def _consequence(outcome: Outcome) -> str:
                 "demonstrations that show it")
     if any(outcome.decided.get(rule) == "transferred" for rule in outcome.rules):
         return "its rule is transferred from the prior rules (learned for other services; `evidence` names them)"
-    if outcome.occurrences and outcome.tolerance <= 0:
+    if outcome.occurrences and strict(outcome.tolerance):
         return "its rule holds at those few calls, which cannot tell a requirement from a coincidence"
     if outcome.assumed:
         return f"its rules are assumed, the facts its few calls share: {_listed(outcome.assumed)}"

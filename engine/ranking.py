@@ -22,11 +22,10 @@ it still excludes `MIN_GAIN` of the points that the conjunction so far allows.
 from __future__ import annotations
 
 import ast
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-from engine.evidence import Evidence, strongly_separated
+from engine.evidence import Evidence, exception_budget, strongly_separated
 from engine.freshness import Access, reads, refreshed
 from sandbox.types import Point
 
@@ -224,8 +223,9 @@ def by_criterion(criterion: str, clusters: Sequence[Cluster], evidence: ActionEv
     return subsumption(clusters, evidence.occurrence_mask)
 
 
-def exception_budget(evidence: ActionEvidence) -> int:
-    return math.floor(evidence.tolerance * evidence.occurrence_mask.bit_count() + 1e-9)
+def action_budget(evidence: ActionEvidence) -> int:
+    """The calls of the action that its chosen rules together may refuse."""
+    return exception_budget(evidence.tolerance, evidence.occurrence_mask.bit_count())
 
 
 def within_budget(chosen: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
@@ -240,7 +240,7 @@ def within_budget(chosen: Sequence[Cluster], evidence: ActionEvidence) -> list[C
     if evidence.tolerance <= 0 or not mask:
         return list(chosen)
     everything = (1 << len(evidence.points)) - 1
-    budget, charged, allowed, kept = exception_budget(evidence), 0, everything, set()
+    budget, charged, allowed, kept = action_budget(evidence), 0, everything, set()
     for c in sorted(chosen, key=lambda c: (mask & ~c.satisfied).bit_count()):
         new = (mask & allowed & ~c.satisfied).bit_count()
         if charged + new <= budget:
@@ -263,7 +263,7 @@ def _held(satisfied: int, evidence: ActionEvidence) -> str:
     refused = (evidence.occurrence_mask & ~satisfied).bit_count()
     if not refused:
         return "held at every occurrence"
-    if refused <= exception_budget(evidence):
+    if refused <= action_budget(evidence):
         return "held at the occurrences within the tolerance"
     return "held at most occurrences (more exceptions than the tolerance, forgiven for its strong separation)"
 
@@ -320,7 +320,7 @@ def explain(
         if mine in cut:
             reasons[candidate.expression] = (
                 f"{held}, but its exceptions together with those of the rules kept before it exceed the "
-                f"tolerance ({exception_budget(evidence)} of {mask.bit_count()} occurrences), and among the "
+                f"tolerance ({action_budget(evidence)} of {mask.bit_count()} occurrences), and among the "
                 "points those rules still allow it does not single the occurrences out strongly")
             continue
         if mine in chosen_sets:

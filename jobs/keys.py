@@ -15,7 +15,7 @@ import os
 import re
 from functools import lru_cache
 from importlib import metadata
-from typing import Any, Final
+from typing import Any, Final, get_args
 
 from schemas.api import JobKind
 
@@ -26,21 +26,6 @@ MODEL_FREE_QUEUE: Final = f"{PREFIX}:queue:model-free"
 """Inference without the model (`options.generators == ["enumerate"]`): seconds, never behind model jobs,
 and apart from the millisecond check jobs, which it must not hold up either."""
 QUEUES: Final = (MODEL_QUEUE, MODEL_FREE_QUEUE, CHECK_QUEUE)
-QUEUE_BY_KIND: Final[dict[JobKind, str]] = {
-    "infer": MODEL_QUEUE,
-    "next-action": MODEL_QUEUE,
-    "check": CHECK_QUEUE,
-    "validate": CHECK_QUEUE,
-    "reinfer": MODEL_QUEUE,
-}
-"""The queue of each kind's model jobs; see `queue_for` for the routing by cost."""
-QUEUES_BY_KIND: Final[dict[JobKind, tuple[str, ...]]] = {
-    "infer": (MODEL_QUEUE, MODEL_FREE_QUEUE),
-    "next-action": (MODEL_QUEUE,),
-    "check": (CHECK_QUEUE,),
-    "validate": (CHECK_QUEUE,),
-    "reinfer": (MODEL_QUEUE, MODEL_FREE_QUEUE),
-}
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
 WORKER_PREFIX: Final = f"{PREFIX}:worker:"
@@ -52,7 +37,7 @@ UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 WAKE_PREFIX: Final = f"{PREFIX}:wake:"
 
-_JOB_ID = re.compile(r"^(infer|next-action|check|validate|reinfer)-([0-9a-f]{16})-[0-9a-f]{48}$")
+_JOB_ID = re.compile(rf"^({'|'.join(map(re.escape, get_args(JobKind)))})-([0-9a-f]{{16}})-[0-9a-f]{{48}}$")
 SHARED: Final = "shared"
 
 
@@ -77,14 +62,6 @@ def wake_channel(queue: str) -> str:
 
 def worker_key(worker_id: str) -> str:
     return f"{WORKER_PREFIX}{worker_id}"
-
-
-def queue_for(kind: JobKind, body: dict[str, Any]) -> str:
-    """Route by cost: an inference that uses no model goes to the model-free queue, so it never waits for a
-    model job (minutes); everything else to its kind's queue."""
-    if kind in ("infer", "reinfer") and "model" not in body.get("options", {}).get("generators", ["model"]):
-        return MODEL_FREE_QUEUE
-    return QUEUE_BY_KIND[kind]
 
 
 def kind_of(job_id: str) -> JobKind | None:
@@ -130,8 +107,9 @@ def _canonical(kind: JobKind, body: dict[str, Any], model: str | None) -> bytes:
     ).encode()
 
 
-def job_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes, tenant: str) -> str:
-    tag = tenant_tag(secret, tenant)
+def job_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes, tag: str) -> str:
+    """The job of this request for the tenant whose tag (`tenant_tag`) is `tag`: identical requests of one
+    tenant share it, another tenant's never does."""
     digest = hmac.new(secret, tag.encode() + b"\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
     return f"{kind}-{tag}-{digest[:48]}"
 

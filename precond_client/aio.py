@@ -1,4 +1,5 @@
-"""`AsyncClient`: the asyncio client (httpx): `Client` line for line, awaited (keep the two in step)."""
+"""`AsyncClient`: the asyncio client (httpx). The blocking `Client` (sync.py) is written from this file by
+`scripts/unasync_client.py`: edit this one."""
 
 from __future__ import annotations
 

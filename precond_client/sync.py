@@ -1,4 +1,4 @@
-"""`Client`: the blocking client (httpx)."""
+"""`Client`: the blocking client (httpx). Written from aio.py by `scripts/unasync_client.py`: do not edit."""
 
 from __future__ import annotations
 

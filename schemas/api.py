@@ -41,7 +41,7 @@ Listed = Literal["all", "kept", "none"]
 SourceText = Field(max_length=MAX_SOURCE_CHARS)
 
 
-class _Body(BaseModel):
+class StrictBody(BaseModel):
     """Unknown fields are errors: a typo in an option must not silently fall back to a default."""
 
     model_config = ConfigDict(extra="forbid")
@@ -76,7 +76,7 @@ MAX_PRIOR_SOURCES = 8
 MAX_SOURCE_NAME_CHARS = 200
 
 
-class PriorSource(_Body):
+class PriorSource(StrictBody):
     """Rules learned elsewhere (another service's stored set or inference): one vote among the priors."""
 
     source: str = Field(min_length=1, max_length=MAX_SOURCE_NAME_CHARS,
@@ -85,7 +85,7 @@ class PriorSource(_Body):
     rules: Preconditions = Field(description="Action (`Class.method`) → rules, as an inference's `preconditions`.")
 
 
-class InferOptions(_Body):
+class InferOptions(StrictBody):
     generators: list[Generator] = Field(
         default=["model", "enumerate"],
         min_length=1,
@@ -224,7 +224,7 @@ Scalar = Annotated[
 """An event argument: str, int, float, bool or null; anything else is refused (422) when the history is rendered."""
 
 
-class HistoryEvent(_Body):
+class HistoryEvent(StrictBody):
     """One step of a structured history: `actor.act(*args)`."""
 
     actor: str = Field(max_length=100, description="The spec class's variable: its name in lower case (`user`, "
@@ -266,7 +266,7 @@ History = Annotated[
 ]
 
 
-class ToolCall(_Body):
+class ToolCall(StrictBody):
     """A proposed tool call, as an LLM agent writes it; rendered to `agent.<name>(...)` over a spec that
     `precond convert openai` made (its parameters in the stub's order)."""
 
@@ -276,7 +276,7 @@ class ToolCall(_Body):
     )
 
 
-class _UsesRules(_Body):
+class _UsesRules(StrictBody):
     """Rules come inline (`spec` + `preconditions`) or from a stored set (`precondition_set`), never both."""
 
     spec: str | None = Field(default=None, min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
@@ -298,7 +298,7 @@ class _UsesRules(_Body):
         return self.spec
 
 
-class InferRequest(_Body):
+class InferRequest(StrictBody):
     spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
     demonstrations: list[str] = Field(
         min_length=1,
@@ -314,7 +314,7 @@ class InferRequest(_Body):
     options: InferOptions = Field(default_factory=InferOptions, description="How candidates are made and ranked.")
 
 
-class RuleException(_Body):
+class RuleException(StrictBody):
     """A demonstrated call at which a rule does not hold: a slip in the log, or a sign the rule is wrong."""
 
     demonstration: int = Field(description="Index of the demonstration.")
@@ -326,7 +326,7 @@ class RuleException(_Body):
 Verdict = Literal["held", "tolerated", "refuted", "chance", "thin"]
 
 
-class RuleEvidence(_Body):
+class RuleEvidence(StrictBody):
     """What the demonstrations say about one rule (README: 'Evidence-weighted validation')."""
 
     occurrences: int = Field(description="Demonstrated calls of the action.")
@@ -362,7 +362,7 @@ class RuleEvidence(_Body):
     )
 
 
-class CandidateReport(_Body):
+class CandidateReport(StrictBody):
     assertion: str
     source: Literal["model", "enumerate", "prior"]
     valid: bool = Field(description="Passed validation: held at every occurrence, or within `options.tolerance`.")
@@ -379,7 +379,7 @@ class CandidateReport(_Body):
     evidence: RuleEvidence | None = Field(default=None, description="Its counts; absent for rejected candidates.")
 
 
-class StageCounts(_Body):
+class StageCounts(StrictBody):
     sampled: int = 0
     parsed: int = 0
     valid: int = 0
@@ -387,13 +387,13 @@ class StageCounts(_Body):
     kept: int = 0
 
 
-class InferStats(_Body):
+class InferStats(StrictBody):
     actions: dict[str, StageCounts]
     total: StageCounts
     seconds: dict[str, float] = Field(description="Wall time per phase: trace, generate, validate, rank.")
 
 
-class ModelInfo(_Body):
+class ModelInfo(StrictBody):
     name: str
     sha256: str | None = None
     device: str
@@ -405,7 +405,7 @@ class ModelInfo(_Body):
     )
 
 
-class InferResponse(_Body):
+class InferResponse(StrictBody):
     preconditions: dict[str, list[str]]
     program: str
     candidates: dict[str, list[CandidateReport]]
@@ -428,7 +428,7 @@ NextActionMode = Literal["sample", "constrained"]
 ChooseBy = Literal["action", "line"]
 
 
-class NextActionOptions(_Body):
+class NextActionOptions(StrictBody):
     mode: NextActionMode = Field(
         default="constrained",
         description="'constrained' (default, best on the dev numbers: docs/results.md): the sandbox judges every "
@@ -495,13 +495,13 @@ class NextActionRequest(_UsesRules):
     )
 
 
-class Rejection(_Body):
+class Rejection(StrictBody):
     call: str
     violations: list[str] = Field(default_factory=list)
     reason: str | None = None
 
 
-class AllowedCall(_Body):
+class AllowedCall(StrictBody):
     call: str
     score: float | None = Field(
         default=None, description="Mode 'constrained': the model's log-likelihood of the call's line (higher is "
@@ -509,7 +509,7 @@ class AllowedCall(_Body):
     )
 
 
-class PredictedAction(_Body):
+class PredictedAction(StrictBody):
     call: str | None = Field(
         description="The action call; null: no verified action (every attempt is in `rejected`, `reason` says "
         "why), or nothing allowed (`nothing_allowed`). Never a line that is not a call of an action."
@@ -535,7 +535,7 @@ class PredictedAction(_Body):
     reason: str | None = Field(default=None, description="Why `call` is null, or why an unverified call is given.")
 
 
-class NextActionResponse(_Body):
+class NextActionResponse(StrictBody):
     actions: list[PredictedAction]
     mode: NextActionMode = "constrained"
     history_violation: str | None = Field(
@@ -575,7 +575,7 @@ class CheckRequest(_UsesRules):
     )
 
 
-class CallVerdict(_Body):
+class CallVerdict(StrictBody):
     call: str
     allowed: bool = Field(
         description="true only when the call ran with every rule holding; a rule or call that raises gives "
@@ -594,20 +594,11 @@ class CallVerdict(_Body):
     )
 
 
-class CheckResponse(_Body):
+class CheckResponse(StrictBody):
     results: list[CallVerdict]
 
 
-class ValidateRequest(_Body):
-    """A worker job (kind `validate`, on the check queue): which demonstrated calls each rule would block.
-    The gateway sends it for every new version of a precondition set that has demonstrations."""
-
-    spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
-    preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
-    demonstrations: list[str] = Field(min_length=1, max_length=MAX_DEMONSTRATIONS)
-
-
-class Blocked(_Body):
+class Blocked(StrictBody):
     action: str
     rule: str
     demonstration: int = Field(description="Index of the demonstration whose call the rule would have refused.")
@@ -615,7 +606,7 @@ class Blocked(_Body):
     call: str | None = Field(default=None, description="The demonstrated call, as written.")
 
 
-class ValidateResponse(_Body):
+class ValidateResponse(StrictBody):
     blocked: list[Blocked] = Field(
         default_factory=list, description="Every demonstrated call a rule would have refused; empty: all pass."
     )
@@ -634,7 +625,7 @@ MAX_SET_EDITS = 64
 EditOp = Literal["add", "remove", "require", "reject"]
 
 
-class RuleEdit(_Body):
+class RuleEdit(StrictBody):
     op: EditOp = Field(description="'add' a rule; 'remove' one; 'require' one (re-inference keeps it); 'reject' "
                        "one (removed, and re-inference never brings it back).")
     action: str = Field(max_length=MAX_ACTION_CHARS, description="`Class.method`.")
@@ -666,7 +657,7 @@ CANDIDATES_DESCRIPTION = (
 WARNINGS_DESCRIPTION = "From an inference: its `warnings` per action (e.g. no demonstration calls it)."
 
 
-class PreconditionSetCreate(_Body):
+class PreconditionSetCreate(StrictBody):
     spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
     preconditions: Preconditions = Field(
         default_factory=dict,
@@ -684,7 +675,7 @@ class PreconditionSetCreate(_Body):
     force: bool = Field(default=False, description="Store even when a rule blocks a demonstrated call.")
 
 
-class PreconditionSetEdit(_Body):
+class PreconditionSetEdit(StrictBody):
     edits: list[RuleEdit] = Field(min_length=1, max_length=MAX_SET_EDITS)
     base_version: int | None = Field(
         default=None, ge=1, description="The version these edits were made on; 409 when it is no longer the latest."
@@ -692,7 +683,7 @@ class PreconditionSetEdit(_Body):
     force: bool = Field(default=False, description="Store even when a rule blocks a demonstrated call.")
 
 
-class PreconditionSetReinfer(_Body):
+class PreconditionSetReinfer(StrictBody):
     demonstrations: list[str] = Field(
         min_length=1, max_length=MAX_DEMONSTRATIONS,
         description="New demonstrations (programs over the set's spec). Inference runs on the set's stored "
@@ -711,14 +702,14 @@ class PreconditionSetReinfer(_Body):
                         "(the rule is kept; `validation` reports what it blocks).")
 
 
-class RuleChange(_Body):
+class RuleChange(StrictBody):
     action: str
     rule: str
     reason: str | None = Field(default=None, description="Why: the candidate's reason from the inference, or why "
                                "a rule of the base version is gone.")
 
 
-class SetDiff(_Body):
+class SetDiff(StrictBody):
     """What a re-inference changed, against the version it started from."""
 
     base_version: int
@@ -733,23 +724,7 @@ class SetDiff(_Body):
     new_demonstrations: int = Field(default=0, description="Demonstrations added by this re-inference.")
 
 
-class ReinferJob(_Body):
-    """A worker job (kind `reinfer`): infer on the base version's spec with its stored demonstrations and the
-    new ones, merge with its required and rejected rules, validate, and store the result as the next version
-    (the gateway resolved the base; the worker appends only if it is still the latest)."""
-
-    base: PreconditionSet
-    demonstrations: list[str] = Field(min_length=1, max_length=MAX_DEMONSTRATIONS)
-    actions: list[str] | None = None
-    options: InferOptions = Field(default_factory=InferOptions)
-    force: bool = False
-    max_versions: int = Field(ge=1)
-    max_bytes: int = Field(ge=1)
-    max_tenant_bytes: int | None = Field(default=None, ge=1, description="Bytes of all the tenant's sets; None: "
-                                         "unbounded (a job queued by a gateway that did not send it).")
-
-
-class PreconditionSet(_Body):
+class PreconditionSet(StrictBody):
     id: str
     version: int = Field(description="This version; versions are immutable.")
     latest: int = Field(description="The set's latest version.")
@@ -784,7 +759,7 @@ class PreconditionSet(_Body):
         "are the assumed and zero-shot rules.")
 
 
-class PreconditionSetSummary(_Body):
+class PreconditionSetSummary(StrictBody):
     """One line of `GET /precondition-sets`: what a reviewer needs to pick a set, without its programs."""
 
     id: str
@@ -802,7 +777,7 @@ class PreconditionSetSummary(_Body):
     rejected: int = 0
 
 
-class PreconditionSetList(_Body):
+class PreconditionSetList(StrictBody):
     sets: list[PreconditionSetSummary] = Field(description="Newest first (by creation).")
     total: int = Field(description="The tenant's sets.")
     offset: int
@@ -814,24 +789,24 @@ JobKind = Literal["infer", "next-action", "check", "validate", "reinfer"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
-class ErrorInfo(_Body):
+class ErrorInfo(StrictBody):
     type: str
     message: str
     field: str | None = None
 
 
-class ErrorResponse(_Body):
+class ErrorResponse(StrictBody):
     error: ErrorInfo
     request_id: str
 
 
-class JobProgress(_Body):
+class JobProgress(StrictBody):
     phase: str = "queued"
     done: int = 0
     total: int = 0
 
 
-class JobStatus(_Body):
+class JobStatus(StrictBody):
     id: str
     kind: JobKind
     status: JobState
@@ -839,4 +814,3 @@ class JobStatus(_Body):
     result: dict[str, Any] | None = None
     error: ErrorInfo | None = None
 
-ReinferJob.model_rebuild()

@@ -17,17 +17,17 @@ from redis.asyncio import ConnectionPool, Redis
 from jobs.cache import ResultCache
 from jobs.settings import GatewaySettings, get_gateway_settings
 from service import errors
-from service.auth import KeyStore
+from service.api_keys import KeyStore
 from service.completions import Completions
 from service.deps import Services
-from service.metrics import Metrics
 from service.middleware import BodyLimit, RequestContext
 from service.offload import CheckPool
+from service.prometheus import Metrics
 from service.queue import JobQueue
 from service.quotas import AuthLimit, Quotas, SourceBuckets
 from service.routes import health, operations, sets, ui
 from service.routes import jobs as job_routes
-from service.sets import SetStore
+from service.set_store import SetStore
 from service.worker_view import WorkerView
 
 log = logging.getLogger("precond.gateway")

@@ -10,12 +10,12 @@ from fastapi import Depends, Request
 
 from jobs.cache import ResultCache
 from jobs.settings import GatewaySettings
-from service.auth import KeyStore
-from service.metrics import Metrics
+from service.api_keys import KeyStore
 from service.offload import CheckPool
+from service.prometheus import Metrics
 from service.queue import JobQueue
 from service.quotas import Quotas, SourceBuckets
-from service.sets import SetStore
+from service.set_store import SetStore
 from service.worker_view import WorkerView
 
 

@@ -21,7 +21,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from service import offload
 from service.errors import ServiceError
-from service.metrics import Metrics
+from service.prometheus import Metrics
 
 _CLIENT_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 

@@ -26,7 +26,8 @@ from arq.worker import JobExecutionFailed
 from redis.exceptions import RedisError
 
 from jobs.cache import ResultCache
-from jobs.keys import JOB_FUNCTION, QUEUE_BY_KIND, QUEUES_BY_KIND, done_channel, kind_of, queue_for, wake_channel
+from jobs.keys import JOB_FUNCTION, done_channel, kind_of, wake_channel
+from jobs.kinds import KINDS, queue_for, queues_of
 from jobs.records import Outcome, read_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions
@@ -84,7 +85,7 @@ class JobQueue:
         self.max_jobs = max_jobs
         self.quotas = quotas
         self.result_ttl_s = result_ttl_s
-        self._admissions: dict[str, asyncio.Lock] = {}  # one per queue (a handful: jobs.keys.QUEUE_BY_KIND)
+        self._admissions: dict[str, asyncio.Lock] = {}  # one per queue (a handful: jobs.kinds.KINDS)
 
     def _job(self, job_id: str, queue: str) -> Job:
         return Job(job_id, self.redis, _queue_name=queue)
@@ -92,7 +93,7 @@ class JobQueue:
     async def _queue_of(self, job_id: str, kind: JobKind) -> str:
         """The queue holding the job (an inference goes to one of two, by cost); its kind's default when
         it is in none (running or finished: arq needs the queue only to tell queued from unknown)."""
-        queues = QUEUES_BY_KIND[kind]
+        queues = queues_of(kind)
         if len(queues) > 1:
             async with self.redis.pipeline(transaction=False) as pipe:
                 for queue in queues:
@@ -101,7 +102,7 @@ class JobQueue:
             for queue, score in zip(queues, scores, strict=True):
                 if score is not None:
                     return queue
-        return QUEUE_BY_KIND[kind]
+        return KINDS[kind].queue
 
     async def depth(self, queue: str) -> int:
         return int(await self.redis.zcard(queue))

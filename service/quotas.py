@@ -27,6 +27,7 @@ from arq.constants import job_key_prefix
 from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from jobs.keys import PREFIX
+from service.caller import Caller
 
 FAIR_EPOCH_MS: Final = 946_684_800_000  # 2000-01-01: every fair score is in the past, so due at once
 STATE_TTL_S: Final = 7 * 24 * 3600
@@ -166,20 +167,20 @@ class Quotas:
             return None
         return None if allowed else max(0.0, (1 - float(tokens)) / rate)
 
-    async def take_request(self, tag: str, tenant: str) -> Refusal | None:
+    async def take_request(self, caller: Caller) -> Refusal | None:
         """A token of the tenant's rate. While this process knows the bucket is empty, the refusal costs no
         Redis round trip: a tenant flooding past its rate must not cost the others the shared Redis's time."""
         now = datetime.now(UTC).timestamp()
-        until = self._empty.get(tag, 0.0)
+        until = self._empty.get(caller.tag, 0.0)
         if until > now:
             wait = until - now
         else:
-            taken = await self._take(_rate_key(tag), self.rate_per_s, self.burst)
+            taken = await self._take(_rate_key(caller.tag), self.rate_per_s, self.burst)
             if taken is None:
                 return None
             wait = taken
-            _remember(self._empty, tag, now + wait, now)
-        return Refusal("rate", f"rate limit: tenant {tenant!r} may send {self.rate_per_s:g} requests/s "
+            _remember(self._empty, caller.tag, now + wait, now)
+        return Refusal("rate", f"rate limit: tenant {caller.name!r} may send {self.rate_per_s:g} requests/s "
                                f"(bursts of {self.burst})", max(1, math.ceil(wait)))
 
     def auth_blocked(self, source: str) -> Refusal | None:
@@ -204,15 +205,15 @@ class Quotas:
         return Refusal("auth", f"too many failed authentications from this address: at most "
                                f"{self.auth.failures_per_s:g}/s (bursts of {self.auth.burst})", max(1, wait))
 
-    async def admit_job(self, tag: str, tenant: str, job_id: str, retry_after_s: int) -> Refusal | None:
+    async def admit_job(self, caller: Caller, job_id: str, retry_after_s: int) -> Refusal | None:
         """Count a new job against its tenant's cap; a job the tenant already has (identical request) is free."""
         count = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _ADMIT_JOB, 1, _jobs_key(tag), job_id, self.max_jobs, job_key_prefix,
+            _ADMIT_JOB, 1, _jobs_key(caller.tag), job_id, self.max_jobs, job_key_prefix,
             datetime.now(UTC).timestamp(), STATE_TTL_S,
         ))
         if count < 0:
             return None
-        return Refusal("jobs", f"job limit: tenant {tenant!r} has {count} jobs queued or running "
+        return Refusal("jobs", f"job limit: tenant {caller.name!r} has {count} jobs queued or running "
                                f"(at most {self.max_jobs})", retry_after_s)
 
     async def fair_start(self, queue: str, tag: str) -> datetime:

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
 
-from service.auth import KeyRecord, digest, new_key, read_records, write_records
+from service.api_keys import KeyRecord, digest, new_key, read_records, write_records
 from stack.local import Stack, make_stack, serving
 
 

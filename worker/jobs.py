@@ -16,7 +16,7 @@ from collections.abc import Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, Final
 
 from pydantic import BaseModel
 from redis.asyncio import Redis
@@ -26,18 +26,15 @@ from engine.engine import Engine
 from engine.scope import scoped
 from jobs.cache import ResultCache
 from jobs.keys import owner_of
+from jobs.kinds import KINDS
+from jobs.payloads import ReinferJob
 from jobs.records import Outcome, record_job, record_phase, write_progress
 from jobs.settings import WorkerSettings
 from schemas.api import (
-    CheckRequest,
     ErrorInfo,
-    InferRequest,
     JobKind,
     JobProgress,
-    NextActionRequest,
     PreconditionSet,
-    ReinferJob,
-    ValidateRequest,
 )
 from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
 from worker.memory import MemoryGuard
@@ -87,18 +84,24 @@ class ProgressReporter:
         asyncio.run_coroutine_threadsafe(coroutine, self.loop)
 
 
+Runner = Callable[[Engine, Any, ProgressFn, CancelledFn], BaseModel]
+RUNNERS: Final[dict[JobKind, Runner]] = {
+    "infer": lambda engine, job, progress, cancelled: engine.infer(job, progress, cancelled),
+    "next-action": lambda engine, job, progress, cancelled: engine.next_action(job, progress, cancelled),
+    "check": lambda engine, job, _progress, _cancelled: engine.check(job),
+    "validate": lambda engine, job, _progress, _cancelled: engine.validate(
+        job.spec, job.preconditions, job.demonstrations),
+    "reinfer": reinfer,
+}
+"""What the engine does with each kind's payload (`jobs.kinds.KINDS` says which payload that is)."""
+
+
 def _operate(
     engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
 ) -> BaseModel:
-    if kind == "infer":
-        return engine.infer(InferRequest.model_validate(body), progress, cancelled)
-    if kind == "next-action":
-        return engine.next_action(NextActionRequest.model_validate(body), progress, cancelled)
-    if kind == "validate":
-        return engine.validate(ValidateRequest.model_validate(body))
-    if kind == "reinfer":
-        return reinfer(engine, ReinferJob.model_validate(body), progress, cancelled)
-    return engine.check(CheckRequest.model_validate(body))
+    job = KINDS[kind].payload.model_validate(body)
+    answer: BaseModel = RUNNERS[kind](engine, job, progress, cancelled)
+    return answer
 
 
 def _outcome(
@@ -156,7 +159,7 @@ async def run_operation(
         raise
     finally:
         reporter.finish_phase()
-    if kind == "reinfer" and outcome.result is not None:
+    if KINDS[kind].stores_version and outcome.result is not None:
         outcome = await _store_version(redis, job_id, body, outcome.result)
     # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).

@@ -1,5 +1,5 @@
 """Re-inference of a stored precondition set (job kind `reinfer`): the engine's inference on the set's spec with
-its stored demonstrations and the new ones, merged with the base version (`jobs.sets.merge`: required rules
+its stored demonstrations and the new ones, merged with the base version (`jobs.precondition_sets.merge`: required rules
 kept, rejected ones kept out), judged against all demonstrations, and stored as the next version.
 
 The computing (`reinfer`) runs in the engine's thread; the storing (`store`) on the event loop, after it.
@@ -13,8 +13,9 @@ from datetime import UTC, datetime
 from typing import Any
 
 from engine.engine import Engine
-from jobs import sets
-from schemas.api import InferRequest, PreconditionSet, ReinferJob, ValidateRequest, ValidateResponse
+from jobs import precondition_sets as sets
+from jobs.payloads import ReinferJob
+from schemas.api import InferRequest, PreconditionSet, ValidateResponse
 from schemas.errors import BlocksDemonstration, Conflict, PrecondError, SetsLimited
 
 ProgressFn = Callable[[str, int, int], None]
@@ -47,7 +48,7 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         required = {action: rules for action, rules in base.required.items() if rules}
         if required:
             progress("validate required", 0, 1)
-            report = engine.validate(ValidateRequest(spec=base.spec, preconditions=required, demonstrations=demos))
+            report = engine.validate(base.spec, required, demos)
             new = [b for b in report.blocked if b.demonstration >= len(base.demonstrations)]
             if new and not job.force:
                 first = new[0]
@@ -66,7 +67,7 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         judged = {a: list(dict.fromkeys([*merged.preconditions.get(a, []), *merged.unexplained.get(a, [])]))
                   for a in {*merged.preconditions, *merged.unexplained}}
         progress("validate", 0, 1)
-        report = (engine.validate(ValidateRequest(spec=base.spec, preconditions=judged, demonstrations=demos))
+        report = (engine.validate(base.spec, judged, demos)
                   if judged else ValidateResponse())
     except PrecondError as exc:
         exc.field = field(exc.field)

@@ -6,10 +6,11 @@ from typing import Any
 
 from fastapi import APIRouter
 
-from jobs.keys import owner_of, tenant_tag
+from jobs.keys import owner_of
 from schemas.api import ErrorResponse, JobStatus
-from service.auth import Tenant
-from service.deps import Services, ServicesDep
+from service.auth import CurrentCaller
+from service.caller import Caller
+from service.deps import ServicesDep
 from service.errors import ServiceError
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -23,8 +24,8 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {
 
 
 @router.get("/{job_id}", response_model=JobStatus, responses=NOT_FOUND)
-async def get_job(job_id: str, services: ServicesDep, tenant: Tenant) -> JobStatus:
-    _own(job_id, services, tenant)
+async def get_job(job_id: str, services: ServicesDep, caller: CurrentCaller) -> JobStatus:
+    _own(job_id, caller)
     status = await services.queue.status(job_id)
     if status is None:
         raise ServiceError(404, f"no job {job_id}")
@@ -32,16 +33,16 @@ async def get_job(job_id: str, services: ServicesDep, tenant: Tenant) -> JobStat
 
 
 @router.delete("/{job_id}", response_model=JobStatus, responses=NOT_FOUND)
-async def cancel_job(job_id: str, services: ServicesDep, tenant: Tenant) -> JobStatus:
+async def cancel_job(job_id: str, services: ServicesDep, caller: CurrentCaller) -> JobStatus:
     """Cancel a queued or running job; a finished job is returned unchanged."""
-    _own(job_id, services, tenant)
+    _own(job_id, caller)
     status = await services.queue.cancel(job_id, confirm_s=min(2.0, services.settings.wait_max_s))
     if status is None:
         raise ServiceError(404, f"no job {job_id}")
     return status
 
 
-def _own(job_id: str, services: Services, tenant: str) -> None:
+def _own(job_id: str, caller: Caller) -> None:
     """Another tenant's job answers exactly as a job that does not exist."""
-    if owner_of(job_id) != tenant_tag(services.secret, tenant):
+    if owner_of(job_id) != caller.tag:
         raise ServiceError(404, f"no job {job_id}")

@@ -28,12 +28,13 @@ from schemas.api import (
     PriorSource,
 )
 from service import offload
-from service.auth import Tenant, refuse
+from service.auth import CurrentCaller
+from service.caller import Caller
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, error_response, status_for
 from service.examples import openapi_examples
 from service.middleware import OffloadedBodyRoute
-from service.queue import QueueFull
+from service.submission import submit_job
 
 router = APIRouter(tags=["operations"], route_class=OffloadedBodyRoute)
 
@@ -67,14 +68,14 @@ async def infer_preconditions(
     ],
     request: Request,
     services: ServicesDep,
-    tenant: Tenant,
+    caller: CurrentCaller,
     wait: Wait = None,
 ) -> Response:
     """Verified preconditions per action. Demonstrations none of which calls an action are refused (422); an
     action no demonstration calls is listed in `warnings` ("no occurrence"), never a silent empty rule.
     `generators: ["enumerate"]` runs on the model-free queue, never behind model jobs."""
     model = keys.model_identity() if "model" in body.options.generators else None
-    return await answer(services, request, tenant, "infer", body, model, wait)
+    return await answer(services, request, caller, "infer", body, model, wait)
 
 
 @router.post("/next-action", response_model=NextActionResponse, responses=ERRORS)
@@ -82,7 +83,7 @@ async def next_action(
     body: Annotated[NextActionRequest, Body(openapi_examples=openapi_examples("next-action"))],
     request: Request,
     services: ServicesDep,
-    tenant: Tenant,
+    caller: CurrentCaller,
     wait: Wait = None,
 ) -> Response:
     """The next action(s), verified against the preconditions. `options.mode` "constrained" (default): the
@@ -91,7 +92,7 @@ async def next_action(
     paper's Algorithm 1; when no attempt passes, `call` is null with every attempt in `rejected`, unless
     `options.fallback` is "greedy". A call is always a call of an action; a history that itself breaks the
     preconditions is answered with `history_violation` set (line and rule), not refused."""
-    return await answer(services, request, tenant, "next-action", body, keys.model_identity(), wait)
+    return await answer(services, request, caller, "next-action", body, keys.model_identity(), wait)
 
 
 @router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
@@ -99,13 +100,13 @@ async def check_actions(
     body: Annotated[CheckRequest, Body(openapi_examples=openapi_examples("check-actions"))],
     request: Request,
     services: ServicesDep,
-    tenant: Tenant,
+    caller: CurrentCaller,
     wait: Wait = None,
 ) -> Response:
     """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
     ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
     and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
-    return await answer(services, request, tenant, "check", body, None, wait)
+    return await answer(services, request, caller, "check", body, None, wait)
 
 
 def _program_check(body: BaseModel, max_work_points: int) -> tuple[Callable[..., None], tuple[Any, ...]] | None:
@@ -184,52 +185,37 @@ def _program_chars(body: BaseModel) -> int:
 async def answer(
     services: Services,
     request: Request,
-    tenant: str,
+    caller: Caller,
     kind: JobKind,
     body: BaseModel,
     model: str | None,
     wait: float | None,
 ) -> Response:
-    settings = services.settings
-    tag = keys.tenant_tag(services.secret, tenant)  # the request's rate was taken with its key (service.auth)
+    """The operation's answer: the request completed as a worker runs it, then submitted (`submit_job`), its
+    programs checked statically only when it must run."""
     if isinstance(body, InferRequest) and body.options.prior_sets:
-        body = body.model_copy(update={"options": await with_prior_sets(services, tag, body.options)})
+        body = body.model_copy(update={"options": await with_prior_sets(services, caller.tag, body.options)})
     if isinstance(body, CheckRequest | NextActionRequest):
-        prepared = await _with_rules_and_program(services, tag, body)
+        prepared = await _with_rules_and_program(services, caller.tag, body)
         if isinstance(prepared, checks.Problem):
-            info = ErrorInfo(type=prepared.type, message=prepared.message, field=prepared.field)
-            return error_response(request, 422, info)
+            raise _unusable(prepared)
         body = prepared
-    payload = body.model_dump(mode="json")
-    job_id = keys.job_id(kind, payload, model, services.secret, tenant)
-    shared = settings.share_cache and kind != "reinfer"  # a re-inference stores a version: never another tenant's
-    cache_key = keys.cache_id(kind, payload, model, services.secret) if shared else job_id
-    cached = await services.cache.get(cache_key)
-    services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
-    if cached is not None:  # only a request that passed the checks below and ran has a cached result
-        return JSONResponse(cached, headers={"X-Job-Id": job_id})
-    check = _program_check(body, settings.max_work_points)
-    problem = None if check is None else await services.checks.run(
-        tag, _program_chars(body), offload.problem_of, check[0], *check[1])
-    if problem is not None:
-        if problem.type == checks.WORK_BUDGET:
-            services.metrics.rejections.labels(tag, "work").inc()
-        info = ErrorInfo(type=problem.type, message=problem.message, field=problem.field)
-        return error_response(request, 422, info)
-    refuse(services, tag, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s))
-    try:
-        await services.queue.submit(kind, job_id, payload, tag, cache_key)
-    except QueueFull as full:
-        services.metrics.rejections.labels(tag, "queue").inc()
-        raise ServiceError(
-            429, f"queue limit: queue {full} is full", "queue_full",
-            headers={"Retry-After": str(settings.retry_after_s)},
-        ) from None
-    timeout = settings.wait_max_s if wait is None else min(wait, settings.wait_max_s)
-    status = await services.queue.wait(job_id, timeout, settings.wait_poll_s)
-    if status is None:
-        raise ServiceError(503, "the job vanished from the queue backend", headers={"Retry-After": "1"})
+
+    async def screen() -> None:
+        check = _program_check(body, services.settings.max_work_points)
+        problem = None if check is None else await services.checks.run(
+            caller.tag, _program_chars(body), offload.problem_of, check[0], *check[1])
+        if problem is not None:
+            if problem.type == checks.WORK_BUDGET:
+                services.metrics.rejections.labels(caller.tag, "work").inc()
+            raise _unusable(problem)
+
+    status = await submit_job(services, caller, kind, body.model_dump(mode="json"), model, wait, screen)
     return respond(request, status)
+
+
+def _unusable(problem: checks.Problem) -> ServiceError:
+    return ServiceError(422, problem.message, problem.type, field=problem.field)
 
 
 def respond(request: Request, status: JobStatus) -> Response:

@@ -9,7 +9,8 @@ from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
 from jobs import keys
-from jobs.sets import normal, set_warnings, union
+from jobs.payloads import ReinferJob, ValidateRequest
+from jobs.precondition_sets import normal, set_warnings, union
 from programs import checks
 from schemas.api import (
     MAX_DEMONSTRATIONS,
@@ -20,18 +21,17 @@ from schemas.api import (
     PreconditionSetEdit,
     PreconditionSetList,
     PreconditionSetReinfer,
-    ReinferJob,
-    ValidateRequest,
     ValidateResponse,
 )
 from service import offload
-from service.auth import Tenant, refuse
+from service.auth import CurrentCaller
+from service.caller import Caller
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
 from service.middleware import OffloadedBodyRoute
-from service.queue import QueueFull
 from service.routes.operations import ERRORS, Wait, answer, with_prior_sets
-from service.sets import Report, apply_edits, blocking_message, new_id, not_found, version_of
+from service.set_store import Report, apply_edits, blocking_message, new_id, not_found, version_of
+from service.submission import submit_job
 
 router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"], route_class=OffloadedBodyRoute)
 RESPONSES: dict[int | str, dict[str, Any]] = {
@@ -54,42 +54,42 @@ MAX_LISTED_SETS = 100
 
 
 @router.post("", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
-async def create_set(body: PreconditionSetCreate, services: ServicesDep, tenant: Tenant) -> JSONResponse:
+async def create_set(body: PreconditionSetCreate, services: ServicesDep, caller: CurrentCaller) -> JSONResponse:
     """Store rules as version 1 of a new set, by hand or from an inference (its `preconditions`, with the `spec`
     and `demonstrations` it was inferred from). Rules that would block a demonstrated call are refused (422,
     naming the rule and the demonstration) unless `force`; the report is kept in `validation`."""
-    rules = await _static_check(services, tenant, body.spec, body.preconditions, body.demonstrations)
-    validation = await _validate(services, tenant, body.spec, rules, body.demonstrations)
+    rules = await _static_check(services, caller, body.spec, body.preconditions, body.demonstrations)
+    validation = await _validate(services, caller, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
     set_id = new_id()
     report = Report.of(body)
     warnings = set_warnings(body.spec, rules, {}, report.warnings)
     version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings,
                          report)
-    stored = await services.sets.create(_tag(services, tenant), version)
+    stored = await services.sets.create(caller.tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
 
 @router.get("", response_model=PreconditionSetList, responses={
     401: RESPONSES[401], 422: {"model": ErrorResponse, "description": "`offset` or `limit` out of range."}})
-async def list_sets(services: ServicesDep, tenant: Tenant,
+async def list_sets(services: ServicesDep, caller: CurrentCaller,
                     offset: Annotated[int, Query(ge=0, le=10**6)] = 0,
                     limit: Annotated[int, Query(ge=1, le=MAX_LISTED_SETS)] = 20) -> PreconditionSetList:
     """The tenant's sets, newest first: per set its latest version, actions, and how many rules are `assumed`,
     `zero-shot` or without evidence (the ones a human should read). `next_offset` pages on."""
-    return await services.sets.summaries(_tag(services, tenant), offset, limit)
+    return await services.sets.summaries(caller.tag, offset, limit)
 
 
 @router.get("/{reference}", response_model=PreconditionSet, responses=RESPONSES)
-async def get_set(reference: SetReference, services: ServicesDep, tenant: Tenant) -> Response:
+async def get_set(reference: SetReference, services: ServicesDep, caller: CurrentCaller) -> Response:
     """The latest version (`id`) or a given one (`id@version`)."""
-    return _as_json(await services.sets.get(_tag(services, tenant), reference))
+    return _as_json(await services.sets.get(caller.tag, reference))
 
 
 @router.get("/{set_id}/versions/{number}", response_model=PreconditionSet, responses=RESPONSES)
 async def get_version(set_id: SetId, number: Annotated[int, Path(ge=1, le=10**9)], services: ServicesDep,
-                      tenant: Tenant) -> Response:
-    return _as_json(await services.sets.get(_tag(services, tenant), f"{set_id}@{number}"))
+                      caller: CurrentCaller) -> Response:
+    return _as_json(await services.sets.get(caller.tag, f"{set_id}@{number}"))
 
 
 def _as_json(version: PreconditionSet) -> Response:
@@ -99,18 +99,19 @@ def _as_json(version: PreconditionSet) -> Response:
 
 
 @router.post("/{set_id}/versions", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
-async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesDep, tenant: Tenant) -> JSONResponse:
+async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesDep,
+                   caller: CurrentCaller) -> JSONResponse:
     """A new version from the latest by edits: `add` a rule, `remove` one, `require` one, `reject` one (removed,
     and kept out of re-inference). The new rules are checked against the set's demonstrations in the sandbox;
     one that would block a demonstrated call is refused (422 naming the rule and the demonstration) unless
     `force`. Earlier versions stay as they were."""
-    tag = _tag(services, tenant)
+    tag = caller.tag
     base = await _latest(services, tag, set_id, body.base_version)
     rules, required, rejected = apply_edits(base, body.edits)
-    rules = await _static_check(services, tenant, base.spec, rules, [], field="edits")
+    rules = await _static_check(services, caller, base.spec, rules, [], field="edits")
     before = {(a, r) for a, rs in base.preconditions.items() for r in rs}
     new = {(a, r) for a, rs in rules.items() for r in rs} - before
-    validation = await _validate(services, tenant, base.spec, rules, base.demonstrations)
+    validation = await _validate(services, caller, base.spec, rules, base.demonstrations)
     _refuse_blocking(validation, new, body.force, "edits")
     edited = {edit.action for edit in body.edits}
     known = {action: warning for action, warning in base.warnings.items() if action not in edited}
@@ -133,14 +134,14 @@ REINFER_RESPONSES: dict[int | str, dict[str, Any]] = {
 
 @router.post("/{set_id}/reinfer", response_model=PreconditionSet, responses=REINFER_RESPONSES)
 async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Request, services: ServicesDep,
-                      tenant: Tenant, wait: Wait = None) -> Response:
+                      caller: CurrentCaller, wait: Wait = None) -> Response:
     """Re-infer the set's rules from its stored demonstrations and new ones (a job, like `/infer-preconditions`:
     200 with the new version when done within `wait`, else 202 and `/jobs/{id}`). The new version keeps every
     rule marked *required* (refused, 422 naming the new demonstration and line, when a new demonstration breaks
     one, unless `force`), never brings back a rule marked *rejected*, stores the union of the demonstrations,
     and carries `diff` against its base: rules `added`, `removed` (each with why it was dropped), `kept`,
     `required_kept`, `rejected_suppressed`."""
-    tag = _tag(services, tenant)
+    tag = caller.tag
     base = await _latest(services, tag, set_id, body.base_version)
     demonstrations = union(base.demonstrations, body.demonstrations)
     if len(demonstrations) > MAX_DEMONSTRATIONS:
@@ -161,7 +162,7 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
                      max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
     model = keys.model_identity() if "model" in body.options.generators else None
-    return await answer(services, request, tenant, "reinfer", job, model, wait)
+    return await answer(services, request, caller, "reinfer", job, model, wait)
 
 
 async def _latest(services: Services, tag: str, set_id: str, base_version: int | None) -> PreconditionSet:
@@ -176,17 +177,13 @@ async def _latest(services: Services, tag: str, set_id: str, base_version: int |
     return base
 
 
-def _tag(services: Services, tenant: str) -> str:
-    return keys.tenant_tag(services.secret, tenant)
-
-
-async def _static_check(services: Services, tenant: str, spec: str, rules: dict[str, list[str]],
+async def _static_check(services: Services, caller: Caller, spec: str, rules: dict[str, list[str]],
                         demonstrations: list[str], field: str | None = None) -> dict[str, list[str]]:
     """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations; after the
     size bound (413 before any parse), in the check pool when large (parsing holds the event loop)."""
     chars = len(spec) + sum(map(len, demonstrations)) + sum(len(r) for rs in rules.values() for r in rs)
     services.sets.refuse_oversized(chars)
-    problem = await services.checks.run(_tag(services, tenant), chars, offload.problem_of, checks.check_set, spec,
+    problem = await services.checks.run(caller.tag, chars, offload.problem_of, checks.check_set, spec,
                                         rules, demonstrations)
     if problem is not None:
         raise ServiceError(422, problem.message, problem.type, field=field or problem.field)
@@ -194,7 +191,8 @@ async def _static_check(services: Services, tenant: str, spec: str, rules: dict[
 
 
 def _unique(rules: list[str]) -> list[str]:
-    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `jobs.sets.normal`), as first written."""
+    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `jobs.precondition_sets.normal`), as first
+    written."""
     first: dict[str, str] = {}
     for rule in rules:
         first.setdefault(normal(rule), rule.strip())
@@ -209,29 +207,16 @@ def _refuse_blocking(validation: ValidateResponse | None, new: set[tuple[str, st
         raise ServiceError(422, refusal[0], "blocks_demonstration", field=field)
 
 
-async def _validate(services: Services, tenant: str, spec: str, rules: dict[str, list[str]],
+async def _validate(services: Services, caller: Caller, spec: str, rules: dict[str, list[str]],
                     demonstrations: list[str]) -> ValidateResponse | None:
     """The rules judged against the demonstrations by a worker (a `validate` job on the check queue)."""
     if not demonstrations or not rules:
         return None
-    settings = services.settings
     payload = ValidateRequest(spec=spec, preconditions=rules, demonstrations=demonstrations).model_dump(mode="json")
-    job_id = keys.job_id("validate", payload, None, services.secret, tenant)
-    cache_key = keys.cache_id("validate", payload, None, services.secret) if settings.share_cache else job_id
-    cached = await services.cache.get(cache_key)
-    if cached is not None:
-        return ValidateResponse.model_validate(cached)
-    tag = _tag(services, tenant)
-    refuse(services, tag, await services.quotas.admit_job(tag, tenant, job_id, settings.retry_after_s))
-    try:
-        await services.queue.submit("validate", job_id, payload, tag, cache_key)
-    except QueueFull as full:
-        raise ServiceError(429, f"queue limit: queue {full} is full", "queue_full",
-                           headers={"Retry-After": str(settings.retry_after_s)}) from None
-    status = await services.queue.wait(job_id, settings.wait_max_s, settings.wait_poll_s)
-    if status is None or status.status in ("queued", "running"):
+    status = await submit_job(services, caller, "validate", payload, None, None)
+    if status.status in ("queued", "running"):
         raise ServiceError(503, "the check of the rules against the demonstrations did not finish in time; retry "
-                           "(its result is kept)", headers={"Retry-After": str(settings.retry_after_s)})
+                           "(its result is kept)", headers={"Retry-After": str(services.settings.retry_after_s)})
     if status.status != "succeeded" or status.result is None:
         error = status.error or ErrorInfo(type="internal", message="the check against the demonstrations failed")
         raise ServiceError(status_for(error), error.message, error.type, field=error.field)

@@ -17,9 +17,10 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse, RedirectResponse, Response
 
 from jobs import keys
+from service.caller import Caller
 from service.deps import ServicesDep
 from service.errors import ServiceError
-from service.sets import parse_reference
+from service.set_store import parse_reference
 
 PAGE_DIR: Final = Path(__file__).resolve().parents[1] / "ui"
 ASSET: Final = re.compile(r"^[a-z]+\.(js|css)$")
@@ -37,8 +38,8 @@ HEADERS: Final = {
 
 async def _rate_limited(request: Request, services: ServicesDep) -> None:
     """The API's token bucket (PRECOND_TENANT_RATE_PER_S, PRECOND_TENANT_BURST), per caller address."""
-    caller = f"ui {request.client.host if request.client else '-'}"
-    refusal = await services.quotas.take_request(keys.tenant_tag(services.secret, caller), caller)
+    source = f"ui {request.client.host if request.client else '-'}"
+    refusal = await services.quotas.take_request(Caller(source, keys.tenant_tag(services.secret, source)))
     if refusal is not None:
         services.metrics.rejections.labels("-", refusal.limit).inc()
         raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",

@@ -1,5 +1,5 @@
-"""The merge of a re-inference with its base version, as a pure function (jobs/sets.py): required rules kept,
-rejected ones kept out, and every base rule accounted for in the diff with a reason when it is gone; and the
+"""The merge of a re-inference with its base version, as a pure function (jobs/precondition_sets.py): required
+rules kept, rejected ones kept out, and every base rule accounted for in the diff with a reason when it is gone; and the
 worker's store of the version it makes (worker/reinfer.py), on a stand-in for Redis."""
 
 from __future__ import annotations
@@ -8,8 +8,9 @@ import asyncio
 
 import pytest
 
-from jobs.sets import APPEND_CONFLICT, explain_removed, merge, normal, union
-from schemas.api import CandidateReport, PreconditionSet, ReinferJob
+from jobs.payloads import ReinferJob
+from jobs.precondition_sets import APPEND_CONFLICT, explain_removed, merge, normal, union
+from schemas.api import CandidateReport, PreconditionSet
 from schemas.errors import Conflict
 from worker.reinfer import store
 

@@ -1,5 +1,5 @@
-"""How a stored rule was decided (`jobs.sets.how_decided`): the engine's word when it gives one, otherwise read
-from the evidence and the candidate's reason; and the summary the list of sets shows."""
+"""How a stored rule was decided (`jobs.precondition_sets.how_decided`): the engine's word when it gives one,
+otherwise read from the evidence and the candidate's reason; and the summary the list of sets shows."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from jobs.sets import decided, how_decided, summary
+from jobs.precondition_sets import decided, how_decided, summary
 from schemas.api import CandidateReport, PreconditionSet, RuleEvidence
 
 

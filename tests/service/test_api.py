@@ -281,7 +281,8 @@ def test_full_queue_is_429_with_retry_after(client: httpx.Client) -> None:
 def test_internal_error_is_500_with_the_request_id(stack: Stack, client: httpx.Client) -> None:
     body = check_body("system.REQUEST('party_size')")
     payload = CheckRequest.model_validate(body).model_dump(mode="json")
-    job_id = keys.job_id("check", payload, None, stack.env["PRECOND_SECRET"].encode(), "public")
+    job_id = keys.job_id("check", payload, None, stack.env["PRECOND_SECRET"].encode(),
+                       keys.tenant_tag(stack.env["PRECOND_SECRET"].encode(), "public"))
     corrupt: redis.Redis[bytes] = stack.redis.client()
     key = keys.cache_key(job_id)
     # a fault the gateway does not expect: an entry signed with the deployment's secret that is not JSON

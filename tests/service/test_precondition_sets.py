@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from jobs.keys import tenant_tag
-from service.sets import index_key, set_key
+from service.set_store import index_key, set_key
 from stack.local import DEMOS, SPEC, Stack, check_body, example, infer_body, make_stack, serving
 from tests.service.test_tenants import SECRET, client_for, make_key
 

@@ -8,6 +8,7 @@ import asyncio
 from arq.connections import ArqRedis
 from redis.asyncio import ConnectionPool
 
+from service.caller import Caller
 from service.quotas import MAX_BLOCKED_SOURCES, AuthLimit, Quotas, _remember
 from stack.local import RedisServer
 
@@ -24,7 +25,7 @@ def _evals(server: RedisServer) -> int:
 def test_a_tenant_past_its_rate_is_refused_without_asking_redis_again(redis_server: RedisServer) -> None:
     async def flood() -> tuple[list[bool], int]:
         quotas = _quotas(redis_server, rate=2, burst=3)
-        answers = [await quotas.take_request("tag-a", "a") is None for _ in range(50)]
+        answers = [await quotas.take_request(Caller("a", "tag-a")) is None for _ in range(50)]
         return answers, _evals(redis_server)
 
     answers, evals = asyncio.run(flood())
@@ -35,13 +36,13 @@ def test_a_tenant_past_its_rate_is_refused_without_asking_redis_again(redis_serv
 def test_the_refusal_ends_when_a_token_is_back_and_other_tenants_are_not_touched(redis_server: RedisServer) -> None:
     async def run() -> None:
         quotas = _quotas(redis_server, rate=10, burst=1)
-        assert await quotas.take_request("tag-a", "a") is None
-        refusal = await quotas.take_request("tag-a", "a")
+        assert await quotas.take_request(Caller("a", "tag-a")) is None
+        refusal = await quotas.take_request(Caller("a", "tag-a"))
         assert refusal is not None and refusal.limit == "rate" and refusal.retry_after_s >= 1
         assert "'a'" in refusal.message
-        assert await quotas.take_request("tag-b", "b") is None  # another tenant's bucket is its own
+        assert await quotas.take_request(Caller("b", "tag-b")) is None  # another tenant's bucket is its own
         await asyncio.sleep(0.15)  # one token at 10/s
-        assert await quotas.take_request("tag-a", "a") is None
+        assert await quotas.take_request(Caller("a", "tag-a")) is None
 
     asyncio.run(run())
 

@@ -219,7 +219,7 @@ def _forgeries(stack: Stack, key: str, real: dict[str, Any]) -> dict[str, bytes]
 def test_a_forged_cache_entry_is_never_served(stack: Stack) -> None:
     body = check_body("system.REQUEST('party_size')", "system.INFORM('price')")
     payload = CheckRequest.model_validate(body).model_dump(mode="json")
-    job_id = keys.job_id("check", payload, None, secret(stack), "public")
+    job_id = keys.job_id("check", payload, None, secret(stack), keys.tenant_tag(secret(stack), "public"))
     key = keys.cache_key(job_id)
     queue, cached = queue_redis(stack), cache_redis(stack)
     with stack.http() as client, worker(stack):

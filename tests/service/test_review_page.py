@@ -14,7 +14,7 @@ import httpx
 import pytest
 
 from jobs.keys import tenant_tag
-from jobs.sets import set_key
+from jobs.precondition_sets import set_key
 from stack import browser
 from stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
 from tests.service import test_precondition_sets as sets_tests

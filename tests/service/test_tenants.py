@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from jobs.keys import CHECK_QUEUE, MODEL_QUEUE, owner_of, tenant_tag
-from service.auth import KeyRecord, digest, new_key, read_records, write_records
+from service.api_keys import KeyRecord, digest, new_key, read_records, write_records
 from stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
 
 SECRET = b"stack-secret-for-tests"

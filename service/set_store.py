@@ -5,8 +5,8 @@ and is bounded instead: `PRECOND_MAX_SETS_PER_TENANT` sets, `PRECOND_MAX_SET_VER
 `PRECOND_MAX_SET_BYTES` per version. Keys carry the tenant's tag, so another tenant's set is simply not
 there: the same 404 as a set that never existed, without any lookup of owners.
 
-Keys, the atomic scripts and the merge of a re-inference live in `jobs/sets.py`: a worker appends the version
-a re-inference makes.
+Keys, the atomic scripts and the merge of a re-inference live in `jobs/precondition_sets.py`: a worker
+appends the version a re-inference makes.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from typing import Any
 
 from arq.connections import ArqRedis
 
-from jobs.sets import (
+from jobs.precondition_sets import (
     APPEND_CONFLICT,
     APPEND_MISSING,
     CREATE_SCRIPT,
@@ -204,7 +204,7 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
         return normal(rule) in {normal(r) for r in table.get(action, [])}
 
     def drop(table: dict[str, list[str]], action: str, rule: str) -> None:
-        """Every spelling of the rule: `x["a"]` and `x['a']` are one rule (`jobs.sets.normal`)."""
+        """Every spelling of the rule: `x["a"]` and `x['a']` are one rule (`jobs.precondition_sets.normal`)."""
         if has(table, action, rule):
             table[action] = [r for r in table[action] if normal(r) != normal(rule)]
             if not table[action]:
