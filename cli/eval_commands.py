@@ -258,23 +258,20 @@ def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
     """An engine whose model remembers completions in the cache (evaluation/memo.py), and the memo's clock."""
     import torch
 
-    from engine.engine import Engine
-    from engine.settings import ModelSettings, SandboxSettings
+    from engine.factory import build_engine
     from evaluation.memo import MemoModel
 
     torch.set_num_threads(1)
     memo: list[MemoModel] = []
 
-    def load() -> MemoModel:
-        from engine.models import load_code_model
-
-        memo.append(MemoModel(load_code_model(ModelSettings()), store))
+    def remembering(model: Any) -> Any:
+        memo.append(MemoModel(model, store))
         return memo[0]
 
     def replayed() -> float:
         return memo[0].take_replayed() if memo else 0.0
 
-    return Engine(SandboxSettings().build(), load), replayed  # type: ignore[arg-type]
+    return build_engine(wrap_model=remembering), replayed
 
 
 def report(

@@ -2,13 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
 from engine.engine import Engine
 from engine.settings import ModelSettings, SandboxSettings
 
+if TYPE_CHECKING:
+    from engine.models import CodeModel
 
-def build_engine(with_model: bool = True, min_sandbox_workers: int = 1) -> Engine:
+
+def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
+                 wrap_model: Callable[[CodeModel], CodeModel] | None = None) -> Engine:
     """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models). The sandbox
     gets `SANDBOX_WORKERS` fork servers, or `min_sandbox_workers` (a queue worker's job slots) if more.
+    `wrap_model` wraps the loaded model (the evaluation's memo of completions).
 
     Raises SandboxUnavailable where untrusted code cannot be confined: no engine runs without its sandbox.
     """
@@ -17,9 +25,10 @@ def build_engine(with_model: bool = True, min_sandbox_workers: int = 1) -> Engin
     if not with_model:
         return Engine(sandbox, None)
 
-    def load() -> object:
+    def load() -> CodeModel:
         from engine.models import load_code_model
 
-        return load_code_model(ModelSettings())
+        model = load_code_model(ModelSettings())
+        return model if wrap_model is None else wrap_model(model)
 
-    return Engine(sandbox, load)  # type: ignore[arg-type]
+    return Engine(sandbox, load)

@@ -14,7 +14,7 @@ import os
 from dataclasses import fields
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import AliasChoices, Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from sandbox import Sandbox
@@ -98,7 +98,10 @@ class SandboxSettings(BaseSettings):
     )
     max_points: int = Field(
         default=_LIMITS.max_points, ge=1,
-        description="Most points (demonstration positions x argument tuples) of one action a call may judge.",
+        validation_alias=AliasChoices("PRECOND_MAX_WORK_POINTS", "SANDBOX_MAX_POINTS"),
+        description="Most points (demonstration positions x argument tuples) of one action a call may judge: "
+        "the gateway's work budget (`PRECOND_MAX_WORK_POINTS`, estimated from the request's text before it "
+        "is queued), counted exactly here.",
     )
     allow_unconfined: bool = Field(
         default=False,

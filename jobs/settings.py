@@ -191,8 +191,10 @@ class GatewaySettings(QueueSettings):
     max_work_points: int = Field(
         default=2_000_000,
         ge=1,
+        validation_alias=AliasChoices("PRECOND_MAX_WORK_POINTS", "SANDBOX_MAX_POINTS"),
         description="Work budget of one request: demonstration steps x distinct argument tuples of its most "
-        "varied action (the points every candidate is judged at); 422 above, before anything is queued.",
+        "varied action (the points every candidate is judged at); 422 above, before anything is queued. One "
+        "budget: the sandbox counts the same points exactly (`SandboxSettings.max_points`, the same variable).",
     )
 
 
