@@ -12,8 +12,8 @@ from typing import Annotated
 
 import typer
 
-from jobs.settings import get_gateway_settings
 from service.api_keys import KeyRecord, digest, new_key, read_records, write_records
+from service.settings import get_gateway_settings
 
 keys = typer.Typer(help="Manage the gateway's API keys (hashed in PRECOND_API_KEYS_FILE).", no_args_is_help=True)
 

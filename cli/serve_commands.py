@@ -8,7 +8,8 @@ from typing import Annotated
 
 import typer
 
-from jobs.settings import get_gateway_settings, get_worker_settings
+from service.settings import get_gateway_settings
+from worker.settings import get_worker_settings
 
 
 def serve(

@@ -22,8 +22,8 @@ from pathlib import Path
 from types import FrameType
 from urllib.parse import urlsplit
 
-from jobs.settings import WorkerSettings
 from service.server import GATEWAY_ARGS
+from worker.settings import WorkerSettings
 
 log = logging.getLogger("precond.serve")
 LOCAL_REDIS = ("127.0.0.1", 6379)

@@ -15,7 +15,6 @@ from fastapi import FastAPI
 from redis.asyncio import ConnectionPool, Redis
 
 from jobs.cache import ResultCache
-from jobs.settings import GatewaySettings, get_gateway_settings
 from service import errors
 from service.api_keys import KeyStore
 from service.completions import Completions
@@ -28,6 +27,7 @@ from service.quotas import AuthLimit, Quotas, SourceBuckets
 from service.routes import health, operations, sets, ui
 from service.routes import jobs as job_routes
 from service.set_store import SetStore
+from service.settings import GatewaySettings, get_gateway_settings
 from service.worker_view import WorkerView
 
 log = logging.getLogger("precond.gateway")

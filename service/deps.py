@@ -9,13 +9,13 @@ from arq.connections import ArqRedis
 from fastapi import Depends, Request
 
 from jobs.cache import ResultCache
-from jobs.settings import GatewaySettings
 from service.api_keys import KeyStore
 from service.offload import CheckPool
 from service.prometheus import Metrics
 from service.queue import JobQueue
 from service.quotas import Quotas, SourceBuckets
 from service.set_store import SetStore
+from service.settings import GatewaySettings
 from service.worker_view import WorkerView
 
 

@@ -29,7 +29,6 @@ from jobs.keys import owner_of
 from jobs.kinds import KINDS
 from jobs.payloads import ReinferJob
 from jobs.records import Outcome, record_job, record_phase, write_progress
-from jobs.settings import WorkerSettings
 from schemas.api import (
     ErrorInfo,
     JobKind,
@@ -39,6 +38,7 @@ from schemas.api import (
 from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
 from worker.memory import MemoryGuard
 from worker.reinfer import reinfer, store
+from worker.settings import WorkerSettings
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]

@@ -48,11 +48,11 @@ from jobs.keys import (
     worker_key,
 )
 from jobs.records import record_queue_time
-from jobs.settings import WorkerSettings, get_worker_settings
 from sandbox import SandboxUnavailable
 from worker import logs
 from worker.jobs import JobCounts, run_operation
 from worker.memory import MemoryGuard
+from worker.settings import WorkerSettings, get_worker_settings
 
 log = logging.getLogger("precond.worker")
 

@@ -10,8 +10,8 @@ import pytest
 import redis
 
 from cli.supervisor import Supervisor
-from jobs.settings import WorkerSettings
 from stack.local import RedisServer, free_port
+from worker.settings import WorkerSettings
 
 
 def _supervisor(tmp_path: Path, ports: tuple[int, int]) -> Supervisor:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from engine.settings import SandboxSettings
-from jobs.settings import GatewaySettings
+from service.settings import GatewaySettings
 
 
 @pytest.mark.parametrize("variable", ["PRECOND_MAX_WORK_POINTS", "SANDBOX_MAX_POINTS"])

@@ -27,8 +27,9 @@ from redis.asyncio import Redis as AsyncRedis
 
 from jobs import cache, keys
 from jobs.cache import ResultCache
-from jobs.settings import GatewaySettings, QueueSettings
+from jobs.settings import QueueSettings
 from schemas.api import CheckRequest, CheckResponse
+from service.settings import GatewaySettings
 from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 
 PASSWORD = "roles-test-redis-password"
