@@ -44,8 +44,8 @@ async def write_progress(redis: Redis[bytes], job_id: str, progress: JobProgress
     await redis.set(progress_key(job_id), progress.model_dump_json(), ex=ttl_s)
 
 
-async def read_progress(redis: Redis[bytes], job_id: str) -> JobProgress:
-    raw = await redis.get(progress_key(job_id))
+def parse_progress(raw: bytes | None) -> JobProgress:
+    """A job's progress as stored at `progress_key` (the gateway reads it in one round trip with the rest)."""
     return JobProgress() if raw is None else JobProgress.model_validate_json(raw)
 
 

@@ -20,15 +20,15 @@ from arq.constants import (
     result_key_prefix,
     retry_key_prefix,
 )
-from arq.jobs import Job, JobResult, serialize_result
+from arq.jobs import Job, JobResult, deserialize_result, serialize_result
 from arq.jobs import JobStatus as ArqStatus
 from arq.worker import JobExecutionFailed
 from redis.exceptions import RedisError
 
 from jobs.cache import ResultCache
-from jobs.keys import JOB_FUNCTION, done_channel, kind_of, wake_channel
+from jobs.keys import JOB_FUNCTION, done_channel, kind_of, progress_key, wake_channel
 from jobs.kinds import KINDS, queue_for, queues_of
-from jobs.records import Outcome, read_progress
+from jobs.records import Outcome, parse_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions
 from service.errors import bounded
@@ -162,26 +162,31 @@ class JobQueue:
         return info is not None and _is_internal(info)
 
     async def status(self, job_id: str) -> JobStatus | None:
+        """The job's state, read in one round trip once its queue is known (result, progress and arq's marks
+        together: a waiting request reads it at least twice)."""
         kind = kind_of(job_id)
         if kind is None:
             return None
         queue = await self._queue_of(job_id, kind)
-        info = await self._job(job_id, queue).result_info()
-        progress = await read_progress(self.redis, job_id)
-        if info is not None:
-            state, result, error = _state(info)
+        async with self.redis.pipeline(transaction=False) as pipe:
+            pipe.get(result_key_prefix + job_id)
+            pipe.get(progress_key(job_id))
+            pipe.exists(in_progress_key_prefix + job_id)
+            pipe.zscore(queue, job_id)
+            raw_result, raw_progress, in_progress, score = await pipe.execute()
+        progress = parse_progress(raw_progress)
+        if raw_result:
+            state, result, error = _state(deserialize_result(raw_result))
             done = _done(progress) if state == "succeeded" else progress
             return JobStatus(id=job_id, kind=kind, status=state, progress=done, result=result, error=error)
-        arq_status = await self._arq_status(job_id, queue)
-        if arq_status == ArqStatus.not_found:
+        if not in_progress and score is None:
             cached = await self.cache.get(job_id)
             if cached is None:
                 return None
             return JobStatus(
                 id=job_id, kind=kind, status="succeeded", progress=_done(progress), result=cached
             )
-        running = arq_status == ArqStatus.in_progress
-        return JobStatus(id=job_id, kind=kind, status="running" if running else "queued", progress=progress)
+        return JobStatus(id=job_id, kind=kind, status="running" if in_progress else "queued", progress=progress)
 
     async def _arq_status(self, job_id: str, queue: str) -> ArqStatus:
         """arq's `Job.status` without its MULTI: Redis refuses every command queued in a transaction while it
