@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 sys.path.insert(0, str(ROOT))
 
-from service.server import GATEWAY_ARGS  # noqa: E402
+from service.server import gateway_args  # noqa: E402
 from stack.local import free_port, wait_until  # noqa: E402
 
 TENANTS = ("quiet", "flood")
@@ -95,7 +95,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
     argvs = [
         [redis_server, "--port", str(redis_port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
          "--dir", str(tmp)],
-        [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS, "--port", str(http_port),
+        [sys.executable, "-m", "uvicorn", *gateway_args(args.gateway_processes), "--port", str(http_port),
          "--log-level", "warning", "--no-access-log"],
         [sys.executable, "-c", "from cli.main import app; app()", "worker"],
     ]
@@ -258,6 +258,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="wrk threads")
     parser.add_argument("--flood", type=int, default=500, help="jobs the flooding tenant queues at once")
     parser.add_argument("--fair-n", type=int, default=50, help="the quiet tenant's requests, alone and flooded")
+    parser.add_argument("--gateway-processes", type=int, default=1,
+                        help="gateway processes behind the port (PRECOND_GATEWAY_PROCESSES)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     roots = [root.resolve() for root in args.root or [ROOT]]
@@ -267,7 +269,8 @@ def main() -> None:
     runs = []
     for root in roots:
         args.root = root
-        results: dict[str, Any] = {"model": args.model, "root": str(root), "env": args.env, "cpus": os.cpu_count()}
+        results: dict[str, Any] = {"model": args.model, "root": str(root), "env": args.env, "cpus": os.cpu_count(),
+                                   "gateway_processes": args.gateway_processes}
         with tempfile.TemporaryDirectory(prefix="service-bench-") as name:
             keys = make_keys(Path(name) / "keys.jsonl")
             with stack(args, Path(name)) as base:
@@ -320,7 +323,8 @@ def report(runs: list[dict[str, Any]], args: argparse.Namespace) -> None:
     header = ("", *(str(Path(results["root"]).name) or "/" for results in runs))
     lines = [header] + [(label, *(column[i][1] for column in table)) for i, (label, _) in enumerate(table[0])]
     width = [max(len(line[i]) for line in lines) for i in range(len(header))]
-    print(f"model: {args.model}; env: {args.env or '-'}; roots: {', '.join(r['root'] for r in runs)}")
+    print(f"model: {args.model}; env: {args.env or '-'}; gateway processes: {args.gateway_processes}; "
+          f"roots: {', '.join(r['root'] for r in runs)}")
     print("load average after each: " + "; ".join(str(r["load_average"]) for r in runs))
     for line in lines:
         print("  ".join(cell.ljust(w) for cell, w in zip(line, width, strict=True)))

@@ -57,7 +57,7 @@ def main() -> None:
     converted = convert(records, tools)
     results: dict[str, Any] = {"convert_s": time.perf_counter() - started,
                                "trajectories": len(converted.trajectories)}
-    stack_args = argparse.Namespace(model="tiny", root=ROOT, env=[], flood=0)
+    stack_args = argparse.Namespace(model="tiny", root=ROOT, env=[], flood=0, gateway_processes=1)
     with tempfile.TemporaryDirectory(prefix="tool-check-bench-") as name:
         keys = make_keys(Path(name) / "keys.jsonl")
         with stack(stack_args, Path(name)) as base:

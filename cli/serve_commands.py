@@ -56,7 +56,7 @@ def serve(
     if redis_url is not None:
         worker_settings = worker_settings.model_copy(update={"redis_url": redis_url})
     supervisor = Supervisor(
-        worker_settings, host, port, workers, data_dir,
+        worker_settings, host, port, workers, data_dir, gateway_processes=settings.processes,
         redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory,
     )
     raise typer.Exit(supervisor.run())

@@ -22,7 +22,7 @@ from pathlib import Path
 from types import FrameType
 from urllib.parse import urlsplit
 
-from service.server import GATEWAY_ARGS
+from service.server import gateway_args
 from worker.settings import WorkerSettings
 
 log = logging.getLogger("precond.serve")
@@ -172,6 +172,7 @@ class Supervisor:
         port: int,
         workers: int,
         data_dir: Path,
+        gateway_processes: int = 1,
         redis_maxmemory: str = "512mb",
         cache_maxmemory: str = "256mb",
         redis_ports: tuple[int, int] = (LOCAL_REDIS[1], LOCAL_CACHE_PORT),
@@ -196,7 +197,7 @@ class Supervisor:
         self.redis_used = redis_description(settings, self.redis, data_dir)
         if settings.secret is None and settings.secret_file is None:  # one secret for the processes started here
             self.env["PRECOND_SECRET"] = secrets.token_urlsafe(32)
-        gateway = [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS]
+        gateway = [sys.executable, "-m", "uvicorn", *gateway_args(gateway_processes)]
         self.children.append(Child("gateway", [*gateway, "--host", host, "--port", str(port)]))
         worker = [sys.executable, "-m", "worker.runner"]
         self.children += [Child(f"worker-{i}", worker) for i in range(workers)]

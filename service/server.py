@@ -8,6 +8,9 @@ TCP segmentation. With a 128 KiB limit every head up to that size reaches the ap
 JSON error, whatever the timing; a longer one may still get the server's plain-text 400. The HTTP
 implementation is pinned to h11 so that this limit is the one in force (httptools has its own).
 
+Several gateway processes may share the port (`PRECOND_GATEWAY_PROCESSES`, uvicorn's `--workers`): one event
+loop is one core, and a cache hit is all gateway work.
+
 The event loop is uvloop's (libuv): the same asyncio API with cheaper socket I/O and scheduling, which is what
 the gateway spends its time on between requests (a flood of refused requests from one tenant delays the
 others' `/health` and checks by the loop's per-request cost).
@@ -25,3 +28,8 @@ GATEWAY_ARGS = (
     "--h11-max-incomplete-event-size",
     str(MAX_REQUEST_HEAD_BYTES),
 )
+
+
+def gateway_args(processes: int = 1) -> tuple[str, ...]:
+    """The options above, with `processes` gateway processes sharing the port."""
+    return GATEWAY_ARGS if processes <= 1 else (*GATEWAY_ARGS, "--workers", str(processes))

@@ -27,7 +27,7 @@ from typing import Any
 import httpx
 import redis
 
-from service.server import GATEWAY_ARGS
+from service.server import gateway_args
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = {
@@ -161,7 +161,8 @@ class Stack:
         return process
 
     def start_gateway(self) -> None:
-        argv = [sys.executable, "-m", "uvicorn", *GATEWAY_ARGS, "--port", str(self.port)]
+        processes = int(self.env.get("PRECOND_GATEWAY_PROCESSES", "1"))
+        argv = [sys.executable, "-m", "uvicorn", *gateway_args(processes), "--port", str(self.port)]
         self._spawn("gateway", [*argv, "--log-level", "warning"])
         wait_until(lambda: self.http().get("/health").status_code == 200, 20, "gateway")
 

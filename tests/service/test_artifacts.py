@@ -95,6 +95,7 @@ def test_compose_invariants() -> None:
         assert "model-cache:/models" in services[worker]["volumes"]
     assert services["gateway"]["ports"] == ["8000:8000"]
     assert services["gateway"]["command"][1:1 + len(GATEWAY_ARGS)] == list(GATEWAY_ARGS)  # as every other start
+    assert services["gateway"]["command"][-2:] == ["--workers", "${PRECOND_GATEWAY_PROCESSES:-1}"]
     assert services["gateway"]["environment"] == services["worker"]["environment"]  # MODEL_* are cache keys
     devices = services["worker-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert devices[0]["capabilities"] == ["gpu"] and services["worker-gpu"]["profiles"] == ["gpu"]
