@@ -24,7 +24,6 @@ DataOption = Annotated[
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
 VariantsOption = Annotated[int, typer.Option(min=1, max=32, help="Changed copies of each test trajectory.")]
 SeedOption = Annotated[int, typer.Option(min=0, help="Seed of the changes.")]
-EVAL_LIMITS = {"timeout_s": 120.0, "cpu_s": 120, "memory_mb": 4096}
 REPORT = Path("docs/results.md")
 
 
@@ -41,9 +40,9 @@ def _engine(with_model: bool) -> Any:
 
 def _sandbox() -> Any:
     """Scoring runs every test trajectory of a domain in one call: more time than a request is allowed."""
-    from sandbox import Limits, Sandbox
+    from engine.settings import SandboxSettings
 
-    return Sandbox(Limits(**EVAL_LIMITS))  # type: ignore[arg-type]
+    return SandboxSettings().build_for_scoring()
 
 
 def _data(data: list[Path] | None, *names: str) -> list[Path]:

@@ -11,7 +11,7 @@ or the sandbox.
 from __future__ import annotations
 
 import os
-from dataclasses import fields
+from dataclasses import fields, replace
 from pathlib import Path
 
 from pydantic import AliasChoices, Field
@@ -68,6 +68,8 @@ class ModelSettings(BaseSettings):
 
 
 _LIMITS = Limits()
+SCORING_TIMEOUT_S = 120.0
+SCORING_MEMORY_MB = 4096
 
 
 class SandboxSettings(BaseSettings):
@@ -115,3 +117,11 @@ class SandboxSettings(BaseSettings):
     def build(self) -> Sandbox:
         """Raises SandboxUnavailable when the kernel policy cannot be set up (unless allowed)."""
         return Sandbox(self.limits(), workers=self.workers, allow_unconfined=self.allow_unconfined)
+
+    def build_for_scoring(self) -> Sandbox:
+        """The evaluation's sandbox: the same confinement and limits, but the time and memory of a whole
+        domain's test trajectories in one call (at least `SCORING_TIMEOUT_S` and `SCORING_MEMORY_MB`)."""
+        limits = replace(self.limits(), timeout_s=max(self.timeout_s, SCORING_TIMEOUT_S),
+                         cpu_s=max(self.cpu_s, int(SCORING_TIMEOUT_S)),
+                         memory_mb=max(self.memory_mb, SCORING_MEMORY_MB))
+        return Sandbox(limits, workers=self.workers, allow_unconfined=self.allow_unconfined)

@@ -55,6 +55,9 @@ from worker.memory import MemoryGuard
 from worker.settings import WorkerSettings, get_worker_settings
 
 log = logging.getLogger("precond.worker")
+NOTICE_WAIT_S = 1.0
+"""How long the new-job listener blocks per read of its connection (a notice ends the read at once, and so
+does cancelling it): long, so that an idle listener costs no wake-ups."""
 
 
 class TenantShareWorker(Worker):
@@ -118,7 +121,7 @@ class TenantShareWorker(Worker):
             return
         try:
             while True:
-                if await pubsub.get_message(ignore_subscribe_messages=True, timeout=self.idle_poll_s) is not None:
+                if await pubsub.get_message(ignore_subscribe_messages=True, timeout=NOTICE_WAIT_S) is not None:
                     self._woken.set()
         except (RedisError, OSError) as exc:
             self._lost(exc)
