@@ -19,7 +19,7 @@ from service import errors
 from service.api_keys import KeyStore
 from service.completions import Completions
 from service.deps import Services
-from service.middleware import BodyLimit, RequestContext
+from service.middleware import BlockedSources, BodyLimit, RequestContext
 from service.offload import CheckPool
 from service.prometheus import Metrics
 from service.queue import JobQueue
@@ -84,6 +84,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         app.include_router(router)
     errors.install(app, settings.retry_after_s)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(BlockedSources)  # inside RequestContext: its refusals carry a request id and are counted
     app.add_middleware(RequestContext, metrics=metrics)
     return app
 

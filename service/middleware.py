@@ -1,5 +1,5 @@
-"""Pure-ASGI middleware: request ids, body size bound and request metrics; and the route class that parses
-large JSON bodies off the event loop.
+"""Pure-ASGI middleware: request ids, body size bound, request metrics and the early refusal of a source that
+used up its failed authentications; and the route class that parses large JSON bodies off the event loop.
 
 Pure ASGI (not BaseHTTPMiddleware) so a streamed body can be counted chunk by chunk and stopped at the bound
 before it is buffered, which is the point of a 413.
@@ -15,10 +15,12 @@ from typing import Any
 
 from fastapi import Request, Response
 from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from schemas.api import ErrorInfo, ErrorResponse
 from service import offload
 from service.errors import ServiceError
 from service.prometheus import Metrics
@@ -56,6 +58,37 @@ class RequestContext:
             tag = str(scope["state"].get("tenant_tag", "-"))  # never the name: /metrics needs no key
             self.metrics.requests.labels(route, scope["method"], str(status), tag).inc()
             self.metrics.latency.labels(route, scope["method"]).observe(time.perf_counter() - started)
+
+
+KEYED_PREFIXES = ("/infer-preconditions", "/next-action", "/check-actions", "/jobs", "/precondition-sets")
+"""The routes that need a key: where a source's failed authentications count (the open routes have buckets
+of their own)."""
+
+
+class BlockedSources:
+    """Refuses, before routing, a source address that used up its failed authentications, with the answer
+    `service.auth.authenticate` gives (429 `auth_limited`, Retry-After), from the same in-memory view. An
+    attacker's address sends hundreds of such requests a second; answered here, each costs the event loop
+    that also answers everyone else a fraction of a routed refusal (dependencies, exception handlers)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http" and str(scope["path"]).startswith(KEYED_PREFIXES):
+            services = getattr(scope["app"].state, "services", None)
+            if services is not None and services.keys is not None:
+                client = scope.get("client")
+                refusal = services.quotas.auth_blocked(client[0] if client else "-")
+                if refusal is not None:
+                    services.metrics.rejections.labels("-", refusal.limit).inc()
+                    body = ErrorResponse(error=ErrorInfo(type=f"{refusal.limit}_limited", message=refusal.message),
+                                         request_id=str(scope.get("state", {}).get("request_id", "")))
+                    response = JSONResponse(body.model_dump(exclude_none=True), status_code=429,
+                                            headers={"Retry-After": str(refusal.retry_after_s)})
+                    await response(scope, receive, send)
+                    return
+        await self.app(scope, receive, send)
 
 
 class BodyLimit:
