@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import re
 import secrets
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
@@ -71,11 +72,46 @@ def parse_reference(reference: str) -> tuple[str, int | None]:
     return match.group(1), int(match.group(2)) if match.group(2) else None
 
 
+PARSED_BYTES_PER_TENANT = 8 * 1024 * 1024
+"""Stored JSON of the parsed versions one gateway process keeps per tenant."""
+
+
+class ParsedVersions:
+    """Set versions already parsed, per tenant, least recently used first out.
+
+    A version never changes once stored, yet every check naming a set read and parsed it again on the event
+    loop: 14 ms for a 550 KB version with every candidate (an SGD domain's inference with `candidates: all`).
+    Bounded per tenant, so that one tenant's sets never push out another's, and so that no tenant can make
+    the others' checks slower through this cache."""
+
+    def __init__(self, max_bytes_per_tenant: int = PARSED_BYTES_PER_TENANT) -> None:
+        self.max_bytes = max_bytes_per_tenant
+        self._by_tenant: dict[str, OrderedDict[tuple[str, int], tuple[int, PreconditionSet]]] = {}
+
+    def get(self, tag: str, set_id: str, number: int) -> PreconditionSet | None:
+        entries = self._by_tenant.get(tag)
+        found = None if entries is None else entries.get((set_id, number))
+        if entries is None or found is None:
+            return None
+        entries.move_to_end((set_id, number))
+        return found[1]
+
+    def put(self, tag: str, set_id: str, number: int, size: int, version: PreconditionSet) -> None:
+        if size > self.max_bytes:
+            return
+        entries = self._by_tenant.setdefault(tag, OrderedDict())
+        entries[(set_id, number)] = (size, version)
+        entries.move_to_end((set_id, number))
+        while sum(kept for kept, _ in entries.values()) > self.max_bytes:
+            entries.popitem(last=False)
+
+
 class SetStore:
     def __init__(self, redis: ArqRedis, max_sets: int, max_versions: int, max_bytes: int,
                  max_tenant_bytes: int) -> None:
         self.redis, self.max_sets, self.max_versions, self.max_bytes = redis, max_sets, max_versions, max_bytes
         self.max_tenant_bytes = max_tenant_bytes
+        self.parsed = ParsedVersions()
 
     def refuse_oversized(self, chars: int) -> None:
         """413 before any work for a version whose texts alone pass the bound (its JSON is at least as long)."""
@@ -126,10 +162,14 @@ class SetStore:
         if latest is None:
             raise not_found(reference)
         wanted = int(latest) if number is None else number
-        raw = await self.redis.hget(key, str(wanted))
-        if raw is None:
-            raise ServiceError(404, f"precondition set {set_id} has no version {wanted} (latest: {int(latest)})")
-        return PreconditionSet.model_validate_json(raw).model_copy(update={"latest": int(latest)})
+        version = self.parsed.get(tag, set_id, wanted)
+        if version is None:
+            raw = await self.redis.hget(key, str(wanted))
+            if raw is None:
+                raise ServiceError(404, f"precondition set {set_id} has no version {wanted} (latest: {int(latest)})")
+            version = PreconditionSet.model_validate_json(raw)
+            self.parsed.put(tag, set_id, wanted, len(raw), version)
+        return version.model_copy(update={"latest": int(latest)})
 
 
     async def summaries(self, tag: str, offset: int, limit: int) -> PreconditionSetList:
