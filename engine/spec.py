@@ -67,10 +67,10 @@ def check_preconditions(spec: Spec, preconditions: dict[str, list[str]]) -> None
         raise as_error(exc) from exc
 
 
-def check_calls(spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]) -> None:
+def check_calls(spec: Spec, preconditions: dict[str, list[str]], history: ast.Module, calls: list[str]) -> None:
     """Proposed calls of the agent's actions only (`checks.check_calls`): the gateway's 422, the same here."""
     try:
-        checks.check_calls(spec.methods, preconditions, checks.parse(history, "history"), calls)
+        checks.check_calls(spec.methods, preconditions, history, calls)
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
 
