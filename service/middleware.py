@@ -15,14 +15,13 @@ from typing import Any
 
 from fastapi import Request, Response
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
 from fastapi.routing import APIRoute
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from schemas.api import ErrorInfo, ErrorResponse
+from schemas.api import ErrorInfo
 from service import offload
-from service.errors import ServiceError
+from service.errors import ServiceError, error_response
 from service.prometheus import Metrics
 
 _CLIENT_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
@@ -82,10 +81,9 @@ class BlockedSources:
                 refusal = services.quotas.auth_blocked(client[0] if client else "-")
                 if refusal is not None:
                     services.metrics.rejections.labels("-", refusal.limit).inc()
-                    body = ErrorResponse(error=ErrorInfo(type=f"{refusal.limit}_limited", message=refusal.message),
-                                         request_id=str(scope.get("state", {}).get("request_id", "")))
-                    response = JSONResponse(body.model_dump(exclude_none=True), status_code=429,
-                                            headers={"Retry-After": str(refusal.retry_after_s)})
+                    info = ErrorInfo(type=f"{refusal.limit}_limited", message=refusal.message)
+                    response = error_response(Request(scope), 429, info,
+                                              headers={"Retry-After": str(refusal.retry_after_s)})
                     await response(scope, receive, send)
                     return
         await self.app(scope, receive, send)
