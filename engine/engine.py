@@ -46,6 +46,7 @@ from engine.spec import (
     resolve_actions,
     skip_statements,
 )
+from engine.work import WorkBudget, points_of
 from programs import checks
 from sandbox.types import (
     CandidateResult,
@@ -182,9 +183,10 @@ class Engine:
         if "model" in request.options.generators and prompted:
             with timer.phase("generate"):
                 model_info = self._generate(spec, actions, prompted, request, proposals, progress, cancelled)
+        stopped: dict[str, str] = {}
         if "enumerate" in request.options.generators:
             with timer.phase("enumerate"):
-                self._enumerate(spec, actions, demo_trees, trace, proposals)
+                stopped = self._enumerate(spec, actions, demo_trees, trace, proposals)
         for action in actions:  # after the generators: without priors, nothing changes
             proposals.add(action, prior.expressions(action), "prior", 0)
         self._check_cancel(cancelled)
@@ -211,9 +213,10 @@ class Engine:
                        for rule in preconditions[a]} for a in actions}
         warnings = rule_warnings(actions, occurrences, preconditions, decided, model_info is not None,
                                  request.options.tolerance, request.options.unseen, prior.dropped)
-        for action in actions:  # a disjunction search cut at its bound says so, whatever was kept
-            if ranked[action].search:
-                warnings[action] = "; ".join(w for w in (warnings.get(action), ranked[action].search) if w)
+        for action in actions:  # a search cut at its bound says so, whatever was kept
+            cuts = (warnings.get(action), stopped.get(action), ranked[action].search)
+            if any(cuts[1:]):
+                warnings[action] = "; ".join(w for w in cuts if w)
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, stats=response.stats,
@@ -253,15 +256,21 @@ class Engine:
         progress("generate", len(windows), len(windows))
         return model.info
 
-    @staticmethod
     def _enumerate(
-        spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals
-    ) -> None:
+        self, spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals
+    ) -> dict[str, str]:
+        """Adds the enumerator's atoms, each action's cut to the work budget; the report line of each cut one."""
+        budget = WorkBudget(self._sandbox.limits.max_points)
         state = StateModel(spec, demo_trees)
+        stopped: dict[str, str] = {}
         for action in actions:
             info = trace.actions[action]
-            atoms = enumerate_atoms(state, info, spec.methods[action].cls)
-            proposals.add(action, atoms, "enumerate", len(atoms))
+            n_points = points_of(trace, info)
+            found = enumerate_atoms(state, info, spec.methods[action].cls, budget.enumerated(n_points))
+            proposals.add(action, found.atoms, "enumerate", len(found.atoms))
+            if found.cut:
+                stopped[action] = budget.stopped(len(found.atoms), n_points)
+        return stopped
 
     @staticmethod
     def _rank(

@@ -11,7 +11,7 @@ from __future__ import annotations
 import ast
 import itertools
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
 from engine.spec import Spec
@@ -234,30 +234,47 @@ def _argument_words(info: ActionInfo) -> dict[str, list[str]]:
     return words
 
 
-def enumerate_atoms(model: StateModel, info: ActionInfo, cls: str) -> list[str]:
+def _atom_stream(model: StateModel, info: ActionInfo, cls: str) -> Iterator[str]:
+    """Every atom in the enumerator's order, built one at a time (a caller that stops early builds no more)."""
     params = list(info.params)
-    atoms: list[str] = []
     for path, name in model.paths(cls):
         shape = model.shapes.get(name, ClassShape())
         for attr in sorted(shape.scalars):
             ref = f"{path}.{attr}"
-            atoms += [*_with_negation(ref), f"{ref} is None", f"{ref} is not None"]
-            atoms += [f"{ref} == {p}" for p in params] + [f"{ref} != {p}" for p in params]
+            yield from (*_with_negation(ref), f"{ref} is None", f"{ref} is not None")
+            yield from (f"{ref} {op} {p}" for op in ("==", "!=") for p in params)
         for attr in sorted(shape.mappings):
             ref = f"{path}.{attr}"
             for key in model.mapping_keys.get((name, attr), []):
-                atoms += _with_negation(f"{ref}[{key!r}]")
+                yield from _with_negation(f"{ref}[{key!r}]")
             for p in params:
-                atoms += [*_with_negation(f"{ref}[{p}]"), f"{p} in {ref}", f"{p} not in {ref}"]
+                yield from (*_with_negation(f"{ref}[{p}]"), f"{p} in {ref}", f"{p} not in {ref}")
         for attr in sorted(shape.collections):
             ref = f"{path}.{attr}"
-            atoms += _with_negation(ref)
-            atoms += [f"{p} in {ref}" for p in params] + [f"{p} not in {ref}" for p in params]
+            yield from _with_negation(ref)
+            yield from (f"{p} {op} {ref}" for op in ("in", "not in") for p in params)
         for query, query_params in sorted(shape.queries.items()):
             for args in _query_arguments(query_params, params, model.facts):
-                atoms += _with_negation(f"{path}.{query}({args})")
+                yield from _with_negation(f"{path}.{query}({args})")
     for param, words in _argument_words(info).items():
-        atoms += [f"{word!r} in {param}" for word in words]
+        yield from (f"{word!r} in {param}" for word in words)
     if cls == model.tool_class:  # a tool-calling agent's spec (convert/openai.py): engine/tool_conditions.py
-        atoms += tool_atoms(model.tool_facts, info.name.rsplit(".", 1)[-1], params)
-    return list(dict.fromkeys(atoms))
+        yield from tool_atoms(model.tool_facts, info.name.rsplit(".", 1)[-1], params)
+
+
+@dataclass(frozen=True)
+class Enumerated:
+    atoms: list[str]
+    cut: bool
+    """The stream had more than `limit` distinct atoms: those past it were never built."""
+
+
+def enumerate_atoms(model: StateModel, info: ActionInfo, cls: str, limit: int | None = None) -> Enumerated:
+    """The action's distinct atoms, at most `limit` of them (`engine.work.WorkBudget.enumerated`)."""
+    seen: dict[str, None] = {}
+    for atom in _atom_stream(model, info, cls):
+        if atom not in seen:
+            if limit is not None and len(seen) >= limit:
+                return Enumerated(list(seen), True)
+            seen[atom] = None
+    return Enumerated(list(seen), False)

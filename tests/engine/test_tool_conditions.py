@@ -38,7 +38,7 @@ def atoms_for(runs: list[list[dict[str, object]]], action: str) -> list[str]:
     demos = [ast.parse(t.program) for t in converted.trajectories]
     params = spec.methods[f"AGENT.{action}"].positional
     info = ActionInfo(f"AGENT.{action}", params, True, (), ())
-    return enumerate_atoms(StateModel(spec, demos), info, "AGENT")
+    return enumerate_atoms(StateModel(spec, demos), info, "AGENT").atoms
 
 
 def test_reads_fields_and_disjunctions_of_the_same_reservation() -> None:
