@@ -12,29 +12,23 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import replace
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from convert.openai import call_lines, structured_history
-from engine import cautious, judge, priors, prompting
+from engine import judge, priors, prompting
 from engine.enumeration import StateModel, enumerate_atoms
-from engine.evidence import Evidence, OccurrenceIndex, describe, gather, strict, thin, too_few, verdict
-from engine.freshness import Access, writes_at
+from engine.evidence import thin, too_few
+from engine.freshness import writes_at
 from engine.next_action import NextActionPlanner
 from engine.notices import rule_warnings
 from engine.parsing import parse_samples
 from engine.ranking import (
-    ActionEvidence,
-    Candidate,
     Cluster,
-    by_criterion,
     cluster,
-    explain,
     informative,
-    within_budget,
-    zero_shot,
 )
 from engine.report import UNSEEN_RULE, Proposals, Ranked, listed, report_of
+from engine.selection import Inference, select_rules
 from engine.spec import (
     Spec,
     as_error,
@@ -49,7 +43,6 @@ from engine.spec import (
 from engine.work import WorkBudget, points_of
 from programs import checks
 from sandbox.types import (
-    CandidateResult,
     EvaluateResult,
     LimitExceeded,
     ProgramError,
@@ -73,7 +66,6 @@ from schemas.api import (
     NextActionRequest,
     NextActionResponse,
     ValidateResponse,
-    Verdict,
 )
 from schemas.errors import (
     Cancelled,
@@ -197,7 +189,7 @@ class Engine:
         progress("rank", 0, 1)
         with timer.phase("rank"):
             writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
-            ranked = self._rank(actions, trace, evaluated, proposals, request.options, writes, prior)
+            ranked = select_rules(actions, Inference(trace, evaluated, proposals, request.options, writes, prior))
         if request.options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
@@ -212,7 +204,7 @@ class Engine:
         decided = {a: {rule: ranked[a].decided.get(rule, "unseen" if rule == UNSEEN_RULE else "established")
                        for rule in preconditions[a]} for a in actions}
         warnings = rule_warnings(actions, occurrences, preconditions, decided, model_info is not None,
-                                 request.options.tolerance, request.options.unseen, prior.dropped)
+                                 request.options, prior.dropped)
         for action in actions:  # a search cut at its bound says so, whatever was kept
             cuts = (warnings.get(action), stopped.get(action), ranked[action].search)
             if any(cuts[1:]):
@@ -272,76 +264,6 @@ class Engine:
                 stopped[action] = budget.stopped(len(found.atoms), n_points)
         return stopped
 
-    @staticmethod
-    def _rank(
-        actions: list[str],
-        trace: TraceResult,
-        evaluated: EvaluateResult,
-        proposals: Proposals,
-        options: InferOptions,
-        writes: Mapping[tuple[int, int], frozenset[Access]],
-        prior: priors.Priors | None = None,
-    ) -> dict[str, Ranked]:
-        ranked: dict[str, Ranked] = {}
-        turns = _previous_turns(trace)
-        criterion, tolerance = options.ranking, options.tolerance
-        tool_calls = _tool_calls(trace) if criterion == "cautious" else set()
-        for action in actions:
-            results = evaluated.results.get(action, ())
-            points = evaluated.points.get(action, ())
-            origins = proposals.source.get(action, {})
-            info = trace.actions[action]
-            index = OccurrenceIndex.of(points, info.occurrences)
-            judged = {r.expression: gather(r.satisfied, index) for r in results if r.status != "rejected"}
-            verdicts = {r.expression: _verdict(r, judged[r.expression], tolerance)
-                        for r in results if r.status != "rejected"}
-
-            def candidates(*fates: Verdict) -> list[Candidate]:
-                return [Candidate(r.expression, origins.get(r.expression, "model"), r.satisfied)  # noqa: B023
-                        for r in results if verdicts.get(r.expression) in fates]  # noqa: B023
-
-            valid = candidates("held", "tolerated")
-            sparse = not info.occurrences or thin(index.occurrences, tolerance)
-            evidence = ActionEvidence(points, info.occurrences, turns, info.params, index.mask, sparse, tolerance,
-                                      writes if criterion == "cautious" else {})
-            votes = proposals.votes.get(action, {})
-            clusters: list[Cluster] = []
-            cut: list[Cluster] = []
-            if sparse:  # the hook for the spec's zero-shot judgment: thin actions rank like unseen ones
-                valid = candidates("held", "tolerated", "thin")
-                choice = _zero_shot(valid, votes, info.params)
-                if criterion == "cautious" and info.occurrences:
-                    choice = _with_thin(choice, candidates("held", "tolerated", "thin", "chance", "refuted"),
-                                        evidence, len(points), action in tool_calls)
-            elif criterion == "cautious":
-                clusters = informative(cluster(valid), len(points))
-                common = informative(cluster(candidates("held", "tolerated", "chance")), len(points))
-                atoms = informative(cluster(candidates("held", "tolerated", "chance", "refuted")), len(points))
-                found = cautious.choose(clusters, common, atoms, evidence, action in tool_calls)
-                kept = within_budget(found.chosen, evidence)
-                choice = cautious.Choice(kept, found.decided, found.notes, found.search)
-                cut = [c for c in found.chosen if c not in kept]
-            else:
-                clusters = informative(cluster(valid), len(points))
-                picked = by_criterion(criterion, clusters, evidence)
-                kept = within_budget(picked, evidence)
-                choice = cautious.Choice(kept, {c.representative.expression: "established" for c in kept})
-                cut = [c for c in picked if c not in kept]
-            if not sparse and too_few(info.occurrences):  # strict validation on one or two calls: not established
-                choice = replace(choice, decided={e: "assumed" if d == "established" else d
-                                                  for e, d in choice.decided.items()})
-            transferred: dict[str, str] = {}
-            if prior is not None and prior.rules.get(action):
-                choice = _with_priors(choice, prior, action, results, verdicts, evidence, sparse)
-                transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items()
-                               if d == "transferred"}
-            reported, judged, verdicts = _with_composites(choice, results, judged, verdicts, index)
-            reasons = {**_screened(verdicts, judged, tolerance, {r.expression: r.reason for r in results}),
-                       **explain(criterion, valid, clusters, choice.chosen, evidence, votes, cut)}
-            reasons |= _decided_reasons(choice, reasons)
-            ranked[action] = Ranked(reported, valid, clusters, choice.chosen, reasons, judged, verdicts,
-                                    choice.decided, transferred, choice.search)
-        return ranked
 
     def _judge(self, spec: Spec, actions: list[str], demos: list[str], trace: TraceResult,
                evaluated: EvaluateResult, ranked: dict[str, Ranked], options: InferOptions) -> dict[str, Ranked]:
@@ -596,146 +518,6 @@ def _question(action: str, ranked: Ranked, trace: TraceResult, n_points: int,
     open_ = [c.representative.expression for c in ranked.clusters
              if c not in ranked.chosen and not any(k.satisfied & ~c.satisfied == 0 for k in ranked.chosen)]
     return judge.question(action, "phase", open_, everything) if open_ else None
-
-
-def _previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
-    """For each occurrence, where the observations since the agent's previous turn begin.
-
-    A turn is a run of consecutive actions (an SGD system turn often holds several acts); going back from an
-    occurrence over its own turn and then over the observations before it finds the previous turn's end.
-    """
-    acting: dict[int, set[int]] = {}
-    for info in trace.actions.values():
-        if info.stub:
-            for occ in info.occurrences:
-                acting.setdefault(occ.demo, set()).add(occ.position)
-    starts: dict[tuple[int, int], int] = {}
-    for demo, positions in acting.items():
-        for position in positions:
-            k = position - 1
-            while k in positions:
-                k -= 1
-            while k >= 0 and k not in positions:
-                k -= 1
-            starts[(demo, position)] = k + 1
-    return starts
-
-
-def _zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Sequence[str]) -> cautious.Choice:
-    chosen = zero_shot(valid, votes, params)
-    return cautious.Choice(chosen, {c.representative.expression: "zero-shot" for c in chosen})
-
-
-def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: ActionEvidence, n_points: int,
-               tool_call: bool) -> cautious.Choice:
-    """A thinly demonstrated action keeps, besides the model's zero-shot rule, what the cautious criterion would
-    keep from its few calls: assumed, not established (one or two calls cannot tell a requirement from a
-    coincidence)."""
-    kept = {c.satisfied for c in choice.chosen}
-    extra = [c for c in cautious.thin_rules(judged, evidence, n_points, tool_call) if c.satisfied not in kept]
-    return replace(choice, chosen=[*choice.chosen, *extra],
-                   decided={**choice.decided, **{c.representative.expression: "assumed" for c in extra}})
-
-
-def _with_priors(choice: cautious.Choice, prior: priors.Priors, action: str, results: Sequence[CandidateResult],
-                 verdicts: Mapping[str, Verdict], evidence: ActionEvidence, sparse: bool) -> cautious.Choice:
-    """The hook of `engine.priors`: the surviving priors most sources name, preferred where the evidence does not
-    decide."""
-    found = list(prior.rules[action].values())
-    best = priors.preferred(found, {r.expression: r for r in results}, verdicts, evidence, bool(evidence.occurrences),
-                            sparse)
-    return priors.prefer(choice, best, priors.support(found), sparse)
-
-
-def _with_composites(choice: cautious.Choice, results: Sequence[CandidateResult], judged: dict[str, Evidence],
-                     verdicts: dict[str, Verdict], index: OccurrenceIndex
-                     ) -> tuple[Sequence[CandidateResult], dict[str, Evidence], dict[str, Verdict]]:
-    """Chosen rules the ranking composed (disjunctions) join the reports like any candidate; their satisfaction
-    set is the union of their terms' (verification then runs them in the sandbox like every kept rule)."""
-    known = {r.expression for r in results}
-    extra = [c.representative for c in choice.chosen if c.representative.expression not in known]
-    if not extra:
-        return results, judged, verdicts
-    judged, verdicts = dict(judged), dict(verdicts)
-    for candidate in extra:
-        judged[candidate.expression] = gather(candidate.satisfied, index)
-        verdicts[candidate.expression] = "held" if not index.mask & ~candidate.satisfied else "tolerated"
-    composed = [CandidateResult(c.expression, "valid", None, c.satisfied) for c in extra]
-    return (*results, *composed), judged, verdicts
-
-
-def _decided_reasons(choice: cautious.Choice, ranked: Mapping[str, str]) -> dict[str, str]:
-    """The reason of a rule that only the cautious criterion keeps: composed, or assumed (a rule the ranking kept
-    for what enabled the calls, assumed only for how few they were, keeps the ranking's reason)."""
-    reasons = {e: f"kept: {note}" for e, note in choice.notes.items()}
-    for expression, decided in choice.decided.items():
-        if decided == "assumed" and expression not in reasons and not ranked.get(expression, "").startswith("kept"):
-            reasons[expression] = (
-                "assumed: held at every demonstrated call and nothing shows the call can happen without it, though "
-                "the evidence cannot tell it from a correlate (true long before, common everywhere, or implied by "
-                "another rule only on the demonstrated points); kept so the guard does not pick the permissive "
-                "side silently: review it")
-    return reasons
-
-
-def _receiver(source: str) -> str | None:
-    """The object a step's statement calls a method on (`system` in `system.FindBus()`), if it is such a call."""
-    try:
-        node = ast.parse(source.strip()).body[0]
-    except (SyntaxError, IndexError, RecursionError, ValueError):
-        return None
-    if isinstance(node, ast.Expr) and isinstance(node.value, ast.Call) and isinstance(node.value.func, ast.Attribute) \
-            and isinstance(node.value.func.value, ast.Name):
-        return node.value.func.value.id
-    return None
-
-
-def _tool_calls(trace: TraceResult) -> set[str]:
-    """The actions that are tool calls: at least half of their calls are answered by an observation on the same
-    object (a service's result, `system.set_query_status(True)` after `system.FindBus()`), not by another
-    party's turn. Read once per inference from the trace's statements."""
-    acting = {(o.demo, o.position) for info in trace.actions.values() if info.stub for o in info.occurrences}
-    tools: set[str] = set()
-    for action, info in trace.actions.items():
-        if not info.stub:
-            continue
-        answered = 0
-        for occ in info.occurrences:
-            steps = trace.positions[occ.demo]
-            following = occ.position + 1
-            if following < len(steps) and (occ.demo, following) not in acting \
-                    and _receiver(steps[following].source) == _receiver(steps[occ.position].source):
-                answered += 1
-        if info.occurrences and answered * 2 >= len(info.occurrences):
-            tools.add(action)
-    return tools
-
-
-def _verdict(result: CandidateResult, evidence: Evidence, tolerance: float) -> Verdict:
-    """Tolerance 0 is the paper's validation exactly: the sandbox's own verdict at every occurrence."""
-    if strict(tolerance):
-        return "held" if result.status == "valid" else "refuted"
-    return verdict(evidence, tolerance)
-
-
-def _screened(verdicts: Mapping[str, Verdict], judged: Mapping[str, Evidence], tolerance: float,
-              first_violation: Mapping[str, str | None]) -> dict[str, str]:
-    """Why evidence-weighted validation turned a candidate away (strict validation: the sandbox says why),
-    naming the first violated occurrence (demonstration, line) as the sandbox found it."""
-    if strict(tolerance):
-        return {}
-    reasons: dict[str, str] = {}
-    for expression, fate in verdicts.items():
-        e = judged[expression]
-        where = first_violation.get(expression)
-        first = f"; first violated at {where}" if where else ""
-        if fate == "refuted":
-            reasons[expression] = (f"refuted: {describe(e)}; more exceptions than slips at the tolerance "
-                                   f"({tolerance:.0%}) explain{first}")
-        elif fate == "chance":
-            reasons[expression] = (f"not separated from chance: {describe(e)}; holding this often at the "
-                                   f"occurrences is likely (p = {e.chance():.2f}) for a condition that common{first}")
-    return reasons
 
 
 def _exceptions_of(chosen: Mapping[str, Sequence[str]], ranked: Mapping[str, Ranked]) -> dict[int, set[int]]:

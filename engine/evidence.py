@@ -199,7 +199,7 @@ def too_few(occurrences: Sequence[Point]) -> bool:
 
 def thin(occurrences: Sequence[Point], tolerance: float) -> bool:
     """Demonstrated, but too thinly to learn from (only with evidence weighting on: tolerance > 0)."""
-    return tolerance > 0 and bool(occurrences) and too_few(occurrences)
+    return not strict(tolerance) and bool(occurrences) and too_few(occurrences)
 
 
 def describe(evidence: Evidence, lines: Sequence[str] = ()) -> str:

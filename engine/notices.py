@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from engine.evidence import MIN_DIALOGS, MIN_OCCURRENCES, strict, too_few
 from sandbox.types import Point
-from schemas.api import Decided, Unseen
+from schemas.api import Decided, InferOptions
 
 MAX_LISTED_ASSUMED = 8
 
@@ -27,11 +27,11 @@ class Outcome:
     rules: Sequence[str]
     model: bool
     """The code model proposed rules (so a rule without evidence is its zero-shot guess)."""
-    tolerance: float
-    """Evidence weighting on (> 0): too few calls are treated as none; off: a rule may rest on them."""
+    options: InferOptions
+    """The request's: with evidence weighting on (tolerance > 0) too few calls are treated as none, off a rule
+    may rest on them; `unseen` says what an action without a rule gets."""
     decided: Mapping[str, Decided]
     """How each rule was decided (`established`, `assumed`, `zero-shot`, `unseen`)."""
-    unseen: Unseen = "refuse"
 
     @property
     def assumed(self) -> list[str]:
@@ -47,7 +47,7 @@ def _consequence(outcome: Outcome) -> str:
                 "demonstrations that show it")
     if any(outcome.decided.get(rule) == "transferred" for rule in outcome.rules):
         return "its rule is transferred from the prior rules (learned for other services; `evidence` names them)"
-    if outcome.occurrences and strict(outcome.tolerance):
+    if outcome.occurrences and strict(outcome.options.tolerance):
         return "its rule holds at those few calls, which cannot tell a requirement from a coincidence"
     if outcome.assumed:
         return f"its rules are assumed, the facts its few calls share: {_listed(outcome.assumed)}"
@@ -103,16 +103,15 @@ def rule_warnings(
     preconditions: Mapping[str, Sequence[str]],
     decided: Mapping[str, Mapping[str, Decided]],
     model: bool,
-    tolerance: float,
-    unseen: Unseen = "refuse",
+    options: InferOptions,
     dropped_priors: Mapping[str, Sequence[str]] | None = None,
 ) -> dict[str, str]:
     """Per action whose rule is empty, assumed or not learned from enough demonstrated calls, why, and the prior
     rules that did not apply to it (`engine.priors`); others are absent."""
     warnings: dict[str, str] = {}
     for action in actions:
-        outcome = Outcome(action, occurrences.get(action, ()), preconditions.get(action, ()), model, tolerance,
-                          decided.get(action, {}), unseen)
+        outcome = Outcome(action, occurrences.get(action, ()), preconditions.get(action, ()), model, options,
+                          decided.get(action, {}))
         for case in CASES:
             if (warning := case(outcome)) is not None:
                 warnings[action] = warning

@@ -25,7 +25,7 @@ import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-from engine.evidence import Evidence, exception_budget, strongly_separated
+from engine.evidence import Evidence, exception_budget, strict, strongly_separated
 from engine.freshness import Access, reads, refreshed
 from sandbox.types import Point
 
@@ -237,7 +237,7 @@ def within_budget(chosen: Sequence[Cluster], evidence: ActionEvidence) -> list[C
     still allow from the other points they allow (`evidence.strongly_separated` on those counts).
     """
     mask = evidence.occurrence_mask
-    if evidence.tolerance <= 0 or not mask:
+    if strict(evidence.tolerance) or not mask:
         return list(chosen)
     everything = (1 << len(evidence.points)) - 1
     budget, charged, allowed, kept = action_budget(evidence), 0, everything, set()

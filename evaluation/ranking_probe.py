@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from engine.engine import _previous_turns  # the engine's own evidence, so only the new rule differs
 from engine.ranking import ActionEvidence, Candidate, Cluster, cluster, rank
+from engine.selection import previous_turns  # the engine's own evidence, so only the new rule differs
 from evaluation.domains import Domain
 from sandbox import Sandbox
 
@@ -32,7 +32,7 @@ def rerank(domain: Domain, demonstrations: Sequence[str], valid: Mapping[str, Se
     valid = {a: list(valid.get(a, ())) for a in domain.actions}
     trace = sandbox.trace(domain.spec, demonstrations)
     evaluated = sandbox.evaluate(domain.spec, demonstrations, valid)
-    turns = _previous_turns(trace)
+    turns = previous_turns(trace)
     out: dict[str, list[str]] = {}
     for action in domain.actions:
         points = evaluated.points.get(action, ())

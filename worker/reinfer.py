@@ -1,5 +1,5 @@
 """Re-inference of a stored precondition set (job kind `reinfer`): the engine's inference on the set's spec with
-its stored demonstrations and the new ones, merged with the base version (`jobs.precondition_sets.merge`: required rules
+its stored demonstrations and the new ones, merged with the base version (`engine.reinference.merge`: required rules
 kept, rejected ones kept out), judged against all demonstrations, and stored as the next version.
 
 The computing (`reinfer`) runs in the engine's thread; the storing (`store`) on the event loop, after it.
@@ -12,6 +12,7 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
+from engine import reinference
 from engine.engine import Engine
 from jobs import precondition_sets as sets
 from jobs.payloads import ReinferJob
@@ -62,8 +63,8 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         options = job.options.model_copy(update={"candidates": "all"})  # the diff's reasons come from them
         request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=options)
         inferred = engine.infer(request, progress, cancelled)
-        merged = sets.merge(base, inferred.preconditions, inferred.candidates, len(demos) - len(base.demonstrations),
-                            job.actions)
+        merged = reinference.merge(base, inferred.preconditions, inferred.candidates,
+                                   len(demos) - len(base.demonstrations), job.actions)
         judged = {a: list(dict.fromkeys([*merged.preconditions.get(a, []), *merged.unexplained.get(a, [])]))
                   for a in {*merged.preconditions, *merged.unexplained}}
         progress("validate", 0, 1)
@@ -89,7 +90,7 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         created=datetime.now(UTC).isoformat(timespec="seconds"), spec=base.spec,
         preconditions=merged.preconditions, demonstrations=demos, required=base.required, rejected=base.rejected,
         edits=[], validation=validation,
-        diff=sets.explain_removed(merged, blocked),
+        diff=reinference.explain_removed(merged, blocked),
         warnings=_warnings(job, merged.preconditions, inferred.warnings), evidence=evidence,
         candidates=candidates, decided=sets.decided(merged.preconditions, evidence, candidates),
     )

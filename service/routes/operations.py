@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
-from typing import Annotated, Any
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Annotated, Any, Final, Generic, TypeVar
 
 from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
@@ -12,6 +13,7 @@ from pydantic import BaseModel, ValidationError
 
 from convert.openai import call_lines
 from jobs import keys
+from jobs.payloads import ReinferJob
 from programs import checks
 from schemas.api import (
     CheckRequest,
@@ -37,6 +39,10 @@ from service.middleware import OffloadedBodyRoute
 from service.submission import submit_job
 
 router = APIRouter(tags=["operations"], route_class=OffloadedBodyRoute)
+
+B = TypeVar("B", bound=BaseModel)
+RulesRequest = TypeVar("RulesRequest", CheckRequest, NextActionRequest)
+"""A request that names rules (or a stored set of them) and a history: completed alike for both kinds."""
 
 Wait = Annotated[
     float | None,
@@ -74,8 +80,7 @@ async def infer_preconditions(
     """Verified preconditions per action. Demonstrations none of which calls an action are refused (422); an
     action no demonstration calls is listed in `warnings` ("no occurrence"), never a silent empty rule.
     `generators: ["enumerate"]` runs on the model-free queue, never behind model jobs."""
-    model = keys.model_identity() if "model" in body.options.generators else None
-    return await answer(services, request, caller, "infer", body, model, wait)
+    return await answer(services, request, caller, "infer", body, wait)
 
 
 @router.post("/next-action", response_model=NextActionResponse, responses=ERRORS)
@@ -92,7 +97,7 @@ async def next_action(
     paper's Algorithm 1; when no attempt passes, `call` is null with every attempt in `rejected`, unless
     `options.fallback` is "greedy". A call is always a call of an action; a history that itself breaks the
     preconditions is answered with `history_violation` set (line and rule), not refused."""
-    return await answer(services, request, caller, "next-action", body, keys.model_identity(), wait)
+    return await answer(services, request, caller, "next-action", body, wait)
 
 
 @router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
@@ -106,28 +111,12 @@ async def check_actions(
     """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
     ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
     and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
-    return await answer(services, request, caller, "check", body, None, wait)
-
-
-def _program_check(body: BaseModel, max_work_points: int) -> tuple[Callable[..., None], tuple[Any, ...]] | None:
-    """The static check of the request's programs (parsed, never run) and its work estimate, as a function and
-    its arguments for the check pool: 422 before anything is queued, not a failed job after the wait."""
-    if isinstance(body, InferRequest):
-        return checks.check_infer_with_priors, (body.spec, body.demonstrations, body.actions, max_work_points,
-                                                [(where, rules) for _, where, rules in body.options.priors()])
-    if isinstance(body, NextActionRequest):
-        return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
-                                          _text(body.history), max_work_points)
-    if isinstance(body, CheckRequest):
-        # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
-        return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
-                                    [c for c in body.calls if isinstance(c, str)])
-    return None
+    return await answer(services, request, caller, "check", body, wait)
 
 
 async def _with_rules_and_program(
-    services: Services, tag: str, body: CheckRequest | NextActionRequest
-) -> CheckRequest | NextActionRequest | checks.Problem:
+    services: Services, tag: str, body: RulesRequest
+) -> RulesRequest | checks.Problem:
     """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
     tenant has no such set), its demonstrations too for a next action that sends none (they name the argument
     values the agent could use), and a structured history (events or OpenAI messages) and tool calls rendered to
@@ -182,35 +171,94 @@ def _program_chars(body: BaseModel) -> int:
     return sum(len(text) for text in texts)
 
 
+StaticCheck = tuple[Callable[..., None], tuple[Any, ...]]
+"""A static check of a request's programs (parsed, never run) and its work estimate, as a function and its
+arguments for the check pool: 422 before anything is queued, not a failed job after the wait."""
+
+
+@dataclass(frozen=True)
+class Operation(Generic[B]):
+    """What the gateway does with one kind's body before it becomes a job: complete it as a worker runs it,
+    name the model its answer depends on (part of the job id), and check its programs statically."""
+
+    prepare: Callable[[Services, str, B], Awaitable[B]]
+    model: Callable[[B], str | None]
+    static_check: Callable[[B, int], StaticCheck] | None
+    """None where the route screened the request itself before building the job (a re-inference)."""
+
+
+async def _with_prior_sets(services: Services, tag: str, body: InferRequest) -> InferRequest:
+    if not body.options.prior_sets:
+        return body
+    return body.model_copy(update={"options": await with_prior_sets(services, tag, body.options)})
+
+
+async def _with_rules(services: Services, tag: str, body: RulesRequest) -> RulesRequest:
+    prepared = await _with_rules_and_program(services, tag, body)
+    if isinstance(prepared, checks.Problem):
+        raise _unusable(prepared)
+    return prepared
+
+
+async def _as_sent(services: Services, tag: str, body: ReinferJob) -> ReinferJob:
+    return body
+
+
+def _model_if_generated(body: InferRequest | ReinferJob) -> str | None:
+    return keys.model_identity() if "model" in body.options.generators else None
+
+
+def _infer_check(body: InferRequest, max_work_points: int) -> StaticCheck:
+    return checks.check_infer_with_priors, (body.spec, body.demonstrations, body.actions, max_work_points,
+                                            [(where, rules) for _, where, rules in body.options.priors()])
+
+
+def _next_action_check(body: NextActionRequest, max_work_points: int) -> StaticCheck:
+    return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
+                                      _text(body.history), max_work_points)
+
+
+def _check_check(body: CheckRequest, max_work_points: int) -> StaticCheck:
+    # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
+    return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
+                                [c for c in body.calls if isinstance(c, str)])
+
+
+OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
+    "infer": Operation(_with_prior_sets, _model_if_generated, _infer_check),
+    "next-action": Operation(_with_rules, lambda body: keys.model_identity(), _next_action_check),
+    "check": Operation(_with_rules, lambda body: None, _check_check),
+    "reinfer": Operation(_as_sent, _model_if_generated, None),
+}
+"""Every kind a route submits through `answer` (a set's validation is submitted by its route directly)."""
+
+
 async def answer(
     services: Services,
     request: Request,
     caller: Caller,
     kind: JobKind,
     body: BaseModel,
-    model: str | None,
     wait: float | None,
 ) -> Response:
     """The operation's answer: the request completed as a worker runs it, then submitted (`submit_job`), its
     programs checked statically only when it must run."""
-    if isinstance(body, InferRequest) and body.options.prior_sets:
-        body = body.model_copy(update={"options": await with_prior_sets(services, caller.tag, body.options)})
-    if isinstance(body, CheckRequest | NextActionRequest):
-        prepared = await _with_rules_and_program(services, caller.tag, body)
-        if isinstance(prepared, checks.Problem):
-            raise _unusable(prepared)
-        body = prepared
+    operation = OPERATIONS[kind]
+    body = await operation.prepare(services, caller.tag, body)
+    static_check = operation.static_check
 
     async def screen() -> None:
-        check = _program_check(body, services.settings.max_work_points)
-        problem = None if check is None else await services.checks.run(
-            caller.tag, _program_chars(body), offload.problem_of, check[0], *check[1])
+        if static_check is None:
+            return
+        check, args = static_check(body, services.settings.max_work_points)
+        problem = await services.checks.run(caller.tag, _program_chars(body), offload.problem_of, check, *args)
         if problem is not None:
             if problem.type == checks.WORK_BUDGET:
                 services.metrics.rejections.labels(caller.tag, "work").inc()
             raise _unusable(problem)
 
-    status = await submit_job(services, caller, kind, body.model_dump(mode="json"), model, wait, screen)
+    payload = body.model_dump(mode="json")
+    status = await submit_job(services, caller, kind, payload, operation.model(body), wait, screen)
     return respond(request, status)
 
 

@@ -8,7 +8,6 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Path, Query, Request
 from fastapi.responses import JSONResponse, Response
 
-from jobs import keys
 from jobs.payloads import ReinferJob, ValidateRequest
 from jobs.precondition_sets import normal, set_warnings, union
 from programs import checks
@@ -161,8 +160,7 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
                      force=body.force,
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
                      max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
-    model = keys.model_identity() if "model" in body.options.generators else None
-    return await answer(services, request, caller, "reinfer", job, model, wait)
+    return await answer(services, request, caller, "reinfer", job, wait)
 
 
 async def _latest(services: Services, tag: str, set_id: str, base_version: int | None) -> PreconditionSet:

@@ -8,8 +8,9 @@ import asyncio
 
 import pytest
 
+from engine.reinference import explain_removed, merge
 from jobs.payloads import ReinferJob
-from jobs.precondition_sets import APPEND_CONFLICT, explain_removed, merge, normal, union
+from jobs.precondition_sets import APPEND_CONFLICT, normal, union
 from schemas.api import CandidateReport, PreconditionSet
 from schemas.errors import Conflict
 from worker.reinfer import store
