@@ -88,18 +88,18 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     options, info = inference.options, inference.trace.actions[action]
     points = inference.evaluated.points.get(action, ())
     seen = _judged(action, info, inference)
-    sparse = not info.occurrences or thin(seen.index.occurrences, options.tolerance)
-    evidence = ActionEvidence(points, info.occurrences, turns, info.params, seen.index.mask, sparse,
+    evidence = ActionEvidence(points, info.occurrences, turns, info.params, seen.index.mask,
+                              not info.occurrences or thin(seen.index.occurrences, options.tolerance),
                               options.tolerance, inference.writes if options.ranking == "cautious" else {})
     votes = inference.proposals.votes.get(action, {})
     chosen = _choose(seen, evidence, options, votes, info, tool_call)
     choice = chosen.choice
-    if not sparse and too_few(info.occurrences):  # strict validation on one or two calls: not established
+    if not evidence.thin and too_few(info.occurrences):  # strict validation on one or two calls: not established
         choice = replace(choice, decided={e: "assumed" if d == "established" else d for e, d in choice.decided.items()})
     transferred: dict[str, str] = {}
     prior = inference.prior
     if prior is not None and prior.rules.get(action):
-        choice = _with_priors(choice, prior, action, seen.results, seen.verdicts, evidence, sparse)
+        choice = _with_priors(choice, prior, action, seen.results, seen.verdicts, evidence)
         transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items() if d == "transferred"}
     reported, judged, verdicts = _with_composites(choice, seen.results, seen.judged, seen.verdicts, seen.index)
     reasons = {**_screened(verdicts, judged, options.tolerance, {r.expression: r.reason for r in seen.results}),
@@ -114,7 +114,6 @@ def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, vote
     """The criterion's rules, within the tolerance's budget; an action too thinly demonstrated ranks like an
     unseen one (the hook for the spec's zero-shot judgment)."""
     n_points = len(evidence.points)
-    valid = seen.candidates("held", "tolerated")
     if evidence.thin:
         valid = seen.candidates("held", "tolerated", "thin")
         choice = _zero_shot(valid, votes, info.params)
@@ -122,6 +121,7 @@ def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, vote
             choice = _with_thin(choice, seen.candidates("held", "tolerated", "thin", "chance", "refuted"),
                                 evidence, n_points, tool_call)
         return _Chosen(choice, valid, [], [])
+    valid = seen.candidates("held", "tolerated")
     clusters = informative(cluster(valid), n_points)
     if options.ranking == "cautious":
         common = informative(cluster(seen.candidates("held", "tolerated", "chance")), n_points)
@@ -176,13 +176,13 @@ def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: A
 
 
 def _with_priors(choice: cautious.Choice, prior: priors.Priors, action: str, results: Sequence[CandidateResult],
-                 verdicts: Mapping[str, Verdict], evidence: ActionEvidence, sparse: bool) -> cautious.Choice:
+                 verdicts: Mapping[str, Verdict], evidence: ActionEvidence) -> cautious.Choice:
     """The hook of `engine.priors`: the surviving priors most sources name, preferred where the evidence does not
     decide."""
     found = list(prior.rules[action].values())
     best = priors.preferred(found, {r.expression: r for r in results}, verdicts, evidence, bool(evidence.occurrences),
-                            sparse)
-    return priors.prefer(choice, best, priors.support(found), sparse)
+                            evidence.thin)
+    return priors.prefer(choice, best, priors.support(found), evidence.thin)
 
 
 def _with_composites(choice: cautious.Choice, results: Sequence[CandidateResult], judged: dict[str, Evidence],
