@@ -43,6 +43,8 @@ BOUNDED_KEYS = {
     keys.STATS_KEY: "the workers' counters: one field per kind × outcome and kind × engine phase",
     keys.RUNNING_KEY: "claims of running jobs: one per job a worker runs, removed at its end or by a beat",
     "arq:abort": "arq's abort marks: only for queued or running jobs, removed when the job ends or re-enqueues",
+    keys.UNCLAIMED_KEY: "jobs started but not yet claimed: one field per queued job at most, dropped by the next "
+    "beat once the job is claimed, handed back or gone",
 }
 """The only keys without a TTL, and why each stays small (docs/service.md, "Redis memory")."""
 
@@ -277,6 +279,7 @@ def test_every_key_expires_or_is_bounded(stack: Stack) -> None:
         for name in keys.QUEUES:
             assert queue.zcard(name) <= QUEUE_MAX_JOBS
         assert queue.hlen(keys.RUNNING_KEY) <= 5  # at most one claim per job the one worker runs (1 + 4)
+        assert queue.hlen(keys.UNCLAIMED_KEY) <= len(keys.QUEUES) * QUEUE_MAX_JOBS  # only queued jobs
         for field in queue.hkeys(keys.STATS_KEY):
             table = field.decode().split(":")[0]
             assert table in ("jobs", "phase_sum", "phase_count", "queue_sum", "queue_count", "sandbox_failures"), field
