@@ -259,14 +259,43 @@ def _with_options(body: InferRequest, update: dict[str, Any]) -> InferRequest:
     raise AssertionError("unreachable")
 
 
-def next_action(request: RequestFile, server: Server = None, api_key: ApiKey = None) -> None:
+def next_action(
+    request: RequestFile,
+    adapter: Annotated[Path | None, typer.Option(help="A trained policy (`precond train-policy --out DIR`): the "
+                                                 "model predicts with it merged into its weights (BC).",
+                                                 show_default=False)] = None,
+    server: Server = None,
+    api_key: ApiKey = None,
+) -> None:
     """Predict the next action(s) after the history, verified against the preconditions (Algorithm 1)."""
     body = _load(request, NextActionRequest)
     if server:
+        if adapter is not None:
+            _fail("--adapter runs in-process only: the service does not take a policy adapter yet", 2)
         return _remote(server, api_key, body)
     from engine.factory import build_engine
 
-    _run(build_engine().next_action, body)
+    _run(lambda req, progress: build_engine(adapter=adapter).next_action(req, progress), body)
+
+
+def train_policy(
+    request: RequestFile,
+    out: Annotated[Path, typer.Option("--out", help="Directory the adapter is written to (whole or not at all).")],
+) -> None:
+    """Fine-tune the code model on the demonstrations' action lines (LoRA behaviour cloning, `MODEL_*`
+    settings; MODEL_THREADS=2 on two cores); prints what it trained and cost."""
+    from schemas.training import TrainPolicyRequest
+
+    body = _load(request, TrainPolicyRequest)
+    from engine.models.backend import load_weights
+    from engine.settings import ModelSettings
+    from engine.spec import parse_spec
+    from engine.training import train_policy as train
+
+    def run(req: TrainPolicyRequest, progress: Callable[[str, int, int], None]) -> BaseModel:
+        return train(lambda: load_weights(ModelSettings()), parse_spec(req.spec), req, out, progress, lambda: False)
+
+    _run(run, body)
 
 
 def _openai_check(messages: Path, spec: Path | None, rules: Path | None, precondition_set: str | None,
@@ -333,3 +362,4 @@ def register(app: typer.Typer) -> None:
     app.command("infer")(infer)
     app.command("next-action")(next_action)
     app.command("check")(check)
+    app.command("train-policy")(train_policy)

@@ -8,6 +8,7 @@ cheap model-free configurations.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 from typing import Annotated, Any
@@ -168,16 +169,17 @@ def next_action(
     (data,) = _data([data] if data else None, "sgd")
     store = JsonCache(cache_dir)
     engine, memo = _memo_engine(store)
+    policies = _PolicyEngines(engine, memo, store, cache_dir)
     source = parse_config(inferred_from)
     tasks = []
     for domain in _domains([data], "state"):
         raw = json.loads(next(p for p in data.glob("*.json") if p.stem == domain.name).read_text())
         inferred = infer(domain, source, store, lambda: engine.infer)
         tasks.append(Task(domain, sample_dialogs(raw["test"], turns, seed), inferred.preconditions))
-    results = run(engine, tasks, expand_policy(configs), store, seed, memo, cached_only)
+    results = run(policies.engine_for, tasks, expand_policy(configs), store, seed, policies.replayed, cached_only)
     rows = summarize(results, baseline)
     path = store_sized_results(store, {"rows": rows, "inferred_from": source.name, "turns_per_domain": turns,
-                                       "seed": seed, "complete": not cached_only or all(
+                                       "seed": seed, "training": policies.training, "complete": not cached_only or all(
                                            finished(store, t, d, expand_policy(configs))
                                            for t in tasks for d in t.dialogs)})
     write_next_action_section(store, REPORT)
@@ -253,7 +255,34 @@ def tools(
     typer.echo(f"chosen: {result['chosen']}; results: {path}; section written into {REPORT}")
 
 
-def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
+class _PolicyEngines:
+    """The engine of each row: the base model's for Act, a domain's fine-tuned model for BC (trained on first
+    use, evaluation/bc.py); one clock over all their memos."""
+
+    def __init__(self, base: Any, memo: Callable[[], float], store: JsonCache, root: Path) -> None:
+        self.base, self.memo, self.store, self.root = base, memo, store, root
+        self.built: dict[str, tuple[Any, Callable[[], float]]] = {}
+        self.training: dict[str, dict[str, Any]] = {}
+
+    def engine_for(self, task: Any, config: Any) -> Any:
+        if config.policy != "bc":
+            return self.base
+        name = task.domain.name
+        if name not in self.built:
+            from evaluation.bc import trained
+
+            adapter, result = trained(self.root, task.domain)
+            self.training[name] = {"seconds": result.seconds, "steps": result.steps, "examples": result.examples,
+                                   "action_lines": result.action_lines, "final_loss": result.losses[-1],
+                                   "adapter_bytes": result.adapter_bytes, "adapter": adapter.name}
+            self.built[name] = _memo_engine(self.store, adapter)
+        return self.built[name][0]
+
+    def replayed(self) -> float:
+        return self.memo() + sum(clock() for _, clock in self.built.values())
+
+
+def _memo_engine(store: JsonCache, adapter: Path | None = None) -> tuple[Any, Callable[[], float]]:
     """An engine whose model remembers completions in the cache (evaluation/memo.py), and the memo's clock."""
     import torch
 
@@ -270,7 +299,7 @@ def _memo_engine(store: JsonCache) -> tuple[Any, Any]:
     def replayed() -> float:
         return memo[0].take_replayed() if memo else 0.0
 
-    return build_engine(wrap_model=remembering), replayed
+    return build_engine(wrap_model=remembering, adapter=adapter), replayed
 
 
 def report(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from engine.engine import Engine
@@ -13,10 +14,11 @@ if TYPE_CHECKING:
 
 
 def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
-                 wrap_model: Callable[[CodeModel], CodeModel] | None = None) -> Engine:
+                 wrap_model: Callable[[CodeModel], CodeModel] | None = None, adapter: Path | None = None) -> Engine:
     """The model is configured here but loaded on first use (`MODEL_*` settings, see engine.models). The sandbox
     gets `SANDBOX_WORKERS` fork servers, or `min_sandbox_workers` (a queue worker's job slots) if more.
-    `wrap_model` wraps the loaded model (the evaluation's memo of completions).
+    `wrap_model` wraps the loaded model (the evaluation's memo of completions); `adapter` is a trained policy
+    (`precond train-policy`) merged into the model's weights.
 
     Raises SandboxUnavailable where untrusted code cannot be confined: no engine runs without its sandbox.
     """
@@ -28,7 +30,7 @@ def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
     def load() -> CodeModel:
         from engine.models import load_code_model
 
-        model = load_code_model(ModelSettings())
+        model = load_code_model(ModelSettings(), adapter)
         return model if wrap_model is None else wrap_model(model)
 
     return Engine(sandbox, load)

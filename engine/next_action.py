@@ -86,7 +86,9 @@ class NextActionPlanner:
         if not isinstance(request.history, str):
             raise TypeError("render a structured history first (engine.engine.history_program)")
         self.history = request.history
-        self.demo_trees = [ast.parse(s) for s in request.demonstrations]
+        # a fine-tuned policy's own calls count like a demonstration's for the argument values it may choose
+        known = [ast.parse("\n".join(model.known_calls))] if model.known_calls else []
+        self.demo_trees = [ast.parse(s) for s in request.demonstrations] + known
         classes = {m.cls for m in spec.methods.values()}
         self.receivers = instance_classes([*self.demo_trees, ast.parse(self.history)], classes)
         self.actors = instance_classes([ast.parse(self.history)], classes)

@@ -27,11 +27,14 @@ class MemoModel:
         self.model = model
         self.cache = cache
         self.info = model.info
+        self.known_calls = model.known_calls
         self.replayed_s = 0.0
 
     def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: StopRule,
                  should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
-        key = hashlib.sha256(json.dumps([prefix, list(suffixes), n, repr(sampling), stop]).encode()).hexdigest()
+        adapter = [self.info.adapter] if self.info.adapter else []  # a fine-tuned policy answers differently
+        key = hashlib.sha256(json.dumps([prefix, list(suffixes), n, repr(sampling), stop, *adapter]).encode()
+                             ).hexdigest()
         stored = self.cache.get("completions", key[:2], key)
         if stored is not None:
             self.replayed_s += stored["seconds"]

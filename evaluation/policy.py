@@ -17,7 +17,8 @@ When the engine refuses a request because the history itself violates the precon
 (inferred preconditions that contradict the dialog), the refusal is counted (`engine_errors`) and that
 segment is predicted without preconditions, as a client would have to.
 
-Policy configurations, `<preconditions>/<use>/shots=N`:
+Policy configurations, `<preconditions>/<use>/shots=N[/bc]` (`bc`: behaviour cloning, the code model
+fine-tuned on the domain's demonstrations, evaluation/bc.py; without it the base model, prompted: Act):
   preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
   use:           plain (no precondition use: the model's greedy lines, unverified) | prompt (written into the
                  prompt's spec) | verify (Algorithm 1's verified sampling, mode 'sample') | both |
@@ -51,6 +52,7 @@ from schemas.errors import PrecondError
 USES = {"plain": (False, False), "prompt": (True, False), "verify": (False, True), "both": (True, True),
         "constrained": (False, True), "constrained-lines": (False, True)}
 SOURCES = ("none", "inferred", "gt")
+POLICIES = ("bc",)
 GRIDS: dict[str, tuple[str, ...]] = {
     "default": ("none/plain/shots=1", "inferred/prompt/shots=1", "inferred/verify/shots=1",
                 "inferred/both/shots=1", "gt/verify/shots=1", "gt/both/shots=1",
@@ -58,6 +60,8 @@ GRIDS: dict[str, tuple[str, ...]] = {
     "small": ("none/plain/shots=1", "inferred/verify/shots=1", "gt/verify/shots=1"),
     "modes": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1",
               "inferred/constrained-lines/shots=1"),
+    "bc": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1",
+           "none/plain/shots=0/bc", "inferred/verify/shots=0/bc", "inferred/constrained/shots=0/bc"),
 }
 MAX_ACTIONS = 5
 
@@ -79,19 +83,23 @@ class PolicyConfig:
     shots: int
     mode: str = "sample"
     choose_by: str = "action"
+    policy: str = "act"
+    """'act': the base model prompted with the demonstrations; 'bc': the model fine-tuned on them (evaluation.bc)."""
 
 
 def parse_policy_config(name: str) -> PolicyConfig:
     parts = name.split("/")
+    policy = parts.pop() if len(parts) == 4 and parts[3] in POLICIES else "act"
     shots = parts[-1].startswith("shots=")
     if len(parts) != 3 or parts[0] not in SOURCES or parts[1] not in USES or not shots:
-        raise ValueError(f"policy config {name!r}: expected <source>/<use>/shots=N, see evaluation/policy.py")
+        raise ValueError(f"policy config {name!r}: expected <source>/<use>/shots=N[/bc], see evaluation/policy.py")
     if parts[0] == "none" and parts[1] != "plain":
         raise ValueError(f"policy config {name!r}: without preconditions only 'plain' makes sense")
     in_prompt, verify = USES[parts[1]]
     mode = "constrained" if parts[1].startswith("constrained") else "sample"
     choose_by = "line" if parts[1] == "constrained-lines" else "action"
-    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")), mode, choose_by)
+    return PolicyConfig(name, parts[0], in_prompt, verify, int(parts[2].removeprefix("shots=")), mode, choose_by,
+                        policy)
 
 
 def expand_policy(names: str) -> list[PolicyConfig]:

@@ -221,7 +221,20 @@ def _sized_section(result: dict[str, Any] | None) -> list[str]:
         "as the evaluation run saw it (1-2 threads of a 2-core machine, other work beside it); the latency "
         f"targets are measured by bench/pipeline_bench.py on a quiet machine (docs/model-speed.md).{partial}\n",
         sized_table(result),
+        *_training_table(result.get("training") or {}),
     ]
+
+
+def _training_table(training: dict[str, dict[str, Any]]) -> list[str]:
+    """What the BC rows' adapters cost: one LoRA training per domain on its demonstrations (evaluation/bc.py)."""
+    if not training:
+        return []
+    body = [[name, str(t["examples"]), str(t["action_lines"]), str(t["steps"]), f"{t['final_loss']:.3f}",
+             f"{t['seconds']:.0f}", f"{t['adapter_bytes'] / 1e6:.1f}"] for name, t in sorted(training.items())]
+    return ["\nBC adapters (`precond train-policy` defaults: LoRA rank 8 on the attention projections, one "
+            "demonstration per step, all cores; peak memory: bench/train_policy_bench.py):\n",
+            _markdown(["domain", "demonstrations", "action lines", "steps", "last loss", "training s",
+                       "adapter MB"], body) + "\n"]
 
 
 def alfworld_next_table(result: dict[str, Any]) -> str:

@@ -52,10 +52,14 @@ def finished(cache: JsonCache, task: Task, dialog: dict[str, Any], configs: Sequ
                for c in configs)
 
 
-def run(engine: PolicyEngine, tasks: Sequence[Task], configs: Sequence[PolicyConfig], cache: JsonCache,
+EngineFor = Callable[[Task, PolicyConfig], PolicyEngine]
+
+
+def run(engine_for: EngineFor, tasks: Sequence[Task], configs: Sequence[PolicyConfig], cache: JsonCache,
         seed: int = 0, replayed: Callable[[], float] | None = None, cached_only: bool = False
         ) -> dict[str, list[dict[str, Any]]]:
-    """Per-segment results per configuration (keyed `config`), every configuration on the same dialogs.
+    """Per-segment results per configuration (keyed `config`), every configuration on the same dialogs;
+    `engine_for` gives the engine of a domain's configuration (a BC row's model is fine-tuned per domain).
 
     `cached_only`: predict nothing; take the dialogs every configuration has finished (an interrupted run's
     results so far, still paired)."""
@@ -66,7 +70,7 @@ def run(engine: PolicyEngine, tasks: Sequence[Task], configs: Sequence[PolicyCon
         for task, dialog in chosen:
             for config in configs:
                 pre = task.domain.gt if config.source == "gt" else task.preconditions
-                rows = run_policy(engine, task.domain, config, pre, [dialog], cache, None, seed,
+                rows = run_policy(engine_for(task, config), task.domain, config, pre, [dialog], cache, None, seed,
                                   replayed or (lambda: 0.0), lambda: None)
                 bar.update(len(rows))
                 bar.set_postfix_str(f"{task.domain.name} {config.name}")

@@ -403,6 +403,11 @@ class ModelInfo(StrictBody):
         description="Why the model runs in `dtype`: the setting, or what the device can do "
         "(e.g. 'cpu without avx512_bf16/amx_bf16: float32').",
     )
+    adapter: str | None = Field(
+        default=None,
+        description="The trained policy merged into the weights (`precond train-policy`): its name and the first "
+        "12 hex digits of its weights' sha256; null for the base model.",
+    )
 
 
 class InferResponse(StrictBody):

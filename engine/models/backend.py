@@ -202,8 +202,10 @@ class CodeModel:
     """A causal code model behind `complete`; one call at a time (the cache it keeps is not shareable)."""
 
     def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 32,
-                 prefix_tokens: int = 32_768) -> None:
+                 prefix_tokens: int = 32_768, known_calls: tuple[str, ...] = ()) -> None:
         self.model = model
+        self.known_calls = known_calls
+        """A fine-tuned policy's vocabulary (`TrainPolicyResult.calls`); empty for the base model."""
         self.tokenizer = tokenizer
         self.info = info
         self.max_batch = max_batch
@@ -568,8 +570,18 @@ def _weights_dir(settings: ModelSettings, dtype: str) -> tuple[Path, str, str | 
     return path, path.name, None
 
 
-def load_code_model(settings: ModelSettings) -> CodeModel:
-    """Load (converting a GGUF once) and place the model; sets torch's CPU thread count process-wide."""
+@dataclass(frozen=True)
+class Weights:
+    """The base model as loaded (not yet placed for serving): what serving and policy training both start from."""
+
+    model: Any
+    tokenizer: Any
+    info: ModelInfo
+    device: torch.device
+
+
+def load_weights(settings: ModelSettings) -> Weights:
+    """Load (converting a GGUF once) in the dtype the device does best; sets torch's CPU thread count."""
     from transformers import AutoModelForCausalLM, AutoTokenizer
 
     torch.set_num_threads(settings.threads)
@@ -580,9 +592,24 @@ def load_code_model(settings: ModelSettings) -> CodeModel:
     model = AutoModelForCausalLM.from_pretrained(
         directory, dtype=dtype, device_map=str(device) if device.type != "cpu" else None
     )
-    model.eval()  # type: ignore[no-untyped-call]
-    if device.type == "cpu":
-        use_grouped_attention(model)
     info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=_dtype_name(dtype), dtype_reason=reason)
-    logger.info("loaded %s on %s (%s)", name, info.device, reason)
-    return CodeModel(model, tokenizer, info, max_batch=settings.max_batch, prefix_tokens=settings.prefix_cache_tokens)
+    return Weights(model, tokenizer, info, device)
+
+
+def load_code_model(settings: ModelSettings, adapter: Path | None = None) -> CodeModel:
+    """The serving model; with `adapter` (a trained policy, `engine.models.adapters`) merged into its weights."""
+    weights = load_weights(settings)
+    model, info = weights.model, weights.info
+    calls: tuple[str, ...] = ()
+    if adapter is not None:
+        from engine.models.adapters import merge_adapter
+
+        name, trained = merge_adapter(model, adapter, info)
+        info, calls = info.model_copy(update={"adapter": name}), tuple(trained.calls)
+    model.eval()
+    if weights.device.type == "cpu":
+        use_grouped_attention(model)
+    logger.info("loaded %s on %s (%s)%s", info.name, info.device, info.dtype_reason,
+                f", policy adapter {info.adapter}" if info.adapter else "")
+    return CodeModel(model, weights.tokenizer, info, max_batch=settings.max_batch,
+                     prefix_tokens=settings.prefix_cache_tokens, known_calls=calls)

@@ -166,3 +166,17 @@ def test_two_argument_calls_are_chosen_among_the_allowed(engine: Engine, choose_
 def test_choosing_by_line_needs_the_constrained_mode() -> None:
     with pytest.raises(ValidationError, match="choose_by"):
         NextActionOptions(mode="sample", choose_by="line")
+
+
+def test_a_fine_tuned_policy_asked_without_demonstrations_still_knows_its_domains_arguments(
+    tiny: CodeModel, restaurants: dict[str, Any]
+) -> None:
+    """A BC adapter's calls (`TrainPolicyResult.calls`) give the argument values a demonstration would: without
+    them and without demonstrations, no slot name is known and `REQUEST` has nothing to ask for."""
+    request = _request(restaurants).model_copy(update={"demonstrations": []})
+    with Sandbox(workers=1) as sandbox:
+        base = Engine(sandbox, lambda: tiny).next_action(request).actions[0]
+        tuned_model = CodeModel(tiny.model, tiny.tokenizer, tiny.info, known_calls=("system.REQUEST('cuisine')",))
+        tuned = Engine(sandbox, lambda: tuned_model).next_action(request).actions[0]
+    assert "system.REQUEST('cuisine')" not in {a.call for a in base.allowed or []}
+    assert "system.REQUEST('cuisine')" in {a.call for a in tuned.allowed or []}

@@ -44,6 +44,11 @@ def test_policy_config_names() -> None:
     assert (config.source, config.in_prompt, config.verify, config.shots) == ("gt", True, True, 3)
     with pytest.raises(ValueError):
         parse_policy_config("none/verify/shots=1")
+    bc = parse_policy_config("inferred/constrained/shots=0/bc")
+    assert (bc.policy, bc.mode, bc.shots) == ("bc", "constrained", 0)
+    assert parse_policy_config("none/plain/shots=1").policy == "act"
+    with pytest.raises(ValueError):
+        parse_policy_config("none/plain/shots=1/react")
 
 
 def test_inference_config_names() -> None:

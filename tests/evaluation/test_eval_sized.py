@@ -56,6 +56,7 @@ def test_summary_pairs_every_config_with_the_baseline_on_the_same_dialogs() -> N
 
 class CountingModel:
     info = ModelInfo(name="counting", device="cpu", dtype="none")
+    known_calls: tuple[str, ...] = ()
 
     def __init__(self) -> None:
         self.calls = 0
@@ -78,6 +79,15 @@ def test_a_remembered_completion_is_not_computed_again_and_its_time_is_replayed(
     assert inner.calls == 2  # other sampling, other question
     again = MemoModel(CountingModel(), JsonCache(tmp_path))  # type: ignore[arg-type]
     assert again.complete("p", ["a"], 1, greedy, "line") == first  # resumable: on disk
+
+
+def test_a_fine_tuned_model_does_not_answer_from_the_base_models_memo(tmp_path: Path) -> None:
+    base, tuned = CountingModel(), CountingModel()
+    tuned.info = ModelInfo(name="counting", device="cpu", dtype="none", adapter="bc@0123456789ab")
+    greedy = Sampling(0.0, 0.95, 8, 0)
+    MemoModel(base, JsonCache(tmp_path)).complete("p", ["a"], 1, greedy, "line")  # type: ignore[arg-type]
+    MemoModel(tuned, JsonCache(tmp_path)).complete("p", ["a"], 1, greedy, "line")  # type: ignore[arg-type]
+    assert tuned.calls == 1  # computed: the same prompt is another question for another policy
 
 
 @pytest.mark.parametrize("seed", [0, 5])
@@ -118,6 +128,6 @@ def test_cached_only_takes_the_dialogs_every_config_finished(tmp_path: Path) -> 
     cache.put(done, "policy", "D", configs[0].name, "d2")  # d2: one config only
     task = Task(domain, dialogs, {})
     assert finished(cache, task, dialogs[0], configs) and not finished(cache, task, dialogs[1], configs)
-    results = run(CheckOnly(), [task], configs, cache, cached_only=True)
+    results = run(lambda task, config: CheckOnly(), [task], configs, cache, cached_only=True)
     assert {name: [r["dialog"] for r in rows] for name, rows in results.items()} == {
         c.name: ["d1"] for c in configs}

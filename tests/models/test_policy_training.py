@@ -1,0 +1,135 @@
+"""Behaviour cloning (`precond train-policy`): LoRA training on the action lines, the adapter on disk, and an
+adapter loaded only when it is exactly what this model can take. The tiny random model stands in for the real
+one: what is asserted is the plumbing and the refusals, not the quality (bench/ and docs/results.md)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from pydantic import ValidationError
+from safetensors.torch import load_file, save_file
+from typer.testing import CliRunner
+
+from cli.main import app
+from engine.models.adapters import RESULT, WEIGHTS, AdapterError, read_result
+from engine.models.backend import Weights, load_code_model, load_weights
+from engine.settings import ModelSettings
+from engine.spec import parse_spec
+from engine.training import action_spans, train_policy, turn_ends
+from schemas.errors import Cancelled, InvalidInput
+from schemas.training import MAX_TRAINING_STEPS, TrainPolicyOptions, TrainPolicyRequest
+
+SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.informed_slot = defaultdict(lambda: False)
+  def INFORM(self, slot): self.informed_slot[slot] = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user = user
+  def REQUEST(self, slot): pass
+  def GOODBYE(self): pass
+"""
+DEMO = ("user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST('city')\nuser.INFORM('city')\n"
+        "system.REQUEST('date')\nuser.INFORM('date')\nsystem.GOODBYE()\n")
+
+
+def _settings(tiny_model_dir: Path) -> ModelSettings:
+    return ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", threads=1)
+
+
+def _request(steps: int = 3, demos: list[str] | None = None, **options: object) -> TrainPolicyRequest:
+    return TrainPolicyRequest(spec=SPEC, demonstrations=demos or [DEMO],
+                              options=TrainPolicyOptions(steps=steps, **options))  # type: ignore[arg-type]
+
+
+def _train(tiny_model_dir: Path, out: Path, request: TrainPolicyRequest, cancelled: bool = False) -> object:
+    return train_policy(lambda: load_weights(_settings(tiny_model_dir)), parse_spec(request.spec), request, out,
+                        lambda *_: None, lambda: cancelled)
+
+
+def test_the_loss_is_taken_on_the_action_lines_and_where_the_turn_ends() -> None:
+    spans = action_spans(parse_spec(SPEC), DEMO, 0)
+    assert [DEMO[a:b] for a, b in spans] == ["system.REQUEST('city')\n", "system.REQUEST('date')\n",
+                                             "system.GOODBYE()\n"]
+    assert [DEMO[a:b] for a, b in turn_ends(DEMO, spans)] == ["user.INFORM", "user.INFORM"]
+
+
+def test_training_lowers_the_loss_and_writes_a_loadable_adapter(tiny_model_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "bc"
+    result = _train(tiny_model_dir, out, _request(steps=30, learning_rate=1e-2))
+    stored = read_result(out)
+    assert stored == result
+    assert stored.steps == 30 and stored.examples == 1 and stored.action_lines == 3 and stored.truncated == 0
+    assert stored.calls == ["system.REQUEST('city')", "system.REQUEST('date')", "system.GOODBYE()"]
+    assert sum(stored.losses[-5:]) < sum(stored.losses[:5])  # it learned the three calls
+    assert 0 < stored.adapter_bytes == (out / WEIGHTS).stat().st_size
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bc"]  # no scratch directory left behind
+
+    base = load_code_model(_settings(tiny_model_dir))
+    tuned = load_code_model(_settings(tiny_model_dir), out)
+    assert base.info.adapter is None and tuned.info.adapter is not None and tuned.info.adapter.startswith("bc@")
+    ids = base.tokenizer(SPEC + "\n# Current\n" + DEMO, return_tensors="pt")["input_ids"]
+    with torch.no_grad():
+        assert not torch.allclose(base.model(ids).logits, tuned.model(ids).logits)
+    assert not any("lora" in name for name, _ in tuned.model.named_parameters())  # merged, nothing left over
+
+
+def test_demonstrations_without_action_lines_are_refused_before_a_model_is_loaded(tmp_path: Path) -> None:
+    def load() -> Weights:
+        raise AssertionError("the model was loaded for a request with nothing to learn")
+
+    request = _request(demos=["user = USER()\nsystem = SYSTEM(user)\nuser.INFORM('city')\n"])
+    with pytest.raises(InvalidInput) as caught:
+        train_policy(load, parse_spec(SPEC), request, tmp_path / "bc", lambda *_: None, lambda: False)
+    assert caught.value.field == "demonstrations"
+    assert not (tmp_path / "bc").exists()
+
+
+def test_a_cancelled_training_leaves_no_adapter(tiny_model_dir: Path, tmp_path: Path) -> None:
+    with pytest.raises(Cancelled):
+        _train(tiny_model_dir, tmp_path / "bc", _request(), cancelled=True)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_steps_beyond_the_bound_are_refused_naming_the_field(tmp_path: Path) -> None:
+    with pytest.raises(ValidationError) as caught:
+        TrainPolicyOptions(steps=MAX_TRAINING_STEPS + 1)
+    assert caught.value.errors()[0]["loc"] == ("steps",)
+    body = tmp_path / "train.json"
+    body.write_text(json.dumps({"spec": SPEC, "demonstrations": [DEMO], "options": {"steps": 10_000}}))
+    result = CliRunner().invoke(app, ["train-policy", str(body), "--out", str(tmp_path / "bc")])
+    assert result.exit_code == 2 and "options.steps" in result.output
+    assert not (tmp_path / "bc").exists()
+
+
+@pytest.fixture
+def adapter(tiny_model_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("adapters") / "bc"
+    _train(tiny_model_dir, out, _request(steps=1))
+    return out
+
+
+def test_an_adapter_of_another_base_model_is_refused(tiny_model_dir: Path, adapter: Path) -> None:
+    stored = read_result(adapter)
+    (adapter / RESULT).write_text(stored.model_copy(update={"base_model": "another-model"}).model_dump_json())
+    with pytest.raises(AdapterError, match="trained on another-model"):
+        load_code_model(_settings(tiny_model_dir), adapter)
+
+
+def test_weights_that_do_not_fit_are_refused(tiny_model_dir: Path, adapter: Path) -> None:
+    tensors = load_file(adapter / WEIGHTS)
+    tensors["base_model.model.lm_head.lora_A.weight"] = torch.zeros(8, 64)  # a layer the policy never trains
+    save_file(tensors, adapter / WEIGHTS)
+    with pytest.raises(AdapterError, match="does not fit this model"):
+        load_code_model(_settings(tiny_model_dir), adapter)
+
+
+def test_a_pickle_in_place_of_the_weights_is_refused_unread(tiny_model_dir: Path, adapter: Path) -> None:
+    torch.save({"x": torch.zeros(1)}, adapter / WEIGHTS)  # torch.save writes a pickle: never loaded as one
+    with pytest.raises(AdapterError, match="not a safetensors file"):
+        load_code_model(_settings(tiny_model_dir), adapter)
