@@ -102,6 +102,7 @@ class ScriptedModel:
     """A stand-in for the code model that answers from a script; the sandbox and Algorithm 1 are real."""
 
     info = ModelInfo(name="scripted", device="cpu", dtype="none")
+    known_calls: tuple[str, ...] = ()
 
     def __init__(self, greedy: str, samples: Sequence[str]) -> None:
         self.greedy, self.samples = greedy, list(samples)
@@ -389,6 +390,7 @@ class RecordingModel:
     """Answers every inference prompt with a plain `assert True` and records which actions were asked about."""
 
     info = ModelInfo(name="recording", device="cpu", dtype="none")
+    known_calls: tuple[str, ...] = ()
 
     def __init__(self) -> None:
         self.asked: list[str] = []
