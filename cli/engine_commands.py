@@ -275,7 +275,7 @@ def next_action(
         return _remote(server, api_key, body)
     from engine.factory import build_engine
 
-    _run(lambda req, progress: build_engine(adapter=adapter).next_action(req, progress), body)
+    _run(build_engine(adapter=adapter).next_action, body)
 
 
 def train_policy(

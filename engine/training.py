@@ -14,7 +14,6 @@ Demonstrations are untrusted text, but nothing here runs them: they are parsed (
 
 from __future__ import annotations
 
-import ast
 import random
 import time
 from collections.abc import Callable, Sequence
@@ -30,9 +29,9 @@ from engine.models.backend import Weights
 from engine.next_action import classify
 from engine.spec import Spec, parse_source
 from programs.checks import instance_classes
+from schemas.api import MAX_CALL_CHARS
 from schemas.errors import Cancelled, InvalidInput
 from schemas.training import (
-    MAX_CALL_CHARS,
     MAX_KNOWN_CALLS,
     TrainPolicyOptions,
     TrainPolicyRequest,
@@ -49,7 +48,8 @@ class Example:
     ids: list[int]
     """The dialog's tokens (after the shared spec prefix)."""
     targets: list[int]
-    """Indices into `ids` of the action lines' tokens: each is predicted from everything before it."""
+    """Indices into `ids` of the tokens the loss is taken on (action lines, turn ends): each is predicted from
+    everything before it."""
     truncated: bool
 
 
@@ -60,7 +60,7 @@ def action_spans(spec: Spec, demonstration: str, index: int) -> list[tuple[int, 
     actions = set(spec.stub_actions)
     spans, start = [], 0
     for line in demonstration.splitlines(keepends=True):
-        if classify(line, receivers, actions).call is not None and _statement(line):
+        if classify(line, receivers, actions).call is not None:  # one call of an action, nothing else
             spans.append((start, start + len(line)))
         start += len(line)
     return spans
@@ -80,13 +80,6 @@ def turn_ends(demonstration: str, spans: Sequence[tuple[int, int]]) -> list[tupl
         if head.strip():
             ends.append((end, end + len(head)))
     return ends
-
-
-def _statement(line: str) -> bool:
-    try:
-        return len(ast.parse(line.strip()).body) == 1
-    except SyntaxError:
-        return False
 
 
 def known_calls(demonstrations: Sequence[str], lines: Sequence[Sequence[tuple[int, int]]]) -> list[str]:

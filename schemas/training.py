@@ -11,21 +11,20 @@ from typing import Annotated
 
 from pydantic import Field
 
-from schemas.api import MAX_DEMONSTRATIONS, MAX_SOURCE_CHARS, SPEC_DESCRIPTION, StrictBody
+from schemas.api import MAX_CALL_CHARS, MAX_DEMONSTRATIONS, MAX_SOURCE_CHARS, SPEC_DESCRIPTION, StrictBody
 
 MAX_TRAINING_STEPS = 400
 MAX_EXAMPLE_TOKENS = 4_096
 MAX_RANK = 32
 MAX_ADAPTER_BYTES = 20 * 1024 * 1024
 MAX_KNOWN_CALLS = 4_096
-MAX_CALL_CHARS = 1_000
 
 
 class TrainPolicyOptions(StrictBody):
     steps: int = Field(
         default=24, ge=1, le=MAX_TRAINING_STEPS,
         description="Optimizer steps, one demonstration each (seeded order, every demonstration before any "
-        "repeats). 24 steps train an SGD domain's ten dialogs in about 5 minutes on 2 CPU cores (bench/).",
+        "repeats). 24 steps train an SGD domain's ten dialogs in 208-248 s on 2 CPU cores (docs/results.md).",
     )
     learning_rate: float = Field(default=1e-3, gt=0.0, le=1e-2)
     rank: int = Field(default=8, ge=1, le=MAX_RANK,
@@ -42,8 +41,9 @@ class TrainPolicyRequest(StrictBody):
     spec: str = Field(max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
     demonstrations: list[str] = Field(
         min_length=1, max_length=MAX_DEMONSTRATIONS,
-        description="Programs in the format of a next-action history; the loss is on their action lines only "
-        "(calls of the acting class's action functions: what the policy will be asked to write).",
+        description="Programs in the format of a next-action history; the loss is on their action lines (calls of "
+        "the acting class's action functions: what the policy will be asked to write) and on the head of the line "
+        "that ends each turn.",
     )
     options: TrainPolicyOptions = Field(default_factory=TrainPolicyOptions)
 
