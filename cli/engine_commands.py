@@ -271,8 +271,12 @@ def next_action(
     body = _load(request, NextActionRequest)
     if server:
         if adapter is not None:
-            _fail("--adapter runs in-process only: the service does not take a policy adapter yet", 2)
+            _fail("--adapter is a directory here, in-process: with --server name one of your stored policies in "
+                  "the request (options.policy: \"adapter:<id>\", made by POST /policies)", 2)
         return _remote(server, api_key, body)
+    if body.options.policy is not None:
+        _fail(f"options.policy: {body.options.policy} is a policy stored in the service: send the request with "
+              "--server, or give the adapter's directory with --adapter and leave options.policy out", 2)
     from engine.factory import build_engine
 
     _run(build_engine(adapter=adapter).next_action, body)

@@ -166,6 +166,9 @@ def next_action(
     from evaluation.report import store_sized_results, write_next_action_section
     from evaluation.sized import Task, finished, run, sample_dialogs, summarize
 
+    if any(c.policy == "react" for c in expand_policy(configs)):
+        raise typer.BadParameter("ReAct rows are ALFWorld's (its demonstrations carry ReAct's hand-written thoughts; "
+                                 "SGD's carry none): precond eval next-action-alfworld", param_hint="--configs")
     (data,) = _data([data] if data else None, "sgd")
     store = JsonCache(cache_dir)
     engine, memo = _memo_engine(store)
@@ -212,6 +215,7 @@ def next_action_alfworld(
     (data,) = _data([data] if data else None, "alfworld")
     store = JsonCache(cache_dir)
     engine, memo = _memo_engine(store)
+    policies = _PolicyEngines(engine, memo, store, cache_dir)
     domain = load_alfworld(data)
     inferred = infer(domain, parse_config(inferred_from), store, lambda: engine.infer).preconditions
     trajectories = [t for t in json.loads((data / "test.json").read_text())["trajectories"]
@@ -219,11 +223,11 @@ def next_action_alfworld(
     demos = json.loads((data / "demos.json").read_text())["trajectories"]
     admissible = json.loads((data / "test_admissible_commands.json").read_text())["admissible_commands"]
     sample = sample_episodes(trajectories, demos, admissible, episodes, steps, seed)
-    results = run(engine, domain.spec, sample, expand_policy(configs),
-                  lambda c: dict(domain.gt) if c.source == "gt" else inferred, store, seed, memo)
+    results = run(lambda config: policies.for_domain(domain, config), domain.spec, sample, expand_policy(configs),
+                  lambda c: dict(domain.gt) if c.source == "gt" else inferred, store, seed, policies.replayed)
     rows = summarize(results, baseline)
     path = store.put({"rows": rows, "inferred_from": inferred_from, "episodes": episodes, "steps": steps,
-                      "seed": seed}, "results", "next-action-alfworld")
+                      "seed": seed, "training": policies.training}, "results", "next-action-alfworld")
     write_next_action_section(store, REPORT)
     typer.echo(json.dumps(rows, indent=1))
     typer.echo(f"\nresults: {path}; section written into {REPORT}")
@@ -265,13 +269,16 @@ class _PolicyEngines:
         self.training: dict[str, dict[str, Any]] = {}
 
     def engine_for(self, task: Any, config: Any) -> Any:
+        return self.for_domain(task.domain, config)
+
+    def for_domain(self, domain: Any, config: Any) -> Any:
         if config.policy != "bc":
             return self.base
-        name = task.domain.name
+        name = domain.name
         if name not in self.built:
             from evaluation.bc import trained
 
-            adapter, result = trained(self.root, task.domain)
+            adapter, result = trained(self.root, domain)
             self.training[name] = {"seconds": result.seconds, "steps": result.steps, "examples": result.examples,
                                    "action_lines": result.action_lines, "final_loss": result.losses[-1],
                                    "adapter_bytes": result.adapter_bytes, "adapter": adapter.name}

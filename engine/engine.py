@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from convert.openai import call_lines, structured_history
@@ -75,13 +76,16 @@ from schemas.errors import (
     ResourceLimit,
     SandboxFailure,
 )
+from schemas.training import TrainPolicyRequest, TrainPolicyResult
 
 if TYPE_CHECKING:
     from engine.models import CodeModel
+    from engine.models.backend import Weights
     from sandbox import Sandbox
 
 ProgressFn = Callable[[str, int, int], None]
 ModelLoader = Callable[[], "CodeModel"]
+WeightsLoader = Callable[[], "Weights"]
 T = TypeVar("T")
 
 SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
@@ -125,9 +129,14 @@ class Timer:
 
 
 class Engine:
-    def __init__(self, sandbox: Sandbox, model_loader: ModelLoader | None = None) -> None:
+    def __init__(self, sandbox: Sandbox, model_loader: ModelLoader | None = None,
+                 weights_loader: WeightsLoader | None = None, policy: str | None = None) -> None:
+        """`weights_loader` gives a fresh, trainable copy of the base model (policy training); `policy` is the
+        trained policy this engine's model is (`options.policy` of the next actions it answers), None the base."""
         self._sandbox = sandbox
         self._loader = model_loader
+        self._weights = weights_loader
+        self._policy = policy
         self._model: CodeModel | None = None
         self._lock = threading.Lock()
 
@@ -147,6 +156,25 @@ class Engine:
                     raise ModelUnavailable("no code model is configured for this worker")
                 self._model = self._loader()
             return self._model
+
+    # ---- trained policies (behaviour cloning) ------------------------------------------------------
+    def train_policy(self, request: TrainPolicyRequest, out: Path, progress: ProgressFn = _no_progress,
+                     cancelled: Callable[[], bool] = _never) -> TrainPolicyResult:
+        """Fine-tune a fresh copy of the base model on the request (engine/training.py); the adapter is written
+        to `out`, whole or not at all."""
+        from engine.training import train_policy
+
+        if self._weights is None:
+            raise ModelUnavailable("no code model is configured for this worker")
+        return train_policy(self._weights, parse_spec(request.spec), request, out, progress, cancelled)
+
+    def with_policy(self, adapter: Path, policy: str) -> Engine:
+        """An engine on the same sandbox whose model is this one's with the adapter at `adapter` merged into a
+        copy of the weights it changes (`backend.with_adapter`); it answers next actions naming `policy`."""
+        from engine.models.backend import with_adapter
+
+        adapted = with_adapter(self.model(), adapter)
+        return Engine(self._sandbox, lambda: adapted, policy=policy)
 
     # ---- precondition inference -------------------------------------------------------------------
     def infer(
@@ -343,6 +371,9 @@ class Engine:
         progress: ProgressFn = _no_progress,
         cancelled: Callable[[], bool] = _never,
     ) -> NextActionResponse:
+        if request.options.policy != self._policy:  # the worker picks the engine of the named policy
+            raise InvalidInput(f"this engine serves {self._policy or 'the base model'}, not "
+                               f"{request.options.policy}", field="options.policy")
         spec = parse_spec(_spec_of(request))
         check_preconditions(spec, request.preconditions)
         request = request.model_copy(update={"history": history_program(spec.source, request.history)})

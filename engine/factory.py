@@ -11,6 +11,7 @@ from engine.settings import ModelSettings, SandboxSettings
 
 if TYPE_CHECKING:
     from engine.models import CodeModel
+    from engine.models.backend import Weights
 
 
 def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
@@ -33,4 +34,9 @@ def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
         model = load_code_model(ModelSettings(), adapter)
         return model if wrap_model is None else wrap_model(model)
 
-    return Engine(sandbox, load)
+    def weights() -> Weights:
+        from engine.models.backend import load_weights
+
+        return load_weights(ModelSettings())
+
+    return Engine(sandbox, load, weights)

@@ -21,13 +21,16 @@ from typing import TYPE_CHECKING
 from engine import constrained, prompting
 from engine.spec import Spec
 from programs.checks import instance_classes
-from schemas.api import AllowedCall, CallVerdict, NextActionRequest, PredictedAction, Rejection
+from schemas.api import MAX_THOUGHT_CHARS, AllowedCall, CallVerdict, NextActionRequest, PredictedAction, Rejection
 from schemas.errors import Cancelled, InvalidInput
 
 if TYPE_CHECKING:
     from engine.models import CodeModel
 
 NO_ACTION = "no action: the model's line is not a call of an action function"
+THOUGHT = "# think: "
+THOUGHT_TOKENS = 64
+"""A thought's length bound in tokens (ReAct's hand-written ALFWorld thoughts are 10 to 60)."""
 VerifyFn = Callable[[Spec, dict[str, list[str]], str, list[str]], list[CallVerdict]]
 
 
@@ -107,15 +110,28 @@ class NextActionPlanner:
             if self.cancelled():
                 raise Cancelled("job cancelled")
             progress("predict", step, self.options.max_actions)
+            thought = self._think(history) if self.options.think else None
+            if thought is not None:
+                history = append_line(history, f"{THOUGHT}{thought}")
             predicted = one(history, step)
             if predicted is None:
                 break
-            out.append(predicted)
+            out.append(predicted.model_copy(update={"thought": thought}))
             if predicted.call is None:
                 break  # no action to continue the turn from
             history = append_line(history, predicted.call)
         progress("done", len(out), len(out))
         return out
+
+    def _think(self, history: str) -> str:
+        """ReAct: the model's greedy `# think:` line after the history, kept to printable characters (no line
+        break can end the comment early: what follows the history stays one inert comment line)."""
+        from engine.models import Sampling
+
+        sampling = Sampling(0.0, 1.0, THOUGHT_TOKENS, self.options.seed)
+        suffix = constrained.indentation(history) + THOUGHT.rstrip()
+        text = self.model.complete(self._prompt(history), [suffix], 1, sampling, "line", self.cancelled)[0][0]
+        return "".join(ch for ch in text if ch.isprintable()).strip()[:MAX_THOUGHT_CHARS]
 
     def _prompt(self, history: str) -> str:
         return prompting.next_action_prompt(

@@ -18,6 +18,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from evaluation import react_thoughts
 from evaluation.cache import JsonCache
 from evaluation.domains import action_positions, parse_command
 from evaluation.metrics import percentile
@@ -32,6 +33,8 @@ class Episode:
     id: str
     program: str
     demonstration: str
+    react_demonstration: str
+    """The same demonstration with ReAct's hand-written thoughts (evaluation/react_thoughts.py)."""
     steps: list[tuple[int, dict[str, Any]]]
     """(body position, action step) of the steps predicted."""
     admissible: list[list[str]]
@@ -44,13 +47,15 @@ def sample_episodes(trajectories: Sequence[dict[str, Any]], demos: Sequence[dict
     The demonstration shown is the one of the episode's task type (the agent knows its task)."""
     order = [t for t in trajectories if t["id"] in admissible]
     random.Random(seed).shuffle(order)
-    by_type = {d["task_type"]: d["program"] for d in demos}
+    by_type = {d["task_type"]: d for d in reversed(demos)}  # the first of each type
+    thoughts = react_thoughts.load()
     out = []
     for trajectory in order[:episodes]:
         found = [(p, s) for p, s in action_positions(trajectory) if p >= 0]
         picks = sorted({round(k * (len(found) - 1) / max(1, steps - 1)) for k in range(steps)}) if found else []
-        out.append(Episode(trajectory["id"], trajectory["program"],
-                           by_type.get(trajectory["task_type"], demos[0]["program"]),
+        demo = by_type.get(trajectory["task_type"], demos[0])
+        react = react_thoughts.with_thoughts(demo["program"], thoughts.get(demo["source"]["key"], []))
+        out.append(Episode(trajectory["id"], trajectory["program"], demo["program"], react,
                            [found[k] for k in picks], admissible[trajectory["id"]]))
     return out
 
@@ -77,31 +82,34 @@ def predicted_command(call: str | None) -> tuple[str, tuple[str, ...]] | None:
 def _predict(engine: PolicyEngine, spec: str, config: PolicyConfig, preconditions: dict[str, list[str]],
              episode: Episode, position: int, step: dict[str, Any], seed: int,
              replayed: Callable[[], float]) -> dict[str, Any]:
+    react = config.policy == "react"
     options = NextActionOptions(max_actions=1, verify=config.verify, seed=seed, mode=config.mode,  # type: ignore[arg-type]
                                 choose_by=config.choose_by,  # type: ignore[arg-type]
-                                preconditions_in_prompt=config.in_prompt,
+                                preconditions_in_prompt=config.in_prompt, think=react,
                                 fallback="greedy" if config.mode == "sample" else "none")
+    shown = [episode.react_demonstration if react else episode.demonstration][: config.shots]
     request = NextActionRequest(spec=spec, preconditions=preconditions if config.source != "none" else {},
-                                demonstrations=[episode.demonstration],
+                                demonstrations=shown,
                                 history=history_before(episode.program, position), options=options)
     start = time.perf_counter()
     try:
         action = engine.next_action(request).actions[0]
         call = action.call if action.call is not None else None if action.nothing_allowed else (
             action.rejected[0].call if action.rejected else None)
-        error = None
+        error, thought = None, action.thought
     except PrecondError as exc:
-        call, error = None, f"{exc.kind}: {exc.message}"
+        call, error, thought = None, f"{exc.kind}: {exc.message}", None
     seconds = time.perf_counter() - start + replayed()
     offered = {parse_command(c) for c in episode.admissible[step["t"] - 1]} | {(step["fn"], tuple(step["args"]))}
     command = predicted_command(call)
     return {"call": call, "admissible": command in offered, "expert": command == (step["fn"], tuple(step["args"])),
-            "seconds": seconds, "error": error}
+            "seconds": seconds, "error": error, "thought": thought}
 
 
-def run(engine: PolicyEngine, spec: str, episodes: Sequence[Episode], configs: Sequence[PolicyConfig],
-        preconditions: Callable[[PolicyConfig], dict[str, list[str]]], cache: JsonCache, seed: int = 0,
-        replayed: Callable[[], float] = lambda: 0.0) -> dict[str, list[dict[str, Any]]]:
+def run(engine_for: Callable[[PolicyConfig], PolicyEngine], spec: str, episodes: Sequence[Episode],
+        configs: Sequence[PolicyConfig], preconditions: Callable[[PolicyConfig], dict[str, list[str]]],
+        cache: JsonCache, seed: int = 0, replayed: Callable[[], float] = lambda: 0.0
+        ) -> dict[str, list[dict[str, Any]]]:
     out: dict[str, list[dict[str, Any]]] = {c.name: [] for c in configs}
     total = sum(len(e.steps) for e in episodes) * len(configs)
     with tqdm(total=total, unit="request", desc="next-action alfworld", smoothing=0.05) as bar:
@@ -110,8 +118,8 @@ def run(engine: PolicyEngine, spec: str, episodes: Sequence[Episode], configs: S
                 done: dict[str, Any] = cache.get("alfworld-next", config.name, episode.id) or {}
                 for position, step in episode.steps:
                     if str(position) not in done:
-                        done[str(position)] = _predict(engine, spec, config, preconditions(config), episode,
-                                                       position, step, seed, replayed)
+                        done[str(position)] = _predict(engine_for(config), spec, config, preconditions(config),
+                                                       episode, position, step, seed, replayed)
                         cache.put(done, "alfworld-next", config.name, episode.id)
                     out[config.name].append(done[str(position)] | {"episode": episode.id})
                     bar.update(1)

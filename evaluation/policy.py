@@ -17,8 +17,10 @@ When the engine refuses a request because the history itself violates the precon
 (inferred preconditions that contradict the dialog), the refusal is counted (`engine_errors`) and that
 segment is predicted without preconditions, as a client would have to.
 
-Policy configurations, `<preconditions>/<use>/shots=N[/bc]` (`bc`: behaviour cloning, the code model
-fine-tuned on the domain's demonstrations, evaluation/bc.py; without it the base model, prompted: Act):
+Policy configurations, `<preconditions>/<use>/shots=N[/bc|/react]` (`bc`: behaviour cloning, the code model
+fine-tuned on the domain's demonstrations, evaluation/bc.py; `react`: ALFWorld only, the base model prompted
+with ReAct's thoughts in its demonstration and writing one before each action; without either the base
+model, prompted: Act):
   preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
   use:           plain (no precondition use: the model's greedy lines, unverified) | prompt (written into the
                  prompt's spec) | verify (Algorithm 1's verified sampling, mode 'sample') | both |
@@ -52,7 +54,7 @@ from schemas.errors import PrecondError
 USES = {"plain": (False, False), "prompt": (True, False), "verify": (False, True), "both": (True, True),
         "constrained": (False, True), "constrained-lines": (False, True)}
 SOURCES = ("none", "inferred", "gt")
-POLICIES = ("bc",)
+POLICIES = ("bc", "react")
 GRIDS: dict[str, tuple[str, ...]] = {
     "default": ("none/plain/shots=1", "inferred/prompt/shots=1", "inferred/verify/shots=1",
                 "inferred/both/shots=1", "gt/verify/shots=1", "gt/both/shots=1",
@@ -62,7 +64,11 @@ GRIDS: dict[str, tuple[str, ...]] = {
               "inferred/constrained-lines/shots=1"),
     "bc": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1",
            "none/plain/shots=0/bc", "inferred/verify/shots=0/bc", "inferred/constrained/shots=0/bc"),
+    "paper": ("none/plain/shots=1", "inferred/verify/shots=1", "inferred/constrained/shots=1",
+              "none/plain/shots=1/react", "inferred/verify/shots=1/react", "inferred/constrained/shots=1/react",
+              "none/plain/shots=0/bc", "inferred/verify/shots=0/bc", "inferred/constrained/shots=0/bc"),
 }
+"""`paper`: the paper's policy table on ALFWorld (Act, ReAct, BC; each alone, with Algorithm 1, constrained)."""
 MAX_ACTIONS = 5
 
 
@@ -84,7 +90,9 @@ class PolicyConfig:
     mode: str = "sample"
     choose_by: str = "action"
     policy: str = "act"
-    """'act': the base model prompted with the demonstrations; 'bc': the model fine-tuned on them (evaluation.bc)."""
+    """'act': the base model prompted with the demonstrations; 'bc': the model fine-tuned on them (evaluation.bc);
+    'react': the base model prompted with demonstrations that carry thoughts, writing one before each action
+    (`options.think`; ALFWorld only: its thoughts are ReAct's, evaluation/react_thoughts.py)."""
 
 
 def parse_policy_config(name: str) -> PolicyConfig:
@@ -92,7 +100,8 @@ def parse_policy_config(name: str) -> PolicyConfig:
     policy = parts.pop() if len(parts) == 4 and parts[3] in POLICIES else "act"
     shots = parts[-1].startswith("shots=")
     if len(parts) != 3 or parts[0] not in SOURCES or parts[1] not in USES or not shots:
-        raise ValueError(f"policy config {name!r}: expected <source>/<use>/shots=N[/bc], see evaluation/policy.py")
+        raise ValueError(f"policy config {name!r}: expected <source>/<use>/shots=N[/bc|/react], see "
+                         "evaluation/policy.py")
     if parts[0] == "none" and parts[1] != "plain":
         raise ValueError(f"policy config {name!r}: without preconditions only 'plain' makes sense")
     in_prompt, verify = USES[parts[1]]

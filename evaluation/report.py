@@ -256,8 +256,11 @@ def _alfworld_section(result: dict[str, Any] | None) -> list[str]:
         f"{result['seed']}), {result['steps']} action steps each, spread evenly; one action predicted per step, "
         "with the demonstration of the episode's task type. Admissible: the simulator accepted the command in "
         f"that state. Inferred preconditions: `{result['inferred_from']}`. Intervals: bootstrap over "
-        "trajectories.\n",
+        "trajectories. `/react`: the demonstration carries ReAct's hand-written thoughts "
+        "(evaluation/react_thoughts.py) and the model writes one before the action (`options.think`); `/bc`: the "
+        "model fine-tuned on the twelve ALFWorld demonstrations, shown none.\n",
         alfworld_next_table(result),
+        *_training_table(result.get("training") or {}),
     ]
 
 

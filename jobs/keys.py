@@ -25,7 +25,12 @@ CHECK_QUEUE: Final = f"{PREFIX}:queue:check"
 MODEL_FREE_QUEUE: Final = f"{PREFIX}:queue:model-free"
 """Inference without the model (`options.generators == ["enumerate"]`): seconds, never behind model jobs,
 and apart from the millisecond check jobs, which it must not hold up either."""
-QUEUES: Final = (MODEL_QUEUE, MODEL_FREE_QUEUE, CHECK_QUEUE)
+TRAIN_QUEUE: Final = f"{PREFIX}:queue:train"
+"""Policy training (minutes of the model's CPU): its own queue and one slot per worker, so that a training never
+holds the model queue's slot and other tenants' next actions go on beside it."""
+QUEUES: Final = (MODEL_QUEUE, MODEL_FREE_QUEUE, CHECK_QUEUE, TRAIN_QUEUE)
+MODEL_QUEUES: Final = (MODEL_QUEUE, TRAIN_QUEUE)
+"""The queues whose jobs need the code model."""
 JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
 WORKER_PREFIX: Final = f"{PREFIX}:worker:"

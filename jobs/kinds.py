@@ -8,8 +8,8 @@ from typing import Any, Final, get_args
 
 from pydantic import BaseModel
 
-from jobs.keys import CHECK_QUEUE, MODEL_FREE_QUEUE, MODEL_QUEUE
-from jobs.payloads import ReinferJob, ValidateRequest
+from jobs.keys import CHECK_QUEUE, MODEL_FREE_QUEUE, MODEL_QUEUE, TRAIN_QUEUE
+from jobs.payloads import ReinferJob, TrainPolicyJob, ValidateRequest
 from schemas.api import CheckRequest, InferRequest, JobKind, NextActionRequest
 
 
@@ -23,6 +23,8 @@ class Kind:
     model-free queue, so that it never waits behind model jobs (minutes)."""
     stores_version: bool = False
     """The worker stores the result as a precondition set's next version: never shared between tenants."""
+    stores_adapter: bool = False
+    """The worker stores the result as a trained policy of the tenant: never shared between tenants."""
 
 
 KINDS: Final[dict[JobKind, Kind]] = {
@@ -31,6 +33,7 @@ KINDS: Final[dict[JobKind, Kind]] = {
     "check": Kind(CheckRequest, CHECK_QUEUE),
     "validate": Kind(ValidateRequest, CHECK_QUEUE),
     "reinfer": Kind(ReinferJob, MODEL_QUEUE, model_free=True, stores_version=True),
+    "train-policy": Kind(TrainPolicyJob, TRAIN_QUEUE, stores_adapter=True),
 }
 assert set(KINDS) == set(get_args(JobKind)), "every job kind of the API needs a row here"
 
@@ -42,6 +45,13 @@ def queue_for(kind: JobKind, body: dict[str, Any]) -> str:
     if row.model_free and "model" not in body.get("options", {}).get("generators", ["model"]):
         return MODEL_FREE_QUEUE
     return row.queue
+
+
+def tenant_private(kind: JobKind, body: dict[str, Any]) -> bool:
+    """Whether the result is the tenant's alone, never a shared cache entry even where the operator shares
+    results: what it stores, and a next action of the tenant's own trained policy."""
+    row = KINDS[kind]
+    return row.stores_version or row.stores_adapter or bool(body.get("options", {}).get("policy"))
 
 
 def queues_of(kind: JobKind) -> tuple[str, ...]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from pydantic import Field
 
 from schemas.api import (
+    ADAPTER_ID_PATTERN,
     MAX_DEMONSTRATIONS,
     MAX_SOURCE_CHARS,
     PRECONDITIONS_DESCRIPTION,
@@ -16,6 +17,7 @@ from schemas.api import (
     PreconditionSet,
     StrictBody,
 )
+from schemas.training import TrainPolicyRequest
 
 
 class ValidateRequest(StrictBody):
@@ -41,3 +43,16 @@ class ReinferJob(StrictBody):
     max_bytes: int = Field(ge=1)
     max_tenant_bytes: int | None = Field(default=None, ge=1, description="Bytes of all the tenant's sets; None: "
                                          "unbounded (a job queued by a gateway that did not send it).")
+
+
+class TrainPolicyJob(StrictBody):
+    """A worker job (kind `train-policy`): train on `request` and store the adapter as version `version` of the
+    tenant's adapter `adapter` (version 1: a new one), within the bounds the gateway sent (the worker's store
+    enforces them atomically; the gateway only refuses early)."""
+
+    request: TrainPolicyRequest
+    adapter: str = Field(pattern=f"^{ADAPTER_ID_PATTERN}$")
+    version: int = Field(ge=1)
+    max_adapters: int = Field(ge=1)
+    max_versions: int = Field(ge=1)
+    max_tenant_bytes: int = Field(ge=1)

@@ -45,6 +45,7 @@ from schemas.api import (
     SetDiff,
     ToolCall,
 )
+from schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyOptions, TrainPolicyRequest
 
 __all__ = [
     "AllowedCall",
@@ -68,6 +69,8 @@ __all__ = [
     "NextActionRequest",
     "NextActionResponse",
     "NotFound",
+    "PolicyAdapter",
+    "PolicyAdapterList",
     "Polling",
     "PrecondError",
     "PreconditionSet",
@@ -84,6 +87,8 @@ __all__ = [
     "RuleEdit",
     "SetDiff",
     "ToolCall",
+    "TrainPolicyOptions",
+    "TrainPolicyRequest",
     "Unauthorized",
     "Unavailable",
     "event",

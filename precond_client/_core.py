@@ -24,6 +24,7 @@ from precond_client.errors import (
     Unavailable,
 )
 from schemas.api import (
+    ADAPTER_REFERENCE,
     SET_REFERENCE,
     CheckRequest,
     CheckResponse,
@@ -44,12 +45,14 @@ from schemas.api import (
     RuleEdit,
     ToolCall,
 )
+from schemas.training import PolicyAdapter
 
 Progress = Callable[[JobStatus], object]
 """Called with the job's status (its `progress`: phase, done, total) on the 202 and on every poll."""
 
 RETRY_STATUSES = frozenset({429, 503})
 SET_REFERENCE_RE = re.compile(SET_REFERENCE)
+POLICY_REFERENCE_RE = re.compile(ADAPTER_REFERENCE)
 Req = TypeVar("Req", bound=BaseModel)
 
 
@@ -68,6 +71,7 @@ OPERATIONS: dict[type[BaseModel], Operation] = {
 }
 RESPONSES: dict[JobKind, type[BaseModel]] = {op.kind: op.response for op in OPERATIONS.values()}
 RESPONSES["reinfer"] = PreconditionSet
+RESPONSES["train-policy"] = PolicyAdapter
 
 
 @dataclass(frozen=True)
@@ -128,6 +132,14 @@ def set_path(reference: str, suffix: str = "") -> str:
         raise InvalidInput(f"not a precondition set reference: {reference[:80]!r} (expected ps_<24 hex>[@n])",
                            type="invalid_input", field="precondition_set")
     return f"/precondition-sets/{reference}{suffix}"
+
+
+def policy_path(reference: str, suffix: str = "") -> str:
+    """`/policies/{reference}{suffix}`, the reference checked so it can never leave that path."""
+    if not POLICY_REFERENCE_RE.match(reference):
+        raise InvalidInput(f"not a trained policy reference: {reference[:80]!r} (expected ad_<24 hex>[@n])",
+                           type="invalid_input", field="adapter")
+    return f"/policies/{reference}{suffix}"
 
 
 def set_body(model: BaseModel) -> dict[str, Any]:

@@ -29,6 +29,7 @@ from schemas.api import (
     PreconditionSetList,
     RuleEdit,
 )
+from schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
 
 RequestLike = BaseModel | Mapping[str, Any]
 
@@ -131,6 +132,35 @@ class AsyncClient:
         answer = await self._send("POST", _core.set_path(set_id, "/reinfer"), json=body, params=params)
         status = await self._poll(_core.submitted(answer, "reinfer"), progress, timeout)
         return _core.result(status, PreconditionSet)
+
+    # trained policies -------------------------------------------------------------------------------------------
+
+    async def train_policy(
+        self, request: TrainPolicyRequest | Mapping[str, Any], *, adapter: str | None = None,
+        wait: float | None = None, progress: _core.Progress | None = None, timeout: float | None = None,
+    ) -> PolicyAdapter:
+        """Fine-tune the code model on the request's demonstrations (a job on the training queue, minutes,
+        followed like every operation; `cancel` its job and nothing is stored) and store the adapter: version 1
+        of a new trained policy, or with `adapter` (an id) that policy's next version. `next_action` then names
+        it with `options.policy = f"adapter:{policy.id}"` (or `policy.reference` for this version)."""
+        body = _core.validated(request, TrainPolicyRequest).model_dump(mode="json")
+        path = "/policies" if adapter is None else _core.policy_path(adapter, "/versions")
+        params = {} if wait is None else {"wait": wait}
+        answer = await self._send("POST", path, json=body, params=params)
+        status = await self._poll(_core.submitted(answer, "train-policy"), progress, timeout)
+        return _core.result(status, PolicyAdapter)
+
+    async def list_policies(self) -> PolicyAdapterList:
+        """The tenant's trained policies (the latest version of each) and the bytes they take."""
+        return PolicyAdapterList.model_validate((await self._send("GET", "/policies")).json())
+
+    async def get_policy(self, reference: str) -> PolicyAdapter:
+        """A trained policy's latest version (`id`) or a given one (`id@version`); `NotFound` for none of yours."""
+        return PolicyAdapter.model_validate((await self._send("GET", _core.policy_path(reference))).json())
+
+    async def delete_policy(self, adapter_id: str) -> None:
+        """Delete a trained policy with all its versions; `NotFound` for none of yours."""
+        await self._send("DELETE", _core.policy_path(adapter_id))
 
     async def check_with_set(
         self, precondition_set: str, history: _core.HistoryLike, calls: Iterable[_core.CallLike], *,

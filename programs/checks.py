@@ -208,6 +208,20 @@ def check_infer(spec: str, demonstrations: Sequence[str], actions: Sequence[str]
     check_work(trees, max_points)
 
 
+def check_training(spec: str, demonstrations: Sequence[str]) -> None:
+    """A policy training's request, seen without running it: the spec and every demonstration parse, and at
+    least one demonstration calls an action (the lines the loss is taken on); raises ProgramProblem."""
+    _, methods = spec_methods(spec)
+    actions = resolve_actions(methods, None)
+    trees = [parse(d, f"demonstrations[{i}]") for i, d in enumerate(demonstrations)]
+    if not called_actions(trees, methods, actions):
+        names = ", ".join(actions[:10]) + (", ..." if len(actions) > 10 else "")
+        message = (f"demonstrations: none of the {len(demonstrations)} demonstrations calls any of the actions "
+                   f"({names}): a policy is trained on those calls (its action lines), so there is nothing to "
+                   "train on")
+        raise ProgramProblem(Problem(INVALID_INPUT, "demonstrations", message))
+
+
 def check_prior_rules(sources: Sequence[tuple[str, Mapping[str, Sequence[str]]]]) -> None:
     """Each prior rule (`sources`: the field that holds them, and action -> rules) is one expression that calls
     nothing but methods reached from `self` (a spec's query); raises ProgramProblem naming the rule."""

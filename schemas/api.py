@@ -26,6 +26,12 @@ MAX_ASSERTIONS_PER_ACTION = 32
 MAX_ASSERTION_CHARS = 1_000
 MAX_CALLS = 64
 MAX_CALL_CHARS = 1_000
+MAX_THOUGHT_CHARS = 400
+ADAPTER_ID_PATTERN = r"ad_[0-9a-f]{24}"
+ADAPTER_REFERENCE = rf"^({ADAPTER_ID_PATTERN})(?:@([1-9][0-9]{{0,8}}))?$"
+"""A stored trained policy: its id (the latest version) or `id@version`."""
+POLICY_PATTERN = rf"^adapter:{ADAPTER_REFERENCE[1:]}"
+"""A trained policy as `/next-action` names it: a stored adapter of the tenant, its latest or a given version."""
 
 MAX_TOLERANCE = 0.5
 DEFAULT_TOLERANCE = 0.05
@@ -469,6 +475,20 @@ class NextActionOptions(StrictBody):
     temperature: float = Field(default=0.8, ge=0.0, le=2.0)
     max_new_tokens: int = Field(default=32, ge=4, le=128)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    think: bool = Field(
+        default=False,
+        description="ReAct: before each action the model writes a thought, a `# think: ...` comment line (greedy, "
+        "one line, printable characters only, at most 400 characters), and the action is then chosen after it, "
+        "verified as in either mode. Demonstrations may carry such lines (ReAct's hand-written thoughts); a "
+        "comment never changes the state the preconditions are judged in.",
+    )
+    policy: str | None = Field(
+        default=None, pattern=POLICY_PATTERN,
+        description="The model that proposes the calls: null (default) the served code model, prompted; "
+        "'adapter:<id>' or 'adapter:<id>@<version>' one of this tenant's trained policies (`POST /policies`: the "
+        "code model fine-tuned on demonstrations), its latest version unless one is named. Another tenant's "
+        "adapter is not found (404), as one that does not exist.",
+    )
 
     @model_validator(mode="after")
     def _options_of_the_mode(self) -> NextActionOptions:
@@ -538,6 +558,11 @@ class PredictedAction(StrictBody):
         default=None, description="With `options.return_allowed`: the calls the preconditions allow in this state."
     )
     reason: str | None = Field(default=None, description="Why `call` is null, or why an unverified call is given.")
+    thought: str | None = Field(
+        default=None, max_length=MAX_THOUGHT_CHARS,
+        description="With `options.think` (ReAct): what the model wrote as `# think: ...` before choosing this "
+        "action; it stays in the history the next action of the turn is chosen after.",
+    )
 
 
 class NextActionResponse(StrictBody):
@@ -790,7 +815,7 @@ class PreconditionSetList(StrictBody):
     next_offset: int | None = Field(default=None, description="The `offset` of the next page; null on the last.")
 
 
-JobKind = Literal["infer", "next-action", "check", "validate", "reinfer"]
+JobKind = Literal["infer", "next-action", "check", "validate", "reinfer", "train-policy"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 

@@ -50,6 +50,13 @@ class Conflict(PrecondError):
     kind = "conflict"
 
 
+class NotFound(PrecondError):
+    """What the job names is not (or no longer) the tenant's: a trained policy deleted after it was named
+    (HTTP 404, as the gateway answers for one that never existed)."""
+
+    kind = "not_found"
+
+
 class UnknownAction(InvalidInput):
     kind = "unknown_action"
 

@@ -11,7 +11,14 @@ from typing import Annotated
 
 from pydantic import Field
 
-from schemas.api import MAX_CALL_CHARS, MAX_DEMONSTRATIONS, MAX_SOURCE_CHARS, SPEC_DESCRIPTION, StrictBody
+from schemas.api import (
+    ADAPTER_ID_PATTERN,
+    MAX_CALL_CHARS,
+    MAX_DEMONSTRATIONS,
+    MAX_SOURCE_CHARS,
+    SPEC_DESCRIPTION,
+    StrictBody,
+)
 
 MAX_TRAINING_STEPS = 400
 MAX_EXAMPLE_TOKENS = 4_096
@@ -70,3 +77,20 @@ class TrainPolicyResult(StrictBody):
         "constrained mode draws argument values from them, as it does from a request's demonstrations, so a "
         "fine-tuned policy asked without any still knows its domain's slots.",
     )
+
+
+class PolicyAdapter(StrictBody):
+    """A tenant's stored trained policy, one version: what `POST /policies` made and `/next-action` names with
+    `options.policy: "adapter:<reference>"`. Versions are never rewritten; a new training of the same adapter is
+    its next version."""
+
+    id: str = Field(pattern=f"^{ADAPTER_ID_PATTERN}$")
+    version: int = Field(ge=1)
+    reference: str = Field(description="`id@version`: what `options.policy` names as `adapter:<reference>`.")
+    created: str = Field(description="When this version was stored (UTC, ISO 8601).")
+    result: TrainPolicyResult
+
+
+class PolicyAdapterList(StrictBody):
+    adapters: list[PolicyAdapter] = Field(description="The latest version of each of the tenant's adapters.")
+    bytes: int = Field(description="What all the tenant's stored versions take, against its bound.")

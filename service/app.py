@@ -24,7 +24,7 @@ from service.offload import CheckPool
 from service.prometheus import Metrics
 from service.queue import JobQueue
 from service.quotas import AuthLimit, Quotas, SourceBuckets
-from service.routes import health, operations, sets, ui
+from service.routes import health, operations, policies, sets, ui
 from service.routes import jobs as job_routes
 from service.set_store import SetStore
 from service.settings import GatewaySettings, get_gateway_settings
@@ -80,7 +80,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     app = FastAPI(
         title="Precondition reasoning service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan
     )
-    for router in (operations.router, sets.router, job_routes.router, health.router, ui.router):
+    for router in (operations.router, sets.router, policies.router, job_routes.router, health.router, ui.router):
         app.include_router(router)
     errors.install(app, settings.retry_after_s)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)

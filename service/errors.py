@@ -84,6 +84,8 @@ def status_for(info: ErrorInfo) -> int:
                 return 503
             if issubclass(cls, engine_errors.Conflict):
                 return 409
+            if issubclass(cls, engine_errors.NotFound):
+                return 404
             if issubclass(cls, engine_errors.InvalidInput | engine_errors.ResourceLimit):
                 return 422
     return 500

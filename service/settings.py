@@ -97,6 +97,23 @@ class GatewaySettings(QueueSettings):
         "`sets_limited` above). Sets never expire and live in the queue Redis, whose memory every tenant's jobs "
         "need: size it for this times the number of tenants (keys file) plus the queue's own needs.",
     )
+    max_policies_per_tenant: int = Field(
+        default=4, ge=0,
+        description="Trained policies (POST /policies) one tenant may store (422 above: delete one first).",
+    )
+    max_policy_versions: int = Field(default=5, ge=1, description="Versions one trained policy may have (422 above).")
+    max_policy_bytes_per_tenant: int = Field(
+        default=48_000_000, ge=1_000_000,
+        description="Bytes all of one tenant's trained policies may take, every version counted (422 above). A "
+        "rank-8 adapter of the embedded model is 4.4 MB. Like precondition sets they never expire and live in the "
+        "queue Redis: size it for this times the number of tenants as well.",
+    )
+    max_training_steps: int = Field(
+        default=48, ge=1, le=400,
+        description="Most `options.steps` of one policy training (422 above, naming the field): a step is about "
+        "9 s of a worker's training slot on 2 CPU cores for the embedded model, and a training must end within "
+        "PRECOND_JOB_TIMEOUT_S.",
+    )
     check_processes: int = Field(default=2, ge=1, description=(
         "Processes per gateway that parse and check large requests' programs (spec, demonstrations, history) off "
         "the event loop: parsing holds Python's GIL, so a thread would stall every other client."))

@@ -9,7 +9,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from jobs import keys
-from jobs.kinds import KINDS
+from jobs.kinds import tenant_private
 from schemas.api import JobKind, JobProgress, JobStatus
 from service.auth import refuse
 from service.caller import Caller
@@ -35,7 +35,7 @@ async def submit_job(
     `succeeded` with its result at once when the result is cached."""
     settings = services.settings
     job_id = keys.job_id(kind, payload, model, services.secret, caller.tag)
-    shared = settings.share_cache and not KINDS[kind].stores_version  # a stored version is the tenant's alone
+    shared = settings.share_cache and not tenant_private(kind, payload)
     cache_key = keys.cache_id(kind, payload, model, services.secret) if shared else job_id
     cached = await services.cache.get(cache_key)
     services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()

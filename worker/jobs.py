@@ -36,6 +36,7 @@ from schemas.api import (
     PreconditionSet,
 )
 from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
+from worker import policies
 from worker.memory import MemoryGuard
 from worker.reinfer import reinfer, store
 from worker.settings import WorkerSettings
@@ -92,6 +93,7 @@ RUNNERS: Final[dict[JobKind, Runner]] = {
     "validate": lambda engine, job, _progress, _cancelled: engine.validate(
         job.spec, job.preconditions, job.demonstrations),
     "reinfer": reinfer,
+    "train-policy": policies.train,
 }
 """What the engine does with each kind's payload (`jobs.kinds.KINDS` says which payload that is)."""
 
@@ -105,15 +107,16 @@ def _operate(
 
 
 def _outcome(
-    engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn,
-    max_response_bytes: int, scope: str, memory: Callable[[], AbstractContextManager[None]],
+    engine_of: Callable[[], Engine], kind: JobKind, body: dict[str, Any], progress: ProgressFn,
+    cancelled: CancelledFn, max_response_bytes: int, scope: str, memory: Callable[[], AbstractContextManager[None]],
 ) -> tuple[Outcome, bool]:
     """A finished job's outcome, and whether a sandbox limit stopped it. A result larger than the bound is
     refused here, before Redis stores it twice (result and cache) and a client has to read it. The engine runs
-    in the job's tenant's cache scope (engine/scope.py): its model reuses only that tenant's prompt prefixes."""
+    in the job's tenant's cache scope (engine/scope.py): its model reuses only that tenant's prompt prefixes;
+    `engine_of` is the served engine, or builds the one of the tenant's trained policy the job names."""
     try:
         with memory(), scoped(scope):
-            result = _operate(engine, kind, body, progress, cancelled).model_dump(mode="json")
+            result = _operate(engine_of(), kind, body, progress, cancelled).model_dump(mode="json")
     except PrecondError as exc:
         error = ErrorInfo(type=exc.kind, message=exc.message, field=exc.field)
         return Outcome(status="failed", error=error), isinstance(exc, ResourceLimit)
@@ -140,36 +143,66 @@ async def run_operation(
 ) -> dict[str, Any]:
     """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop.
     A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry)."""
-    settings: WorkerSettings = ctx["settings"]
     redis: Redis[bytes] = ctx["redis"]
-    job_id: str = ctx["job_id"]
-    guard: MemoryGuard = ctx["memory"]
-    loop = asyncio.get_running_loop()
-    reporter = ProgressReporter(redis, job_id, kind, loop, settings.result_ttl_s)
-    stop = threading.Event()
-    future = loop.run_in_executor(
-        None, _outcome, ctx["engine"], kind, body, reporter, stop.is_set, settings.max_response_bytes,
-        owner_of(job_id) or job_id, partial(guard.running, job_id),
-    )
+    tag = owner_of(ctx["job_id"]) or ""
     try:
-        outcome, sandbox_limit = await asyncio.shield(future)
-    except asyncio.CancelledError:
-        stop.set()
-        await asyncio.wait([future])
-        raise
+        engine_of, body = await _engine_for(ctx, tag, kind, body)
+        outcome, sandbox_limit = await _run(ctx, kind, body, engine_of)
+        if KINDS[kind].stores_version and outcome.result is not None:
+            outcome = await _store_version(redis, ctx["job_id"], body, outcome.result)
+        if KINDS[kind].stores_adapter and outcome.result is not None:
+            outcome = await policies.store(redis, tag, ctx["job_id"], body, outcome.result)
+    except PrecondError as exc:
+        outcome, sandbox_limit = policies.failed(exc), False
     finally:
-        reporter.finish_phase()
-    if KINDS[kind].stores_version and outcome.result is not None:
-        outcome = await _store_version(redis, job_id, body, outcome.result)
+        if KINDS[kind].stores_adapter:
+            policies.discard(body)
     # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
     cache: ResultCache = ctx["cache"]
     if outcome.result is not None:
         with contextlib.suppress(RedisError, OSError):
-            await cache.put(cache_key or job_id, outcome.result)
+            await cache.put(cache_key or ctx["job_id"], outcome.result)
     with contextlib.suppress(RedisError, OSError):
         await record_job(redis, kind, outcome.status, sandbox_limit)
     counts: JobCounts = ctx["counts"]
     counts.complete += 1
     return outcome.to_arq()
+
+
+async def _engine_for(ctx: dict[str, Any], tag: str, kind: JobKind, body: dict[str, Any]
+                      ) -> tuple[Callable[[], Engine], dict[str, Any]]:
+    """The engine a job runs on, and its body as it runs: a next action naming a trained policy runs on that
+    policy's engine, read under the job owner's tag (NotFound when it is not the owner's)."""
+    engine: Engine = ctx["engine"]
+    policy = body.get("options", {}).get("policy") if kind == "next-action" else None
+    if not policy:
+        return (lambda: engine), body
+    stored = await policies.fetch(ctx["redis"], tag, policy)
+    adapted: policies.AdaptedEngines = ctx["policies"]
+    return partial(adapted.engine, engine, stored), policies.with_resolved_policy(body, stored)
+
+
+async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_of: Callable[[], Engine]
+               ) -> tuple[Outcome, bool]:
+    """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope."""
+    settings: WorkerSettings = ctx["settings"]
+    job_id: str = ctx["job_id"]
+    guard: MemoryGuard = ctx["memory"]
+    loop = asyncio.get_running_loop()
+    reporter = ProgressReporter(ctx["redis"], job_id, kind, loop, settings.result_ttl_s)
+    stop = threading.Event()
+    allowance = settings.training_max_memory_mb * 1024 * 1024 if KINDS[kind].stores_adapter else 0
+    future = loop.run_in_executor(
+        None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,
+        owner_of(job_id) or job_id, partial(guard.running, job_id, allowance),
+    )
+    try:
+        return await asyncio.shield(future)
+    except asyncio.CancelledError:
+        stop.set()
+        await asyncio.wait([future])
+        raise
+    finally:
+        reporter.finish_phase()

@@ -40,7 +40,9 @@ from jobs.keys import (
     CHECK_QUEUE,
     JOB_FUNCTION,
     MODEL_QUEUE,
+    MODEL_QUEUES,
     QUEUES,
+    TRAIN_QUEUE,
     done_channel,
     kind_of,
     owner_of,
@@ -52,6 +54,7 @@ from sandbox import SandboxUnavailable
 from worker import logs
 from worker.jobs import JobCounts, run_operation
 from worker.memory import MemoryGuard
+from worker.policies import AdaptedEngines
 from worker.settings import WorkerSettings, get_worker_settings
 
 log = logging.getLogger("precond.worker")
@@ -152,7 +155,8 @@ class WorkerProcess:
         try:
             # A fork server per job slot: a job that waits in the sandbox (a history that sleeps) must hold only
             # its own slot's server, never one another tenant's job needs.
-            self.engine = build_engine(with_model=MODEL_QUEUE in queues, min_sandbox_workers=self.slots())
+            self.engine = build_engine(with_model=bool(set(MODEL_QUEUES) & set(queues)),
+                                       min_sandbox_workers=self.slots())
         except SandboxUnavailable as exc:  # fail closed: stay visible (heartbeat, /ready says why), take no job
             log.error("untrusted code cannot be confined here, so this worker takes no job: %s", exc)
             self.sandbox_error = str(exc)
@@ -168,11 +172,18 @@ class WorkerProcess:
         self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
         self.cache: ResultCache | None = None  # on the cache Redis, opened in run()
         self.memory = MemoryGuard(settings.job_max_memory_mb * 1024 * 1024)
+        self.policies = AdaptedEngines()
 
     def slots(self) -> int:
-        """Jobs this process runs at once: check slots, and a model slot and a model-free slot per concurrency."""
+        """Jobs this process runs at once: check slots, a model slot and a model-free slot per concurrency, and
+        one training."""
+        return sum(map(self._concurrency, self.queues))
+
+    def _concurrency(self, queue: str) -> int:
         s = self.settings
-        return sum(s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency for queue in self.queues)
+        if queue == CHECK_QUEUE:
+            return s.check_concurrency
+        return 1 if queue == TRAIN_QUEUE else s.worker_concurrency
 
     async def run(self) -> None:
         loop = asyncio.get_running_loop()
@@ -206,9 +217,9 @@ class WorkerProcess:
 
     def _arq_worker(self, queue: str, engine: Engine) -> Worker:
         s = self.settings
-        model = queue == MODEL_QUEUE
+        model = queue in MODEL_QUEUES
         timeout = s.check_timeout_s if queue == CHECK_QUEUE else s.job_timeout_s
-        max_jobs = s.check_concurrency if queue == CHECK_QUEUE else s.worker_concurrency
+        max_jobs = self._concurrency(queue)
         return TenantShareWorker(
             functions=[func(run_operation, name=JOB_FUNCTION, timeout=timeout)],
             queue_name=queue,
@@ -226,7 +237,8 @@ class WorkerProcess:
             handle_signals=False,
             job_completion_wait=s.drain_s,
             health_check_interval=60,
-            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory},
+            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory,
+                 "policies": self.policies},
             on_job_start=self._claim,
             after_job_end=self._job_ended,
         )

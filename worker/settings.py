@@ -30,6 +30,12 @@ class WorkerSettings(QueueSettings):
         "(`resource_limit`, 422) and the worker goes on. With `PRECOND_PRELOAD_MODEL=false`, set it above the "
         "model's size (the first model job loads it).",
     )
+    training_max_memory_mb: int = Field(
+        default=4096, ge=0,
+        description="What a policy training job may grow the worker's memory by beyond PRECOND_JOB_MAX_MEMORY_MB: it "
+        "loads its own trainable copy of the model (the embedded one: ~2 GB in float32) and backpropagates "
+        "through it (bench/train_policy_bench.py measured a peak of 3.9 GB for a whole training process).",
+    )
     job_max_tries: int = Field(
         default=3, ge=1, description="Runs of a job before it fails (worker deaths count)."
     )

@@ -12,8 +12,8 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 from convert.openai import call_lines
-from jobs import keys
-from jobs.payloads import ReinferJob
+from jobs import keys, policy_adapters
+from jobs.payloads import ReinferJob, TrainPolicyJob
 from programs import checks
 from schemas.api import (
     CheckRequest,
@@ -166,6 +166,7 @@ def _text(history: object) -> str:
 
 
 def _program_chars(body: BaseModel) -> int:
+    body = body.request if isinstance(body, TrainPolicyJob) else body
     texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
              *getattr(body, "demonstrations", []), *getattr(body, "calls", [])]
     return sum(len(text) for text in texts)
@@ -200,7 +201,22 @@ async def _with_rules(services: Services, tag: str, body: RulesRequest) -> Rules
     return prepared
 
 
-async def _as_sent(services: Services, tag: str, body: ReinferJob) -> ReinferJob:
+async def _with_rules_and_policy(services: Services, tag: str, body: NextActionRequest) -> NextActionRequest:
+    """`_with_rules`, and `options.policy` naming the version it runs with (the latest for a bare id), so that
+    the job id and its cached answer belong to that version: 404 when the tenant has no such trained policy."""
+    body = await _with_rules(services, tag, body)
+    if body.options.policy is None:
+        return body
+    reference = (body.options.policy or "").removeprefix("adapter:")
+    stored = await policy_adapters.get(services.redis, tag, reference)
+    if stored is None:
+        raise ServiceError(404, f"options.policy: no trained policy {reference} of yours (POST /policies trains "
+                           "one; another tenant's is not found either)", field="options.policy")
+    options = body.options.model_copy(update={"policy": f"adapter:{stored.reference}"})
+    return body.model_copy(update={"options": options})
+
+
+async def _as_sent(services: Services, tag: str, body: ReinferJob | TrainPolicyJob) -> ReinferJob | TrainPolicyJob:
     return body
 
 
@@ -218,6 +234,10 @@ def _next_action_check(body: NextActionRequest, max_work_points: int) -> StaticC
                                       _text(body.history), max_work_points)
 
 
+def _training_check(body: TrainPolicyJob, max_work_points: int) -> StaticCheck:
+    return checks.check_training, (body.request.spec, body.request.demonstrations)
+
+
 def _check_check(body: CheckRequest, max_work_points: int) -> StaticCheck:
     # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
     return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
@@ -226,9 +246,10 @@ def _check_check(body: CheckRequest, max_work_points: int) -> StaticCheck:
 
 OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
     "infer": Operation(_with_prior_sets, _model_if_generated, _infer_check),
-    "next-action": Operation(_with_rules, lambda body: keys.model_identity(), _next_action_check),
+    "next-action": Operation(_with_rules_and_policy, lambda body: keys.model_identity(), _next_action_check),
     "check": Operation(_with_rules, lambda body: None, _check_check),
     "reinfer": Operation(_as_sent, _model_if_generated, None),
+    "train-policy": Operation(_as_sent, lambda body: keys.model_identity(), _training_check),
 }
 """Every kind a route submits through `answer` (a set's validation is submitted by its route directly)."""
 

@@ -127,6 +127,32 @@ def _next(data: dict[str, Any], model: ScriptedModel, **options: Any) -> list[An
     return response.actions
 
 
+class ThinkingModel(ScriptedModel):
+    """Writes `thought` where it is asked to continue a `# think:` line; records every text it continues."""
+
+    def __init__(self, thought: str, greedy: str) -> None:
+        super().__init__(greedy, [])
+        self.thought, self.asked = thought, []
+
+    def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: str,
+                 should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
+        self.asked.append(prefix + suffixes[0])
+        if suffixes[0].strip() == "# think:":
+            return [[self.thought]]
+        return super().complete(prefix, suffixes, n, sampling, stop, should_stop)
+
+
+def test_react_thinks_before_the_action_and_the_thought_cannot_leave_its_comment(restaurants: dict[str, Any]) -> None:
+    """The thought is the model's text: a line break in it would end the comment and make the rest of it a
+    statement of the history the sandbox runs. It is kept to printable characters, one line."""
+    model = ThinkingModel(" The user gave a city.\r\nimport os\x00\u2028os.system('x')", "system.REQUEST('cuisine')")
+    [action] = _next(restaurants, model, think=True)
+    assert action.thought == "The user gave a city.import osos.system('x')"
+    assert (action.call, action.verified) == ("system.REQUEST('cuisine')", True)
+    assert model.asked[0].endswith("user.INFORM('city')\n# think:")  # asked to think right after the history
+    assert model.asked[1].endswith(f"# think: {action.thought}\n")  # then to act after its thought
+
+
 def test_greedy_prediction_that_holds_is_verified_at_once(restaurants: dict[str, Any]) -> None:
     model = ScriptedModel("system.REQUEST('cuisine')", [])
     [action] = _next(restaurants, model)

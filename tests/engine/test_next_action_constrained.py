@@ -123,6 +123,13 @@ def test_an_action_not_in_the_spec_is_refused(engine: Engine, restaurants: dict[
         engine.next_action(_request(restaurants, {"SYSTEM.DANCE": ["True"]}))
 
 
+def test_a_policy_the_engine_is_not_is_refused_not_answered_by_the_base_model(engine: Engine,
+                                                                              restaurants: dict[str, Any]) -> None:
+    with pytest.raises(InvalidInput) as refused:
+        engine.next_action(_request(restaurants, policy="adapter:ad_" + "1" * 24 + "@1"))
+    assert refused.value.field == "options.policy"
+
+
 @pytest.mark.parametrize("options", [{"verify": False}, {"fallback": "greedy"}])
 def test_options_of_sampling_are_refused_in_constrained_mode(options: dict[str, Any]) -> None:
     with pytest.raises(ValidationError, match="needs mode 'sample'"):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ast
 import json
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,9 @@ def test_episodes_are_sampled_by_seed_with_steps_spread_over_each() -> None:
     assert [e.id for e in first] == [e.id for e in sample_episodes(trajectories, demos, admissible, 4, 3, seed=0)]
     assert len(first) == 4 and all(e.id in admissible for e in first)
     assert all(len(e.steps) == 3 and e.steps == sorted(e.steps, key=lambda s: s[0]) for e in first)
+    for episode in first:  # ReAct's rows show the same demonstration with its thoughts
+        assert episode.react_demonstration.count("# think: ") >= 4
+        assert ast.dump(ast.parse(episode.react_demonstration)) == ast.dump(ast.parse(episode.demonstration))
 
 
 def test_summary_gives_shares_with_intervals_and_paired_differences() -> None:

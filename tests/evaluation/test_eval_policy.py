@@ -47,8 +47,9 @@ def test_policy_config_names() -> None:
     bc = parse_policy_config("inferred/constrained/shots=0/bc")
     assert (bc.policy, bc.mode, bc.shots) == ("bc", "constrained", 0)
     assert parse_policy_config("none/plain/shots=1").policy == "act"
+    assert parse_policy_config("inferred/verify/shots=1/react").policy == "react"
     with pytest.raises(ValueError):
-        parse_policy_config("none/plain/shots=1/react")
+        parse_policy_config("none/plain/shots=1/thoughts")
 
 
 def test_inference_config_names() -> None:

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from cli.main import app
 from engine.models.adapters import RESULT, WEIGHTS, AdapterError, read_result
-from engine.models.backend import Weights, load_code_model, load_weights
+from engine.models.backend import Weights, load_code_model, load_weights, with_adapter
 from engine.settings import ModelSettings
 from engine.spec import parse_spec
 from engine.training import action_spans, train_policy, turn_ends
@@ -107,6 +107,15 @@ def test_steps_beyond_the_bound_are_refused_naming_the_field(tmp_path: Path) -> 
     assert not (tmp_path / "bc").exists()
 
 
+def test_a_stored_policy_named_in_process_is_refused_not_ignored(tmp_path: Path) -> None:
+    """`options.policy` names a policy stored in the service; run in-process, the base model would answer in its
+    place: refused before any model is loaded, saying what to do instead."""
+    body = tmp_path / "next.json"
+    body.write_text(json.dumps({"spec": SPEC, "history": DEMO, "options": {"policy": "adapter:ad_" + "1" * 24}}))
+    result = CliRunner().invoke(app, ["next-action", str(body)])
+    assert result.exit_code == 2 and "options.policy" in result.output and "--server" in result.output
+
+
 @pytest.fixture
 def adapter(tiny_model_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("adapters") / "bc"
@@ -133,3 +142,23 @@ def test_a_pickle_in_place_of_the_weights_is_refused_unread(tiny_model_dir: Path
     torch.save({"x": torch.zeros(1)}, adapter / WEIGHTS)  # torch.save writes a pickle: never loaded as one
     with pytest.raises(AdapterError, match="not a safetensors file"):
         load_code_model(_settings(tiny_model_dir), adapter)
+
+
+def test_an_adapted_copy_answers_as_a_loaded_adapter_and_leaves_the_base_as_it_was(tiny_model_dir: Path,
+                                                                                   adapter: Path) -> None:
+    """What a worker serves for a tenant's policy (`with_adapter`: the projections copied and merged, every
+    other tensor shared) is the model `load_code_model(adapter)` loads, and the served base model is not
+    touched by it, bit for bit."""
+    base = load_code_model(_settings(tiny_model_dir))
+    before = {name: t.clone() for name, t in base.model.state_dict().items()}
+    adapted = with_adapter(base, adapter)
+    loaded = load_code_model(_settings(tiny_model_dir), adapter)
+    ids = base.tokenizer(SPEC + "\n# Current\n" + DEMO, return_tensors="pt")["input_ids"]
+    with torch.no_grad():
+        assert torch.allclose(adapted.model(ids).logits, loaded.model(ids).logits, atol=1e-5)
+        assert not torch.allclose(adapted.model(ids).logits, base.model(ids).logits)
+    assert all(torch.equal(before[name], t) for name, t in base.model.state_dict().items())
+    assert adapted.info.adapter == loaded.info.adapter and adapted.known_calls == loaded.known_calls
+    shared = {t.data_ptr() for t in base.model.parameters()} & {t.data_ptr() for t in adapted.model.parameters()}
+    assert shared and not any("proj" in n and "mlp" not in n for n, t in adapted.model.named_parameters()
+                              if t.data_ptr() in shared)  # the embeddings and MLPs are shared, the projections not

@@ -25,3 +25,20 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Ite
 def client(stack: Stack) -> Iterator[httpx.Client]:
     with stack.http() as http:
         yield http
+
+
+@pytest.fixture()
+def acme(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    """A client with the key of tenant `acme`, in a module whose `keys` fixture made one (path, tenant → key)."""
+    from tests.service.test_tenants import client_for
+
+    with client_for(stack, keys[1]["acme"]) as client:
+        yield client
+
+
+@pytest.fixture()
+def globex(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
+    from tests.service.test_tenants import client_for
+
+    with client_for(stack, keys[1]["globex"]) as client:
+        yield client

@@ -44,18 +44,6 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path,
         yield stack
 
 
-@pytest.fixture()
-def acme(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
-    with client_for(stack, keys[1]["acme"]) as client:
-        yield client
-
-
-@pytest.fixture()
-def globex(stack: Stack, keys: tuple[Path, dict[str, str]]) -> Iterator[httpx.Client]:
-    with client_for(stack, keys[1]["globex"]) as client:
-        yield client
-
-
 def _ok(answer: httpx.Response, status: int = 200) -> dict[str, Any]:
     assert answer.status_code == status, answer.text
     body: dict[str, Any] = answer.json()

@@ -257,14 +257,27 @@ def test_every_key_expires_or_is_bounded(stack: Stack) -> None:
         made = client.post("/precondition-sets", json={"spec": SPEC, "demonstrations": DEMOS[:2],
                                                       "preconditions": {"SYSTEM.GOODBYE": ["self.user.no_more"]}})
         assert made.status_code == 201, made.text
+        trained = client.post("/policies", params={"wait": 60}, json={
+            "spec": SPEC, "demonstrations": DEMOS[:1], "options": {"steps": 1, "max_tokens": 1024}})
+        assert trained.status_code == 200, trained.text
         queue = queue_redis(stack)
         names = sorted(key.decode() for key in queue.scan_iter(count=1000))
         assert any(name.startswith("precond:progress:") for name in names)  # the audit saw the job's keys
         assert any(name.startswith("precond:worker:") for name in names)
         assert any(name.startswith("arq:result:") for name in names)
         assert any(name.startswith("precond:set:") for name in names)
+        assert any(name.startswith("precond:policy:") for name in names)
         for name in names:
             if name in BOUNDED_KEYS:
+                continue
+            if name.startswith(("precond:policy:", "precond:policies:", "precond:policy-bytes:")):  # bounded data
+                fields = GatewaySettings.model_fields
+                if name.startswith("precond:policy-bytes:"):
+                    assert int(queue.get(name) or 0) <= int(fields["max_policy_bytes_per_tenant"].default)
+                elif name.startswith("precond:policies:"):
+                    assert queue.scard(name) <= int(fields["max_policies_per_tenant"].default)
+                else:  # `latest` and three fields per version (the policy, its weights, the job that stored it)
+                    assert queue.hlen(name) <= 3 * int(fields["max_policy_versions"].default) + 1
                 continue
             if name.startswith(("precond:set:", "precond:sets:", "precond:set-bytes:")):  # a client's data: bounded
                 fields = GatewaySettings.model_fields

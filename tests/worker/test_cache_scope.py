@@ -27,7 +27,7 @@ def test_the_engine_runs_in_the_jobs_tenant_scope_and_leaves_it_after() -> None:
                             "calls": ["a.go()"]}
     secret = b"s" * 32
     ident = job_id("check", body, None, secret, tenant_tag(secret, "tenant-a"))
-    outcome, _ = _outcome(engine, "check", body, lambda *a: None, lambda: False,  # type: ignore[arg-type]
+    outcome, _ = _outcome(lambda: engine, "check", body, lambda *a: None, lambda: False,  # type: ignore[arg-type,return-value]
                           10**6, owner_of(ident) or ident, partial(MemoryGuard(2**30).running, ident))
     assert outcome.status == "succeeded", outcome
     assert engine.seen == [tenant_tag(secret, "tenant-a")] and current() == ""
