@@ -31,6 +31,7 @@ NO_ACTION = "no action: the model's line is not a call of an action function"
 THOUGHT = "# think: "
 THOUGHT_TOKENS = 64
 """A thought's length bound in tokens (ReAct's hand-written ALFWorld thoughts are 10 to 60)."""
+MAX_THOUGHTS = 3
 VerifyFn = Callable[[Spec, dict[str, list[str]], str, list[str]], list[CallVerdict]]
 
 
@@ -110,28 +111,42 @@ class NextActionPlanner:
             if self.cancelled():
                 raise Cancelled("job cancelled")
             progress("predict", step, self.options.max_actions)
-            thought = self._think(history) if self.options.think else None
-            if thought is not None:
-                history = append_line(history, f"{THOUGHT}{thought}")
+            thoughts: list[str] = []
+            if self.options.think:
+                history, thoughts = self._think(history)
             predicted = one(history, step)
             if predicted is None:
                 break
-            out.append(predicted.model_copy(update={"thought": thought}))
+            out.append(predicted.model_copy(update={"thoughts": thoughts}))
             if predicted.call is None:
                 break  # no action to continue the turn from
             history = append_line(history, predicted.call)
         progress("done", len(out), len(out))
         return out
 
-    def _think(self, history: str) -> str:
-        """ReAct: the model's greedy `# think:` line after the history, kept to printable characters (no line
-        break can end the comment early: what follows the history stays one inert comment line)."""
+    def _think(self, history: str) -> tuple[str, list[str]]:
+        """ReAct: the model's greedy `# think:` line after the history, then as many more as it writes before an
+        action (ReAct's demonstrations start with two: the plan, then where to look first), at most
+        MAX_THOUGHTS; the history with them, and them. Each is kept to printable characters: no line break in
+        the model's text can end the comment, so what follows the history stays inert comment lines."""
+        indent = constrained.indentation(history)
+        text = self._line(history, indent + THOUGHT.rstrip())
+        thoughts: list[str] = []
+        while True:
+            thought = "".join(ch for ch in text if ch.isprintable()).strip()[:MAX_THOUGHT_CHARS]
+            thoughts.append(thought)
+            history = append_line(history, f"{THOUGHT}{thought}")
+            following = self._line(history, indent).strip() if len(thoughts) < MAX_THOUGHTS else ""
+            if not following.startswith("#"):
+                return history, thoughts
+            text = following.lstrip("#").strip().removeprefix("think:")
+
+    def _line(self, history: str, suffix: str) -> str:
+        """The model's greedy continuation of `suffix` after the history, to the end of the line."""
         from engine.models import Sampling
 
         sampling = Sampling(0.0, 1.0, THOUGHT_TOKENS, self.options.seed)
-        suffix = constrained.indentation(history) + THOUGHT.rstrip()
-        text = self.model.complete(self._prompt(history), [suffix], 1, sampling, "line", self.cancelled)[0][0]
-        return "".join(ch for ch in text if ch.isprintable()).strip()[:MAX_THOUGHT_CHARS]
+        return self.model.complete(self._prompt(history), [suffix], 1, sampling, "line", self.cancelled)[0][0]
 
     def _prompt(self, history: str) -> str:
         return prompting.next_action_prompt(

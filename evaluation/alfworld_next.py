@@ -96,14 +96,20 @@ def _predict(engine: PolicyEngine, spec: str, config: PolicyConfig, precondition
         action = engine.next_action(request).actions[0]
         call = action.call if action.call is not None else None if action.nothing_allowed else (
             action.rejected[0].call if action.rejected else None)
-        error, thought = None, action.thought
+        error, thoughts = None, action.thoughts
     except PrecondError as exc:
-        call, error, thought = None, f"{exc.kind}: {exc.message}", None
-    seconds = time.perf_counter() - start + replayed()
+        call, error, thoughts = None, f"{exc.kind}: {exc.message}", []
+    return {"call": call, "seconds": time.perf_counter() - start + replayed(), "error": error, "thoughts": thoughts}
+
+
+def scored(prediction: dict[str, Any], episode: Episode, step: dict[str, Any]) -> dict[str, Any]:
+    """The prediction with its scores, from its call: admissible (a command the simulator offered in that state;
+    a line that is no command, e.g. cut off or a comment, never is) and expert (the expert's own command)."""
     offered = {parse_command(c) for c in episode.admissible[step["t"] - 1]} | {(step["fn"], tuple(step["args"]))}
-    command = predicted_command(call)
-    return {"call": call, "admissible": command in offered, "expert": command == (step["fn"], tuple(step["args"])),
-            "seconds": seconds, "error": error, "thought": thought}
+    command = predicted_command(prediction["call"])
+    expert = (step["fn"], tuple(step["args"]))
+    return prediction | {"admissible": command is not None and command in offered, "expert": command == expert,
+                         "episode": episode.id}
 
 
 def run(engine_for: Callable[[PolicyConfig], PolicyEngine], spec: str, episodes: Sequence[Episode],
@@ -121,7 +127,7 @@ def run(engine_for: Callable[[PolicyConfig], PolicyEngine], spec: str, episodes:
                         done[str(position)] = _predict(engine_for(config), spec, config, preconditions(config),
                                                        episode, position, step, seed, replayed)
                         cache.put(done, "alfworld-next", config.name, episode.id)
-                    out[config.name].append(done[str(position)] | {"episode": episode.id})
+                    out[config.name].append(scored(done[str(position)], episode, step))
                     bar.update(1)
     return out
 

@@ -478,7 +478,8 @@ class NextActionOptions(StrictBody):
     think: bool = Field(
         default=False,
         description="ReAct: before each action the model writes a thought, a `# think: ...` comment line (greedy, "
-        "one line, printable characters only, at most 400 characters), and the action is then chosen after it, "
+        "one line, printable characters only, at most 400 characters; up to three in a row where it writes "
+        "more), and the action is then chosen after them, "
         "verified as in either mode. Demonstrations may carry such lines (ReAct's hand-written thoughts); a "
         "comment never changes the state the preconditions are judged in.",
     )
@@ -558,10 +559,11 @@ class PredictedAction(StrictBody):
         default=None, description="With `options.return_allowed`: the calls the preconditions allow in this state."
     )
     reason: str | None = Field(default=None, description="Why `call` is null, or why an unverified call is given.")
-    thought: str | None = Field(
-        default=None, max_length=MAX_THOUGHT_CHARS,
-        description="With `options.think` (ReAct): what the model wrote as `# think: ...` before choosing this "
-        "action; it stays in the history the next action of the turn is chosen after.",
+    thoughts: list[Annotated[str, Field(max_length=MAX_THOUGHT_CHARS)]] = Field(
+        default_factory=list, max_length=3,
+        description="With `options.think` (ReAct): what the model wrote as `# think: ...` lines before choosing "
+        "this action (one, or up to three in a row); they stay in the history the next action of the turn is "
+        "chosen after.",
     )
 
 

@@ -128,17 +128,20 @@ def _next(data: dict[str, Any], model: ScriptedModel, **options: Any) -> list[An
 
 
 class ThinkingModel(ScriptedModel):
-    """Writes `thought` where it is asked to continue a `# think:` line; records every text it continues."""
+    """Writes `thought` where it is asked to continue a `# think:` line and, asked for its next line, the lines of
+    `next_lines` in turn (then the greedy call); records every text it continues."""
 
-    def __init__(self, thought: str, greedy: str) -> None:
+    def __init__(self, thought: str, greedy: str, next_lines: Sequence[str] = ()) -> None:
         super().__init__(greedy, [])
-        self.thought, self.asked = thought, []
+        self.thought, self.next_lines, self.asked = thought, list(next_lines), []
 
     def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: str,
                  should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
         self.asked.append(prefix + suffixes[0])
         if suffixes[0].strip() == "# think:":
             return [[self.thought]]
+        if self.next_lines:
+            return [[self.next_lines.pop(0)]]
         return super().complete(prefix, suffixes, n, sampling, stop, should_stop)
 
 
@@ -147,10 +150,19 @@ def test_react_thinks_before_the_action_and_the_thought_cannot_leave_its_comment
     statement of the history the sandbox runs. It is kept to printable characters, one line."""
     model = ThinkingModel(" The user gave a city.\r\nimport os\x00\u2028os.system('x')", "system.REQUEST('cuisine')")
     [action] = _next(restaurants, model, think=True)
-    assert action.thought == "The user gave a city.import osos.system('x')"
+    assert action.thoughts == ["The user gave a city.import osos.system('x')"]
     assert (action.call, action.verified) == ("system.REQUEST('cuisine')", True)
     assert model.asked[0].endswith("user.INFORM('city')\n# think:")  # asked to think right after the history
-    assert model.asked[1].endswith(f"# think: {action.thought}\n")  # then to act after its thought
+    assert model.asked[-1].endswith(f"# think: {action.thoughts[0]}\n")  # then to act after its thought
+
+
+def test_react_keeps_the_thoughts_the_model_writes_in_a_row_up_to_three(restaurants: dict[str, Any]) -> None:
+    model = ThinkingModel("The plan.", "system.REQUEST('cuisine')", ["# think: Where to look.", "#think:\rMore."])
+    [action] = _next(restaurants, model, think=True)
+    assert action.thoughts == ["The plan.", "Where to look.", "More."]
+    assert action.call == "system.REQUEST('cuisine')"
+    assert len(model.asked) == 4  # the first thought, two more read as its next lines, no fourth: then the action
+    assert model.asked[-1].endswith("# think: The plan.\n# think: Where to look.\n# think: More.\n")
 
 
 def test_greedy_prediction_that_holds_is_verified_at_once(restaurants: dict[str, Any]) -> None:

@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from evaluation.alfworld_next import history_before, predicted_command, sample_episodes, summarize
+from evaluation.alfworld_next import Episode, history_before, predicted_command, sample_episodes, scored, summarize
 from evaluation.domains import action_positions
 
 DATA = Path(__file__).resolve().parents[1] / "fixtures" / "data" / "alfworld"
@@ -54,3 +54,15 @@ def test_summary_gives_shares_with_intervals_and_paired_differences() -> None:
     out = {r["config"]: r for r in summarize({"base": rows([False, True]), "new": rows([True, True])}, "base")}
     assert out["new"]["admissible"]["estimate"] == 1.0 and out["base"]["admissible"]["estimate"] == 0.5
     assert out["new"]["admissible_diff"]["estimate"] == 0.5 and "admissible_diff" not in out["base"]
+
+
+def test_a_line_that_is_no_command_is_never_admissible() -> None:
+    """The simulator offers commands the spec has no action for (`look`, `inventory`): they parse to no command,
+    and a cut-off or comment line parses to none either; that must not make it count as offered."""
+    step = {"t": 1, "fn": "goto", "args": ["desk 1"]}
+    episode = Episode("e", "", "", "", [], [["look", "inventory", "go to desk 1", "go to bed 1"]])
+    cases = (("agent.goto('bed 1')", True, False), ("agent.goto('desk 1')", True, True),
+             ("agent.goto('desk 1', 'bed", False, False), ("# think: look around", False, False), (None, False, False))
+    for call, admissible, expert in cases:
+        out = scored({"call": call}, episode, step)
+        assert (out["admissible"], out["expert"], out["episode"]) == (admissible, expert, "e"), call
