@@ -25,8 +25,8 @@ if browser.missing() is None:
 else:
     Browser = Page = Any  # type: ignore[misc,assignment]
 
-keys, acme, globex, inferred, _ok = (sets_tests.keys, sets_tests.acme, sets_tests.globex, sets_tests.inferred,
-                                     sets_tests._ok)  # the same tenants and inference, on a stack of this module's
+keys, inferred, _ok = sets_tests.keys, sets_tests.inferred, sets_tests._ok  # the same tenants and inference, on a
+# stack of this module's (its `acme` and `globex` clients: tests/service/conftest.py)
 needs_browser = pytest.mark.skipif(browser.missing() is not None, reason=f"no browser: {browser.missing()}")
 
 
