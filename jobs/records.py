@@ -17,6 +17,7 @@ from redis.asyncio import Redis
 
 from jobs.keys import STATS_KEY, progress_key
 from schemas.api import ErrorInfo, JobKind, JobProgress
+from schemas.errors import PrecondError
 
 OutcomeState = Literal["succeeded", "failed"]
 
@@ -35,6 +36,11 @@ class Outcome(BaseModel):
     @classmethod
     def from_arq(cls, stored: Any) -> Outcome:
         return cls.model_validate(stored)
+
+    @classmethod
+    def failed(cls, exc: PrecondError) -> Outcome:
+        """The outcome of a job the engine (or its store) refused: the error's type, message and field."""
+        return cls(status="failed", error=ErrorInfo(type=exc.kind, message=exc.message, field=exc.field))
 
 
 # ---- progress -------------------------------------------------------------------------------------------

@@ -118,8 +118,7 @@ def _outcome(
         with memory(), scoped(scope):
             result = _operate(engine_of(), kind, body, progress, cancelled).model_dump(mode="json")
     except PrecondError as exc:
-        error = ErrorInfo(type=exc.kind, message=exc.message, field=exc.field)
-        return Outcome(status="failed", error=error), isinstance(exc, ResourceLimit)
+        return Outcome.failed(exc), isinstance(exc, ResourceLimit)
     size = len(json.dumps(result))
     if size > max_response_bytes:
         message = (f"the answer would be {size:,} bytes, over PRECOND_MAX_RESPONSE_BYTES ({max_response_bytes:,}): "
@@ -134,7 +133,7 @@ async def _store_version(redis: Redis[bytes], job_id: str, body: dict[str, Any],
         stored = await store(redis, owner_of(job_id) or "", ReinferJob.model_validate(body),
                              PreconditionSet.model_validate(result))
     except PrecondError as exc:
-        return Outcome(status="failed", error=ErrorInfo(type=exc.kind, message=exc.message, field=exc.field))
+        return Outcome.failed(exc)
     return Outcome(status="succeeded", result=stored.model_dump(mode="json"))
 
 
@@ -153,7 +152,7 @@ async def run_operation(
         if KINDS[kind].stores_adapter and outcome.result is not None:
             outcome = await policies.store(redis, tag, ctx["job_id"], body, outcome.result)
     except PrecondError as exc:
-        outcome, sandbox_limit = policies.failed(exc), False
+        outcome, sandbox_limit = Outcome.failed(exc), False
     finally:
         if KINDS[kind].stores_adapter:
             policies.discard(body)

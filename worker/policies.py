@@ -23,14 +23,13 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ValidationError
+from pydantic import ValidationError
 
 from engine.engine import Engine
 from jobs import policy_adapters
 from jobs.payloads import TrainPolicyJob
 from jobs.records import Outcome
-from schemas.api import ErrorInfo
-from schemas.errors import Conflict, InvalidInput, NotFound, PrecondError
+from schemas.errors import Conflict, InvalidInput, NotFound
 from schemas.training import PolicyAdapter, TrainPolicyResult
 from worker.memory import give_back_freed
 
@@ -39,12 +38,6 @@ CancelledFn = Callable[[], bool]
 ADAPTED_ENGINES = 1
 """Adapted models a worker keeps (each holds its own copy of the attention projections, ~180 MB for the
 embedded model in float32); a next action of another adapter builds its own (about a second) in its place."""
-
-
-class Trained(BaseModel):
-    """A training's result as the job's thread hands it to the store: the adapter is in `scratch_of(job)`."""
-
-    result: TrainPolicyResult
 
 
 @cache
@@ -57,12 +50,13 @@ def scratch_of(job: TrainPolicyJob) -> Path:
     return _scratch_root() / f"{job.adapter}-v{job.version}"
 
 
-def train(engine: Engine, job: TrainPolicyJob, progress: ProgressFn, cancelled: CancelledFn) -> Trained:
+def train(engine: Engine, job: TrainPolicyJob, progress: ProgressFn, cancelled: CancelledFn) -> TrainPolicyResult:
+    """What trained the adapter, which is left in `scratch_of(job)` for `store`."""
     scratch = scratch_of(job)
     shutil.rmtree(scratch, ignore_errors=True)  # a run of this job before a restart of this process
     scratch.mkdir(mode=0o700)
     try:
-        return Trained(result=engine.train_policy(job.request, scratch / "adapter", progress, cancelled))
+        return engine.train_policy(job.request, scratch / "adapter", progress, cancelled)
     finally:
         give_back_freed()
 
@@ -100,7 +94,7 @@ async def store(redis: Any, tag: str, job_id: str, body: dict[str, Any], result:
         weights = await asyncio.to_thread((scratch_of(job) / "adapter" / WEIGHTS).read_bytes)
         adapter = PolicyAdapter(id=job.adapter, version=job.version, reference=f"{job.adapter}@{job.version}",
                                 created=datetime.now(UTC).isoformat(timespec="seconds"),
-                                result=Trained.model_validate(result).result)
+                                result=TrainPolicyResult.model_validate(result))
         code = await policy_adapters.store(redis, tag, adapter, weights, job_id, job.max_adapters, job.max_versions,
                                            job.max_tenant_bytes)
     finally:
@@ -109,7 +103,7 @@ async def store(redis: Any, tag: str, job_id: str, body: dict[str, Any], result:
         error, message = _REFUSALS[code]
         text = message.format(id=job.adapter, version=job.version, max_adapters=job.max_adapters,
                               max_versions=job.max_versions, max_tenant_bytes=job.max_tenant_bytes)
-        return Outcome(status="failed", error=ErrorInfo(type=error.kind, message=text))
+        return Outcome.failed(error(text))
     stored = await policy_adapters.get(redis, tag, f"{job.adapter}@{code}")
     return Outcome(status="succeeded", result=(stored or adapter).model_dump(mode="json"))
 
@@ -170,7 +164,3 @@ def _build(base: Engine, stored: StoredPolicy) -> Engine:
 def with_resolved_policy(body: dict[str, Any], stored: StoredPolicy) -> dict[str, Any]:
     """The next action's body naming the version it runs with (the engine answers only the policy it is)."""
     return {**body, "options": {**body.get("options", {}), "policy": stored.policy}}
-
-
-def failed(exc: PrecondError) -> Outcome:
-    return Outcome(status="failed", error=ErrorInfo(type=exc.kind, message=exc.message, field=exc.field))

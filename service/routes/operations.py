@@ -207,7 +207,7 @@ async def _with_rules_and_policy(services: Services, tag: str, body: NextActionR
     body = await _with_rules(services, tag, body)
     if body.options.policy is None:
         return body
-    reference = (body.options.policy or "").removeprefix("adapter:")
+    reference = body.options.policy.removeprefix("adapter:")
     stored = await policy_adapters.get(services.redis, tag, reference)
     if stored is None:
         raise ServiceError(404, f"options.policy: no trained policy {reference} of yours (POST /policies trains "
