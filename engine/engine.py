@@ -197,26 +197,39 @@ class Engine:
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos)
         _refuse_no_evidence(actions, trace)
-        proposals = Proposals()
-        model_info: ModelInfo | None = None
-        prompted = _prompted(actions, trace, request.options)
-        if "model" in request.options.generators and prompted:
-            with timer.phase("generate"):
-                model_info = self._generate(spec, actions, prompted, request, proposals, progress, cancelled)
+        enumerated = Proposals()
         stopped: dict[str, str] = {}
         if "enumerate" in request.options.generators:
             with timer.phase("enumerate"):
-                stopped = self._enumerate(spec, actions, demo_trees, trace, proposals)
-        for action in actions:  # after the generators: without priors, nothing changes
-            proposals.add(action, prior.expressions(action), "prior", 0)
+                stopped = self._enumerate(spec, actions, demo_trees, trace, enumerated)
+        writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
+        prompted = _prompted(actions, trace, request.options)
+        settled = [a for a in actions if a not in prompted]
+        proposals = Proposals()
+        model_info: ModelInfo | None = None
+        first: EvaluateResult | None = None
+        if "model" in request.options.generators and prompted:
+            known: dict[str, list[str]] = {}
+            if settled and request.options.show_rules:  # the evidence decides these first; the model reads them
+                with timer.phase("validate"):
+                    first = sandbox_call(self._sandbox.evaluate, spec.source, demos,
+                                         _candidates(settled, enumerated, prior))
+                with timer.phase("rank"):
+                    known = _known_rules(spec, prompted, select_rules(
+                        settled, Inference(trace, first, _proposed(settled, enumerated, prior), request.options,
+                                           writes, prior)))
+                self._check_cancel(cancelled)
+            with timer.phase("generate"):
+                model_info = self._generate(spec, actions, prompted, request, proposals, progress, cancelled, known)
+        proposals = _proposed(actions, enumerated, prior, proposals)
         self._check_cancel(cancelled)
         progress("validate", 0, 1)
         with timer.phase("validate"):
-            candidates = {a: list(proposals.source.get(a, {})) for a in actions}
-            evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, candidates)
+            rest = [a for a in actions if first is None or a not in first.results]
+            evaluated = _merged(first, sandbox_call(self._sandbox.evaluate, spec.source, demos,
+                                                    {a: list(proposals.source.get(a, {})) for a in rest}))
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
             ranked = select_rules(actions, Inference(trace, evaluated, proposals, request.options, writes, prior))
         if request.options.judge:
             with timer.phase("judge"):
@@ -253,9 +266,11 @@ class Engine:
         proposals: Proposals,
         progress: ProgressFn,
         cancelled: Callable[[], bool],
+        known: Mapping[str, Sequence[str]],
     ) -> ModelInfo:
         """Samples for the `prompted` actions, in prompts that show every action's stub (the same prompt
-        whichever actions are asked about)."""
+        whichever actions are asked about) and, before the asked one, the rules `known` of its class's other
+        actions."""
         from engine.models import Sampling
 
         options = request.options
@@ -263,7 +278,7 @@ class Engine:
         windows = prompting.demo_windows(
             len(request.demonstrations), options.prompts_per_action, options.demonstrations_per_prompt
         )
-        suffixes = [prompting.inference_suffix(spec, a) for a in prompted]
+        suffixes = [prompting.inference_suffix(spec, a, known) for a in prompted]
         for index, window in enumerate(windows):
             self._check_cancel(cancelled)
             progress("generate", index, len(windows))
@@ -507,6 +522,34 @@ def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions)
     if options.model_for == "all" or "enumerate" not in options.generators:
         return list(actions)
     return [a for a in actions if too_few(trace.actions[a].occurrences)]
+
+
+def _candidates(actions: Sequence[str], enumerated: Proposals, prior: priors.Priors) -> dict[str, list[str]]:
+    return {a: list(_proposed([a], enumerated, prior).source.get(a, {})) for a in actions}
+
+
+def _proposed(actions: Sequence[str], enumerated: Proposals, prior: priors.Priors,
+              sampled: Proposals | None = None) -> Proposals:
+    """The model's samples (if any), then the enumerator's atoms, then the priors: the order that decides which
+    generator a candidate is reported from and which text stands for its cluster."""
+    proposals = sampled if sampled is not None else Proposals()
+    for action in actions:
+        proposals.add(action, list(enumerated.source.get(action, {})), "enumerate", enumerated.sampled.get(action, 0))
+        proposals.add(action, prior.expressions(action), "prior", 0)  # without priors, nothing changes
+    return proposals
+
+
+def _known_rules(spec: Spec, prompted: Sequence[str], ranked: Mapping[str, Ranked]) -> dict[str, list[str]]:
+    """The rules the evidence chose for the actions of the prompted ones' classes, to show the model."""
+    classes = {spec.methods[a].cls for a in prompted}
+    return {a: [c.representative.expression for c in r.chosen] for a, r in ranked.items()
+            if r.chosen and spec.methods[a].cls in classes}
+
+
+def _merged(first: EvaluateResult | None, rest: EvaluateResult) -> EvaluateResult:
+    if first is None:
+        return rest
+    return EvaluateResult({**rest.points, **first.points}, {**rest.results, **first.results})
 
 
 def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:

@@ -9,9 +9,9 @@ history; the model's next line is the predicted action.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
-from engine.spec import Spec, action_header, observation_source, render_program
+from engine.spec import Spec, action_header, asserted, observation_source, render_program
 
 
 def inference_prefix(spec: Spec, actions: Sequence[str], demonstrations: Sequence[str]) -> str:
@@ -19,8 +19,32 @@ def inference_prefix(spec: Spec, actions: Sequence[str], demonstrations: Sequenc
     return f"{observation_source(spec, actions)}\n{demos}\n# Preconditions of the actions, as assertions\n"
 
 
-def inference_suffix(spec: Spec, action: str) -> str:
-    return action_header(spec, action)
+KNOWN_RULES_CHARS = 4000  # of the rules shown before the asked action: the prompt stays bounded
+
+
+def inference_suffix(spec: Spec, action: str, known: Mapping[str, Sequence[str]] | None = None) -> str:
+    """The action's definition ending in `assert`, after the rules `known` of its class's other actions.
+
+    Shown what the evidence established for its siblings (`assert self.query_success` for a success notice),
+    the model writes the rule of an action no demonstration shows (`not self.query_success` for the failure
+    notice), where with the stub alone a small model writes `assert False`.
+    """
+    header = action_header(spec, action)
+    cls = spec.methods[action].cls
+    shown: list[str] = []
+    used = 0
+    for other, rules in (known or {}).items():
+        if other == action or not rules or spec.methods[other].cls != cls:
+            continue
+        text = asserted(spec, other, rules)
+        if used + len(text) > KNOWN_RULES_CHARS:
+            continue
+        shown.append(text)
+        used += len(text)
+    if not shown:
+        return header
+    opening, definition = header.split("\n", 1)
+    return "\n".join((opening, *shown, definition))
 
 
 def demo_windows(n_demos: int, prompts: int, per_prompt: int) -> list[list[int]]:

@@ -95,9 +95,22 @@ def action_header(spec: Spec, action: str) -> str:
     The spec's own indentation unit is kept, so the model continues the style it has just read.
     """
     method = spec.methods[action]
-    indent = " " * (method.node.col_offset or 4)
-    params = ", ".join(("self", *method.signature))
-    return f"class {method.cls}:\n{indent}def {method.name}({params}):\n{indent}{indent}assert"
+    return f"class {method.cls}:\n{_definition(spec, action)}\n{_indent(spec, action) * 2}assert"
+
+
+def asserted(spec: Spec, action: str, rules: Sequence[str]) -> str:
+    """The action's definition with `rules` as its body, indented like `action_header`."""
+    body = "".join(f"\n{_indent(spec, action) * 2}assert {rule}" for rule in rules)
+    return _definition(spec, action) + body
+
+
+def _definition(spec: Spec, action: str) -> str:
+    method = spec.methods[action]
+    return f"{_indent(spec, action)}def {method.name}({', '.join(('self', *method.signature))}):"
+
+
+def _indent(spec: Spec, action: str) -> str:
+    return " " * (spec.methods[action].node.col_offset or 4)
 
 
 def render_program(spec: Spec, preconditions: dict[str, list[str]]) -> str:

@@ -6,7 +6,8 @@
 
 keys: `mnt` max new tokens per sample, `for` = the request's `options.model_for` (`thin`: the model proposes
 only for actions demonstrated fewer than 3 times), `spp` samples per prompt, `ppa` prompts per action, `dpp`
-demonstrations per prompt, `seed`, `judge=1`
+demonstrations per prompt, `seed`, `judge=1`, `rules=0` (the model asked about a thin action without
+the rules the evidence settled for the others: the paper's prompt)
 (the code model settles what the evidence leaves open, engine/judge.py), and
 `demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
 `maxrate` = re-rank the same inference's valid candidates with evaluation/ranking_probe.py (a measurement of
@@ -27,7 +28,8 @@ from schemas.api import DEFAULT_TOLERANCE, Generator, InferOptions, Ranking
 
 BASELINES = ("always", "gt")
 _KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
-         "seed": "seed", "judge": "judge", "mnt": "max_new_tokens"}
+         "seed": "seed", "judge": "judge", "mnt": "max_new_tokens",
+         "rules": "show_rules"}
 DEMO_COUNTS = (1, 2, 4)
 
 GRIDS: dict[str, tuple[str, ...]] = {

@@ -23,8 +23,9 @@ from evaluation.preconditions import InferFn, infer
 from evaluation.scoring import Satisfaction, score
 
 HEADING = "## Safety where the demonstrations are silent (counterfactual states)"
-DEFAULT_CONFIGS = ("model+enumerate/cautious,enumerate/cautious,model+enumerate/cautious/unseen=allow,"
-                   "enumerate/cautious/unseen=allow,model+enumerate/recency/unseen=allow,"
+DEFAULT_CONFIGS = ("model+enumerate/cautious,model+enumerate/cautious/rules=0,enumerate/cautious,"
+                   "model+enumerate/cautious/unseen=allow,enumerate/cautious/unseen=allow,"
+                   "model+enumerate/recency/unseen=allow,model+enumerate/recency/unseen=allow/rules=0,"
                    "enumerate/recency/unseen=allow,enumerate/subsumption/unseen=allow,always,gt")
 TEXT = """From every test trajectory, K = {variants} variants (seed {seed}), each with ONE observation step removed
 (a user act, a service result, an ALFWorld effect) or one service result flipped (True <-> False); at every point after
@@ -32,9 +33,10 @@ the change, every action with every argument value is judged by the ground-truth
 (evaluation/counterfactual.py). `unsafe` = share of the ground truth's refusals that the inferred rules allow;
 `over` = share of the ground truth's allowances that they refuse; both macro over the actions that have such
 points. `F1` is the paper's metric on the unchanged test trajectories. Config names: evaluation/configs.py
-(`cautious` is the default ranking, `unseen=allow` the paper's treatment of never-demonstrated actions). The
-tables above this section were measured before `cautious` and `options.unseen` existed: a config name there
-meant `unseen=allow` (never-demonstrated actions got no rule).
+(`cautious` is the default ranking, `unseen=allow` the paper's treatment of never-demonstrated actions, `rules=0`
+the paper's prompt: the model asked about a thin action without the rules the evidence settled for the others,
+`options.show_rules`). The tables above this section were measured before `cautious`, `options.unseen` and
+`options.show_rules` existed: a config name there meant `unseen=allow/rules=0`.
 """
 
 

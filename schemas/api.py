@@ -122,6 +122,14 @@ class InferOptions(StrictBody):
         "every action (the paper). On every dev domain both give the same rules (docs/results.md), and 'thin' "
         "samples a fraction of the prompts (generation is most of the time).",
     )
+    show_rules: bool = Field(
+        default=True,
+        description="With model_for 'thin': before the model proposes for a thinly or never demonstrated action, "
+        "the prompt shows the rules the evidence settled for the other actions of its class (a success notice's "
+        "`assert self.query_success` before the failure notice it is asked about), as code. On the dev domains "
+        "this turns the 0.5B model's `assert False` for a never-demonstrated failure notice into "
+        "`not self.query_success` (docs/results.md). False: each action's prompt alone (the paper).",
+    )
     candidates: Listed = Field(
         default="all",
         description="Which candidate reports the answer lists: 'all' (default: every candidate with why it was "

@@ -456,9 +456,14 @@ def test_the_model_is_asked_only_about_thinly_demonstrated_actions_when_told(
         ))
     counts = {a: len(trace.actions[a].occurrences) for a in ("SYSTEM.INFORM", "SYSTEM.REQUEST")}
     assert counts["SYSTEM.INFORM"] < 3 <= counts["SYSTEM.REQUEST"], counts
-    asked = {a for a in counts if any(f"def {a.split('.')[1]}(" in s for s in model.asked)}
+    asked = {a for a in counts
+             if any(s.endswith(f"def {a.split('.')[1]}(self, slot):\n    assert") for s in model.asked)}
     assert asked == ({"SYSTEM.INFORM"} if model_for == "thin" else set(counts))
     assert response.preconditions["SYSTEM.REQUEST"]  # the enumerator still learns the well-evidenced rule
+    # asked about the thin action only, the model reads the rule the evidence established for the other first
+    # (with `all` there is none yet: the paper's prompt)
+    shown = "  def REQUEST(self, slot):\n    assert not self.user.informed_slot[slot]\n  def INFORM(self, slot):"
+    assert any(shown in s for s in model.asked) == (model_for == "thin")
 
 
 def test_without_the_enumerator_the_model_is_asked_about_every_action(restaurants: dict[str, Any]) -> None:

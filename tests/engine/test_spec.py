@@ -3,6 +3,7 @@ from typing import Any
 
 import pytest
 
+from engine.prompting import KNOWN_RULES_CHARS, inference_suffix
 from engine.spec import action_header, observation_source, parse_spec, render_program, resolve_actions
 from schemas.errors import InvalidProgram, UnknownAction
 
@@ -42,3 +43,23 @@ def test_render_program_writes_assertions_that_parse(restaurants: dict[str, Any]
     methods = {n.name: n for n in system.body if isinstance(n, ast.FunctionDef)}
     assert [ast.unparse(s) for s in methods["INFORM"].body] == ["assert self.user.requested_slot[slot]"]
     assert [type(s).__name__ for s in methods["set_query_status"].body] == ["Assert", "Assign"]
+
+
+def test_the_known_rules_of_the_other_actions_come_before_the_asked_one(restaurants: dict[str, Any]) -> None:
+    spec = parse_spec(str(restaurants["spec_program"]))
+    known = {"SYSTEM.NOTIFY_SUCCESS": ["self.query_success"], "SYSTEM.GOODBYE": [],
+             "SYSTEM.NOTIFY_FAILURE": ["False"], "USER.INFORM": ["True"]}
+    suffix = inference_suffix(spec, "SYSTEM.NOTIFY_FAILURE", known)
+    # one class block: the siblings' rules, then the asked action's own (never its own known rule, never another
+    # class's action, nothing for an action without rules)
+    assert suffix == ("class SYSTEM:\n  def NOTIFY_SUCCESS(self):\n    assert self.query_success\n"
+                      "  def NOTIFY_FAILURE(self):\n    assert")
+    assert inference_suffix(spec, "SYSTEM.NOTIFY_FAILURE", {}) == action_header(spec, "SYSTEM.NOTIFY_FAILURE")
+
+
+def test_the_known_rules_shown_are_bounded(restaurants: dict[str, Any]) -> None:
+    spec = parse_spec(str(restaurants["spec_program"]))
+    known = {f"SYSTEM.{a}": [f"self.user.informed_slot['{'x' * 200}']"] * 3 for a in restaurants["system_actions"]}
+    suffix = inference_suffix(spec, "SYSTEM.NOTIFY_FAILURE", known)
+    assert KNOWN_RULES_CHARS // 2 < len(suffix) <= KNOWN_RULES_CHARS + len(action_header(spec, "SYSTEM.NOTIFY_FAILURE"))
+    assert suffix.endswith("def NOTIFY_FAILURE(self):\n    assert")
