@@ -4,9 +4,12 @@ Each example is what the policy sees at next-action time with no few-shot demons
 then the dialog: `engine.prompting.next_action_prompt`), so the adapter learns to continue exactly that prompt.
 The loss is on the action lines (the calls the acting class makes, as `engine.next_action.classify` reads
 them) and on the head of the line that ends each turn (`user.INFORM`, `system.set_query_status`: when to stop
-acting is behaviour too); the rest of the users' turns and the service answers are context, not behaviour to
-clone. The spec is the same in every example, so its keys and values are computed once per step without
-gradients and only the dialog is trained through; the logits are computed only where a loss is taken (the
+acting is behaviour too), the dialog's last turn included: a demonstration that ends on the agent's turn gets
+the other party's name after it (`user`), the head the next-action modes score the turn's end by, so that a
+cloned policy stops after its closing `GOODBYE()` instead of saying it again. The rest of the users' turns and
+the service answers are context, not behaviour to clone. The spec is the same in every example, so its keys
+and values are computed once per step without gradients and only the dialog is trained through; the logits
+are computed only where a loss is taken (the
 150k-token vocabulary is a quarter of the work otherwise).
 
 Demonstrations are untrusted text, but nothing here runs them: they are parsed (`ast`) and tokenized.
@@ -39,7 +42,7 @@ from schemas.training import (
 )
 
 ProgressFn = Callable[[str, int, int], None]
-OBJECTIVE = "action lines and turn ends, spec prefix without gradients"
+OBJECTIVE = "action lines and turn ends (the dialog's end included), spec prefix without gradients"
 """What the loss is taken on; stored with every adapter, and part of the evaluation's adapter key."""
 
 
@@ -82,6 +85,22 @@ def turn_ends(demonstration: str, spans: Sequence[tuple[int, int]]) -> list[tupl
     return ends
 
 
+def closing_head(spec: Spec, demonstration: str, spans: Sequence[tuple[int, int]]) -> str | None:
+    """The other party's name (`user`) when the demonstration ends on the agent's turn: the head its last turn
+    ends with, had the dialog gone on. The party that ends most of its other turns; None when nothing follows
+    no action (the dialog ends on an observation) or no other party exists."""
+    if not spans or demonstration[spans[-1][1]:].strip():
+        return None
+    tree = parse_source(demonstration, "demonstration")
+    acting = {spec.methods[a].cls for a in spec.stub_actions}
+    others = [var for var, cls in instance_classes([tree], {m.cls for m in spec.methods.values()}).items()
+              if cls not in acting]
+    if not others:
+        return None
+    heads = [demonstration[a:b].split(".", 1)[0] for a, b in turn_ends(demonstration, spans)]
+    return max(others, key=lambda var: (heads.count(var), -others.index(var)))
+
+
 def known_calls(demonstrations: Sequence[str], lines: Sequence[Sequence[tuple[int, int]]]) -> list[str]:
     """The distinct action calls the training showed, first seen first, at most MAX_KNOWN_CALLS."""
     calls = dict.fromkeys(demo[a:b].strip() for demo, spans in zip(demonstrations, lines, strict=True)
@@ -112,11 +131,16 @@ def examples(tokenizer: Any, prefix_tokens: int, demonstrations: Sequence[str], 
     """The tokenized dialogs (prefix excluded), each with the tokens of its action lines."""
     out = []
     for demo, spans in zip(demonstrations, lines, strict=True):
-        encoded = tokenizer(split_prompt(spec, demo)[1], return_offsets_mapping=True, add_special_tokens=False)
+        text = split_prompt(spec, demo)[1]
+        trained = [*spans, *turn_ends(demo, spans)]
+        head = closing_head(spec, demo, spans)
+        if head is not None:
+            trained.append((len(text), len(text) + len(head)))
+            text += head
+        encoded = tokenizer(text, return_offsets_mapping=True, add_special_tokens=False)
         ids, offsets = encoded["input_ids"], encoded["offset_mapping"]
         keep = min(len(ids), max(0, max_tokens - prefix_tokens))
         # the first token is predicted from the spec's last logit, which is computed without gradients
-        trained = [*spans, *turn_ends(demo, spans)]
         targets = [k for k, (a, _) in enumerate(offsets[:keep]) if k and any(s <= a < e for s, e in trained)]
         if targets:
             out.append(Example(ids[:keep], targets, keep < len(ids)))

@@ -18,7 +18,7 @@ from engine.models.adapters import RESULT, WEIGHTS, AdapterError, read_result
 from engine.models.backend import Weights, load_code_model, load_weights, with_adapter
 from engine.settings import ModelSettings
 from engine.spec import parse_spec
-from engine.training import action_spans, train_policy, turn_ends
+from engine.training import action_spans, closing_head, train_policy, turn_ends
 from schemas.errors import Cancelled, InvalidInput
 from schemas.training import MAX_TRAINING_STEPS, TrainPolicyOptions, TrainPolicyRequest
 
@@ -57,6 +57,21 @@ def test_the_loss_is_taken_on_the_action_lines_and_where_the_turn_ends() -> None
     assert [DEMO[a:b] for a, b in spans] == ["system.REQUEST('city')\n", "system.REQUEST('date')\n",
                                              "system.GOODBYE()\n"]
     assert [DEMO[a:b] for a, b in turn_ends(DEMO, spans)] == ["user.INFORM", "user.INFORM"]
+    # the dialog ends on the agent's GOODBYE: its turn ends too, with the other party's name after it
+    assert closing_head(parse_spec(SPEC), DEMO, spans) == "user"
+    assert closing_head(parse_spec(SPEC), DEMO + "user.INFORM('x')\n", spans) is None
+
+
+def test_the_dialogs_end_is_trained_as_a_turn_end(tiny_model_dir: Path) -> None:
+    """After the closing GOODBYE the policy learns to hand over (`user`), not to say it again."""
+    from engine.training import action_lines, examples
+
+    spec = parse_spec(SPEC)
+    tokenizer = load_weights(_settings(tiny_model_dir)).tokenizer
+    [example] = examples(tokenizer, 0, [DEMO], spec, action_lines(spec, [DEMO]), 4096)
+    assert tokenizer.decode(example.ids).endswith("system.GOODBYE()\nuser")
+    closing = [k for k in example.targets if k >= len(example.ids) - len(tokenizer("user")["input_ids"])]
+    assert tokenizer.decode([example.ids[k] for k in closing]) == "user"
 
 
 def test_training_lowers_the_loss_and_writes_a_loadable_adapter(tiny_model_dir: Path, tmp_path: Path) -> None:
