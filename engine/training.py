@@ -9,8 +9,7 @@ the other party's name after it (`user`), the head the next-action modes score t
 cloned policy stops after its closing `GOODBYE()` instead of saying it again. The rest of the users' turns and
 the service answers are context, not behaviour to clone. The spec is the same in every example, so its keys
 and values are computed once per step without gradients and only the dialog is trained through; the logits
-are computed only where a loss is taken (the
-150k-token vocabulary is a quarter of the work otherwise).
+are computed only where a loss is taken (the 150k-token vocabulary is a quarter of the work otherwise).
 
 Demonstrations are untrusted text, but nothing here runs them: they are parsed (`ast`) and tokenized.
 """
