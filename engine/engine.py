@@ -211,13 +211,13 @@ class Engine:
         if "model" in request.options.generators and prompted:
             known: dict[str, list[str]] = {}
             if settled and request.options.show_rules:  # the evidence decides these first; the model reads them
+                found = _proposed(settled, enumerated, prior)
                 with timer.phase("validate"):
                     first = sandbox_call(self._sandbox.evaluate, spec.source, demos,
-                                         _candidates(settled, enumerated, prior))
+                                         {a: list(found.source.get(a, {})) for a in settled})
                 with timer.phase("rank"):
                     known = _known_rules(spec, prompted, select_rules(
-                        settled, Inference(trace, first, _proposed(settled, enumerated, prior), request.options,
-                                           writes, prior)))
+                        settled, Inference(trace, first, found, request.options, writes, prior)))
                 self._check_cancel(cancelled)
             with timer.phase("generate"):
                 model_info = self._generate(spec, actions, prompted, request, proposals, progress, cancelled, known)
@@ -522,10 +522,6 @@ def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions)
     if options.model_for == "all" or "enumerate" not in options.generators:
         return list(actions)
     return [a for a in actions if too_few(trace.actions[a].occurrences)]
-
-
-def _candidates(actions: Sequence[str], enumerated: Proposals, prior: priors.Priors) -> dict[str, list[str]]:
-    return {a: list(_proposed([a], enumerated, prior).source.get(a, {})) for a in actions}
 
 
 def _proposed(actions: Sequence[str], enumerated: Proposals, prior: priors.Priors,
