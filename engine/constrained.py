@@ -159,6 +159,25 @@ def turn_heads(spec: Spec, receivers: Mapping[str, str], actions: Iterable[str])
     return TurnHeads(own, observations, [var for var, cls in receivers.items() if cls not in acting])
 
 
+def extensions(heads: Iterable[str], every: Iterable[str]) -> dict[str, list[str]]:
+    """Per head, the other actions' heads that continue its text (`system.OFFER` -> `system.OFFER_INTENT`),
+    only the nearest of a chain: the likelihood of a head is the mass of every line that starts with it."""
+    known = set(every)
+    out: dict[str, list[str]] = {}
+    for head in heads:
+        longer = [o for o in known if o != head and o.startswith(head)]
+        out[head] = sorted(o for o in longer if not any(o != p and o.startswith(p) for p in longer))
+    return out
+
+
+def own_mass(head: str, scores: Mapping[str, float], longer: Mapping[str, Sequence[str]]) -> float:
+    """A head's log-likelihood without the mass of the longer heads that continue it: scored as text,
+    `system.OFFER` also counts every `system.OFFER_INTENT(...)` line, which would make the shorter action
+    win whenever both are allowed."""
+    rest = math.exp(scores[head]) - sum(math.exp(scores[o]) for o in longer.get(head, ()))
+    return math.log(rest) if rest > 0 else -math.inf
+
+
 def ends_turn(heads: TurnHeads, scores: Mapping[str, float]) -> bool:
     """Whether the next line is likelier no action than an action: P(other actor) + P(observation) against
     P(agent) - P(observation). Compared at a line's first words, as greedy decoding decides; comparing `user`

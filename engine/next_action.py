@@ -279,10 +279,12 @@ class NextActionPlanner:
                                                                              strict=True)))
             return max(allowed, key=lambda c: full[c]), full, stop
         heads = list(dict.fromkeys(candidates.head[c] for c in allowed))
-        first = list(dict.fromkeys([*(h.rstrip("(") for h in heads), *ends]))
+        bare = [h.rstrip("(") for h in heads]
+        longer = constrained.extensions(bare, [h.rstrip("(") for h in candidates.head.values()])
+        first = list(dict.fromkeys([*bare, *(o for os in longer.values() for o in os), *ends]))
         scored = dict(zip(first, self.model.score(prompt, [indent + h for h in first], self.cancelled),
                           strict=True))
-        best = max(heads, key=lambda h: scored[h.rstrip("(")])
+        best = max(heads, key=lambda h: (constrained.own_mass(h.rstrip("("), scored, longer), scored[h.rstrip("(")]))
         if turn is not None and constrained.ends_turn(turn, scored):
             return best, {}, True
         return self._arguments(prompt, indent, best, candidates, [c for c in allowed if candidates.head[c] == best])

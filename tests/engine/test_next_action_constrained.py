@@ -3,6 +3,7 @@ and the answers to bad input (the history, the action names)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -187,3 +188,41 @@ def test_a_fine_tuned_policy_asked_without_demonstrations_still_knows_its_domain
         tuned = Engine(sandbox, lambda: tuned_model).next_action(request).actions[0]
     assert "system.REQUEST('cuisine')" not in {a.call for a in base.allowed or []}
     assert "system.REQUEST('cuisine')" in {a.call for a in tuned.allowed or []}
+
+
+class PrefixScorer:
+    """A model whose likelihood of a text is the mass of the lines that start with it, as a real model's is:
+    `system.OFFER` also holds every `system.OFFER_INTENT(...)` line."""
+
+    known_calls: tuple[str, ...] = ()
+
+    def __init__(self, tiny: CodeModel, lines: dict[str, float]) -> None:
+        self.info, self.lines = tiny.info, lines
+
+    def score(self, prefix: str, continuations: Any, should_stop: Any = None) -> list[float]:
+        return [math.log(sum(m for line, m in self.lines.items() if line.startswith(text)) or 1e-12)
+                for text in continuations]
+
+
+def test_an_action_whose_name_starts_another_is_not_credited_with_the_others_mass(
+    tiny: CodeModel, restaurants: dict[str, Any]
+) -> None:
+    """OFFER_INTENT is the likeliest line (0.5 against OFFER's 0.3 in all), but scored as text `system.OFFER`
+    holds 0.8: the shorter head must not win on the longer one's mass."""
+    lines = {"system.OFFER_INTENT('ReserveRestaurant')\n": 0.5, "system.OFFER('city')\n": 0.15,
+             "system.OFFER('cuisine')\n": 0.15, "system.REQUEST('cuisine')\n": 0.2}
+    model = PrefixScorer(tiny, lines)
+    with Sandbox(workers=1) as sandbox:
+        engine = Engine(sandbox, lambda: model)  # type: ignore[arg-type,return-value]
+        [action] = engine.next_action(_request(restaurants, preconditions={}, max_actions=1)).actions
+    assert action.call == "system.OFFER_INTENT('ReserveRestaurant')"
+
+
+def test_extensions_are_the_nearest_longer_heads_and_own_mass_subtracts_them() -> None:
+    every = ["system.OFFER", "system.OFFER_INTENT", "system.OFFER_INTENT_X", "system.INFORM", "system.REQ_MORE"]
+    longer = constrained.extensions(["system.OFFER", "system.INFORM"], every)
+    assert longer == {"system.OFFER": ["system.OFFER_INTENT"], "system.INFORM": []}
+    scores = {"system.OFFER": math.log(0.8), "system.OFFER_INTENT": math.log(0.5)}
+    assert constrained.own_mass("system.OFFER", scores, longer) == pytest.approx(math.log(0.3))
+    assert constrained.own_mass("system.OFFER", {**scores, "system.OFFER_INTENT": math.log(0.8)}, longer) \
+        == -math.inf
