@@ -543,6 +543,7 @@ def _known_rules(spec: Spec, prompted: Sequence[str], ranked: Mapping[str, Ranke
 
 
 def _merged(first: EvaluateResult | None, rest: EvaluateResult) -> EvaluateResult:
+    """The settled actions' judgments (made before the model was asked) beside the rest's: none judged twice."""
     if first is None:
         return rest
     return EvaluateResult({**rest.points, **first.points}, {**rest.results, **first.results})

@@ -284,7 +284,8 @@ class NextActionPlanner:
         first = list(dict.fromkeys([*bare, *(o for os in longer.values() for o in os), *ends]))
         scored = dict(zip(first, self.model.score(prompt, [indent + h for h in first], self.cancelled),
                           strict=True))
-        best = max(heads, key=lambda h: (constrained.own_mass(h.rstrip("("), scored, longer), scored[h.rstrip("(")]))
+        own = {b: (constrained.own_mass(b, scored, longer), scored[b]) for b in bare}
+        best = max(heads, key=lambda h: own[h.rstrip("(")])
         if turn is not None and constrained.ends_turn(turn, scored):
             return best, {}, True
         return self._arguments(prompt, indent, best, candidates, [c for c in allowed if candidates.head[c] == best])

@@ -86,8 +86,8 @@ def turn_ends(demonstration: str, spans: Sequence[tuple[int, int]]) -> list[tupl
 
 def closing_head(spec: Spec, demonstration: str, spans: Sequence[tuple[int, int]]) -> str | None:
     """The other party's name (`user`) when the demonstration ends on the agent's turn: the head its last turn
-    ends with, had the dialog gone on. The party that ends most of its other turns; None when nothing follows
-    no action (the dialog ends on an observation) or no other party exists."""
+    would end with, had the dialog gone on (the party that ends most of its other turns). None when the
+    demonstration ends on something other than an action, or no other party exists."""
     if not spans or demonstration[spans[-1][1]:].strip():
         return None
     tree = parse_source(demonstration, "demonstration")
