@@ -166,9 +166,6 @@ def next_action(
     from evaluation.report import store_sized_results, write_next_action_section
     from evaluation.sized import Task, finished, run, sample_dialogs, summarize
 
-    if any(c.policy == "react" for c in expand_policy(configs)):
-        raise typer.BadParameter("ReAct rows are ALFWorld's (its demonstrations carry ReAct's hand-written thoughts; "
-                                 "SGD's carry none): precond eval next-action-alfworld", param_hint="--configs")
     (data,) = _data([data] if data else None, "sgd")
     store = JsonCache(cache_dir)
     engine, memo = _memo_engine(store)

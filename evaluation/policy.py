@@ -18,9 +18,9 @@ When the engine refuses a request because the history itself violates the precon
 segment is predicted without preconditions, as a client would have to.
 
 Policy configurations, `<preconditions>/<use>/shots=N[/bc|/react]` (`bc`: behaviour cloning, the code model
-fine-tuned on the domain's demonstrations, evaluation/bc.py; `react`: ALFWorld only, the base model prompted
-with ReAct's thoughts in its demonstration and writing one before each action; without either the base
-model, prompted: Act):
+fine-tuned on the domain's demonstrations, evaluation/bc.py; `react`: the base model writing a thought before
+each action, prompted on ALFWorld with ReAct's hand-written thoughts in its demonstration and on SGD, whose
+demonstrations carry none, zero-shot; without either the base model, prompted: Act):
   preconditions: none | inferred | gt  (inferred: read from the precondition cache, see `--inferred-from`)
   use:           plain (no precondition use: the model's greedy lines, unverified) | prompt (written into the
                  prompt's spec) | verify (Algorithm 1's verified sampling, mode 'sample') | both |
@@ -92,7 +92,8 @@ class PolicyConfig:
     policy: str = "act"
     """'act': the base model prompted with the demonstrations; 'bc': the model fine-tuned on them (evaluation.bc);
     'react': the base model prompted with demonstrations that carry thoughts, writing one before each action
-    (`options.think`; ALFWorld only: its thoughts are ReAct's, evaluation/react_thoughts.py)."""
+    (`options.think`; ALFWorld's demonstrations carry ReAct's thoughts, evaluation/react_thoughts.py, SGD's
+    none, so there the model's thoughts are zero-shot)."""
 
 
 def parse_policy_config(name: str) -> PolicyConfig:
@@ -175,6 +176,7 @@ def _predict(engine: PolicyEngine, domain: Domain, config: PolicyConfig, precond
         options=NextActionOptions(max_actions=MAX_ACTIONS, preconditions_in_prompt=config.in_prompt,
                                   verify=config.verify, seed=seed, mode=config.mode,  # type: ignore[arg-type]
                                   choose_by=config.choose_by,  # type: ignore[arg-type]
+                                  think=config.policy == "react",
                                   fallback="greedy" if config.mode == "sample" else "none"),
     )
     start = time.perf_counter()

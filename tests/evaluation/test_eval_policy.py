@@ -5,7 +5,9 @@ from __future__ import annotations
 import pytest
 
 from evaluation.configs import expand, parse_config
-from evaluation.policy import action_of, parse_policy_config, receivers, segments, summarize_policy
+from evaluation.domains import Domain
+from evaluation.policy import _predict, action_of, parse_policy_config, receivers, segments, summarize_policy
+from schemas.api import CheckRequest, CheckResponse, NextActionRequest, NextActionResponse
 
 DIALOG = {
     "program": "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('Find')\nsystem.REQUEST(\"city\")\n"
@@ -75,3 +77,29 @@ def test_probe_config_reranks_its_base_inference() -> None:
     assert config.max_rate == 0.9
     assert config.base.name == "enumerate/recency/demos=4"
     assert config.base.max_rate is None
+
+
+class _RecordingEngine:
+    """Answers every next-action request with nothing, and keeps the requests to look at."""
+
+    def __init__(self) -> None:
+        self.requests: list[NextActionRequest] = []
+
+    def next_action(self, request: NextActionRequest) -> NextActionResponse:
+        self.requests.append(request)
+        return NextActionResponse(actions=[])
+
+    def check(self, request: CheckRequest) -> CheckResponse:
+        raise AssertionError("not used")
+
+
+def test_react_rows_ask_for_thoughts_on_dialogs_whose_demonstrations_carry_none() -> None:
+    domain = Domain("d", "sgd", "class SYSTEM:\n    def GOODBYE(self):\n        pass\n", ("system.GOODBYE()\n",),
+                    ("SYSTEM.GOODBYE",), (), (), {}, {})
+    segment = next(iter(segments(DIALOG)))
+    asked = {}
+    for name in ("none/plain/shots=1", "inferred/constrained/shots=1/react"):
+        engine = _RecordingEngine()
+        _predict(engine, domain, parse_policy_config(name), {}, segment, seed=0)
+        asked[name] = engine.requests[0].options.think
+    assert asked == {"none/plain/shots=1": False, "inferred/constrained/shots=1/react": True}
