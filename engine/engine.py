@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from convert.openai import call_lines, structured_history
-from engine import judge, priors, prompting
+from engine import judge, priors, prompting, scope
 from engine.enumeration import StateModel, enumerate_atoms
 from engine.evidence import thin, too_few
 from engine.freshness import writes_at
@@ -37,6 +37,7 @@ from engine.spec import (
     check_preconditions,
     parse_source,
     parse_spec,
+    remembered_spec,
     render_program,
     resolve_actions,
     skip_statements,
@@ -416,13 +417,14 @@ class Engine:
     def _verify(
         self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]
     ) -> list[CallVerdict]:
-        verdicts = sandbox_call(self._sandbox.check, spec.source, preconditions, history, calls)
+        verdicts = sandbox_call(self._sandbox.check, spec.source, preconditions, history, calls,
+                                scope.current() or None)
         return [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
                 for v in verdicts]
 
     # ---- check ------------------------------------------------------------------------------------
     def check(self, request: CheckRequest) -> CheckResponse:
-        spec = parse_spec(_spec_of(request))
+        spec = remembered_spec(scope.current(), _spec_of(request))
         check_preconditions(spec, request.preconditions)
         history, tree = parsed_history(spec.source, request.history)
         try:

@@ -50,6 +50,16 @@ def parse_spec(source: str) -> Spec:
     return Spec(source, tree, methods)
 
 
+def remembered_spec(scope: str, source: str) -> Spec:
+    """`parse_spec`, its reading remembered per scope (`checks.remembered_spec_methods`): a tenant's guard sends
+    the same spec with every check."""
+    try:
+        tree, methods = checks.remembered_spec_methods(scope, source)
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
+    return Spec(source, tree, methods)
+
+
 def resolve_actions(spec: Spec, requested: Sequence[str] | None) -> list[str]:
     """Requested names must exist (an unknown one gets the closest known name); by default every stub
     method is an action."""

@@ -9,11 +9,14 @@
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import Coroutine
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from pydantic import BaseModel
 from redis.asyncio import Redis
+from redis.exceptions import RedisError
 
 from jobs.keys import STATS_KEY, progress_key
 from schemas.api import ErrorInfo, JobKind, JobProgress
@@ -62,15 +65,19 @@ SANDBOX_FAILURES = "sandbox_failures"
 
 async def record_job(redis: Redis[bytes], kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> None:
     """Count a finished job by kind and outcome (and whether a sandbox limit stopped it)."""
-    if sandbox_limit:
-        await redis.hincrby(STATS_KEY, SANDBOX_FAILURES, 1)
-    await redis.hincrby(STATS_KEY, f"jobs:{kind}:{status}", 1)
+    async with redis.pipeline(transaction=False) as pipe:
+        if sandbox_limit:
+            pipe.hincrby(STATS_KEY, SANDBOX_FAILURES, 1)
+        pipe.hincrby(STATS_KEY, f"jobs:{kind}:{status}", 1)
+        await pipe.execute()
 
 
 async def record_queue_time(redis: Redis[bytes], tenant_tag: str, kind: JobKind, seconds: float) -> None:
     """How long a job waited before a worker started it, per tenant: fairness, as the operator sees it."""
-    await redis.hincrbyfloat(STATS_KEY, f"queue_sum:{tenant_tag}:{kind}", seconds)
-    await redis.hincrby(STATS_KEY, f"queue_count:{tenant_tag}:{kind}", 1)
+    async with redis.pipeline(transaction=False) as pipe:
+        pipe.hincrbyfloat(STATS_KEY, f"queue_sum:{tenant_tag}:{kind}", seconds)
+        pipe.hincrby(STATS_KEY, f"queue_count:{tenant_tag}:{kind}", 1)
+        await pipe.execute()
 
 
 async def record_phase(redis: Redis[bytes], kind: JobKind, phase: str, seconds: float) -> None:
@@ -103,3 +110,12 @@ async def read_stats(redis: Redis[bytes]) -> StatsSnapshot:
         if table in target:
             target[table][(kind, label)] = value
     return snapshot
+
+
+async def bookkeeping(writes: list[Coroutine[Any, Any, Any]]) -> None:
+    """Bookkeeping writes sent at once (each on its own connection: one round trip's wait, not one each), on a
+    job's start and end, where they sit on its latency. A Redis that refuses them never fails the job: a claim
+    is re-registered by the next beat, a lost notice costs a waiter its fallback poll, a lost count a stat."""
+    for outcome in await asyncio.gather(*writes, return_exceptions=True):
+        if isinstance(outcome, BaseException) and not isinstance(outcome, RedisError | OSError):
+            raise outcome

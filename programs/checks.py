@@ -11,6 +11,7 @@ import ast
 import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 from programs.spec import Method, main_body, read_methods
 
@@ -61,6 +62,20 @@ def spec_methods(source: str) -> tuple[ast.Module, dict[str, Method]]:
         message = "spec: defines no class with methods, so there are no actions"
         raise ProgramProblem(Problem(INVALID_PROGRAM, "spec", message))
     return tree, methods
+
+
+REMEMBERED_SPEC_CHARS = 64_000
+"""Specs up to this size are read once per scope; the memory kept is bounded by 32 of them."""
+
+
+def remembered_spec_methods(scope: str, source: str) -> tuple[ast.Module, dict[str, Method]]:
+    """`spec_methods`, remembered per scope: a tenant's guard sends the same spec with every check. Read only."""
+    return _remembered(scope, source) if len(source) <= REMEMBERED_SPEC_CHARS else spec_methods(source)
+
+
+@lru_cache(maxsize=32)
+def _remembered(_scope: str, source: str) -> tuple[ast.Module, dict[str, Method]]:
+    return spec_methods(source)
 
 
 MAX_SUGGESTION_CHARS = 100
@@ -285,8 +300,9 @@ def check_reinfer(spec: str, new: Sequence[str], union: Sequence[str], actions: 
 
 
 def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
-                calls: Sequence[str] = ()) -> None:
-    _, methods = spec_methods(spec)
+                calls: Sequence[str] = (), scope: str = "") -> None:
+    """`scope`: whose check this is; the spec's reading is remembered per scope (`remembered_spec_methods`)."""
+    _, methods = remembered_spec_methods(scope, spec)
     check_preconditions(methods, preconditions)
     check_calls(methods, preconditions, parse(history, "history"), calls)
 

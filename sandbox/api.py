@@ -7,6 +7,7 @@ import logging
 import threading
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from functools import lru_cache
 from types import TracebackType
 from typing import Any, TypeVar
 
@@ -14,7 +15,7 @@ from programs import read_methods
 from sandbox import protocol
 from sandbox.astfilter import ProposedCall, check_program, expression_problem, parse_call
 from sandbox.limits import DEFAULT_ALLOWED_IMPORTS, parent_deadline_s, to_wire, validate
-from sandbox.plain import is_plain, vocabulary
+from sandbox.plain import SpecVocabulary, is_plain, vocabulary
 from sandbox.policy import PolicyUnavailable, build_filter
 from sandbox.pool import ServerPool
 from sandbox.types import (
@@ -123,11 +124,12 @@ class Sandbox:
         return _evaluate_result(judged, found, candidates, problems, points or {})
 
     def check(self, spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
-              calls: Sequence[str]) -> tuple[CallVerdict, ...]:
+              calls: Sequence[str], scope: str | None = None) -> tuple[CallVerdict, ...]:
         """Run the history under the preconditions, then judge each proposed call on its own copy.
 
         Plain preconditions are judged together; any other precondition in a child of its own, and a call
-        is allowed only when every child allows it.
+        is allowed only when every child allows it. `scope` (the caller's tenant) lets a warm child that
+        answered this scope before, and no other, answer again with what it compiled then.
         """
         check_program(spec, "spec")
         check_program(history, "history")
@@ -140,7 +142,7 @@ class Sandbox:
         accepted = [p for p in parsed if isinstance(p, ProposedCall)]
         if not accepted:
             return tuple(_rejected(c, p) for c, p in zip(calls, parsed, strict=True))
-        plain, isolated = _partition(spec, preconditions)
+        plain, isolated = _partition(spec, preconditions, scope or "")
         groups = [plain] + [{action: [expression]} for action, expression in isolated[:MAX_ISOLATED]]
         if len(isolated) > MAX_ISOLATED:
             raise ProgramError("preconditions", None, None, "ValueError", TOO_MANY_ISOLATED)
@@ -149,21 +151,23 @@ class Sandbox:
         def build(_result: dict[str, Any], units: Mapping[int, Any]) -> list[CallVerdict]:
             return [protocol.verdict(p.text, units[k]) for k, p in enumerate(accepted)]
 
-        verdicts = [
+        verdicts = [  # an isolated precondition gets a child of its own: a fresh one, never a warm one
             self._run("check", {"spec": spec, "history": history, "calls": wire_calls,
-                                "preconditions": {a: list(e) for a, e in group.items()}}, build)
-            for group in groups
+                                "preconditions": {a: list(e) for a, e in group.items()}}, build,
+                      scope if number == 0 else None)
+            for number, group in enumerate(groups)
         ]
         combined = iter([protocol.combine(parts) for parts in zip(*verdicts, strict=True)])
         return tuple(next(combined) if isinstance(p, ProposedCall) else _rejected(c, p)
                      for c, p in zip(calls, parsed, strict=True))
 
-    def _run(self, op: str, payload: dict[str, Any], build: Callable[[dict[str, Any], Mapping[int, Any]], T]) -> T:
+    def _run(self, op: str, payload: dict[str, Any], build: Callable[[dict[str, Any], Mapping[int, Any]], T],
+             scope: str | None = None) -> T:
         message = {"op": op, "payload": payload}
         cancelled = getattr(self._local, "cancelled", None)
         if cancelled is not None and cancelled():
             raise SandboxCancelled("cancelled")
-        header, raw = self._pool.call(message, parent_deadline_s(self.limits), cancelled)
+        header, raw = self._pool.call(message, parent_deadline_s(self.limits), cancelled, scope)
         protocol.raise_for_header(header)
         return protocol.decode(raw, build)
 
@@ -178,24 +182,31 @@ def _check_programs(spec: str, programs: Sequence[str], where: str) -> None:
         check_program(source, where, index)
 
 
-def _partition(spec: str, expressions: Mapping[str, Sequence[str]]
+def _partition(spec: str, expressions: Mapping[str, Sequence[str]], scope: str = ""
                ) -> tuple[dict[str, list[str]], list[tuple[str, str]]]:
-    """Plain expressions by action (every action kept, so its points are computed), and the others."""
+    """Plain expressions by action (every action kept, so its points are computed), and the others. What is
+    read from the spec and the rules is remembered per scope (a tenant's checks repeat both)."""
     words = vocabulary(spec)
-    params = _parameters(spec)
+    params = _parameters(scope, spec)
     plain: dict[str, list[str]] = {}
     isolated: list[tuple[str, str]] = []
     for action, exprs in expressions.items():
         plain[action] = []
         for expression in exprs:
-            if is_plain(expression, params.get(action, ()), words):
+            if _is_plain(scope, expression, params.get(action, ()), words):
                 plain[action].append(expression)
             else:
                 isolated.append((action, expression))
     return plain, isolated
 
 
-def _parameters(spec: str) -> dict[str, tuple[str, ...]]:
+@lru_cache(maxsize=1024)
+def _is_plain(_scope: str, expression: str, params: tuple[str, ...], words: SpecVocabulary) -> bool:
+    return is_plain(expression, params, words)
+
+
+@lru_cache(maxsize=64)
+def _parameters(_scope: str, spec: str) -> dict[str, tuple[str, ...]]:
     try:
         methods = read_methods(ast.parse(spec))
     except (SyntaxError, ValueError, MemoryError, RecursionError):

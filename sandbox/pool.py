@@ -96,16 +96,17 @@ class ForkServer:
             self._hello = hello
         return self._hello
 
-    def request(self, message: dict[str, Any], wait_s: float,
-                cancelled: Callable[[], bool] | None = None) -> tuple[dict[str, Any], bytes]:
+    def request(self, message: dict[str, Any], wait_s: float, cancelled: Callable[[], bool] | None = None,
+                scope: str | None = None) -> tuple[dict[str, Any], bytes]:
         """Send one request; return the header and the raw result. A reply that does not carry this
-        request's id is never taken as its answer. `cancelled` is polled while waiting (CallCancelled)."""
+        request's id is never taken as its answer. `cancelled` is polled while waiting (CallCancelled);
+        `scope` lets a warm child of that scope, and only of it, answer (sandbox.child.server)."""
         self._cancelled = cancelled
         deadline = time.monotonic() + wait_s
         self.ready()
         call_id = secrets.token_hex(16)
         body = json.dumps(message, ensure_ascii=True).encode("ascii")
-        header_line = json.dumps({"id": call_id, "size": len(body)}).encode("ascii") + b"\n"
+        header_line = json.dumps({"id": call_id, "size": len(body), "scope": scope}).encode("ascii") + b"\n"
         self._write(header_line + body, deadline)
         header = json.loads(self._read_line(deadline))
         if not isinstance(header, dict) or header.get("id") != call_id:
@@ -240,11 +241,11 @@ class ServerPool:
             else:
                 self._idle.put(server)
 
-    def call(self, message: dict[str, Any], wait_s: float,
-             cancelled: Callable[[], bool] | None = None) -> tuple[dict[str, Any], bytes]:
+    def call(self, message: dict[str, Any], wait_s: float, cancelled: Callable[[], bool] | None = None,
+             scope: str | None = None) -> tuple[dict[str, Any], bytes]:
         with self.server() as server:
             try:
-                return server.request(message, wait_s, cancelled)
+                return server.request(message, wait_s, cancelled, scope)
             except (OSError, ValueError, KeyError) as exc:
                 raise ServerGone(f"protocol error: {exc}") from exc
 

@@ -66,18 +66,21 @@ return -1
 """
 
 # Virtual time is the queue's head score; with nothing queued, the highest score handed out so far (all
-# of those jobs are done, so a tenant's old backlog gives it no head start and no debt).
-_FAIR_SCORE = """
-local head = redis.call('ZRANGE', KEYS[1], 0, 0, 'WITHSCORES')
-local highest = tonumber(redis.call('HGET', KEYS[2], '~max') or ARGV[2])
-local clock = highest
-if head[2] then
-  clock = tonumber(head[2])
+# of those jobs are done, so a tenant's old backlog gives it no head start and no debt). A Lua function, for
+# the queue's submission script (service.queue), which enqueues a job at this score in the same step.
+FAIR_SCORE_FUNCTION = """
+local function fair_score(queue, fair, tag, epoch, ttl)
+  local head = redis.call('ZRANGE', queue, 0, 0, 'WITHSCORES')
+  local highest = tonumber(redis.call('HGET', fair, '~max') or epoch)
+  local clock = highest
+  if head[2] then
+    clock = tonumber(head[2])
+  end
+  local score = math.max(clock, tonumber(redis.call('HGET', fair, tag) or 0)) + 1
+  redis.call('HSET', fair, tag, score, '~max', math.max(highest, score))
+  redis.call('EXPIRE', fair, ttl)
+  return score
 end
-local score = math.max(clock, tonumber(redis.call('HGET', KEYS[2], ARGV[1]) or 0)) + 1
-redis.call('HSET', KEYS[2], ARGV[1], score, '~max', math.max(highest, score))
-redis.call('EXPIRE', KEYS[2], ARGV[3])
-return score
 """
 
 
@@ -102,7 +105,7 @@ def _jobs_key(tag: str) -> str:
     return f"{PREFIX}:tenant:{tag}:jobs"
 
 
-def _fair_key(queue: str) -> str:
+def fair_key(queue: str) -> str:
     return f"{PREFIX}:fair:{queue}"
 
 
@@ -215,13 +218,6 @@ class Quotas:
             return None
         return Refusal("jobs", f"job limit: tenant {caller.name!r} has {count} jobs queued or running "
                                f"(at most {self.max_jobs})", retry_after_s)
-
-    async def fair_start(self, queue: str, tag: str) -> datetime:
-        """The score to enqueue a tenant's next job with, as arq's `_defer_until`."""
-        score = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _FAIR_SCORE, 2, queue, _fair_key(queue), tag, FAIR_EPOCH_MS, STATE_TTL_S
-        ))
-        return datetime.fromtimestamp(score / 1000, UTC)
 
 
 JOB_EXPIRY: Final = timedelta(days=1)

@@ -45,16 +45,16 @@ async def submit_job(
     if screen is not None:
         await screen()
     refuse(services, caller.tag, await services.quotas.admit_job(caller, job_id, settings.retry_after_s))
+    timeout = settings.wait_max_s if wait_s is None else min(wait_s, settings.wait_max_s)
     try:
-        await services.queue.submit(kind, job_id, payload, caller.tag, cache_key)
+        status = await services.queue.submit(kind, job_id, payload, caller.tag, cache_key, timeout,
+                                             settings.wait_poll_s)
     except QueueFull as full:
         services.metrics.rejections.labels(caller.tag, "queue").inc()
         raise ServiceError(
             429, f"queue limit: queue {full} is full", "queue_full",
             headers={"Retry-After": str(settings.retry_after_s)},
         ) from None
-    timeout = settings.wait_max_s if wait_s is None else min(wait_s, settings.wait_max_s)
-    status = await services.queue.wait(job_id, timeout, settings.wait_poll_s)
     if status is None:
         raise ServiceError(503, "the job vanished from the queue backend", headers={"Retry-After": "1"})
     return status

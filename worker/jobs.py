@@ -8,7 +8,6 @@ engine polls between steps.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
 import threading
 import time
@@ -20,7 +19,6 @@ from typing import Any, Final
 
 from pydantic import BaseModel
 from redis.asyncio import Redis
-from redis.exceptions import RedisError
 
 from engine.engine import Engine
 from engine.scope import scoped
@@ -28,7 +26,7 @@ from jobs.cache import ResultCache
 from jobs.keys import owner_of
 from jobs.kinds import KINDS
 from jobs.payloads import ReinferJob
-from jobs.records import Outcome, record_job, record_phase, write_progress
+from jobs.records import Outcome, bookkeeping, record_job, record_phase, write_progress
 from schemas.api import (
     ErrorInfo,
     JobKind,
@@ -160,11 +158,10 @@ async def run_operation(
     # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
     cache: ResultCache = ctx["cache"]
+    writes = [record_job(redis, kind, outcome.status, sandbox_limit)]
     if outcome.result is not None:
-        with contextlib.suppress(RedisError, OSError):
-            await cache.put(cache_key or ctx["job_id"], outcome.result)
-    with contextlib.suppress(RedisError, OSError):
-        await record_job(redis, kind, outcome.status, sandbox_limit)
+        writes.append(cache.put(cache_key or ctx["job_id"], outcome.result))
+    await bookkeeping(writes)
     counts: JobCounts = ctx["counts"]
     counts.complete += 1
     return outcome.to_arq()

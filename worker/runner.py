@@ -49,7 +49,7 @@ from jobs.keys import (
     wake_channel,
     worker_key,
 )
-from jobs.records import record_queue_time
+from jobs.records import bookkeeping, record_queue_time
 from sandbox import SandboxUnavailable
 from worker import logs
 from worker.jobs import JobCounts, run_operation
@@ -287,23 +287,19 @@ class WorkerProcess:
         """
         self.counts.started += 1
         token = ctx["claim"] = self.claims[ctx["job_id"]] = new_claim(self.id)
+        steps = [claim(ctx["redis"], self._heartbeat_body(), self.settings.heartbeat_lease_s, ctx["job_id"], token)]
         tag, kind = owner_of(ctx["job_id"]), kind_of(ctx["job_id"])
         if tag is not None and kind is not None and ctx.get("job_try", 1) == 1:
             waited = (datetime.now(UTC) - ctx["enqueue_time"]).total_seconds()
-            with contextlib.suppress(RedisError, OSError):
-                await record_queue_time(ctx["redis"], tag, kind, max(0.0, waited))
-        with contextlib.suppress(RedisError, OSError):
-            await claim(ctx["redis"], self._heartbeat_body(), self.settings.heartbeat_lease_s, ctx["job_id"], token)
+            steps.append(record_queue_time(ctx["redis"], tag, kind, max(0.0, waited)))
+        await bookkeeping(steps)
 
     async def _job_ended(self, ctx: dict[str, Any]) -> None:
         """arq's after_job_end (arq has recorded the end: result stored, or the job re-queued)."""
         job_id, token = ctx["job_id"], ctx.get("claim")
         if token and self.claims.get(job_id) == token:
             del self.claims[job_id]
-        await _announce(ctx)
-        if token:
-            with contextlib.suppress(RedisError, OSError):
-                await release(ctx["redis"], job_id, token)
+        await bookkeeping([_announce(ctx), *([release(ctx["redis"], job_id, token)] if token else [])])
 
     def _running(self) -> dict[str, str]:
         """Claims of the runs going on now; claims of runs that ended unrecorded move to `dropped`."""
@@ -354,8 +350,7 @@ async def _announce(ctx: dict[str, Any]) -> None:
 
     Advisory: a lost message only delays a waiter until its next fallback poll.
     """
-    with contextlib.suppress(RedisError, OSError):
-        await ctx["redis"].publish(done_channel(ctx["job_id"]), b"1")
+    await ctx["redis"].publish(done_channel(ctx["job_id"]), b"1")
 
 
 def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:

@@ -1,4 +1,5 @@
-"""A pre-forked child: confine, warm up, wait for its one request, run it, exit without cleanup."""
+"""A pre-forked child: confine, warm up, wait for its request, run it, exit without cleanup; or, when the
+server keeps it for its scope's next request (`keep`), wait for that one instead of exiting."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from . import runtime
 from .boundary import REQUEST_FD, RESULT_FD, BoundaryError, confine
 from .check import job_check
 from .evaluate import job_evaluate
-from .framing import Reporter, read_all
+from .framing import Reporter, read_request
 from .trace import job_trace
 from .values import Failure, OutputLimit, describe
 
@@ -45,10 +46,20 @@ def run_child(config: dict[str, typing.Any], workdir: str, was_root: bool, bpf: 
     budget = _conveniences(limits)
     table = runtime.restricted_builtins(frozenset(config["allowed_imports"]))
     _warm_up(table)
-    settled, _, body = read_all(REQUEST_FD).partition(b"\n")
-    request = json.loads(body)
+    while (received := read_request(REQUEST_FD)) is not None:
+        settled, body = received
+        _answer(json.loads(body), settled, table, limits, budget)
+        if settled.get("keep") is not True:
+            break
+        budget[0] = int(limits["output_bytes"])  # each request has the whole output budget
+        gc.collect()  # collection is off while untrusted code runs; between requests it is off the latency
+    os._exit(0)
+
+
+def _answer(request: dict[str, typing.Any], settled: dict[str, typing.Any], table: dict[str, object],
+            limits: dict[str, typing.Any], budget: list[int]) -> None:
     report = Reporter(RESULT_FD, int(limits["result_bytes"]))
-    ctx = runtime.Context(table, report, frozenset(json.loads(settled)["skip"]))
+    ctx = runtime.Context(table, report, frozenset(settled["skip"]))
     try:
         result = JOBS[request["op"]](request["payload"], ctx)
     except Failure as failure:
@@ -65,7 +76,6 @@ def run_child(config: dict[str, typing.Any], workdir: str, was_root: bool, bpf: 
     if budget[0] < 0:
         result = {"error": {"kind": "limit", "limit": "output", "message": "output limit exceeded"}}
     report.end(result)
-    os._exit(0)
 
 
 def _conveniences(limits: dict[str, typing.Any]) -> list[int]:

@@ -13,7 +13,7 @@ import typing
 
 from programs import Method
 
-from .runtime import UNDO_LOG, UNDO_ON, Context, Occurrence, Program, Spec, load, recorder, rollback
+from .runtime import UNDO_LOG, UNDO_ON, Context, Occurrence, Program, Spec, compiled, load, recorder, rollback
 from .values import FATAL, Failure, clean, describe, jsonable, tupled
 
 
@@ -21,6 +21,11 @@ def compile_assertion(expression: object, method: Method, filename: str) -> type
     """`lambda self, <params>: (<expression>)`, built as an AST so that no text is spliced."""
     if not isinstance(expression, str):
         raise SyntaxError("not a string")
+    key = ("assertion", expression, tuple(method.positional), method.vararg, filename)
+    return typing.cast(types.CodeType, compiled(key, lambda: _assertion_code(expression, method, filename)))
+
+
+def _assertion_code(expression: str, method: Method, filename: str) -> types.CodeType:
     body = ast.parse(expression, filename, mode="eval").body
     arguments = ast.arguments(
         posonlyargs=[], args=[ast.arg("self")] + [ast.arg(p) for p in method.positional],

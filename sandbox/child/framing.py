@@ -24,11 +24,24 @@ def write_all(fd: int, data: bytes) -> None:
         view = view[os.write(fd, view):]
 
 
-def read_all(fd: int) -> bytes:
-    chunks = []
-    while chunk := os.read(fd, CHUNK):
-        chunks.append(chunk)
-    return b"".join(chunks)
+def read_request(fd: int) -> tuple[dict[str, typing.Any], bytes] | None:
+    """The server's next request to a child: its header line (`skip`, `size`, `keep`) and `size` bytes of body;
+    None at end of input. Nothing follows a request until the child has answered it, so nothing is over-read."""
+    data = bytearray()
+    while b"\n" not in data:
+        chunk = os.read(fd, CHUNK)
+        if not chunk:
+            return None
+        data += chunk
+    line, _, rest = bytes(data).partition(b"\n")
+    header = json.loads(line)
+    body = bytearray(rest)
+    while len(body) < int(header["size"]):
+        chunk = os.read(fd, CHUNK)
+        if not chunk:
+            return None
+        body += chunk
+    return header, bytes(body)
 
 
 def encode_frame(frame: dict[str, object]) -> bytes:

@@ -155,18 +155,39 @@ def parse(source: object, filename: str, where: str, index: int | None) -> ast.M
         raise fail(where, index, error_line(exc, filename), exc) from None
 
 
+COMPILED_MAX = 4096
+"""Compiled programs, statements and rules a child keeps; only a warm child (one scope's, see
+`sandbox.child.server`) ever sees a second request, so only there are they reused."""
+_COMPILED: dict[object, typing.Any] = {}
+
+
+def compiled(key: object, build: typing.Callable[[], typing.Any]) -> typing.Any:
+    """`build()`, remembered under `key` (text in, code out: nothing of a run is kept)."""
+    found = _COMPILED.get(key)
+    if found is None:
+        if len(_COMPILED) >= COMPILED_MAX:
+            _COMPILED.clear()
+        found = _COMPILED[key] = build()
+    return found
+
+
 class Spec:
-    """The spec program: compiled once per request, executed afresh for every program that uses it."""
+    """The spec program: compiled once per request (per source text in a warm child), executed afresh for every
+    program that uses it."""
 
     FILE = "<spec>"
 
     def __init__(self, source: object, builtins_table: dict[str, object]) -> None:
-        tree = parse(source, self.FILE, "spec", None)
         self.builtins = builtins_table
-        self.code = compile(tree, self.FILE, "exec")
-        self.classes = [n.name for n in tree.body if isinstance(n, ast.ClassDef)]
-        self.methods: dict[str, Method] = read_methods(tree)
-        self._tree = tree
+        read: tuple[ast.Module, types.CodeType, list[str], dict[str, Method]] = (
+            compiled(("spec", source), lambda: self._read(source)) if isinstance(source, str) else self._read(source))
+        self._tree, self.code, self.classes, self.methods = read
+
+    @classmethod
+    def _read(cls, source: object) -> tuple[ast.Module, types.CodeType, list[str], dict[str, Method]]:
+        tree = parse(source, cls.FILE, "spec", None)
+        code = compile(tree, cls.FILE, "exec")
+        return tree, code, [n.name for n in tree.body if isinstance(n, ast.ClassDef)], read_methods(tree)
 
     @functools.cached_property
     def purity(self) -> Purity:
@@ -226,6 +247,7 @@ class Program:
         self.spec, self.where, self.index = spec, where, index
         tree = parse(source, self.FILE, where, index)
         self.source = typing.cast(str, source)
+        self.lines = self.source.splitlines()
         self.body = main_body(tree)
         self.globals = spec.instantiate()
         self.base = dict(self.globals)
@@ -248,7 +270,7 @@ class Program:
             self.memo = None
             if snapshot:
                 self.snapshots.append(self._snapshot(direct=_direct_call(stmt)))
-            code = compile(ast.Module(body=[stmt], type_ignores=[]), self.FILE, "exec")
+            code = self._code(stmt)
             try:
                 exec(code, self.globals)
             except FATAL:
@@ -256,6 +278,17 @@ class Program:
             except BaseException as exc:
                 raise fail(self.where, self.index, error_line(exc, self.FILE) or stmt.lineno, exc) from None
         self.memo = None
+
+    def _code(self, stmt: ast.stmt) -> types.CodeType:
+        """A statement's code; a one-line statement's by its place and text (a dialog's history is re-sent
+        with one more turn each time, its earlier lines unchanged)."""
+        def build() -> types.CodeType:
+            return compile(ast.Module(body=[stmt], type_ignores=[]), self.FILE, "exec")
+
+        if stmt.end_lineno != stmt.lineno or not 0 < stmt.lineno <= len(self.lines):
+            return build()
+        key = ("statement", stmt.lineno, stmt.col_offset, stmt.end_col_offset, self.lines[stmt.lineno - 1])
+        return typing.cast(types.CodeType, compiled(key, build))
 
     def copy_variables(self) -> tuple[dict[str, object], dict[int, object]]:
         """Deep copy of the variables that keeps identity sharing; what cannot be copied is left out."""

@@ -5,10 +5,19 @@ Per request it hands the request to a fresh, already confined child, enforces th
 each unit's CPU and wall budget, and forwards the result under the request's id. When a child dies or is
 killed inside a unit (one candidate, one proposed call), that unit alone fails with its reason and a new
 child continues with the units that remain, so one runaway part never costs the rest of the call.
+
+A request that names a scope (the worker's tenant tag: a check on the guard's hot path) may be answered by a
+warm child of that scope, one that already answered a request of it and kept what it compiled. A warm child
+serves one scope only and is confined like every other; between requests it is stopped (SIGSTOP: whatever its
+untrusted code left behind cannot use a CPU while it waits); it is used only while it is small and far from
+its CPU limit, and any failure on it is re-run on a fresh child, so what a call may use does not depend on
+the calls before it. What a scope's code changes in the modules it imports stays for that scope's next calls
+on the same child (its own state, never another scope's).
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import gc
@@ -29,6 +38,17 @@ from .values import clean
 
 SPARE_FD = 900
 UNIT_WALL_FACTOR = 3.0
+WARM_PER_SERVER = 4
+"""Warm children one server keeps (least recently used first out): one per scope."""
+WARM_MAX_USES = 500
+WARM_MAX_RESIDENT_MB = 64
+"""A child that grew past this keeps no memory of the machine's after its request: it is not kept warm."""
+WARM_STALL_S = 1.0
+"""How long a reused child may take to answer before the call is run again on a fresh one (a check answers in
+milliseconds: more means it is stuck in what an earlier call of its scope left running)."""
+WARM_CPU_SHARE = 0.5
+"""A warm child is retired once it has used this share of its CPU limit, so every call on it has at least the
+other half; a call that still runs out is re-run on a fresh child."""
 PROBE_DENIED = 0
 PROBE_ALLOWED = 1
 
@@ -42,6 +62,7 @@ class Child:
     result: int
     status: int | None = None
     cpu_s: float = 0.0
+    uses: int = 0
 
 
 @dataclasses.dataclass
@@ -54,6 +75,12 @@ class Outcome:
     end: dict[str, typing.Any] | None = None
     unit: int | None = None
     detail: str = ""
+
+
+def _limit_error(result: dict[str, typing.Any]) -> bool:
+    """An end that reports a limit or an internal error: on a reused child, possibly its past calls' doing."""
+    error = result.get("error")
+    return isinstance(error, dict) and error.get("kind") in ("limit", "internal")
 
 
 def cpu_seconds(pid: int) -> float:
@@ -73,23 +100,79 @@ class Server:
         self.pid = os.getpid()
         self.workdir = tempfile.mkdtemp(prefix="sandbox-")
         os.chmod(self.workdir, 0o555)
+        self.warm: collections.OrderedDict[str, Child] = collections.OrderedDict()
 
     # ------------------------------------------------------------------------------------ lifecycle
 
     def serve_forever(self) -> None:
-        spare = self.fork_child()
+        spare: Child | None = self.fork_child()
         try:
             for line in self.requests:
                 header = json.loads(line)
                 body = self.requests.read(int(header["size"]))
-                reply, payload, last = self.call(spare, body)
+                scope = header.get("scope") if isinstance(header.get("scope"), str) else None
+                deadline = time.monotonic() + float(self.limits["timeout_s"])
+                answer = self.call_warm(scope, body, deadline) if scope is not None else None
+                if answer is None:
+                    assert spare is not None
+                    answer = self.call(spare, body, deadline, keep=scope is not None)
+                    spare = None
+                reply, payload, last = answer
                 reply["id"] = header["id"]
                 self.send(reply, payload)
-                self.discard(last)  # teardown and the next fork happen after the answer, off its latency
-                spare = self.fork_child()
+                # teardown and the next fork happen after the answer, off its latency
+                self.keep_or_discard(scope, last, reply)
+                if spare is None:
+                    spare = self.fork_child()
         finally:
-            self.discard(spare)
+            if spare is not None:
+                self.discard(spare)
+            for child in self.warm.values():
+                self.discard(child)
             shutil.rmtree(self.workdir, ignore_errors=True)
+
+    def call_warm(self, scope: str, body: bytes, deadline: float) -> tuple[dict[str, object], bytes, Child] | None:
+        """The reply of this scope's warm child, or None when there is none or it failed (the call is then
+        run again on a fresh child: a warm child's failure may be its past calls', never this call's)."""
+        child = self.warm.pop(scope, None)
+        if child is None:
+            return None
+        try:
+            os.kill(child.pid, signal.SIGCONT)
+        except OSError:
+            self.discard(child)
+            return None
+        reply, payload, last = self.call(child, body, deadline, keep=True, retry=True)
+        if reply.get("status") == "ok" and last is child:
+            return reply, payload, last
+        self.discard(last)
+        return None
+
+    def keep_or_discard(self, scope: str | None, child: Child, reply: dict[str, object]) -> None:
+        child.uses += 1
+        if scope is None or reply.get("status") != "ok" or not self.fit_to_keep(child):
+            self.discard(child)
+            return
+        try:
+            os.kill(child.pid, signal.SIGSTOP)  # idle means stopped: what its calls left running cannot run on
+        except OSError:
+            self.discard(child)
+            return
+        self.warm[scope] = child
+        while len(self.warm) > WARM_PER_SERVER:
+            self.discard(self.warm.popitem(last=False)[1])
+
+    def fit_to_keep(self, child: Child) -> bool:
+        if child.status is not None or child.request < 0 or child.uses >= WARM_MAX_USES:
+            return False
+        if cpu_seconds(child.pid) >= WARM_CPU_SHARE * float(self.limits["cpu_s"]):
+            return False
+        try:
+            with open(f"/proc/{child.pid}/statm", "rb") as statm:
+                resident_pages = int(statm.read().split()[1])
+        except (OSError, ValueError, IndexError):
+            return False  # cannot tell how large it is: not kept
+        return resident_pages * os.sysconf("SC_PAGE_SIZE") <= WARM_MAX_RESIDENT_MB << 20
 
     def send(self, header: dict[str, object], payload: bytes = b"") -> None:
         data = json.dumps(header).encode("ascii") + b"\n"
@@ -135,16 +218,22 @@ class Server:
 
     # ------------------------------------------------------------------------------------- one call
 
-    def call(self, first: Child, body: bytes) -> tuple[dict[str, object], bytes, Child]:
-        """The reply to one request, and the last child used (still to be discarded)."""
+    def call(self, first: Child, body: bytes, deadline: float, keep: bool = False,
+             retry: bool = False) -> tuple[dict[str, object], bytes, Child]:
+        """The reply to one request, and the last child used (still to be discarded or kept). `keep`: the
+        first child stays for the scope's next request if this one ends well; `retry`: any failure of the
+        first child (a reused one) is answered `{"status": "retry"}` instead of being blamed on the call."""
         units: dict[int, dict[str, typing.Any]] = {}
-        deadline = time.monotonic() + float(self.limits["timeout_s"])
         child, failures = first, 0
         while True:
-            outcome = self.run(child, body, units, deadline)
-            if outcome.kind == "end" and outcome.end is not None:
+            # a reused child that says nothing at once is stuck in what its past calls left: the call moves on
+            stall = time.monotonic() + WARM_STALL_S if retry else None
+            outcome = self.run(child, body, units, deadline, keep=keep and failures == 0, stall=stall)
+            if outcome.kind == "end" and outcome.end is not None and not (retry and _limit_error(outcome.end)):
                 payload = json.dumps({"result": outcome.end, "units": {str(k): v for k, v in units.items()}})
                 return {"status": "ok", "size": len(payload)}, payload.encode("ascii"), child
+            if retry:
+                return {"status": "retry"}, b"", child
             self.discard(child)  # reaped: its exit status says what killed it
             blame = self.blame(outcome, child)
             if outcome.unit is None or blame is None:
@@ -157,20 +246,26 @@ class Server:
                 return {"status": "limit", "limit": limit, "message": message}, b"", child
             child = self.fork_child()
 
-    def run(self, child: Child, body: bytes, units: dict[int, dict[str, typing.Any]], deadline: float) -> Outcome:
-        skip = json.dumps({"skip": sorted(units)}).encode("ascii") + b"\n"
-        with contextlib.suppress(OSError):
-            write_all(child.request, skip + body)
-        os.close(child.request)
-        child.request = -1
+    def run(self, child: Child, body: bytes, units: dict[int, dict[str, typing.Any]], deadline: float,
+            keep: bool = False, stall: float | None = None) -> Outcome:
+        header = json.dumps({"skip": sorted(units), "size": len(body), "keep": keep}).encode("ascii") + b"\n"
+        try:
+            write_all(child.request, header + body)
+        except OSError:
+            keep = False  # it is gone: what it says (nothing) is collected below
+        if not keep:
+            os.close(child.request)
+            child.request = -1
         pidfd = os.pidfd_open(child.pid)
         try:
-            return self.collect(child, pidfd, units, deadline)
+            return self.collect(child, pidfd, units, deadline, stall)
         finally:
             os.close(pidfd)
 
     def collect(self, child: Child, pidfd: int, units: dict[int, dict[str, typing.Any]],
-                deadline: float) -> Outcome:
+                deadline: float, stall: float | None = None) -> Outcome:
+        """How the child's run ends; `stall`: when it must have said something (a reused child), or the run ends
+        as `timeout`."""
         cap = int(self.limits["result_bytes"])
         unit_cpu = float(self.limits["unit_cpu_s"])
         buffer, received, eof = bytearray(), 0, False
@@ -206,6 +301,10 @@ class Server:
                 if now - wall0 >= unit_cpu * UNIT_WALL_FACTOR:
                     return Outcome("unit-wall", phase, unit=unit, detail=f"{now - wall0:.1f} s")
                 wait = min(wait, unit_cpu - spent, wall0 + unit_cpu * UNIT_WALL_FACTOR - now)
+            if received == 0 and stall is not None:
+                if now >= stall:
+                    return Outcome("timeout", phase, unit=unit)
+                wait = min(wait, stall - now)
             if deadline - now <= 0:
                 return Outcome("timeout", phase, unit=unit)
             watched = ([] if eof else [child.result]) + ([] if child.status is not None else [pidfd])

@@ -184,8 +184,9 @@ class Operation(Generic[B]):
 
     prepare: Callable[[Services, str, B], Awaitable[B]]
     model: Callable[[B], str | None]
-    static_check: Callable[[B, int], StaticCheck] | None
-    """None where the route screened the request itself before building the job (a re-inference)."""
+    static_check: Callable[[B, int, str], StaticCheck] | None
+    """None where the route screened the request itself before building the job (a re-inference). Its arguments:
+    the body, the work budget and the caller's tag (what a check may remember is remembered per tenant)."""
 
 
 async def _with_prior_sets(services: Services, tag: str, body: InferRequest) -> InferRequest:
@@ -224,24 +225,24 @@ def _model_if_generated(body: InferRequest | ReinferJob) -> str | None:
     return keys.model_identity() if "model" in body.options.generators else None
 
 
-def _infer_check(body: InferRequest, max_work_points: int) -> StaticCheck:
+def _infer_check(body: InferRequest, max_work_points: int, _tag: str) -> StaticCheck:
     return checks.check_infer_with_priors, (body.spec, body.demonstrations, body.actions, max_work_points,
                                             [(where, rules) for _, where, rules in body.options.priors()])
 
 
-def _next_action_check(body: NextActionRequest, max_work_points: int) -> StaticCheck:
+def _next_action_check(body: NextActionRequest, max_work_points: int, _tag: str) -> StaticCheck:
     return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
                                       _text(body.history), max_work_points)
 
 
-def _training_check(body: TrainPolicyJob, max_work_points: int) -> StaticCheck:
+def _training_check(body: TrainPolicyJob, max_work_points: int, _tag: str) -> StaticCheck:
     return checks.check_training, (body.request.spec, body.request.demonstrations)
 
 
-def _check_check(body: CheckRequest, max_work_points: int) -> StaticCheck:
+def _check_check(body: CheckRequest, max_work_points: int, tag: str) -> StaticCheck:
     # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
     return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
-                                [c for c in body.calls if isinstance(c, str)])
+                                [c for c in body.calls if isinstance(c, str)], tag)
 
 
 OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
@@ -271,7 +272,7 @@ async def answer(
     async def screen() -> None:
         if static_check is None:
             return
-        check, args = static_check(body, services.settings.max_work_points)
+        check, args = static_check(body, services.settings.max_work_points, caller.tag)
         problem = await services.checks.run(caller.tag, _program_chars(body), offload.problem_of, check, *args)
         if problem is not None:
             if problem.type == checks.WORK_BUDGET:

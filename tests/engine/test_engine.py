@@ -9,11 +9,13 @@ from typing import Any
 import pytest
 
 from engine.engine import Engine
+from engine.scope import scoped
 from engine.spec import parse_spec, skip_statements
 from sandbox import Sandbox
 from schemas.api import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
 from schemas.errors import InvalidInput, InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
+from tests.sandbox.sandbox_helpers import COUNTING_SPEC
 
 
 @pytest.fixture(scope="module")
@@ -96,6 +98,23 @@ def test_check_reports_allowed_calls_and_violated_assertions(engine: Engine, res
     assert verdicts["system.REQUEST('cuisine')"].allowed
     assert verdicts["system.REQUEST('city')"].violations == ["not self.user.informed_slot[slot]"]
     assert verdicts["system.FindRestaurants()"].violations == ["self.user.informed_slot['cuisine']"]
+
+
+def test_checks_reuse_a_warm_child_of_their_tenant_only() -> None:
+    """The worker runs each job in its tenant's scope; the check passes it to the sandbox, whose warm child of
+    that tenant (and of no other) answers the tenant's next check. The spec counts in a shared module how
+    often its process ran `mark`: 1 in a fresh child."""
+    request = CheckRequest(spec=COUNTING_SPEC, preconditions={"Room.enter": ["self.marks == 1"]},
+                           history="room = Room()\nroom.mark()\n", calls=["room.enter()"])
+    with Sandbox(workers=1) as sandbox:
+        engine = Engine(sandbox, None)
+
+        def allowed(tenant: str) -> bool:
+            with scoped(tenant):
+                return engine.check(request).results[0].allowed
+
+        assert [allowed("tenant-a"), allowed("tenant-a"), allowed("tenant-b"), allowed("")] == [
+            True, False, True, True]
 
 
 class ScriptedModel:

@@ -19,6 +19,6 @@ def test_the_static_check_of_a_check_reads_the_rendered_calls() -> None:
                         history="s = S()\n", calls=["s.a()"])
     static_check = OPERATIONS["check"].static_check
     assert static_check is not None
-    check, args = static_check(body, 1_000)
-    assert check.__name__ == "check_check" and args[-1] == ["s.a()"]
+    check, args = static_check(body, 1_000, "tenant-tag")
+    assert check.__name__ == "check_check" and args[-2:] == (["s.a()"], "tenant-tag")
     assert OPERATIONS["check"].model(body) is None and OPERATIONS["reinfer"].static_check is None
