@@ -15,7 +15,7 @@ from sandbox import Sandbox
 from schemas.api import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
 from schemas.errors import InvalidInput, InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
-from tests.sandbox.sandbox_helpers import COUNTING_SPEC
+from tests.sandbox.warm_probe import COUNTING_SPEC
 
 
 @pytest.fixture(scope="module")

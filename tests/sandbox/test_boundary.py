@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 from attack_probe import run_attacks
+from warm_probe import EXPECTED, LIMITS
 
 import sandbox.api
 import sandbox.pool
@@ -71,6 +72,7 @@ def readable_copy() -> Iterator[Path]:
             shutil.copy(ROOT / "stack" / name, where / "stack")
         shutil.copy(pyseccomp.__file__, where)
         shutil.copy(Path(__file__).with_name("attack_probe.py"), where)
+        shutil.copy(Path(__file__).with_name("warm_probe.py"), where)
         for path in [where, *where.rglob("*")]:
             path.chmod(path.stat().st_mode | stat.S_IROTH | (stat.S_IXOTH if path.is_dir() else 0))
         yield where
@@ -91,6 +93,24 @@ def test_attacks_as_a_non_root_user_are_refused_by_the_kernel(readable_copy: Pat
     assert report["uid"] == NOBODY
     assert_all_denied(report["results"])
     assert "hunter2" not in done.stdout
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="already non-root: test_warm.py ran as this user")
+def test_warm_children_as_a_non_root_user(readable_copy: Path) -> None:
+    """test_warm.py's attacks on a tenant's warm child, with the worker (and so the children) not root."""
+    python = _runnable_as(NOBODY)
+    done = subprocess.run(
+        ["setpriv", f"--reuid={NOBODY}", f"--regid={NOBODY}", "--clear-groups", python, "warm_probe.py"],
+        cwd=readable_copy, env={"PYTHONPATH": str(readable_copy), "PATH": "/usr/bin:/bin"}, capture_output=True,
+        text=True, timeout=120, check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout)
+    assert report["uid"] == NOBODY
+    assert report["sequence"] == EXPECTED
+    idle = report["idle"]
+    assert idle["first"] and idle["second"] and idle["idle_cpu_s"] < 0.3 and idle["second_s"] < LIMITS.timeout_s / 2
+    assert report["unfit"] == [True, True, True]
 
 
 # A candidate without a single dunder that rewrites the evaluator so that every later candidate is valid
