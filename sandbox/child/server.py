@@ -41,6 +41,7 @@ UNIT_WALL_FACTOR = 3.0
 WARM_PER_SERVER = 4
 """Warm children one server keeps (least recently used first out): one per scope."""
 WARM_MAX_USES = 500
+"""Calls a warm child answers before it is retired (its compiled code and its heap start afresh)."""
 WARM_MAX_RESIDENT_MB = 64
 """A child that grew past this keeps no memory of the machine's after its request: it is not kept warm."""
 WARM_STALL_S = 1.0
@@ -105,7 +106,7 @@ class Server:
     # ------------------------------------------------------------------------------------ lifecycle
 
     def serve_forever(self) -> None:
-        spare: Child | None = self.fork_child()
+        spare = self.fork_child()
         try:
             for line in self.requests:
                 header = json.loads(line)
@@ -113,20 +114,16 @@ class Server:
                 scope = header.get("scope") if isinstance(header.get("scope"), str) else None
                 deadline = time.monotonic() + float(self.limits["timeout_s"])
                 answer = self.call_warm(scope, body, deadline) if scope is not None else None
-                if answer is None:
-                    assert spare is not None
-                    answer = self.call(spare, body, deadline, keep=scope is not None)
-                    spare = None
-                reply, payload, last = answer
+                spare_used = answer is None
+                reply, payload, last = answer or self.call(spare, body, deadline, keep=scope is not None)
                 reply["id"] = header["id"]
                 self.send(reply, payload)
                 # teardown and the next fork happen after the answer, off its latency
                 self.keep_or_discard(scope, last, reply)
-                if spare is None:
+                if spare_used:
                     spare = self.fork_child()
         finally:
-            if spare is not None:
-                self.discard(spare)
+            self.discard(spare)  # idempotent: a spare that was used is already discarded or warm (below)
             for child in self.warm.values():
                 self.discard(child)
             shutil.rmtree(self.workdir, ignore_errors=True)
