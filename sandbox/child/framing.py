@@ -5,6 +5,9 @@ error messages), ``begin``/``unit`` around each independently judged part (one c
 call), and one ``end``. The server trusts none of it: it checks order, indices and sizes, and keeps the
 units it already has when a child dies, so one runaway part fails alone.
 
+Server → child: a header line ``{"skip", "size", "keep"}`` (the units an earlier child of the call settled, the
+body's length, whether the child waits for another request after this one), then the body.
+
 Server → worker: a header line ``{"id", "status", ...}`` echoing the request's id, then the body.
 """
 

@@ -15,6 +15,7 @@ import dataclasses
 import functools
 import inspect
 import io
+import re
 import sys
 import types
 import typing
@@ -155,6 +156,8 @@ def parse(source: object, filename: str, where: str, index: int | None) -> ast.M
         raise fail(where, index, error_line(exc, filename), exc) from None
 
 
+LINE_BREAKS = re.compile(r"\r\n|\r|\n")
+"""Where the parser starts a new line (`str.splitlines` also breaks at \x0b, \x0c, \x1c-\x1e, \x85, ...)."""
 COMPILED_MAX = 4096
 """Compiled programs, statements and rules a child keeps; only a warm child (one scope's, see
 `sandbox.child.server`) ever sees a second request, so only there are they reused."""
@@ -247,7 +250,7 @@ class Program:
         self.spec, self.where, self.index = spec, where, index
         tree = parse(source, self.FILE, where, index)
         self.source = typing.cast(str, source)
-        self.lines = self.source.splitlines()
+        self.lines = LINE_BREAKS.split(self.source)  # Python's own line breaks: what `lineno` counts
         self.body = main_body(tree)
         self.globals = spec.instantiate()
         self.base = dict(self.globals)

@@ -39,3 +39,15 @@ def test_a_failure_on_a_warm_child_is_run_again_on_a_fresh_one() -> None:
     and the same call on a fresh child answers as a first call does."""
     with Sandbox(UNIT_LIMITS, workers=1) as sandbox:
         assert unfit_child(sandbox) == [True, True, True]
+
+
+def test_a_remembered_history_line_is_the_line_python_read(one_server: Sandbox) -> None:
+    """Lines are remembered by their place and text; a character that `str.splitlines` breaks at and Python's
+    parser does not (`\\x1c` in a string) must not shift which text a statement is remembered under: the
+    second history's `box.put(3)` would then have run as the first one's `box.put(2)`."""
+    spec = "class Box:\n    def put(self, v):\n        self.v = v\n    def take(self):\n        pass\n"
+    rule = {"Box.take": ["self.v == 3"]}
+    for value, expected in ((2, False), (3, True)):
+        history = f"box = Box()\nbox.put('\\x1c')\nbox.put({value})\n".replace("\\x1c", "\x1c")
+        (verdict,) = one_server.check(spec, rule, history, ["box.take()"], "tenant-a")
+        assert verdict.error is None and verdict.allowed is expected
