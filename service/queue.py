@@ -113,7 +113,7 @@ class JobQueue:
 
     async def submit(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
                      timeout_s: float, poll_s: float) -> JobStatus | None:
-        """Enqueue unless the same job exists, then wait for it (`wait`). Identical requests share the job
+        """Enqueue unless the same job exists, then wait for it (`_wait`). Identical requests share the job
         already there, unless its last run says nothing final (cancelled, crashed: `_last_run_unusable`), which
         is run again. QueueFull past the bound. The job's result is cached under `cache_key`."""
         queue = queue_for(kind, body)
