@@ -393,11 +393,13 @@ def _problem(exc: PlaceError) -> checks.ProgramProblem:
     return checks.ProgramProblem(checks.Problem(checks.INVALID_INPUT, exc.where, str(exc)))
 
 
-def structured_history(spec: str, history: Sequence[Mapping[str, Any]], field: str = "history") -> str:
+def structured_history(spec: str, history: Sequence[Mapping[str, Any]], field: str = "history",
+                       scope: str = "") -> str:
     """Events (`{actor, act, args}`) or OpenAI chat messages (`{role, ...}`) → the program; bad input raises
-    `ProgramProblem` naming the field (`history[3].tool_calls[0].arguments`), as events always did."""
+    `ProgramProblem` naming the field (`history[3].tool_calls[0].arguments`), as events always did. `scope`:
+    whose history (`programs.history.render`)."""
     if not (history and "role" in history[0]):
-        return render_events(spec, history, field)
+        return render_events(spec, history, field, scope)
     try:
         return render(list(history), spec_tools(spec, field), field).program()
     except PlaceError as exc:

@@ -512,7 +512,8 @@ def parsed_history(spec: str, history: str | Sequence[HistoryEvent | dict[str, A
     if isinstance(history, str):
         return history, parse_source(history, "history")
     try:
-        program = structured_history(spec, [e if isinstance(e, dict) else e.model_dump() for e in history])
+        program = structured_history(spec, [e if isinstance(e, dict) else e.model_dump() for e in history],
+                                     scope=scope.current())
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
     return program, parse_source(program, "history")

@@ -15,7 +15,7 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from programs.checks import INVALID_INPUT, Problem, ProgramProblem, did_you_mean, spec_methods
+from programs.checks import INVALID_INPUT, Problem, ProgramProblem, did_you_mean, remembered_spec_methods
 from programs.spec import Method
 
 SCALARS = (str, int, float, bool, type(None))
@@ -44,10 +44,9 @@ def _constructors(tree: ast.Module) -> dict[str, list[str] | None]:
     return found
 
 
-def actors(spec: str) -> tuple[dict[str, str], list[str]]:
+def actors(tree: ast.Module) -> tuple[dict[str, str], list[str]]:
     """Actor variable → class, and the setup lines creating them (`user = USER()`, `system = SYSTEM(user)`).
     A class whose constructor needs something no earlier actor provides is not an actor."""
-    tree, _ = spec_methods(spec)
     made: dict[str, str] = {}
     setup: list[str] = []
     for cls, params in _constructors(tree).items():
@@ -88,10 +87,12 @@ def _literal(value: Any, field: str) -> str:
     return repr(value)
 
 
-def render(spec: str, events: Sequence[Mapping[str, Any]], field: str = "history") -> str:
-    """The program for a structured history; raises ProgramProblem naming `history[i]` for a bad event."""
-    _, methods = spec_methods(spec)
-    made, setup = actors(spec)
+def render(spec: str, events: Sequence[Mapping[str, Any]], field: str = "history", scope: str = "") -> str:
+    """The program for a structured history; raises ProgramProblem naming `history[i]` for a bad event.
+    `scope`: whose history it is (the spec's reading is remembered per scope: a dialog system sends the same
+    spec with every check)."""
+    tree, methods = remembered_spec_methods(scope, spec)
+    made, setup = actors(tree)
     lines = list(setup)
     for index, event in enumerate(events):
         where = f"{field}[{index}]"

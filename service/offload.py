@@ -93,10 +93,11 @@ def rendering_chars(spec: str, history_json_chars: int) -> int:
     return len(spec) + history_json_chars // RENDER_SPEEDUP
 
 
-def rendered(spec: str, history: Sequence[Mapping[str, Any]]) -> str | checks.Problem:
-    """A structured history's program (events or OpenAI messages), or why it cannot be one."""
+def rendered(spec: str, history: Sequence[Mapping[str, Any]], tag: str) -> str | checks.Problem:
+    """A structured history's program (events or OpenAI messages), or why it cannot be one (`tag`: the caller's,
+    under which the spec's reading is remembered)."""
     try:
-        return structured_history(spec, history)
+        return structured_history(spec, history, scope=tag)
     except checks.ProgramProblem as exc:
         return exc.problem
     except RecursionError:

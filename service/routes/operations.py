@@ -132,7 +132,7 @@ async def _with_rules_and_program(
     if not isinstance(body.history, str):
         history = [e if isinstance(e, dict) else e.model_dump() for e in body.history]
         chars = offload.rendering_chars(body.spec_text(), sum(len(json.dumps(e, default=str)) for e in history))
-        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history)
+        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history, tag)
         if isinstance(program, checks.Problem):
             return program
         body = body.model_copy(update={"history": program})
