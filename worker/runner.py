@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import logging
 import os
 import signal
@@ -235,6 +236,7 @@ class WorkerProcess:
         )
         heartbeat = asyncio.create_task(self._heartbeat(redis))
         self.memory.start()
+        gc.freeze()  # what start-up built lives as long as the process: the collector need not walk it again
         if self.engine is not None and self.settings.preload_model and MODEL_QUEUE in self.queues:
             tasks.append(asyncio.create_task(self._preload()))
         await asyncio.gather(*tasks)
@@ -300,6 +302,7 @@ class WorkerProcess:
         except Exception as exc:  # a broken model must not stop check jobs; the heartbeat reports it
             log.exception("model failed to load")
             self.model_error = f"{type(exc).__name__}: {exc}"
+        gc.freeze()  # the model's modules and objects too (a full collection walked them all: tens of ms)
 
     def _heartbeat_body(self) -> Heartbeat:
         return Heartbeat(
