@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import ast
 import logging
 import threading
 from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
@@ -11,7 +10,7 @@ from functools import lru_cache
 from types import TracebackType
 from typing import Any, TypeVar
 
-from programs import read_methods
+from programs.checks import ProgramProblem, remembered_spec_methods
 from sandbox import protocol
 from sandbox.astfilter import ProposedCall, check_program, expression_problem, parse_call
 from sandbox.limits import DEFAULT_ALLOWED_IMPORTS, parent_deadline_s, to_wire, validate
@@ -205,11 +204,10 @@ def _is_plain(_scope: str, expression: str, params: tuple[str, ...], words: Spec
     return is_plain(expression, params, words)
 
 
-@lru_cache(maxsize=64)
-def _parameters(_scope: str, spec: str) -> dict[str, tuple[str, ...]]:
+def _parameters(scope: str, spec: str) -> dict[str, tuple[str, ...]]:
     try:
-        methods = read_methods(ast.parse(spec))
-    except (SyntaxError, ValueError, MemoryError, RecursionError):
+        _, methods = remembered_spec_methods(scope, spec)
+    except ProgramProblem:
         return {}
     return {q: (*m.positional, *((m.vararg,) if m.vararg else ())) for q, m in methods.items()}
 

@@ -71,8 +71,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         workers = WorkerView(redis)
         app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool,
                                       open_rate, workers)
-        # What start-up built lives as long as the process; a full collection walked all of it (~80,000
-        # objects, tens of ms on the event loop, in every request's tail): frozen, it is not walked again.
+        # What start-up built lives as long as the process; a full collection walked all of it (tens of
+        # thousands of objects, milliseconds on the event loop in some request's tail): frozen, it is not.
         gc.freeze()
         yield
         workers.close()

@@ -4,7 +4,7 @@ arq does the queueing (at-least-once delivery, job-id de-duplication, abort); th
 leaves to its user: a bound on queue length, progress next to the job, and re-running an id whose last run
 was cancelled or crashed (arq would otherwise keep answering with that old result, see arq#485). A job is
 written exactly as arq's `enqueue_job` writes it, but in one script with its bound, its tenant's fair place and
-the worker's wake-up (`_SUBMIT`): one round trip instead of nine on the check's hot path.
+the worker's wake-up (`_SUBMIT`): one round trip instead of eight on the check's hot path.
 """
 
 from __future__ import annotations

@@ -302,7 +302,7 @@ class WorkerProcess:
         except Exception as exc:  # a broken model must not stop check jobs; the heartbeat reports it
             log.exception("model failed to load")
             self.model_error = f"{type(exc).__name__}: {exc}"
-        gc.freeze()  # the model's modules and objects too (a full collection walked them all: tens of ms)
+        gc.freeze()  # the model's modules and objects too (a full collection would walk them all again)
 
     def _heartbeat_body(self) -> Heartbeat:
         return Heartbeat(

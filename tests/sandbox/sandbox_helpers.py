@@ -11,6 +11,7 @@ from sandbox import Limits
 DATA = Path(__file__).resolve().parents[1] / "fixtures" / "data"
 SMALL = Limits(timeout_s=3.0, cpu_s=2, memory_mb=512, output_bytes=100_000, recursion=200)
 
+
 def sgd(domain: str) -> dict[str, Any]:
     return json.loads((DATA / "sgd" / f"{domain}.json").read_text())
 
