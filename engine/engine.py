@@ -426,12 +426,12 @@ class Engine:
     def check(self, request: CheckRequest) -> CheckResponse:
         spec = remembered_spec(scope.current(), _spec_of(request))
         check_preconditions(spec, request.preconditions)
-        history, tree = parsed_history(spec.source, request.history)
+        history = rendered_history(spec.source, request.history)  # parsed by check_calls, once per scope and text
         try:
             calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls])
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
-        check_calls(spec, request.preconditions, tree, calls)
+        check_calls(spec, request.preconditions, history, calls, scope.current())
         verdicts = self._verify(spec, request.preconditions, history, calls)
         return CheckResponse(results=[_labelled(v, spec, request.decided) for v in verdicts])
 
@@ -501,22 +501,22 @@ def _spec_of(request: CheckRequest | NextActionRequest) -> str:
 
 
 def history_program(spec: str, history: str | Sequence[HistoryEvent | dict[str, Any]]) -> str:
+    """A history as the program the sandbox runs (`rendered_history`), which must parse (a 422 if not)."""
+    program = rendered_history(spec, history)
+    parse_source(program, "history")
+    return program
+
+
+def rendered_history(spec: str, history: str | Sequence[HistoryEvent | dict[str, Any]]) -> str:
     """A history as the program the sandbox runs: code as sent, or structured events (or an agent's OpenAI
     messages) rendered with literals."""
-    return parsed_history(spec, history)[0]
-
-
-def parsed_history(spec: str, history: str | Sequence[HistoryEvent | dict[str, Any]]) -> tuple[str, ast.Module]:
-    """The history's program and its tree, parsed once (an agent's history of tool results runs to kilobytes:
-    each parse of it cost the check 3 ms)."""
     if isinstance(history, str):
-        return history, parse_source(history, "history")
+        return history
     try:
-        program = structured_history(spec, [e if isinstance(e, dict) else e.model_dump() for e in history],
-                                     scope=scope.current())
+        return structured_history(spec, [e if isinstance(e, dict) else e.model_dump() for e in history],
+                                  scope=scope.current())
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
-    return program, parse_source(program, "history")
 
 
 def _prompted(actions: Sequence[str], trace: TraceResult, options: InferOptions) -> list[str]:

@@ -77,10 +77,12 @@ def check_preconditions(spec: Spec, preconditions: dict[str, list[str]]) -> None
         raise as_error(exc) from exc
 
 
-def check_calls(spec: Spec, preconditions: dict[str, list[str]], history: ast.Module, calls: list[str]) -> None:
-    """Proposed calls of the agent's actions only (`checks.check_calls`): the gateway's 422, the same here."""
+def check_calls(spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str], scope: str) -> None:
+    """Proposed calls of the agent's actions only (`checks.check_calls`): the gateway's 422, the same here. The
+    history must parse; what it binds is remembered per `scope` (`checks.history_receivers`)."""
     try:
-        checks.check_calls(spec.methods, preconditions, history, calls)
+        receivers = checks.history_receivers(scope, checks.spec_classes(spec.methods), history)
+        checks.check_calls(spec.methods, preconditions, receivers, calls)
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
 

@@ -8,25 +8,29 @@ Liveness-based recovery. arq marks a started job with `arq:in-progress:<job id>`
 timeout + 10 s after the start (15 minutes by default); until then no worker runs the job again, even if
 the worker running it was SIGKILLed a second after starting it. So every worker also records what it runs in
 one hash, `precond:running`: job id → claim `<worker id>|<nonce>` (a nonce per run, so an old run's claim
-is never mistaken for a new one's). The claim is written, together with a fresh heartbeat, when the job
-starts (arq's `on_job_start`: after arq set its in-progress key), and removed when it ends. On each beat a
-worker runs `_BEAT`, one Lua script (Redis runs it atomically, so two workers never both act on one claim):
+is never mistaken for a new one's). The claim is written, together with a fresh heartbeat, by the script that
+takes the job (worker/queue_worker.py: in one step with arq's in-progress key), and removed by the one that
+records its end. On each beat a worker runs `_BEAT`, one Lua script (Redis runs it atomically, so two
+workers never both act on one claim):
 
 1. it rewrites its own heartbeat key;
 2. it re-registers the jobs it is running whose claims are gone (Redis restarted without them), never over
    another worker's claim;
-3. it hands back the jobs it dropped itself (runs that ended without arq recording their end, as when Redis
-   went away mid-job);
+3. it hands back the jobs it dropped itself, named by their runs' claims: runs that ended without their end
+   recorded (Redis went away mid-job), and takes whose answer was lost (the script may have run: the claim
+   then names a job this worker never learned);
 4. for every other claim whose worker's heartbeat key has expired, and whose job is still in progress with
    no result, it deletes arq's in-progress key: the job is still in arq's queue, so the next poll of any
    live worker runs it again (arq counts the try). Claims of finished jobs are dropped on the way;
-5. it hands back jobs that were started but never claimed. arq sets a job's in-progress key when a worker
-   takes it, and the claim follows a few Redis round trips later (`on_job_start`); a worker SIGKILLed in
-   between leaves a started job that no claim names, which steps 1-4 never see, so it waited for arq's
-   in-progress expiry (job timeout + 10 s): under load that window is wide enough to be hit, and it is
-   how `test_sigkilled_workers_lose_no_job` lost a job. Such a job is noted (`precond:unclaimed`, with the
-   Redis time) by the first beat that sees it, and handed back by a beat a whole heartbeat lease later. A
-   live worker's unclaimed job is claimed long before that (its own next beat re-registers it, step 2).
+5. it hands back jobs that were started but never claimed. When arq set the in-progress key and the claim
+   followed a few round trips later, a worker SIGKILLed in between left a started job that no claim named,
+   which steps 1-4 never see, so it waited for arq's in-progress expiry (job timeout + 10 s): that is how
+   `test_sigkilled_workers_lose_no_job` once lost a job. The take now writes both at once; this step stays
+   for any in-progress key without a claim (one a Redis restart kept while losing the claims hash, or one
+   written by a worker of an older version during an upgrade). Such a job is noted (`precond:unclaimed`,
+   with the Redis time) by the first beat that sees it, and handed back by a beat a whole heartbeat lease
+   later. A live worker's unclaimed job is claimed long before that (its own next beat re-registers it,
+   step 2).
 
 A live worker's jobs are never touched: its heartbeat key exists. The heartbeat runs on the worker's event
 loop and the engine in a thread (worker/jobs.py), so a long job does not stop the beats.
@@ -35,6 +39,7 @@ loop and the engine in a thread (worker/jobs.py), so a long job does not stop th
 from __future__ import annotations
 
 import uuid
+from collections.abc import Collection
 from typing import Any
 
 from arq.constants import in_progress_key_prefix, result_key_prefix
@@ -79,12 +84,10 @@ for _ = 1, tonumber(ARGV[7]) do  -- jobs this worker runs: re-register those who
   if unfinished(ARGV[i]) then redis.call('HSETNX', running, ARGV[i], ARGV[i + 1]) end
   i = i + 2
 end
-while i < #ARGV do  -- runs this worker dropped: hand their jobs back now
-  if redis.call('HGET', running, ARGV[i]) == ARGV[i + 1] then
-    if unfinished(ARGV[i]) then hand_back(ARGV[i]) end
-    redis.call('HDEL', running, ARGV[i])
-  end
-  i = i + 2
+local dropped = {}
+while i <= #ARGV do  -- claims of runs this worker dropped: their jobs go back below, now
+  dropped[ARGV[i]] = true
+  i = i + 1
 end
 local unclaimed, lease = KEYS[3], tonumber(ARGV[3])
 local clock = redis.call('TIME')
@@ -113,19 +116,13 @@ for j = 1, #claims, 2 do
   local job, owner = claims[j], string.match(claims[j + 1], '^(.*)|')
   if not unfinished(job) then
     redis.call('HDEL', running, job)
-  elseif owner ~= me and redis.call('EXISTS', worker_prefix .. (owner or '')) == 0 then
+  elseif dropped[claims[j + 1]] or (owner ~= me and redis.call('EXISTS', worker_prefix .. (owner or '')) == 0) then
     hand_back(job)
     redis.call('HDEL', running, job)
   end
 end
 return released
 """
-
-_RELEASE = """
-if redis.call('HGET', KEYS[1], ARGV[1]) == ARGV[2] then return redis.call('HDEL', KEYS[1], ARGV[1]) end
-return 0
-"""
-
 
 def new_claim(worker_id: str) -> str:
     return f"{worker_id}|{uuid.uuid4().hex[:12]}"
@@ -140,13 +137,14 @@ async def beat(
     heartbeat: Heartbeat,
     ttl_s: float,
     running: dict[str, str] | None = None,
-    dropped: dict[str, str] | None = None,
+    dropped: Collection[str] = (),
 ) -> list[str]:
-    """One heartbeat (steps 1-4 above). `running` and `dropped` map job ids to this worker's claims.
+    """One heartbeat (steps 1-5 above). `running` maps job ids to this worker's claims on them; `dropped` are
+    claims of this worker's runs to hand back.
 
     Returns the ids of the jobs handed back to the queue (a dead worker's, or dropped ones).
     """
-    running, dropped = running or {}, dropped or {}
+    running = running or {}
     args: list[Any] = [
         heartbeat.id,
         heartbeat.model_dump_json(),
@@ -158,23 +156,10 @@ async def beat(
         len(QUEUES),
         *QUEUES,
         *_pairs(running),
-        *_pairs(dropped),
+        *dropped,
     ]
     released = await redis.eval(_BEAT, 3, worker_key(heartbeat.id), RUNNING_KEY, UNCLAIMED_KEY, *args)  # type: ignore[no-untyped-call]
     return [job.decode() for job in released]
-
-
-async def claim(redis: Redis[bytes], heartbeat: Heartbeat, ttl_s: float, job_id: str, token: str) -> None:
-    """Record that this worker runs `job_id`, with a fresh heartbeat: no claim without a live heartbeat."""
-    async with redis.pipeline(transaction=True) as pipe:
-        pipe.set(worker_key(heartbeat.id), heartbeat.model_dump_json(), px=int(ttl_s * 1000))
-        pipe.hset(RUNNING_KEY, job_id, token)
-        await pipe.execute()
-
-
-async def release(redis: Redis[bytes], job_id: str, token: str) -> None:
-    """Remove this run's claim on `job_id` (not a later run's, perhaps on another worker)."""
-    await redis.eval(_RELEASE, 1, RUNNING_KEY, job_id, token)  # type: ignore[no-untyped-call]
 
 
 async def live_workers(redis: Redis[bytes]) -> list[Heartbeat]:

@@ -42,7 +42,14 @@ UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 DONE_PREFIX: Final = f"{PREFIX}:done:"
 WAKE_PREFIX: Final = f"{PREFIX}:wake:"
 
-_JOB_ID = re.compile(rf"^({'|'.join(map(re.escape, get_args(JobKind)))})-([0-9a-f]{{16}})-[0-9a-f]{{48}}$")
+TAG_CHARS: Final = 16
+ID_DIGEST_CHARS: Final = 48
+_JOB_ID = re.compile(
+    rf"^({'|'.join(map(re.escape, get_args(JobKind)))})-([0-9a-f]{{{TAG_CHARS}}})-[0-9a-f]{{{ID_DIGEST_CHARS}}}$"
+)
+OWNER_SPAN_FROM_END: Final = (-(ID_DIGEST_CHARS + 1 + TAG_CHARS), -(ID_DIGEST_CHARS + 2))
+"""Where a job id carries its tenant's tag, counted from its end (Lua's `string.sub(id, first, last)`): a
+script that reads the owner without parsing the id."""
 SHARED: Final = "shared"
 
 
@@ -83,7 +90,7 @@ def owner_of(job_id: str) -> str | None:
 
 def tenant_tag(secret: bytes, tenant: str) -> str:
     """A tenant's name in ids and Redis keys: stable, fixed-length, and not the name itself."""
-    return hmac.new(secret, b"tenant\0" + tenant.encode(), hashlib.sha256).hexdigest()[:16]
+    return hmac.new(secret, b"tenant\0" + tenant.encode(), hashlib.sha256).hexdigest()[:TAG_CHARS]
 
 
 MODEL_ENV_PREFIX: Final = "MODEL_"
@@ -116,11 +123,11 @@ def job_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes
     """The job of this request for the tenant whose tag (`tenant_tag`) is `tag`: identical requests of one
     tenant share it, another tenant's never does."""
     digest = hmac.new(secret, tag.encode() + b"\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
-    return f"{kind}-{tag}-{digest[:48]}"
+    return f"{kind}-{tag}-{digest[:ID_DIGEST_CHARS]}"
 
 
 def cache_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes) -> str:
     """Where a result is cached when the operator lets tenants share results: a digest of the request alone
     (otherwise a result is cached under its job id, each tenant's own)."""
     digest = hmac.new(secret, b"shared\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
-    return f"{kind}-{SHARED}-{digest[:48]}"
+    return f"{kind}-{SHARED}-{digest[:ID_DIGEST_CHARS]}"

@@ -9,16 +9,13 @@
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Coroutine
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from pydantic import BaseModel
 from redis.asyncio import Redis
-from redis.exceptions import RedisError
 
-from jobs.keys import STATS_KEY, progress_key
+from jobs.keys import STATS_KEY, kind_of, owner_of, progress_key
 from schemas.api import ErrorInfo, JobKind, JobProgress
 from schemas.errors import PrecondError
 
@@ -63,21 +60,21 @@ def parse_progress(raw: bytes | None) -> JobProgress:
 SANDBOX_FAILURES = "sandbox_failures"
 
 
-async def record_job(redis: Redis[bytes], kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> None:
-    """Count a finished job by kind and outcome (and whether a sandbox limit stopped it)."""
-    async with redis.pipeline(transaction=False) as pipe:
-        if sandbox_limit:
-            pipe.hincrby(STATS_KEY, SANDBOX_FAILURES, 1)
-        pipe.hincrby(STATS_KEY, f"jobs:{kind}:{status}", 1)
-        await pipe.execute()
+def job_counts(kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> dict[str, float]:
+    """A finished job's counts, by kind and outcome (and whether a sandbox limit stopped it): added by the
+    script that records the job's end (worker/queue_worker.py)."""
+    counts = {f"jobs:{kind}:{status}": 1.0}
+    if sandbox_limit:
+        counts[SANDBOX_FAILURES] = 1.0
+    return counts
 
 
-async def record_queue_time(redis: Redis[bytes], tenant_tag: str, kind: JobKind, seconds: float) -> None:
+def queue_time_counts(job_id: str, seconds: float) -> dict[str, float]:
     """How long a job waited before a worker started it, per tenant: fairness, as the operator sees it."""
-    async with redis.pipeline(transaction=False) as pipe:
-        pipe.hincrbyfloat(STATS_KEY, f"queue_sum:{tenant_tag}:{kind}", seconds)
-        pipe.hincrby(STATS_KEY, f"queue_count:{tenant_tag}:{kind}", 1)
-        await pipe.execute()
+    tag, kind = owner_of(job_id), kind_of(job_id)
+    if tag is None or kind is None:
+        return {}
+    return {f"queue_sum:{tag}:{kind}": max(0.0, seconds), f"queue_count:{tag}:{kind}": 1.0}
 
 
 async def record_phase(redis: Redis[bytes], kind: JobKind, phase: str, seconds: float) -> None:
@@ -110,12 +107,3 @@ async def read_stats(redis: Redis[bytes]) -> StatsSnapshot:
         if table in target:
             target[table][(kind, label)] = value
     return snapshot
-
-
-async def bookkeeping(writes: list[Coroutine[Any, Any, Any]]) -> None:
-    """Bookkeeping writes sent at once (each on its own connection: one round trip's wait, not one each), on a
-    job's start and end, where they sit on its latency. A Redis that refuses them never fails the job: a claim
-    is re-registered by the next beat, a lost notice costs a waiter its fallback poll, a lost count a stat."""
-    for outcome in await asyncio.gather(*writes, return_exceptions=True):
-        if isinstance(outcome, BaseException) and not isinstance(outcome, RedisError | OSError):
-            raise outcome

@@ -12,6 +12,7 @@ import difflib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from types import MappingProxyType
 
 from programs.spec import Method, main_body, read_methods
 
@@ -76,6 +77,25 @@ def remembered_spec_methods(scope: str, source: str) -> tuple[ast.Module, dict[s
 @lru_cache(maxsize=32)
 def _remembered(_scope: str, source: str) -> tuple[ast.Module, dict[str, Method]]:
     return spec_methods(source)
+
+
+REMEMBERED_HISTORY_CHARS = 16_000
+"""Histories up to this size have their receivers read once per scope (`history_receivers`); the memory kept is
+bounded by 256 of them."""
+
+
+def history_receivers(scope: str, classes: frozenset[str], history: str) -> Mapping[str, str]:
+    """`instance_classes` of a history, which must parse (ProgramProblem), remembered per scope and text for
+    histories up to `REMEMBERED_HISTORY_CHARS`: a guard checks several calls against one history, and the
+    gateway's screen and the worker both read it. Read only."""
+    if len(history) > REMEMBERED_HISTORY_CHARS:
+        return instance_classes([parse(history, "history")], set(classes))
+    return _remembered_receivers(scope, classes, history)
+
+
+@lru_cache(maxsize=256)
+def _remembered_receivers(_scope: str, classes: frozenset[str], history: str) -> Mapping[str, str]:
+    return MappingProxyType(instance_classes([parse(history, "history")], set(classes)))
 
 
 MAX_SUGGESTION_CHARS = 100
@@ -304,7 +324,7 @@ def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: 
     """`scope`: whose check this is; the spec's reading is remembered per scope (`remembered_spec_methods`)."""
     _, methods = remembered_spec_methods(scope, spec)
     check_preconditions(methods, preconditions)
-    check_calls(methods, preconditions, parse(history, "history"), calls)
+    check_calls(methods, preconditions, history_receivers(scope, spec_classes(methods), history), calls)
 
 
 def _literal_arguments(call: ast.Call) -> bool:
@@ -317,14 +337,17 @@ def _literal_arguments(call: ast.Call) -> bool:
     return all(k.arg is not None for k in call.keywords)
 
 
-def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Sequence[str]], history: ast.Module,
-                calls: Sequence[str]) -> None:
+def spec_classes(methods: Mapping[str, Method]) -> frozenset[str]:
+    return frozenset(m.cls for m in methods.values())
+
+
+def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Sequence[str]],
+                receivers: Mapping[str, str], calls: Sequence[str]) -> None:
     """Every proposed `receiver.method(...)` whose receiver the history creates must be a call of one of the
     agent's actions (the spec's stubs and the actions given rules): a method its class lacks is an unknown action
     (with the closest name), and a method that is not an action (an observation, the user's `AFFIRM`) is
     refused, never approved because no rule guards it. Text that is not such a call (with literal arguments)
-    is left to the sandbox, which refuses it with the reason."""
-    receivers = instance_classes([history], {m.cls for m in methods.values()})
+    is left to the sandbox, which refuses it with the reason. `receivers`: the history's (`history_receivers`)."""
     actions = {name for name, method in methods.items() if method.stub} | set(preconditions)
     for index, text in enumerate(calls):
         try:

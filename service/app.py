@@ -63,7 +63,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         completions.start()
         auth = AuthLimit(settings.auth_failures_per_s, settings.auth_failure_burst)
         quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs, auth)
-        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, settings.result_ttl_s)
+        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, settings.tenant_max_jobs,
+                         settings.result_ttl_s)
         store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes,
                          settings.max_set_bytes_per_tenant)
         pool = CheckPool(settings.check_processes, settings.tenant_check_processes)

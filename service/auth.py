@@ -32,11 +32,16 @@ def _tenant_of(store: KeyStore, credentials: HTTPAuthorizationCredentials | None
 
 
 def refuse(services: Services, tag: str, refusal: Refusal | None) -> None:
-    """A 429 naming the limit (`rate_limited`, `jobs_limited`, `auth_limited`), counted under the tenant's tag."""
+    """Raise `refusal_error` when there is a refusal."""
     if refusal is not None:
-        services.metrics.rejections.labels(tag, refusal.limit).inc()
-        raise ServiceError(429, refusal.message, f"{refusal.limit}_limited",
-                           headers={"Retry-After": str(refusal.retry_after_s)})
+        raise refusal_error(services, tag, refusal)
+
+
+def refusal_error(services: Services, tag: str, refusal: Refusal) -> ServiceError:
+    """A 429 naming the limit (`rate_limited`, `jobs_limited`, `auth_limited`), counted under the tenant's tag."""
+    services.metrics.rejections.labels(tag, refusal.limit).inc()
+    return ServiceError(429, refusal.message, f"{refusal.limit}_limited",
+                        headers={"Retry-After": str(refusal.retry_after_s)})
 
 
 async def authenticate(

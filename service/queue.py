@@ -34,27 +34,41 @@ from jobs.records import Outcome, parse_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions
 from service.errors import bounded
-from service.quotas import FAIR_EPOCH_MS, FAIR_SCORE_FUNCTION, JOB_EXPIRY, STATE_TTL_S, fair_key
+from service.quotas import (
+    FAIR_EPOCH_MS,
+    FAIR_SCORE_FUNCTION,
+    JOB_EXPIRY,
+    STATE_TTL_S,
+    TENANT_JOBS_FUNCTION,
+    fair_key,
+    tenant_jobs_key,
+)
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
 
 
-_SUBMIT = FAIR_SCORE_FUNCTION + """
+_SUBMIT = FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
+local full = tenant_full(KEYS[6], ARGV[1], ARGV[9], ARGV[10])
+if full >= 0 then return -2 - full end
 if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[4]) == 1 then return 0 end
 if redis.call('zcard', KEYS[1]) >= tonumber(ARGV[2]) then return -1 end
 redis.call('zrem', KEYS[5], ARGV[1])
 local score = fair_score(KEYS[1], KEYS[2], ARGV[3], ARGV[4], ARGV[5])
 redis.call('psetex', KEYS[3], ARGV[7], ARGV[6])
 redis.call('zadd', KEYS[1], score, ARGV[1])
+redis.call('zadd', KEYS[6], ARGV[11], ARGV[1])
+redis.call('expire', KEYS[6], ARGV[5])
 redis.call('publish', ARGV[8], '1')
 return 1
 """
 """Enqueue a job as arq's `enqueue_job` would (its job key, its place in the queue), in one step with everything
-around it: 0 when the same job exists (queued, running or with a result: identical requests share it), -1 when
-the queue holds `max_jobs` already, else 1. The step clears a stale abort mark of the id (arq#485), gives the
-job its tenant's fair place (service.quotas) and wakes an idle worker (advisory: workers still poll). Atomic,
-so concurrent submissions, from any number of gateway processes, never push a queue past its bound."""
+around it: `-2 - n` when its tenant has `n` jobs queued or running, its cap (service.quotas); 0 when the same job
+exists (queued, running or with a result: identical requests share it); -1 when the queue holds `max_jobs`
+already; else 1. The step counts the job as its tenant's, clears a stale abort mark of the id (arq#485), gives
+the job its tenant's fair place (service.quotas) and wakes an idle worker (advisory: workers still poll).
+Atomic, so concurrent submissions, from any number of gateway processes, never push a queue or a tenant past
+its bound."""
 
 _CANCEL_QUEUED = """
 if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[5]) == 1 then return 0 end
@@ -81,14 +95,24 @@ class QueueFull(Exception):
     """The job's queue holds `max_jobs` already; the client should come back later (429)."""
 
 
+class TenantFull(Exception):
+    """The tenant has its cap of jobs queued or running (`count` of them); it should come back later (429)."""
+
+    def __init__(self, count: int) -> None:
+        super().__init__(count)
+        self.count = count
+
+
 class JobQueue:
     def __init__(
-        self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int, result_ttl_s: int = 3600,
+        self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int, tenant_max_jobs: int,
+        result_ttl_s: int = 3600,
     ) -> None:
         self.redis = redis
         self.cache = cache
         self.completions = completions
         self.max_jobs = max_jobs
+        self.tenant_max_jobs = tenant_max_jobs
         self.result_ttl_s = result_ttl_s
 
     def _job(self, job_id: str, queue: str) -> Job:
@@ -115,7 +139,7 @@ class JobQueue:
                      timeout_s: float, poll_s: float) -> JobStatus | None:
         """Enqueue unless the same job exists, then wait for it (`_wait`). Identical requests share the job
         already there, unless its last run says nothing final (cancelled, crashed: `_last_run_unusable`), which
-        is run again. QueueFull past the bound. The job's result is cached under `cache_key`."""
+        is run again. TenantFull or QueueFull past a bound. The job's result is cached under `cache_key`."""
         queue = queue_for(kind, body)
         with self.completions.watch(job_id) as announced:  # before the enqueue: its notice cannot come first
             enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
@@ -127,14 +151,16 @@ class JobQueue:
 
     async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
                        queue: str) -> bool:
-        """One round trip (`_SUBMIT`): True when enqueued, False when the same job exists; QueueFull."""
-        job = serialize_job(JOB_FUNCTION, (kind, body, cache_key), {}, None, timestamp_ms(),
-                            serializer=self.redis.job_serializer)
+        """One round trip (`_SUBMIT`): True when enqueued, False when the same job exists; TenantFull, QueueFull."""
+        now = timestamp_ms()
+        job = serialize_job(JOB_FUNCTION, (kind, body, cache_key), {}, None, now, serializer=self.redis.job_serializer)
         enqueued = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _SUBMIT, 5, queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
-            job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS, STATE_TTL_S, job, to_ms(JOB_EXPIRY),
-            wake_channel(queue),
+            _SUBMIT, 6, queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
+            tenant_jobs_key(tenant_tag), job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS, STATE_TTL_S, job,
+            to_ms(JOB_EXPIRY), wake_channel(queue), self.tenant_max_jobs, job_key_prefix, now / 1000,
         ))
+        if enqueued <= -2:
+            raise TenantFull(-2 - enqueued)
         if enqueued < 0:
             raise QueueFull(queue)
         return enqueued == 1

@@ -12,7 +12,9 @@
   so it waits for at most the jobs already running plus one. Scores count up from a fixed epoch long past,
   so every job is due at once (arq treats a score as the time a job may start).
 
-Each rule is one Lua script: Redis runs it atomically, so concurrent requests cannot both take the last slot.
+Each rule is Lua run by Redis atomically, so concurrent requests cannot both take the last slot; the job cap
+and the fair place are functions of the queue's one submission script (service.queue), which admits, places
+and enqueues a job in one step.
 """
 
 from __future__ import annotations
@@ -23,7 +25,6 @@ from datetime import UTC, datetime, timedelta
 from typing import Final
 
 from arq.connections import ArqRedis
-from arq.constants import job_key_prefix
 from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from jobs.keys import PREFIX
@@ -47,22 +48,20 @@ redis.call('EXPIRE', KEYS[1], math.ceil(burst / rate) + 60)
 return {allowed, tostring(tokens)}
 """
 
-_ADMIT_JOB = """
-if redis.call('ZSCORE', KEYS[1], ARGV[1]) then
+# A tenant's unfinished jobs, for the queue's submission script (service.queue), which admits a job and
+# enqueues it in the same step: the count of the tenant's live jobs when it has `limit` already, else -1 (a job
+# the tenant already has, an identical request, is free). Ids whose job key is gone (done, failed, cancelled)
+# leave the set on the way.
+TENANT_JOBS_FUNCTION = """
+local function tenant_full(jobs, id, limit, job_prefix)
+  if redis.call('ZSCORE', jobs, id) then return -1 end
+  for _, other in ipairs(redis.call('ZRANGE', jobs, 0, -1)) do
+    if redis.call('EXISTS', job_prefix .. other) == 0 then redis.call('ZREM', jobs, other) end
+  end
+  local count = redis.call('ZCARD', jobs)
+  if count >= tonumber(limit) then return count end
   return -1
 end
-for _, id in ipairs(redis.call('ZRANGE', KEYS[1], 0, -1)) do
-  if redis.call('EXISTS', ARGV[3] .. id) == 0 then
-    redis.call('ZREM', KEYS[1], id)
-  end
-end
-local count = redis.call('ZCARD', KEYS[1])
-if count >= tonumber(ARGV[2]) then
-  return count
-end
-redis.call('ZADD', KEYS[1], ARGV[4], ARGV[1])
-redis.call('EXPIRE', KEYS[1], ARGV[5])
-return -1
 """
 
 # Virtual time is the queue's head score; with nothing queued, the highest score handed out so far (all
@@ -101,7 +100,7 @@ def _auth_key(source: str) -> str:
     return f"{PREFIX}:source:{source}:auth-failures"
 
 
-def _jobs_key(tag: str) -> str:
+def tenant_jobs_key(tag: str) -> str:
     return f"{PREFIX}:tenant:{tag}:jobs"
 
 
@@ -208,14 +207,8 @@ class Quotas:
         return Refusal("auth", f"too many failed authentications from this address: at most "
                                f"{self.auth.failures_per_s:g}/s (bursts of {self.auth.burst})", max(1, wait))
 
-    async def admit_job(self, caller: Caller, job_id: str, retry_after_s: int) -> Refusal | None:
-        """Count a new job against its tenant's cap; a job the tenant already has (identical request) is free."""
-        count = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _ADMIT_JOB, 1, _jobs_key(caller.tag), job_id, self.max_jobs, job_key_prefix,
-            datetime.now(UTC).timestamp(), STATE_TTL_S,
-        ))
-        if count < 0:
-            return None
+    def jobs_refusal(self, caller: Caller, count: int, retry_after_s: int) -> Refusal:
+        """The 429 of a tenant at its cap of queued and running jobs (`PRECOND_TENANT_MAX_JOBS`)."""
         return Refusal("jobs", f"job limit: tenant {caller.name!r} has {count} jobs queued or running "
                                f"(at most {self.max_jobs})", retry_after_s)
 

@@ -11,11 +11,11 @@ from typing import Any
 from jobs import keys
 from jobs.kinds import tenant_private
 from schemas.api import JobKind, JobProgress, JobStatus
-from service.auth import refuse
+from service.auth import refusal_error
 from service.caller import Caller
 from service.deps import Services
 from service.errors import ServiceError
-from service.queue import QueueFull
+from service.queue import QueueFull, TenantFull
 
 Screen = Callable[[], Awaitable[None]]
 """A check of the request that raises `ServiceError` (422) before anything is queued: run only when the job
@@ -44,11 +44,13 @@ async def submit_job(
         return JobStatus.model_construct(id=job_id, kind=kind, status="succeeded", progress=done, result=cached)
     if screen is not None:
         await screen()
-    refuse(services, caller.tag, await services.quotas.admit_job(caller, job_id, settings.retry_after_s))
     timeout = settings.wait_max_s if wait_s is None else min(wait_s, settings.wait_max_s)
     try:
         status = await services.queue.submit(kind, job_id, payload, caller.tag, cache_key, timeout,
                                              settings.wait_poll_s)
+    except TenantFull as full:
+        refusal = services.quotas.jobs_refusal(caller, full.count, settings.retry_after_s)
+        raise refusal_error(services, caller.tag, refusal) from None
     except QueueFull as full:
         services.metrics.rejections.labels(caller.tag, "queue").inc()
         raise ServiceError(

@@ -26,7 +26,7 @@ from jobs.cache import ResultCache
 from jobs.keys import owner_of
 from jobs.kinds import KINDS
 from jobs.payloads import ReinferJob
-from jobs.records import Outcome, bookkeeping, record_job, record_phase, write_progress
+from jobs.records import Outcome, job_counts, record_phase, write_progress
 from schemas.api import (
     ErrorInfo,
     JobKind,
@@ -36,6 +36,7 @@ from schemas.api import (
 from schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
 from worker import policies
 from worker.memory import MemoryGuard
+from worker.queue_worker import JobEnd
 from worker.reinfer import reinfer, store
 from worker.settings import WorkerSettings
 
@@ -45,8 +46,8 @@ CancelledFn = Callable[[], bool]
 
 @dataclass
 class JobCounts:
-    """The worker's own count of its runs, for its heartbeat: incremented when it starts a run (arq's
-    `on_job_start`) and when a run returns its outcome; never derived from arq's internals, never lower."""
+    """The worker's own count of its runs, for its heartbeat: incremented when a run starts and when it returns
+    its outcome; never derived from arq's internals, never lower."""
 
     started: int = 0
     complete: int = 0
@@ -137,11 +138,14 @@ async def _store_version(redis: Redis[bytes], job_id: str, body: dict[str, Any],
 
 async def run_operation(
     ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], cache_key: str | None = None
-) -> dict[str, Any]:
+) -> JobEnd:
     """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop.
-    A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry)."""
+    A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with the
+    job's end (worker/queue_worker.py)."""
     redis: Redis[bytes] = ctx["redis"]
     tag = owner_of(ctx["job_id"]) or ""
+    counts: JobCounts = ctx["counts"]
+    counts.started += 1
     try:
         engine_of, body = await _engine_for(ctx, tag, kind, body)
         outcome, sandbox_limit = await _run(ctx, kind, body, engine_of)
@@ -154,17 +158,11 @@ async def run_operation(
     finally:
         if KINDS[kind].stores_adapter:
             policies.discard(body)
-    # Bookkeeping only: arq stores the outcome itself right after this returns. A Redis blip here must not
-    # turn a finished job into a failed one (arq would record the ConnectionError as the job's result).
+    counts.complete += 1
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
     cache: ResultCache = ctx["cache"]
-    writes = [record_job(redis, kind, outcome.status, sandbox_limit)]
-    if outcome.result is not None:
-        writes.append(cache.put(cache_key or ctx["job_id"], outcome.result))
-    await bookkeeping(writes)
-    counts: JobCounts = ctx["counts"]
-    counts.complete += 1
-    return outcome.to_arq()
+    writes = () if outcome.result is None else (cache.put(cache_key or ctx["job_id"], outcome.result),)
+    return JobEnd(outcome.to_arq(), job_counts(kind, outcome.status, sandbox_limit), writes)
 
 
 async def _engine_for(ctx: dict[str, Any], tag: str, kind: JobKind, body: dict[str, Any]

@@ -46,6 +46,7 @@ def run_child(config: dict[str, typing.Any], workdir: str, was_root: bool, bpf: 
     budget = _conveniences(limits)
     table = runtime.restricted_builtins(frozenset(config["allowed_imports"]))
     _warm_up(table)
+    gc.freeze()  # what start-up made lives as long as the child: a collection between requests skips it (1.3 ms)
     while (received := read_request(REQUEST_FD)) is not None:
         settled, body = received
         _answer(json.loads(body), settled, table, limits, budget)

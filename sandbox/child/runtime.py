@@ -348,7 +348,7 @@ class Program:
                 continue
             cls, fn = live
             try:
-                signature = inspect.signature(fn)
+                signature = signature_of(fn)
             except (TypeError, ValueError):
                 continue
             originals.append((cls, method.name, fn))
@@ -359,6 +359,22 @@ class Program:
                 type.__setattr__(cls, name, fn)
 
         return restore
+
+
+def signature_of(fn: types.FunctionType) -> inspect.Signature:
+    """`inspect.signature(fn)`; remembered by code object for a function whose signature is its code's alone
+    (no defaults, no attributes such as `__signature__` or `__wrapped__`), kept without its annotations (objects
+    of the request that made it). The spec's methods are made afresh by every request, from the same code:
+    computing 24 signatures each time was half of a check's work in a warm child."""
+    if fn.__defaults__ is not None or fn.__kwdefaults__ is not None or fn.__dict__:
+        return inspect.signature(fn)
+
+    def bare() -> inspect.Signature:
+        signature = inspect.signature(fn)
+        parameters = [p.replace(annotation=inspect.Parameter.empty) for p in signature.parameters.values()]
+        return signature.replace(parameters=parameters, return_annotation=inspect.Signature.empty)
+
+    return typing.cast(inspect.Signature, compiled(("signature", fn.__code__), bare))
 
 
 def bind(signature: inspect.Signature, receiver: object, args: tuple[object, ...],

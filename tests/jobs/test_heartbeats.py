@@ -10,7 +10,7 @@ from collections.abc import Awaitable, Callable
 from arq.constants import in_progress_key_prefix, result_key_prefix
 from redis.asyncio import Redis
 
-from jobs.heartbeats import Heartbeat, beat, claim, live_workers, new_claim, release
+from jobs.heartbeats import Heartbeat, beat, live_workers, new_claim
 from jobs.keys import CHECK_QUEUE, RUNNING_KEY, UNCLAIMED_KEY, worker_key
 from stack.local import RedisServer
 
@@ -25,6 +25,12 @@ async def started(redis: Redis[bytes], job: str) -> None:
     """A job as arq leaves it once a worker took it: still in its queue, with an in-progress key."""
     await redis.zadd(CHECK_QUEUE, {job: time.time() * 1000})
     await redis.set(in_progress_key_prefix + job, b"1")
+
+
+async def claim(redis: Redis[bytes], worker: Heartbeat, ttl_s: float, job: str, token: str) -> None:
+    """A claim as the worker's take writes it (worker/queue_worker.py): the job's claim under a fresh heartbeat."""
+    await redis.set(worker_key(worker.id), worker.model_dump_json(), px=int(ttl_s * 1000))
+    await redis.hset(RUNNING_KEY, job, token)
 
 
 def run(redis_server: RedisServer, scenario: Callable[[Redis[bytes]], Awaitable[None]]) -> None:
@@ -59,18 +65,6 @@ def test_a_dead_workers_unfinished_job_goes_back_and_a_live_workers_stays(redis_
     run(redis_server, scenario)
 
 
-def test_release_removes_only_its_own_runs_claim(redis_server: RedisServer) -> None:
-    async def scenario(redis: Redis[bytes]) -> None:
-        first, second = new_claim("w"), new_claim("w")
-        await claim(redis, heartbeat("w"), 60, "job", second)  # a later run of the same job
-        await release(redis, "job", first)
-        assert await redis.hget(RUNNING_KEY, "job") == second.encode()
-        await release(redis, "job", second)
-        assert not await redis.hexists(RUNNING_KEY, "job")
-
-    run(redis_server, scenario)
-
-
 def test_runs_a_worker_dropped_go_back_at_once_and_lost_claims_are_written_again(redis_server: RedisServer) -> None:
     """Redis went away mid-job (arq could not record the end: dropped), or came back without the claims."""
     async def scenario(redis: Redis[bytes]) -> None:
@@ -80,7 +74,7 @@ def test_runs_a_worker_dropped_go_back_at_once_and_lost_claims_are_written_again
         await claim(redis, heartbeat("w"), 60, "dropped", token)
         running = new_claim("w")
 
-        released = await beat(redis, heartbeat("w"), 60, running={"running": running}, dropped={"dropped": token})
+        released = await beat(redis, heartbeat("w"), 60, running={"running": running}, dropped={token})
 
         assert released == ["dropped"]
         assert not await redis.exists(in_progress_key_prefix + "dropped")

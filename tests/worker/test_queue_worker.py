@@ -1,0 +1,288 @@
+"""The queue worker's take and finish scripts (worker/queue_worker.py) against a real redis-server: a job is
+claimed with its in-progress key in one step, ends with arq's result, the counts, the claim's release and the
+notice in one step, and every way arq ends a run (expired, aborted before it started, out of tries, timed out,
+cancelled by a shutdown) still ends the same way."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import signal
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+from arq import func
+from arq.connections import ArqRedis, RedisSettings
+from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, retry_key_prefix
+from arq.jobs import Job, JobStatus
+from arq.worker import JobExecutionFailed
+from redis.asyncio import Redis
+from redis.exceptions import RedisError
+
+from jobs import keys
+from jobs.heartbeats import Heartbeat, beat
+from jobs.keys import RUNNING_KEY, STATS_KEY, done_channel, worker_key
+from stack.local import RedisServer
+from worker.queue_worker import JobEnd, TenantShareWorker
+from worker.runner import RunClaims
+
+QUEUE = "test:queue"
+FUNCTION = "operation"
+TAG = "0123456789abcdef"
+
+
+def job_id(n: int, tag: str = TAG) -> str:
+    return keys.job_id("check", {"n": n}, None, b"secret", tag)
+
+
+def heartbeat() -> Heartbeat:
+    return Heartbeat(id="w1", host="h", pid=1, queues=[QUEUE], model_loaded=False)
+
+
+Operation = Callable[..., Awaitable[JobEnd]]
+
+
+async def answer(ctx: dict[str, Any], n: int) -> JobEnd:
+    return JobEnd({"n": n}, {"jobs:test:succeeded": 1.0})
+
+
+def run(redis_server: RedisServer, scenario: Callable[[ArqRedis, Redis[bytes]], Awaitable[None]]) -> None:
+    async def main() -> None:
+        arq_redis = ArqRedis.from_url(redis_server.url)
+        plain: Redis[bytes] = Redis.from_url(redis_server.url)
+        try:
+            await scenario(arq_redis, plain)
+        finally:
+            await arq_redis.aclose()  # type: ignore[attr-defined]
+            await plain.aclose()  # type: ignore[attr-defined]
+
+    asyncio.run(main())
+
+
+@contextlib.asynccontextmanager
+async def worker(redis_server: RedisServer, operation: Operation = answer, timeout_s: float = 30,
+                 max_tries: int = 3, claims: RunClaims | None = None) -> Any:
+    claims = claims or RunClaims("w1", heartbeat, 5.0)
+    queue_worker = TenantShareWorker(
+        functions=[func(operation, name=FUNCTION, timeout=timeout_s)], queue_name=QUEUE,
+        redis_settings=RedisSettings.from_dsn(redis_server.url), max_jobs=2, tenant_slots=2, idle_poll_s=0.05,
+        claims=claims, allow_abort_jobs=True, handle_signals=False, max_tries=max_tries, keep_result=60,
+    )
+    task = asyncio.create_task(queue_worker.async_run())
+    try:
+        yield queue_worker
+    finally:
+        queue_worker.handle_sig(signal.SIGUSR1)
+        # a Redis error ends arq's run, and its close (the worker process starts another: worker/runner.py)
+        with contextlib.suppress(asyncio.CancelledError, RedisError):
+            await task
+        with contextlib.suppress(RedisError):
+            await queue_worker.close()
+
+
+async def result_of(redis: ArqRedis, job: str, timeout_s: float = 10) -> Any:
+    info = await Job(job, redis, _queue_name=QUEUE).result_info()
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while info is None:
+        assert asyncio.get_running_loop().time() < deadline, f"{job} never ended"
+        await asyncio.sleep(0.02)
+        info = await Job(job, redis, _queue_name=QUEUE).result_info()
+    return info
+
+
+def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: RedisServer) -> None:
+    seen: dict[str, Any] = {}
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:  # what holds while the job runs
+            seen["claim"] = await plain.hget(RUNNING_KEY, ctx["job_id"])
+            seen["heartbeat"] = await plain.get(worker_key("w1"))
+            seen["in_progress"] = await plain.exists(in_progress_key_prefix + ctx["job_id"])
+            return JobEnd({"n": n}, {"jobs:test:succeeded": 1.0})
+
+        job = job_id(1)
+        notices = plain.pubsub()
+        await notices.subscribe(done_channel(job))
+        await redis.enqueue_job(FUNCTION, 7, _job_id=job, _queue_name=QUEUE)
+        async with worker(redis_server, operation):
+            info = await result_of(redis, job)
+        assert info.success and info.result == {"n": 7} and info.job_try == 1
+        assert seen["claim"].decode().startswith("w1|") and seen["in_progress"] == 1
+        assert Heartbeat.model_validate_json(seen["heartbeat"]).id == "w1"
+        for key in (in_progress_key_prefix, job_key_prefix, retry_key_prefix):
+            assert not await plain.exists(key + job)
+        assert await plain.zscore(QUEUE, job) is None
+        assert not await plain.hexists(RUNNING_KEY, job)  # the claim went with the end
+        stats = await plain.hgetall(STATS_KEY)
+        assert float(stats[b"jobs:test:succeeded"]) == 1.0
+        assert float(stats[f"queue_count:{TAG}:check".encode()]) == 1.0
+        messages = [await notices.get_message(timeout=1) for _ in range(2)]  # the subscription's, then the notice
+        assert [m["type"] for m in messages if m] == ["subscribe", "message"], messages
+        await notices.aclose()  # type: ignore[attr-defined]
+
+    run(redis_server, scenario)
+
+
+def test_a_finish_releases_its_own_runs_claim_only(redis_server: RedisServer) -> None:
+    """A later run of the same job (another worker took it after this one's claim was handed back) keeps its
+    claim when the earlier run's end is recorded."""
+    claims = RunClaims("w1", heartbeat, 5.0)
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            await plain.hset(RUNNING_KEY, ctx["job_id"], "w2|later")
+            return JobEnd({"n": n})
+
+        job = job_id(2)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        async with worker(redis_server, operation, claims=claims):
+            await result_of(redis, job)
+        assert await plain.hget(RUNNING_KEY, job) == b"w2|later"
+        assert claims.live == {} and claims.dropped == set()
+
+    run(redis_server, scenario)
+
+
+@pytest.mark.parametrize("how", ["expired", "aborted", "out of tries"])
+def test_a_job_that_must_not_run_ends_failed_as_arq_ends_it(redis_server: RedisServer, how: str) -> None:
+    ran: list[int] = []
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            ran.append(n)
+            return JobEnd({"n": n})
+
+        job = job_id(3)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        if how == "expired":
+            await plain.delete(job_key_prefix + job)
+        elif how == "aborted":
+            await plain.zadd(abort_jobs_ss, {job: 1})
+        else:
+            await plain.set(retry_key_prefix + job, 3)
+        async with worker(redis_server, operation):
+            info = await result_of(redis, job)
+        assert not info.success and ran == []
+        if how == "aborted":
+            assert isinstance(info.result, asyncio.CancelledError)
+        else:
+            expected = "job expired" if how == "expired" else "max 3 retries exceeded"
+            assert isinstance(info.result, JobExecutionFailed) and str(info.result) == expected
+        assert await plain.zscore(QUEUE, job) is None and not await plain.hexists(RUNNING_KEY, job)
+
+    run(redis_server, scenario)
+
+
+def test_a_run_past_its_timeout_ends_failed(redis_server: RedisServer) -> None:
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            await asyncio.sleep(30)
+            return JobEnd({"n": n})
+
+        job = job_id(4)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        async with worker(redis_server, operation, timeout_s=0.2):
+            info = await result_of(redis, job)
+        assert not info.success and isinstance(info.result, TimeoutError)
+
+    run(redis_server, scenario)
+
+
+def test_a_run_a_shutdown_cancels_goes_back_to_its_queue(redis_server: RedisServer) -> None:
+    started = asyncio.Event()
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            started.set()
+            await asyncio.sleep(30)
+            return JobEnd({"n": n})
+
+        job = job_id(5)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        async with worker(redis_server, operation):
+            await asyncio.wait_for(started.wait(), 10)
+        # cancelled by the shutdown: queued again, runnable at once, its try counted, no result, no claim
+        assert await Job(job, redis, _queue_name=QUEUE).status() == JobStatus.queued
+        assert not await plain.exists(in_progress_key_prefix + job)
+        assert await plain.get(retry_key_prefix + job) == b"1"
+        assert not await plain.hexists(RUNNING_KEY, job)
+        async with worker(redis_server):
+            info = await result_of(redis, job)
+        assert info.success and info.job_try == 2
+
+    run(redis_server, scenario)
+
+
+def test_a_run_whose_end_redis_refused_is_handed_back_by_the_next_beat(redis_server: RedisServer) -> None:
+    """The end could not be recorded (Redis refused the script): the run's claim moves to the dropped ones,
+    and the worker's next beat hands the job back to the queue."""
+    claims = RunClaims("w1", heartbeat, 5.0)
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            await plain.config_set("maxmemory", 1)  # noeviction refuses every write from here
+            return JobEnd({"n": n})
+
+        job = job_id(6)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        async with worker(redis_server, operation, claims=claims):
+            deadline = asyncio.get_running_loop().time() + 10
+            while not claims.dropped:
+                assert asyncio.get_running_loop().time() < deadline, "the unrecorded run was never dropped"
+                await asyncio.sleep(0.02)
+        await plain.config_set("maxmemory", 0)
+        assert await plain.exists(in_progress_key_prefix + job)  # started, never ended: nothing else frees it
+        released = await beat(plain, heartbeat(), 5.0, dropped=set(claims.dropped))
+        assert released == [job] and not await plain.exists(in_progress_key_prefix + job)
+        async with worker(redis_server):
+            assert (await result_of(redis, job)).success
+
+    run(redis_server, scenario)
+
+
+def unstarted_worker(redis: ArqRedis, claims: RunClaims) -> TenantShareWorker:
+    return TenantShareWorker(functions=[func(answer, name=FUNCTION)], queue_name=QUEUE, redis_pool=redis,
+                             max_jobs=2, tenant_slots=1, idle_poll_s=0.05, claims=claims, handle_signals=False)
+
+
+def test_a_take_whose_answer_was_lost_is_handed_back_by_the_next_beat(redis_server: RedisServer) -> None:
+    """The take's script ran, its answer never came (the connection broke): the worker never learned which
+    job its claim names, yet the next beat hands that job back."""
+    claims = RunClaims("w1", heartbeat, 5.0)
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        job = job_id(8)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        claim = claims.open()
+        assert (await unstarted_worker(redis, claims)._take_next(claim, [])) is not None  # answer "lost"
+        claims.lost(claim.token)
+        assert await plain.exists(in_progress_key_prefix + job)
+        released = await beat(plain, heartbeat(), 5.0, dropped=set(claims.dropped))
+        assert released == [job] and not await plain.hexists(RUNNING_KEY, job)
+        async with worker(redis_server):
+            info = await result_of(redis, job)
+        assert info.success and info.job_try == 2  # the lost take counted as a try, as arq counts one
+
+    run(redis_server, scenario)
+
+
+def test_the_next_job_taken_skips_tenants_at_their_share_and_jobs_already_started(redis_server: RedisServer) -> None:
+    claims = RunClaims("w1", heartbeat, 5.0)
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        busy, other = "aaaaaaaaaaaaaaaa", "bbbbbbbbbbbbbbbb"
+        first, second, third = job_id(9, busy), job_id(10, busy), job_id(11, other)
+        for score, job in enumerate((first, second, third), start=1):  # fair scores, ascending
+            await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+            await plain.zadd(QUEUE, {job: score})
+        queue_worker = unstarted_worker(redis, claims)
+        taken = await queue_worker._take_next(claims.open(), [])
+        assert taken is not None and taken.id == first
+        taken = await queue_worker._take_next(claims.open(), [busy])  # `busy` is at its share: `other` goes next
+        assert taken is not None and taken.id == third
+        taken = await queue_worker._take_next(claims.open(), [])  # the started ones stay queued, untaken
+        assert taken is not None and taken.id == second
+        assert await queue_worker._take_next(claims.open(), []) is None
+
+    run(redis_server, scenario)
