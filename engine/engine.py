@@ -90,6 +90,8 @@ WeightsLoader = Callable[[], "Weights"]
 T = TypeVar("T")
 
 SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
+MODEL_WAIT_POLL_S = 0.1
+"""How often a job waiting for the model's load checks whether it was cancelled."""
 
 
 def _no_progress(phase: str, done: int, total: int) -> None:
@@ -149,14 +151,19 @@ class Engine:
     def model_loaded(self) -> bool:
         return self._model is not None
 
-    def model(self) -> CodeModel:
-        """Load once, on first use; concurrent first uses wait for the same load."""
-        with self._lock:
+    def model(self, cancelled: Callable[[], bool] = _never) -> CodeModel:
+        """Load once, on first use; concurrent first uses wait for the same load, each stopping its wait when
+        its job is cancelled (a job taken while the worker still loads its model is cancelled at once)."""
+        while not self._lock.acquire(timeout=MODEL_WAIT_POLL_S):
+            self._check_cancel(cancelled)
+        try:
             if self._model is None:
                 if self._loader is None:
                     raise ModelUnavailable("no code model is configured for this worker")
                 self._model = self._loader()
             return self._model
+        finally:
+            self._lock.release()
 
     # ---- trained policies (behaviour cloning) ------------------------------------------------------
     def train_policy(self, request: TrainPolicyRequest, out: Path, progress: ProgressFn = _no_progress,
@@ -275,7 +282,7 @@ class Engine:
         from engine.models import Sampling
 
         options = request.options
-        model = self.model()
+        model = self.model(cancelled)
         windows = prompting.demo_windows(
             len(request.demonstrations), options.prompts_per_action, options.demonstrations_per_prompt
         )
@@ -395,7 +402,7 @@ class Engine:
         request = request.model_copy(update={"history": history_program(spec.source, request.history)})
         for i, demo in enumerate(request.demonstrations):
             parse_source(demo, f"demonstrations[{i}]")
-        planner = NextActionPlanner(spec, request, self.model(), self._verify, cancelled)
+        planner = NextActionPlanner(spec, request, self.model(cancelled), self._verify, cancelled)
         with self._sandbox.cancel_when(cancelled):
             violation = self._history_violation(spec, request.preconditions, planner.history)
             actions = planner.run(progress)

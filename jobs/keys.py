@@ -39,7 +39,6 @@ RUNNING_KEY: Final = f"{PREFIX}:running"
 """Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
 UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 """Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
-DONE_PREFIX: Final = f"{PREFIX}:done:"
 WAKE_PREFIX: Final = f"{PREFIX}:wake:"
 
 TAG_CHARS: Final = 16
@@ -59,11 +58,6 @@ def cache_key(job_id: str) -> str:
 
 def progress_key(job_id: str) -> str:
     return f"{PREFIX}:progress:{job_id}"
-
-
-def done_channel(job_id: str) -> str:
-    """Pub/sub channel on which a worker announces that the job's result is stored."""
-    return f"{DONE_PREFIX}{job_id}"
 
 
 def wake_channel(queue: str) -> str:

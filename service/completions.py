@@ -1,10 +1,12 @@
-"""Job-completion notifications: waiting requests wake when their job's result is stored, not on a timer.
+"""Job-completion notices: waiting requests wake when their job's end is stored, not on a timer.
 
-Workers publish on `precond:done:<job id>` right after arq records a result (`worker.runner._announce`). Each
-gateway process holds one pattern subscription for all of them and wakes the requests waiting on that id.
-Notifications are an optimisation, never the source of truth: a waiter re-reads the job's state from Redis
-after every wake-up, polls at `wait_poll_s` while the subscription is down (Redis restarting), and once a
-second even while it is up, so a lost message (or a job arq fails without running it) costs at most a second.
+Each gateway process subscribes to a channel of its own (`jobs.notices.notice_channel`), and every request
+that waits on a job names that channel among the job's waiters when it submits the job (service/queue.py). The
+worker's script that stores the job's end publishes on those channels only, with the end as stored (its
+result and progress, when small), so the one process that waits wakes and answers without reading it back.
+Notices are an optimisation, never the only way: a waiter whose notice carries no end re-reads the job's
+state, re-reads it once a second anyway (a lost notice, or a job arq fails without running it, costs at most
+a second), and polls at `wait_poll_s` while the subscription is down (Redis restarting).
 """
 
 from __future__ import annotations
@@ -12,17 +14,27 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import uuid
 from collections.abc import Iterator
+from dataclasses import dataclass, field
 
 from redis.asyncio import ConnectionPool, Redis
 from redis.exceptions import RedisError
 
-from jobs.keys import DONE_PREFIX
+from jobs.notices import notice_channel, read_notice
 
 log = logging.getLogger("precond.gateway")
 
 RECONNECT_S = 1.0
 """Pause between attempts to (re)subscribe while Redis is unreachable."""
+
+
+@dataclass(eq=False)  # a watch is itself, not its contents: kept in sets
+class Watch:
+    """One request's watch on a job: set when a notice comes; `end` is the (progress, arq result) it carried."""
+
+    event: asyncio.Event = field(default_factory=asyncio.Event)
+    end: tuple[bytes, bytes] | None = None
 
 
 class Completions:
@@ -31,7 +43,9 @@ class Completions:
         self._redis: Redis[bytes] = Redis(
             connection_pool=ConnectionPool.from_url(dsn, socket_connect_timeout=2, health_check_interval=30)
         )
-        self._waiters: dict[str, set[asyncio.Event]] = {}
+        self.channel = notice_channel(uuid.uuid4().hex)
+        """Where this process hears of the ends of the jobs its requests wait on (a job names it as a waiter)."""
+        self._watches: dict[str, set[Watch]] = {}
         self._task: asyncio.Task[None] | None = None
         self.subscribed = False
 
@@ -46,33 +60,36 @@ class Completions:
         await self._redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 
     @contextlib.contextmanager
-    def watch(self, job_id: str) -> Iterator[asyncio.Event]:
-        """An event set whenever `job_id` is announced while the block runs. Enter before reading the state."""
-        event = asyncio.Event()
-        self._waiters.setdefault(job_id, set()).add(event)
+    def watch(self, job_id: str) -> Iterator[Watch]:
+        """A watch set whenever `job_id`'s end is announced while the block runs. Enter before the job is
+        submitted (or its state read)."""
+        watch = Watch()
+        self._watches.setdefault(job_id, set()).add(watch)
         try:
-            yield event
+            yield watch
         finally:
-            waiters = self._waiters.get(job_id, set())
-            waiters.discard(event)
-            if not waiters:
-                self._waiters.pop(job_id, None)
+            watches = self._watches.get(job_id, set())
+            watches.discard(watch)
+            if not watches:
+                self._watches.pop(job_id, None)
 
-    def _wake(self, channel: bytes) -> None:
-        job_id = channel.decode(errors="replace").removeprefix(DONE_PREFIX)
-        for event in self._waiters.get(job_id, ()):
-            event.set()
+    def _wake(self, message: bytes) -> None:
+        job_id, progress, result = read_notice(message)
+        for watch in self._watches.get(job_id, ()):
+            if progress is not None and result is not None:
+                watch.end = (progress, result)
+            watch.event.set()
 
     async def _listen(self) -> None:
         while True:
             pubsub = self._redis.pubsub()
             try:
-                await pubsub.psubscribe(f"{DONE_PREFIX}*")
+                await pubsub.subscribe(self.channel)
                 self.subscribed = True
                 while True:
                     message = await pubsub.get_message(ignore_subscribe_messages=True, timeout=1.0)
-                    if message is not None and message["type"] == "pmessage":
-                        self._wake(message["channel"])
+                    if message is not None and message["type"] == "message":
+                        self._wake(message["data"])
             except (RedisError, OSError) as exc:
                 if self.subscribed:
                     log.warning("job-completion subscription lost (%s); polling until it is back", exc)
@@ -81,7 +98,7 @@ class Completions:
                 with contextlib.suppress(RedisError, OSError):
                     await pubsub.aclose()  # type: ignore[attr-defined]
             # Everyone waiting may have missed a message while the subscription was down.
-            for waiters in self._waiters.values():
-                for event in waiters:
-                    event.set()
+            for watches in self._watches.values():
+                for watch in watches:
+                    watch.event.set()
             await asyncio.sleep(RECONNECT_S)

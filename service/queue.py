@@ -25,14 +25,14 @@ from arq.constants import (
 from arq.jobs import Job, JobResult, deserialize_result, serialize_job, serialize_result
 from arq.utils import timestamp_ms, to_ms
 from arq.worker import JobExecutionFailed
-from redis.exceptions import RedisError
 
 from jobs.cache import ResultCache
-from jobs.keys import JOB_FUNCTION, done_channel, kind_of, progress_key, wake_channel
+from jobs.keys import JOB_FUNCTION, kind_of, progress_key, wake_channel
 from jobs.kinds import KINDS, queue_for, queues_of
+from jobs.notices import NOTIFY_FUNCTION, WAITERS_TTL_S, waiters_key
 from jobs.records import Outcome, parse_progress
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
-from service.completions import Completions
+from service.completions import Completions, Watch
 from service.errors import bounded
 from service.quotas import (
     FAIR_EPOCH_MS,
@@ -48,10 +48,15 @@ SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
 
 
-_SUBMIT = FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
+_SUBMIT = "#!lua\n" + FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
 local full = tenant_full(KEYS[6], ARGV[1], ARGV[9], ARGV[10])
 if full >= 0 then return -2 - full end
-if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[4]) == 1 then return 0 end
+if redis.call('exists', KEYS[4]) == 1 then return 0 end
+if redis.call('exists', KEYS[3]) == 1 then
+  redis.call('sadd', KEYS[7], ARGV[12])
+  redis.call('expire', KEYS[7], ARGV[13])
+  return 0
+end
 if redis.call('zcard', KEYS[1]) >= tonumber(ARGV[2]) then return -1 end
 redis.call('zrem', KEYS[5], ARGV[1])
 local score = fair_score(KEYS[1], KEYS[2], ARGV[3], ARGV[4], ARGV[5])
@@ -59,6 +64,8 @@ redis.call('psetex', KEYS[3], ARGV[7], ARGV[6])
 redis.call('zadd', KEYS[1], score, ARGV[1])
 redis.call('zadd', KEYS[6], ARGV[11], ARGV[1])
 redis.call('expire', KEYS[6], ARGV[5])
+redis.call('sadd', KEYS[7], ARGV[12])
+redis.call('expire', KEYS[7], ARGV[13])
 redis.call('publish', ARGV[8], '1')
 return 1
 """
@@ -66,22 +73,26 @@ return 1
 around it: `-2 - n` when its tenant has `n` jobs queued or running, its cap (service.quotas); 0 when the same job
 exists (queued, running or with a result: identical requests share it); -1 when the queue holds `max_jobs`
 already; else 1. The step counts the job as its tenant's, clears a stale abort mark of the id (arq#485), gives
-the job its tenant's fair place (service.quotas) and wakes an idle worker (advisory: workers still poll).
+the job its tenant's fair place (service.quotas), names this gateway process among the job's waiters (unless
+its end is stored already: jobs/notices.py) and wakes an idle worker (advisory: workers still poll).
 Atomic, so concurrent submissions, from any number of gateway processes, never push a queue or a tenant past
-its bound."""
+its bound. Declared (`#!lua`, Redis 7), so a Redis at its `maxmemory` refuses the whole step before it starts
+(503); undeclared, Redis refuses only a script whose first write needs memory, and a first write that frees
+some (a stale abort mark, a finished job's place in its tenant's set) let the rest enqueue past the limit."""
 
-_CANCEL_QUEUED = """
+_CANCEL_QUEUED = NOTIFY_FUNCTION + """
 if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[5]) == 1 then return 0 end
 if redis.call('zrem', KEYS[1], ARGV[1]) == 0 then return 0 end
 redis.call('del', KEYS[2], KEYS[4])
 redis.call('zrem', KEYS[6], ARGV[1])
 redis.call('set', KEYS[3], ARGV[4], 'PX', ARGV[5])
 redis.call('set', KEYS[5], ARGV[2], 'PX', ARGV[3])
+notify(KEYS[7], ARGV[1])
 return 1
 """
-"""Cancel a job no worker has started, at once: out of its queue, its result `cancelled`. The in-progress key
-is set briefly to a guard value, so a worker that read the id from the queue just before cannot start it
-(arq WATCHes that key between reading the queue and claiming the job)."""
+"""Cancel a job no worker has started, at once: out of its queue, its result `cancelled`, its waiters told. The
+in-progress key is set briefly to a guard value, so that a worker's take (worker/queue_worker.py), which starts
+only jobs without one, cannot start it."""
 
 _DROP_GUARD = """
 if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end
@@ -141,13 +152,13 @@ class JobQueue:
         already there, unless its last run says nothing final (cancelled, crashed: `_last_run_unusable`), which
         is run again. TenantFull or QueueFull past a bound. The job's result is cached under `cache_key`."""
         queue = queue_for(kind, body)
-        with self.completions.watch(job_id) as announced:  # before the enqueue: its notice cannot come first
+        with self.completions.watch(job_id) as watch:  # before the enqueue: its notice cannot come first
             enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
             if not enqueued and await self._last_run_unusable(self._job(job_id, queue)):
                 await self.redis.delete(result_key_prefix + job_id)
                 await self.redis.eval(_DROP_GUARD, 1, in_progress_key_prefix + job_id, CANCEL_GUARD)  # type: ignore[no-untyped-call]
                 enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
-            return await self._wait(job_id, timeout_s, poll_s, announced, read_first=not enqueued)
+            return await self._wait(job_id, timeout_s, poll_s, watch, read_first=not enqueued)
 
     async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
                        queue: str) -> bool:
@@ -155,9 +166,10 @@ class JobQueue:
         now = timestamp_ms()
         job = serialize_job(JOB_FUNCTION, (kind, body, cache_key), {}, None, now, serializer=self.redis.job_serializer)
         enqueued = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _SUBMIT, 6, queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
-            tenant_jobs_key(tenant_tag), job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS, STATE_TTL_S, job,
-            to_ms(JOB_EXPIRY), wake_channel(queue), self.tenant_max_jobs, job_key_prefix, now / 1000,
+            _SUBMIT, 7, queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
+            tenant_jobs_key(tenant_tag), waiters_key(job_id), job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS,
+            STATE_TTL_S, job, to_ms(JOB_EXPIRY), wake_channel(queue), self.tenant_max_jobs, job_key_prefix, now / 1000,
+            self.completions.channel, WAITERS_TTL_S,
         ))
         if enqueued <= -2:
             raise TenantFull(-2 - enqueued)
@@ -182,11 +194,9 @@ class JobQueue:
             pipe.exists(in_progress_key_prefix + job_id)
             pipe.zscore(queue, job_id)
             raw_result, raw_progress, in_progress, score = await pipe.execute()
-        progress = parse_progress(raw_progress)
         if raw_result:
-            state, result, error = _state(deserialize_result(raw_result))
-            done = _done(progress) if state == "succeeded" else progress
-            return JobStatus(id=job_id, kind=kind, status=state, progress=done, result=result, error=error)
+            return _ended(job_id, kind, raw_result, raw_progress)
+        progress = parse_progress(raw_progress)
         if not in_progress and score is None:
             cached = await self.cache.get(job_id)
             if cached is None:
@@ -196,19 +206,23 @@ class JobQueue:
             )
         return JobStatus(id=job_id, kind=kind, status="running" if in_progress else "queued", progress=progress)
 
-    async def _wait(self, job_id: str, timeout_s: float, poll_s: float, announced: asyncio.Event,
+    async def _wait(self, job_id: str, timeout_s: float, poll_s: float, watch: Watch,
                     read_first: bool) -> JobStatus | None:
         """The job's status once finished, or its current status when `timeout_s` runs out first. Woken by the
-        job's completion notice (`announced`); polls every `poll_s` only while notices are unavailable.
-        `read_first=False` for a job this request just enqueued: it is queued, so the first read waits for its
-        notice (or the fallback poll) instead of spending a round trip."""
+        job's completion notice (`watch`), whose end, when it carries one, is the answer without a read; polls
+        every `poll_s` only while notices are unavailable. `read_first=False` for a job this request just
+        enqueued: it is queued, so the first read waits for its notice (or the fallback poll) instead of
+        spending a round trip."""
         deadline = time.monotonic() + timeout_s
         status = None
         if not read_first:
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(announced.wait(), min(timeout_s, self._interval(poll_s)))
+                await asyncio.wait_for(watch.event.wait(), min(timeout_s, self._interval(poll_s)))
+        kind = kind_of(job_id)
         while True:
-            announced.clear()  # before reading: a notice that lands after the read still wakes us
+            if watch.end is not None and kind is not None:
+                return _ended(job_id, kind, watch.end[1], watch.end[0])
+            watch.event.clear()  # before reading: a notice that lands after the read still wakes us
             status = await self.status(job_id)
             if status is None or status.status in ("succeeded", "failed", "cancelled"):
                 return status
@@ -216,7 +230,7 @@ class JobQueue:
             if remaining <= 0:
                 return status
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(announced.wait(), min(remaining, self._interval(poll_s)))
+                await asyncio.wait_for(watch.event.wait(), min(remaining, self._interval(poll_s)))
 
     def _interval(self, poll_s: float) -> float:
         return SAFETY_POLL_S if self.completions.subscribed else poll_s
@@ -248,14 +262,19 @@ class JobQueue:
             f"{job_id}:{JOB_FUNCTION}", queue, job_id,
         )
         done = await self.redis.eval(  # type: ignore[no-untyped-call]
-            _CANCEL_QUEUED, 6, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
-            retry_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
+            _CANCEL_QUEUED, 7, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
+            retry_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss, waiters_key(job_id),
             job_id, result, self.result_ttl_s * 1000, CANCEL_GUARD, CANCEL_GUARD_MS,
         )
-        if done:
-            with contextlib.suppress(RedisError, OSError):
-                await self.redis.publish(done_channel(job_id), b"1")
         return bool(done)
+
+
+def _ended(job_id: str, kind: JobKind, raw_result: bytes, raw_progress: bytes | None) -> JobStatus:
+    """A job's state from its stored end (arq's result) and progress, as read back or as its notice carried it."""
+    progress = parse_progress(raw_progress or None)
+    state, result, error = _state(deserialize_result(raw_result))
+    done = _done(progress) if state == "succeeded" else progress
+    return JobStatus(id=job_id, kind=kind, status=state, progress=done, result=result, error=error)
 
 
 def _done(progress: JobProgress) -> JobProgress:

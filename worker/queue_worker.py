@@ -37,7 +37,8 @@ from arq.worker import JobExecutionFailed, Worker
 from redis.asyncio.client import PubSub
 from redis.exceptions import RedisError
 
-from jobs.keys import OWNER_SPAN_FROM_END, RUNNING_KEY, STATS_KEY, done_channel, owner_of, wake_channel, worker_key
+from jobs.keys import OWNER_SPAN_FROM_END, RUNNING_KEY, STATS_KEY, owner_of, progress_key, wake_channel, worker_key
+from jobs.notices import NOTIFY_FUNCTION, RECORD_FUNCTION, RECORD_MAX_BYTES, waiters_key
 from jobs.records import queue_time_counts
 
 log = logging.getLogger("precond.worker")
@@ -47,9 +48,11 @@ does cancelling it): long, so that an idle listener costs no wake-ups."""
 RETRY_KEY_TTL_S = 88_400
 """arq's lifetime of a job's try count."""
 
-_TAKE_NEXT = """
+_POLL = """
+local aborts = redis.call('ZRANGE', KEYS[2], 0, -1)
+if ARGV[13] ~= '1' then return {aborts} end
 local skip = {}
-for i = 13, #ARGV do skip[ARGV[i]] = true end
+for i = 14, #ARGV do skip[ARGV[i]] = true end
 local queued = redis.call('ZRANGEBYSCORE', KEYS[1], '-inf', ARGV[1], 'WITHSCORES', 'LIMIT', 0, ARGV[6])
 for n = 1, #queued, 2 do
   local id = queued[n]
@@ -61,21 +64,22 @@ for n = 1, #queued, 2 do
     local aborted = redis.call('ZREM', KEYS[2], id)
     redis.call('SET', KEYS[3], ARGV[3], 'PX', ARGV[4])
     redis.call('HSET', KEYS[4], id, ARGV[5])
-    return {id, queued[n + 1], job, try, aborted}
+    return {aborts, id, queued[n + 1], job, try, aborted, #queued > 2 and 1 or 0}
   end
 end
-return false
+return {aborts}
 """
-"""Take the next job this worker may start: the first of the queue's due jobs (in fair-score order, up to the
-read limit) that no worker started (no in-progress key: none runs it, no cancellation guards it) and whose
-tenant is not at its share here (its tag, read from the id's end, is not among those skipped).
-Sets arq's in-progress key and counts the try as arq's `start_jobs` and `run_job` do, and claims the job under
+"""One poll of the queue: arq's abort marks (for the runs going on here), and, when this worker has a free
+slot (ARGV[13]), the next job it may start, taken: the first of the queue's due jobs (in fair-score order, up
+to the read limit) that no worker started (no in-progress key: none runs it, no cancellation guards it) and
+whose tenant is not at its share here (its tag, read from the id's end, is not among those skipped). The take
+sets arq's in-progress key and counts the try as arq's `start_jobs` and `run_job` do, and claims the job under
 a fresh heartbeat (jobs/heartbeats.py) in the same step, so no worker can die between the two and leave a
-started job that no claim names. Returns its id, score, bytes (false once expired), try and whether an abort
-mark waited for it; nil when there is none. Reading the queue, choosing and claiming was four round trips in
-arq (six with the claim), one here."""
+started job that no claim names. Returns the abort marks, then the job's id, score, bytes (false once
+expired), try, whether an abort mark waited for it, and whether the read saw other jobs. Reading the queue and
+the abort marks, choosing and claiming was six round trips in arq (eight with the claim), one here."""
 
-_FINISH = """
+_FINISH = NOTIFY_FUNCTION + RECORD_FUNCTION + """
 if ARGV[2] == '1' then
   if ARGV[3] ~= '' then redis.call('SET', KEYS[1], ARGV[3], 'PX', ARGV[4]) end
   redis.call('DEL', KEYS[2], KEYS[3], KEYS[4])
@@ -86,13 +90,16 @@ else
 end
 for i = 7, #ARGV, 2 do redis.call('HINCRBYFLOAT', KEYS[8], ARGV[i], ARGV[i + 1]) end
 if redis.call('HGET', KEYS[7], ARGV[1]) == ARGV[5] then redis.call('HDEL', KEYS[7], ARGV[1]) end
-redis.call('PUBLISH', ARGV[6], '1')
+local result = false
+if ARGV[2] == '1' and ARGV[3] ~= '' then result = ARGV[3] end
+notify(KEYS[10], record(ARGV[1], redis.call('GET', KEYS[9]), result, ARGV[6]))
 return redis.call('ZCARD', KEYS[6])
 """
 """End a run as arq's `finish_job` does: finished, its result stored and its keys gone; not finished (a
 shutdown cancelled it), its in-progress key gone so that the job, still queued, runs again. With it, the
-counts, this run's claim released (not a later run's), and the notice that wakes waiting gateways. Returns how
-many jobs the queue holds now (queued, or running elsewhere)."""
+counts, this run's claim released (not a later run's), and the notice to the gateway processes that wait on the
+job, carrying its end as stored (jobs/notices.py). Returns how many jobs the queue holds now (queued, or running
+elsewhere)."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +125,8 @@ class Claim:
 class Claims(Protocol):
     """The worker process's record of the runs it claimed: its beats hand back the jobs of runs whose end, or
     whose take's answer, was lost (worker/runner.py)."""
+
+    worker_id: str
 
     def open(self) -> Claim: ...
 
@@ -163,14 +172,13 @@ class TenantShareWorker(Worker):
     # ---------------------------------------------------------------------------------- choosing and taking
 
     async def _poll_iteration(self) -> None:
-        """arq's poll, with the queue read, the choice and the claim of each job in one script (`_TAKE_NEXT`),
-        then arq's abort marks (while a job runs here), done tasks and health key, then a wait for a notice."""
+        """arq's poll, each read of the queue and the abort marks one script (`_POLL`), then done tasks and the
+        health key, then a wait for a notice."""
         if self._listener is None:  # subscribe before the first read: a job enqueued before then is read below
             self._listener = asyncio.create_task(self._listen(await self._subscribe()))
         self._woken.clear()  # a notice that comes during the reads below makes the next poll start at once
-        while self.allow_pick_jobs and self.job_counter < self.max_jobs and await self._start_next():
+        while await self._poll_once():
             pass
-        await self._cancel_aborted_jobs()
         for job_id, task in list(self.tasks.items()):
             if task.done():
                 del self.tasks[job_id]
@@ -179,40 +187,61 @@ class TenantShareWorker(Worker):
         with contextlib.suppress(TimeoutError):
             await asyncio.wait_for(self._woken.wait(), self.idle_poll_s)
 
-    async def _start_next(self) -> bool:
-        """Take the next job (`_TAKE_NEXT`) and start its run; False when none may start now. A take whose
+    async def _poll_once(self) -> bool:
+        """One `_POLL`: the abort marks acted on, and the next job taken and started when a slot is free.
+        Whether to poll again at once (a job started, others were seen, a slot is still free). A take whose
         answer is lost may still have claimed a job: its claim is handed back by the next beat."""
-        running = Counter(owner_of(job_id) for job_id, task in self.tasks.items() if not task.done())
-        at_share = [tag for tag, count in running.items() if tag is not None and count >= self.tenant_slots]
+        take = self.allow_pick_jobs and self.job_counter < self.max_jobs
         claim = self.claims.open()
-        await self.sem.acquire()
-        self.job_counter += 1
+        if take:
+            await self.sem.acquire()
+            self.job_counter += 1
         try:
-            taken = await self._take_next(claim, at_share)
+            aborts, taken, more = await self._poll_script(claim if take else None, self._at_share())
         except BaseException:
-            self.claims.lost(claim.token)
-            self._release_sem_dec_counter_on_complete()
+            if take:
+                self.claims.lost(claim.token)
+                self._release_sem_dec_counter_on_complete()
             raise
+        await self._abort(aborts)
         if taken is None:
-            self._release_sem_dec_counter_on_complete()
+            if take:
+                self._release_sem_dec_counter_on_complete()
             return False
         self.claims.taken(taken.id, claim.token)
         task = self.loop.create_task(self._run(taken, claim))
         task.add_done_callback(self._slot_freed)
         self.tasks[taken.id] = task
-        return True
+        return more and self.job_counter < self.max_jobs
 
-    async def _take_next(self, claim: Claim, at_share: list[str]) -> Taken | None:
-        taken = await self.pool.eval(  # type: ignore[no-untyped-call]
-            _TAKE_NEXT, 4, self.queue_name, abort_jobs_ss, worker_key(claim.worker), RUNNING_KEY,
-            timestamp_ms(), int(self.in_progress_timeout_s * 1000), claim.heartbeat, claim.lease_ms, claim.token,
+    def _at_share(self) -> list[str]:
+        """The tenants with `tenant_slots` runs going on here."""
+        running = Counter(owner_of(job_id) for job_id, task in self.tasks.items() if not task.done())
+        return [tag for tag, count in running.items() if tag is not None and count >= self.tenant_slots]
+
+    async def _poll_script(self, claim: Claim | None, at_share: list[str]
+                           ) -> tuple[list[bytes], Taken | None, bool]:
+        """`_POLL`, taking a job under `claim` (None: only the abort marks), skipping the tenants `at_share`."""
+        heartbeat, lease_ms, token = (claim.heartbeat, claim.lease_ms, claim.token) if claim else ("", 0, "")
+        answer = await self.pool.eval(  # type: ignore[no-untyped-call]
+            _POLL, 4, self.queue_name, abort_jobs_ss, worker_key(self.claims.worker_id), RUNNING_KEY,
+            timestamp_ms(), int(self.in_progress_timeout_s * 1000), heartbeat, lease_ms, token,
             self.queue_read_limit, RETRY_KEY_TTL_S, in_progress_key_prefix, job_key_prefix, retry_key_prefix,
-            *OWNER_SPAN_FROM_END, *at_share,
+            *OWNER_SPAN_FROM_END, "1" if claim else "0", *at_share,
         )
-        if taken is None:
-            return None
-        job_id, score, job, job_try, aborted = taken
-        return Taken(job_id.decode(), int(float(score)), job or None, int(job_try), bool(aborted))
+        if len(answer) == 1:
+            return answer[0], None, False
+        aborts, job_id, score, job, job_try, aborted, more = answer
+        return aborts, Taken(job_id.decode(), int(float(score)), job or None, int(job_try), bool(aborted)), bool(more)
+
+    async def _abort(self, marks: list[bytes]) -> None:
+        """arq's `_cancel_aborted_jobs` on marks already read: the runs here that are marked are cancelled."""
+        aborted = {mark.decode() for mark in marks} & set(self.job_tasks)
+        for job_id in aborted:
+            self.job_tasks[job_id].cancel()
+        if aborted:
+            self.aborting_tasks.update(aborted)
+            await self.pool.zrem(abort_jobs_ss, *aborted)
 
     # ------------------------------------------------------------------------------------------ one run
 
@@ -283,10 +312,11 @@ class TenantShareWorker(Worker):
         whether other jobs wait in the queue (a slot freed here may be exactly what one waits for)."""
         counts = [item for pair in end.counts.items() for item in pair]
         finish = self.pool.eval(  # type: ignore[no-untyped-call]
-            _FINISH, 8, result_key_prefix + job.id, in_progress_key_prefix + job.id, retry_key_prefix + job.id,
-            job_key_prefix + job.id, abort_jobs_ss, self.queue_name, RUNNING_KEY, STATS_KEY,
+            _FINISH, 10, result_key_prefix + job.id, in_progress_key_prefix + job.id, retry_key_prefix + job.id,
+            job_key_prefix + job.id, abort_jobs_ss, self.queue_name, RUNNING_KEY, STATS_KEY, progress_key(job.id),
+            waiters_key(job.id),
             job.id, "1" if finished else "0", stored or b"", to_ms(self.keep_result_s) or 0, claim.token,
-            done_channel(job.id), *counts,
+            RECORD_MAX_BYTES, *counts,
         )
         outcomes = await _unstoppable(asyncio.gather(finish, *end.writes, return_exceptions=True))
         for outcome in outcomes[1:]:
@@ -304,11 +334,6 @@ class TenantShareWorker(Worker):
             self._woken.set()  # read the queue now: a job may be waiting for exactly this slot
 
     # --------------------------------------------------------------------------------------- wake-ups
-
-    async def _cancel_aborted_jobs(self) -> None:
-        """arq's read of the abort marks, only while a job runs here (a queued job's mark is read by its take)."""
-        if self.job_tasks:
-            await super()._cancel_aborted_jobs()
 
     async def _subscribe(self) -> PubSub | None:
         pubsub = self.pool.pubsub()

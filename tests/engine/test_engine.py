@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import threading
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
@@ -13,7 +14,7 @@ from engine.scope import scoped
 from engine.spec import parse_spec, skip_statements
 from sandbox import Sandbox
 from schemas.api import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
-from schemas.errors import InvalidInput, InvalidProgram, UnknownAction
+from schemas.errors import Cancelled, InvalidInput, InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
 from tests.sandbox.warm_probe import COUNTING_SPEC
 
@@ -496,3 +497,26 @@ def test_without_the_enumerator_the_model_is_asked_about_every_action(restaurant
             options={"generators": ["model"], "model_for": "thin", "prompts_per_action": 1},
         ))
     assert any("def REQUEST(" in s for s in model.asked) and any("def INFORM(" in s for s in model.asked)
+
+
+def test_a_job_waiting_for_the_models_load_stops_waiting_when_cancelled() -> None:
+    """A worker takes a job while its model still loads (seconds for the embedded one): the job's cancellation
+    takes effect within a poll of its wait, not when the load ends."""
+    loading, release = threading.Event(), threading.Event()
+
+    def slow_load() -> Any:
+        loading.set()
+        release.wait(30)
+        return object()
+
+    engine = Engine(None, slow_load)  # type: ignore[arg-type]  # no sandbox needed to wait for a model
+    loader = threading.Thread(target=engine.model)
+    loader.start()
+    try:
+        assert loading.wait(10)
+        with pytest.raises(Cancelled):
+            engine.model(cancelled=lambda: True)
+        assert loader.is_alive() and not release.is_set()  # the load still goes on: the wait did not outlast it
+    finally:
+        release.set()
+        loader.join()

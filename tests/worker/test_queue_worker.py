@@ -15,14 +15,15 @@ import pytest
 from arq import func
 from arq.connections import ArqRedis, RedisSettings
 from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, retry_key_prefix
-from arq.jobs import Job, JobStatus
+from arq.jobs import Job, JobStatus, deserialize_result
 from arq.worker import JobExecutionFailed
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
 from jobs import keys
 from jobs.heartbeats import Heartbeat, beat
-from jobs.keys import RUNNING_KEY, STATS_KEY, done_channel, worker_key
+from jobs.keys import RUNNING_KEY, STATS_KEY, worker_key
+from jobs.notices import notice_channel, read_notice, waiters_key
 from stack.local import RedisServer
 from worker.queue_worker import JobEnd, TenantShareWorker
 from worker.runner import RunClaims
@@ -103,8 +104,9 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
 
         job = job_id(1)
         notices = plain.pubsub()
-        await notices.subscribe(done_channel(job))
+        await notices.subscribe(notice_channel("gateway-1"))
         await redis.enqueue_job(FUNCTION, 7, _job_id=job, _queue_name=QUEUE)
+        await plain.sadd(waiters_key(job), notice_channel("gateway-1"))  # as the gateway's submission does
         async with worker(redis_server, operation):
             info = await result_of(redis, job)
         assert info.success and info.result == {"n": 7} and info.job_try == 1
@@ -119,6 +121,10 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
         assert float(stats[f"queue_count:{TAG}:check".encode()]) == 1.0
         messages = [await notices.get_message(timeout=1) for _ in range(2)]  # the subscription's, then the notice
         assert [m["type"] for m in messages if m] == ["subscribe", "message"], messages
+        noticed, progress, end = read_notice(messages[1]["data"])  # the end as stored, carried
+        assert noticed == job and progress == b"" and end is not None
+        assert deserialize_result(end).result == {"n": 7}
+        assert not await plain.exists(waiters_key(job))  # told once, then forgotten
         await notices.aclose()  # type: ignore[attr-defined]
 
     run(redis_server, scenario)
@@ -255,7 +261,7 @@ def test_a_take_whose_answer_was_lost_is_handed_back_by_the_next_beat(redis_serv
         job = job_id(8)
         await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
         claim = claims.open()
-        assert (await unstarted_worker(redis, claims)._take_next(claim, [])) is not None  # answer "lost"
+        assert (await unstarted_worker(redis, claims)._poll_script(claim, []))[1] is not None  # answer "lost"
         claims.lost(claim.token)
         assert await plain.exists(in_progress_key_prefix + job)
         released = await beat(plain, heartbeat(), 5.0, dropped=set(claims.dropped))
@@ -277,12 +283,35 @@ def test_the_next_job_taken_skips_tenants_at_their_share_and_jobs_already_starte
             await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
             await plain.zadd(QUEUE, {job: score})
         queue_worker = unstarted_worker(redis, claims)
-        taken = await queue_worker._take_next(claims.open(), [])
-        assert taken is not None and taken.id == first
-        taken = await queue_worker._take_next(claims.open(), [busy])  # `busy` is at its share: `other` goes next
+        _, taken, more = await queue_worker._poll_script(claims.open(), [])
+        assert taken is not None and taken.id == first and more
+        _, taken, _ = await queue_worker._poll_script(claims.open(), [busy])  # `busy` at its share: `other` next
         assert taken is not None and taken.id == third
-        taken = await queue_worker._take_next(claims.open(), [])  # the started ones stay queued, untaken
+        _, taken, _ = await queue_worker._poll_script(claims.open(), [])  # the started ones stay queued, untaken
         assert taken is not None and taken.id == second
-        assert await queue_worker._take_next(claims.open(), []) is None
+        assert (await queue_worker._poll_script(claims.open(), []))[1] is None
+        await plain.zadd(abort_jobs_ss, {second: 1})
+        assert (await queue_worker._poll_script(None, [])) == ([second.encode()], None, False)  # marks, no take
+
+    run(redis_server, scenario)
+
+
+def test_a_running_job_marked_for_abort_is_cancelled_and_ends_so(redis_server: RedisServer) -> None:
+    started = asyncio.Event()
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            started.set()
+            await asyncio.sleep(30)
+            return JobEnd({"n": n})
+
+        job = job_id(12)
+        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        async with worker(redis_server, operation):
+            await asyncio.wait_for(started.wait(), 10)
+            assert await Job(job, redis, _queue_name=QUEUE).abort(timeout=10)  # arq's abort, as the gateway's
+            info = await result_of(redis, job)
+        assert not info.success and isinstance(info.result, asyncio.CancelledError)
+        assert await plain.zscore(abort_jobs_ss, job) is None
 
     run(redis_server, scenario)
