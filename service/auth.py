@@ -7,12 +7,13 @@ only on a loopback address, and `PRECOND_REQUIRE_AUTH` (set by docker-compose) r
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from jobs.keys import tenant_tag
+from schemas.api import ErrorResponse
 from service.api_keys import KeyStore, unauthorized
 from service.caller import Caller
 from service.errors import ServiceError
@@ -69,3 +70,10 @@ async def authenticate(
 
 
 CurrentCaller = Annotated[Caller, Depends(authenticate)]
+
+RATE_LIMITED: dict[str, Any] = {
+    "model": ErrorResponse,
+    "description": "The tenant's request rate (`rate_limited`), or too many failed authentications from this "
+    "address (`auth_limited`); see Retry-After.",
+}
+"""The 429 every route that takes a `CurrentCaller` may answer (its OpenAPI entry)."""

@@ -46,8 +46,8 @@ CancelledFn = Callable[[], bool]
 
 @dataclass
 class JobCounts:
-    """The worker's own count of its runs, for its heartbeat: incremented when a run starts and when it returns
-    its outcome; never derived from arq's internals, never lower."""
+    """The worker's own count of its runs, for its heartbeat: incremented when a run is taken (each try counts)
+    and when it returns its outcome; never derived from arq's internals, never lower."""
 
     started: int = 0
     complete: int = 0
@@ -145,7 +145,6 @@ async def run_operation(
     redis: Redis[bytes] = ctx["redis"]
     tag = owner_of(ctx["job_id"]) or ""
     counts: JobCounts = ctx["counts"]
-    counts.started += 1
     try:
         engine_of, body = await _engine_for(ctx, tag, kind, body)
         outcome, sandbox_limit = await _run(ctx, kind, body, engine_of)

@@ -318,15 +318,16 @@ class TenantShareWorker(Worker):
             job.id, "1" if finished else "0", stored or b"", to_ms(self.keep_result_s) or 0, claim.token,
             RECORD_MAX_BYTES, *counts,
         )
-        outcomes = await _unstoppable(asyncio.gather(finish, *end.writes, return_exceptions=True))
-        for outcome in outcomes[1:]:
+        # the other writes go out first: a client answered from the notice then finds its result cached
+        *written, recorded = await _unstoppable(asyncio.gather(*end.writes, finish, return_exceptions=True))
+        for outcome in written:
             if isinstance(outcome, BaseException) and not isinstance(outcome, RedisError | OSError):
                 log.error("job %s: a write at its end failed: %r", job.id, outcome)
-        if isinstance(outcomes[0], BaseException):  # unrecorded: the claim's next beat hands the job back
+        if isinstance(recorded, BaseException):  # unrecorded: the claim's next beat hands the job back
             self.claims.close(job.id, claim.token, recorded=False)
-            raise outcomes[0]
+            raise recorded
         self.claims.close(job.id, claim.token, recorded=True)
-        return int(outcomes[0]) > 0
+        return int(recorded) > 0
 
     def _slot_freed(self, task: asyncio.Task[bool]) -> None:
         self._release_sem_dec_counter_on_complete()

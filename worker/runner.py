@@ -60,16 +60,22 @@ class RunClaims:
     that may be in Redis without their run's end (`dropped`: the end, or the take's answer, was lost), whose
     jobs the next beat hands back."""
 
-    def __init__(self, worker_id: str, heartbeat: Callable[[], Heartbeat], lease_s: float) -> None:
+    def __init__(self, worker_id: str, heartbeat: Callable[[], Heartbeat], lease_s: float,
+                 counts: JobCounts | None = None) -> None:
         self.worker_id, self.heartbeat, self.lease_ms = worker_id, heartbeat, int(lease_s * 1000)
+        self.counts = counts or JobCounts()
         self.live: dict[str, str] = {}
         self.dropped: set[str] = set()
 
     def open(self) -> Claim:
-        """A claim for the next take (the queue worker writes it with the take, under a fresh heartbeat)."""
-        return Claim(self.worker_id, new_claim(self.worker_id), self.heartbeat().model_dump_json(), self.lease_ms)
+        """A claim for the next take, with the heartbeat the take writes (counting the run it would start)."""
+        heartbeat = self.heartbeat()
+        heartbeat.jobs_started += 1
+        return Claim(self.worker_id, new_claim(self.worker_id), heartbeat.model_dump_json(), self.lease_ms)
 
     def taken(self, job_id: str, token: str) -> None:
+        """A run started: every take counts, as arq counts each as a try."""
+        self.counts.started += 1
         self.live[job_id] = token
 
     def lost(self, token: str) -> None:
@@ -105,10 +111,10 @@ class WorkerProcess:
             self.sandbox = "confined" if self.sandbox_error is None else "unconfined"
         self.workers: dict[str, Worker] = {}
         self.retired: list[Worker] = []  # arq workers ended by a Redis outage whose jobs may still be ending
-        self.claims = RunClaims(self.id, self._heartbeat_body, settings.heartbeat_lease_s)
+        self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
+        self.claims = RunClaims(self.id, self._heartbeat_body, settings.heartbeat_lease_s, self.counts)
         self.stopping = asyncio.Event()
         self.model_error: str | None = None
-        self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
         self.cache: ResultCache | None = None  # on the cache Redis, opened in run()
         self.memory = MemoryGuard(settings.job_max_memory_mb * 1024 * 1024)
         self.policies = AdaptedEngines()

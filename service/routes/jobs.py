@@ -8,7 +8,7 @@ from fastapi import APIRouter
 
 from jobs.keys import owner_of
 from schemas.api import ErrorResponse, JobStatus
-from service.auth import CurrentCaller
+from service.auth import RATE_LIMITED, CurrentCaller
 from service.caller import Caller
 from service.deps import ServicesDep
 from service.errors import ServiceError
@@ -18,8 +18,7 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
     404: {"model": ErrorResponse, "description": "No such job of yours (another tenant's job is not found either), "
           "or its result expired."},
-    429: {"model": ErrorResponse, "description": "The tenant's request rate (`rate_limited`), or too many failed "
-          "authentications from this address (`auth_limited`); see Retry-After."},
+    429: RATE_LIMITED,
 }
 
 

@@ -14,7 +14,7 @@ from jobs import policy_adapters
 from jobs.payloads import TrainPolicyJob
 from schemas.api import ErrorResponse
 from schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
-from service.auth import CurrentCaller
+from service.auth import RATE_LIMITED, CurrentCaller
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError
 from service.middleware import OffloadedBodyRoute
@@ -85,14 +85,15 @@ async def _train(services: Services, request: Request, caller: CurrentCaller, bo
     return await answer(services, request, caller, "train-policy", job, wait)
 
 
-@router.get("", response_model=PolicyAdapterList, responses={401: ERRORS[401]})
+@router.get("", response_model=PolicyAdapterList, responses={401: ERRORS[401], 429: RATE_LIMITED})
 async def list_policies(services: ServicesDep, caller: CurrentCaller) -> PolicyAdapterList:
     """Your trained policies, newest first: the latest version of each, with what trained it."""
     adapters, used = await policy_adapters.listed(services.redis, caller.tag)
     return PolicyAdapterList(adapters=adapters, bytes=used)
 
 
-@router.get("/{reference}", response_model=PolicyAdapter, responses={401: ERRORS[401], 404: RESPONSES[404]})
+@router.get("/{reference}", response_model=PolicyAdapter,
+            responses={401: ERRORS[401], 404: RESPONSES[404], 429: RATE_LIMITED})
 async def get_policy(reference: AdapterReference, services: ServicesDep, caller: CurrentCaller) -> PolicyAdapter:
     """The latest version (`id`) or a given one (`id@version`): what trained it (losses, seconds, steps, the
     base model) and the calls it knows."""
@@ -102,7 +103,8 @@ async def get_policy(reference: AdapterReference, services: ServicesDep, caller:
     return found
 
 
-@router.delete("/{adapter_id}", status_code=204, responses={401: ERRORS[401], 404: RESPONSES[404]})
+@router.delete("/{adapter_id}", status_code=204,
+               responses={401: ERRORS[401], 404: RESPONSES[404], 429: RATE_LIMITED})
 async def delete_policy(adapter_id: AdapterId, services: ServicesDep, caller: CurrentCaller) -> Response:
     """Delete the policy and all its versions (their bytes go back to your bound). A next action that names it
     afterwards is a 404; one already running finishes with the version it loaded."""

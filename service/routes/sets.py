@@ -23,7 +23,7 @@ from schemas.api import (
     ValidateResponse,
 )
 from service import offload
-from service.auth import CurrentCaller
+from service.auth import RATE_LIMITED, CurrentCaller
 from service.caller import Caller
 from service.deps import Services, ServicesDep
 from service.errors import ServiceError, status_for
@@ -70,7 +70,8 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, caller:
 
 
 @router.get("", response_model=PreconditionSetList, responses={
-    401: RESPONSES[401], 422: {"model": ErrorResponse, "description": "`offset` or `limit` out of range."}})
+    401: RESPONSES[401], 422: {"model": ErrorResponse, "description": "`offset` or `limit` out of range."},
+    429: RATE_LIMITED})
 async def list_sets(services: ServicesDep, caller: CurrentCaller,
                     offset: Annotated[int, Query(ge=0, le=10**6)] = 0,
                     limit: Annotated[int, Query(ge=1, le=MAX_LISTED_SETS)] = 20) -> PreconditionSetList:

@@ -206,6 +206,10 @@ def test_a_full_queue_redis_answers_503_and_keeps_what_it_accepted(stack: Stack)
     forget_queued(stack, [accepted_id, later.headers["X-Job-Id"]])
 
 
+def _signed(stack: Stack, stored: bytes | None, key: str) -> bool:
+    return stored is not None and cache.unseal(secret(stack), key, stored) is not None
+
+
 def _forgeries(stack: Stack, key: str, real: dict[str, Any]) -> dict[str, bytes]:
     lie = {"results": [{**verdict, "allowed": not verdict["allowed"], "violations": []}
                        for verdict in real["results"]]}
@@ -230,6 +234,8 @@ def test_a_forged_cache_entry_is_never_served(stack: Stack) -> None:
         assert first.status_code == 200 and first.headers["X-Job-Id"] == job_id
         real = first.json()
         CheckResponse.model_validate(real)
+        # the worker caches a result as it records the job's end, not before: the answer may come first
+        wait_until(lambda: cached.exists(key), 10, "the result cached")
         for name, forged in _forgeries(stack, key, real).items():
             queue.delete(f"arq:result:{job_id}")  # no result left but the cache entry: only running again can answer
             cached.set(key, forged)
@@ -240,8 +246,7 @@ def test_a_forged_cache_entry_is_never_served(stack: Stack) -> None:
             assert answer.status_code == 200, (name, answer.text)
             assert answer.json() == real, name
             assert queue.exists(f"arq:result:{job_id}"), name  # the job ran again
-            stored = cached.get(key)
-            assert stored is not None and cache.unseal(secret(stack), key, stored) is not None, name  # re-signed
+            wait_until(lambda: _signed(stack, cached.get(key), key), 10, f"{name}: the entry re-signed")
         assert client.post("/check-actions", json=body, params={"wait": 0}).json() == real  # a real hit
     gateway_log = b"".join(path.read_bytes() for path in stack.logs.glob("gateway-*.log"))
     assert b"is not signed by this deployment" in gateway_log

@@ -111,7 +111,8 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
             info = await result_of(redis, job)
         assert info.success and info.result == {"n": 7} and info.job_try == 1
         assert seen["claim"].decode().startswith("w1|") and seen["in_progress"] == 1
-        assert Heartbeat.model_validate_json(seen["heartbeat"]).id == "w1"
+        beat_written = Heartbeat.model_validate_json(seen["heartbeat"])
+        assert beat_written.id == "w1" and beat_written.jobs_started == 1  # the run it claims counted already
         for key in (in_progress_key_prefix, job_key_prefix, retry_key_prefix):
             assert not await plain.exists(key + job)
         assert await plain.zscore(QUEUE, job) is None
