@@ -31,6 +31,7 @@ from jobs.keys import JOB_FUNCTION, kind_of, progress_key, wake_channel
 from jobs.kinds import KINDS, queue_for, queues_of
 from jobs.notices import NOTIFY_FUNCTION, WAITERS_TTL_S, waiters_key
 from jobs.records import Outcome, parse_progress
+from jobs.scripts import LuaScript
 from schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 from service.completions import Completions, Watch
 from service.errors import bounded
@@ -48,7 +49,7 @@ SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
 
 
-_SUBMIT = "#!lua\n" + FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
+_SUBMIT = LuaScript("#!lua\n" + FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
 local full = tenant_full(KEYS[6], ARGV[1], ARGV[9], ARGV[10])
 if full >= 0 then return -2 - full end
 if redis.call('exists', KEYS[4]) == 1 then return 0 end
@@ -68,7 +69,7 @@ redis.call('sadd', KEYS[7], ARGV[12])
 redis.call('expire', KEYS[7], ARGV[13])
 redis.call('publish', ARGV[8], '1')
 return 1
-"""
+""")
 """Enqueue a job as arq's `enqueue_job` would (its job key, its place in the queue), in one step with everything
 around it: `-2 - n` when its tenant has `n` jobs queued or running, its cap (service.quotas); 0 when the same job
 exists (queued, running or with a result: identical requests share it); -1 when the queue holds `max_jobs`
@@ -165,11 +166,12 @@ class JobQueue:
         """One round trip (`_SUBMIT`): True when enqueued, False when the same job exists; TenantFull, QueueFull."""
         now = timestamp_ms()
         job = serialize_job(JOB_FUNCTION, (kind, body, cache_key), {}, None, now, serializer=self.redis.job_serializer)
-        enqueued = int(await self.redis.eval(  # type: ignore[no-untyped-call]
-            _SUBMIT, 7, queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
-            tenant_jobs_key(tenant_tag), waiters_key(job_id), job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS,
-            STATE_TTL_S, job, to_ms(JOB_EXPIRY), wake_channel(queue), self.tenant_max_jobs, job_key_prefix, now / 1000,
-            self.completions.channel, WAITERS_TTL_S,
+        enqueued = int(await _SUBMIT(
+            self.redis,
+            [queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
+             tenant_jobs_key(tenant_tag), waiters_key(job_id)],
+            [job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS, STATE_TTL_S, job, to_ms(JOB_EXPIRY), wake_channel(queue),
+             self.tenant_max_jobs, job_key_prefix, now / 1000, self.completions.channel, WAITERS_TTL_S],
         ))
         if enqueued <= -2:
             raise TenantFull(-2 - enqueued)

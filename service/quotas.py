@@ -28,12 +28,13 @@ from arq.connections import ArqRedis
 from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from jobs.keys import PREFIX
+from jobs.scripts import LuaScript
 from service.caller import Caller
 
 FAIR_EPOCH_MS: Final = 946_684_800_000  # 2000-01-01: every fair score is in the past, so due at once
 STATE_TTL_S: Final = 7 * 24 * 3600
 
-_TAKE_TOKEN = """
+_TAKE_TOKEN = LuaScript("""
 local rate, burst, now = tonumber(ARGV[1]), tonumber(ARGV[2]), tonumber(ARGV[3])
 local state = redis.call('HMGET', KEYS[1], 'tokens', 'at')
 local tokens, at = tonumber(state[1]) or burst, tonumber(state[2]) or now
@@ -46,7 +47,7 @@ end
 redis.call('HSET', KEYS[1], 'tokens', tokens, 'at', now)
 redis.call('EXPIRE', KEYS[1], math.ceil(burst / rate) + 60)
 return {allowed, tostring(tokens)}
-"""
+""")
 
 # A tenant's unfinished jobs, for the queue's submission script (service.queue), which admits a job and
 # enqueues it in the same step: the count of the tenant's live jobs when it has `limit` already, else -1 (a job
@@ -162,9 +163,7 @@ class Quotas:
         working then, and every request that would write is refused by that Redis anyway."""
         now = datetime.now(UTC).timestamp()
         try:
-            allowed, tokens = await self.redis.eval(  # type: ignore[no-untyped-call]
-                _TAKE_TOKEN, 1, key, rate, burst, now
-            )
+            allowed, tokens = await _TAKE_TOKEN(self.redis, [key], [rate, burst, now])
         except OutOfMemoryError:
             return None
         return None if allowed else max(0.0, (1 - float(tokens)) / rate)

@@ -40,6 +40,7 @@ from redis.exceptions import RedisError
 from jobs.keys import OWNER_SPAN_FROM_END, RUNNING_KEY, STATS_KEY, owner_of, progress_key, wake_channel, worker_key
 from jobs.notices import NOTIFY_FUNCTION, RECORD_FUNCTION, RECORD_MAX_BYTES, waiters_key
 from jobs.records import queue_time_counts
+from jobs.scripts import LuaScript
 
 log = logging.getLogger("precond.worker")
 NOTICE_WAIT_S = 1.0
@@ -48,7 +49,7 @@ does cancelling it): long, so that an idle listener costs no wake-ups."""
 RETRY_KEY_TTL_S = 88_400
 """arq's lifetime of a job's try count."""
 
-_POLL = """
+_POLL = LuaScript("""
 local aborts = redis.call('ZRANGE', KEYS[2], 0, -1)
 if ARGV[13] ~= '1' then return {aborts} end
 local skip = {}
@@ -68,7 +69,7 @@ for n = 1, #queued, 2 do
   end
 end
 return {aborts}
-"""
+""")
 """One poll of the queue: arq's abort marks (for the runs going on here), and, when this worker has a free
 slot (ARGV[13]), the next job it may start, taken: the first of the queue's due jobs (in fair-score order, up
 to the read limit) that no worker started (no in-progress key: none runs it, no cancellation guards it) and
@@ -79,7 +80,7 @@ started job that no claim names. Returns the abort marks, then the job's id, sco
 expired), try, whether an abort mark waited for it, and whether the read saw other jobs. Reading the queue and
 the abort marks, choosing and claiming was six round trips in arq (eight with the claim), one here."""
 
-_FINISH = NOTIFY_FUNCTION + RECORD_FUNCTION + """
+_FINISH = LuaScript(NOTIFY_FUNCTION + RECORD_FUNCTION + """
 if ARGV[2] == '1' then
   if ARGV[3] ~= '' then redis.call('SET', KEYS[1], ARGV[3], 'PX', ARGV[4]) end
   redis.call('DEL', KEYS[2], KEYS[3], KEYS[4])
@@ -94,7 +95,7 @@ local result = false
 if ARGV[2] == '1' and ARGV[3] ~= '' then result = ARGV[3] end
 notify(KEYS[10], record(ARGV[1], redis.call('GET', KEYS[9]), result, ARGV[6]))
 return redis.call('ZCARD', KEYS[6])
-"""
+""")
 """End a run as arq's `finish_job` does: finished, its result stored and its keys gone; not finished (a
 shutdown cancelled it), its in-progress key gone so that the job, still queued, runs again. With it, the
 counts, this run's claim released (not a later run's), and the notice to the gateway processes that wait on the
@@ -223,11 +224,11 @@ class TenantShareWorker(Worker):
                            ) -> tuple[list[bytes], Taken | None, bool]:
         """`_POLL`, taking a job under `claim` (None: only the abort marks), skipping the tenants `at_share`."""
         heartbeat, lease_ms, token = (claim.heartbeat, claim.lease_ms, claim.token) if claim else ("", 0, "")
-        answer = await self.pool.eval(  # type: ignore[no-untyped-call]
-            _POLL, 4, self.queue_name, abort_jobs_ss, worker_key(self.claims.worker_id), RUNNING_KEY,
-            timestamp_ms(), int(self.in_progress_timeout_s * 1000), heartbeat, lease_ms, token,
-            self.queue_read_limit, RETRY_KEY_TTL_S, in_progress_key_prefix, job_key_prefix, retry_key_prefix,
-            *OWNER_SPAN_FROM_END, "1" if claim else "0", *at_share,
+        answer = await _POLL(
+            self.pool, [self.queue_name, abort_jobs_ss, worker_key(self.claims.worker_id), RUNNING_KEY],
+            [timestamp_ms(), int(self.in_progress_timeout_s * 1000), heartbeat, lease_ms, token,
+             self.queue_read_limit, RETRY_KEY_TTL_S, in_progress_key_prefix, job_key_prefix, retry_key_prefix,
+             *OWNER_SPAN_FROM_END, "1" if claim else "0", *at_share],
         )
         if len(answer) == 1:
             return answer[0], None, False
@@ -311,12 +312,13 @@ class TenantShareWorker(Worker):
         A Redis that refuses only the other writes costs a later re-run (a cache miss), never the job. Returns
         whether other jobs wait in the queue (a slot freed here may be exactly what one waits for)."""
         counts = [item for pair in end.counts.items() for item in pair]
-        finish = self.pool.eval(  # type: ignore[no-untyped-call]
-            _FINISH, 10, result_key_prefix + job.id, in_progress_key_prefix + job.id, retry_key_prefix + job.id,
-            job_key_prefix + job.id, abort_jobs_ss, self.queue_name, RUNNING_KEY, STATS_KEY, progress_key(job.id),
-            waiters_key(job.id),
-            job.id, "1" if finished else "0", stored or b"", to_ms(self.keep_result_s) or 0, claim.token,
-            RECORD_MAX_BYTES, *counts,
+        finish = _FINISH(
+            self.pool,
+            [result_key_prefix + job.id, in_progress_key_prefix + job.id, retry_key_prefix + job.id,
+             job_key_prefix + job.id, abort_jobs_ss, self.queue_name, RUNNING_KEY, STATS_KEY, progress_key(job.id),
+             waiters_key(job.id)],
+            [job.id, "1" if finished else "0", stored or b"", to_ms(self.keep_result_s) or 0, claim.token,
+             RECORD_MAX_BYTES, *counts],
         )
         # the other writes go out first: a client answered from the notice then finds its result cached
         *written, recorded = await _unstoppable(asyncio.gather(*end.writes, finish, return_exceptions=True))

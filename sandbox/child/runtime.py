@@ -15,12 +15,12 @@ import dataclasses
 import functools
 import inspect
 import io
-import re
 import sys
 import types
 import typing
 
 from programs import Method, Purity, main_body, read_methods
+from programs.lines import LINE_BREAKS, line_statements
 
 from .framing import Reporter
 from .values import FATAL, Failure, OutputLimit, clean, describe
@@ -156,8 +156,6 @@ def parse(source: object, filename: str, where: str, index: int | None) -> ast.M
         raise fail(where, index, error_line(exc, filename), exc) from None
 
 
-LINE_BREAKS = re.compile(r"\r\n|\r|\n")
-"""Where the parser starts a new line (`str.splitlines` also breaks at \x0b, \x0c, \x1c-\x1e, \x85, ...)."""
 COMPILED_MAX = 4096
 """Compiled programs, statements and rules a child keeps; only a warm child (one scope's, see
 `sandbox.child.server`) ever sees a second request, so only there are they reused."""
@@ -248,9 +246,11 @@ class Program:
 
     def __init__(self, spec: Spec, source: object, where: str, index: int | None) -> None:
         self.spec, self.where, self.index = spec, where, index
-        tree = parse(source, self.FILE, where, index)
+        self.lines = LINE_BREAKS.split(source) if isinstance(source, str) else []  # what `lineno` counts
+        # a history is read line by line, each line once per warm child (a dialog's grows by a line a turn)
+        read = line_statements(self.lines, compiled) if where == "history" and self.lines else None
+        tree = parse(source, self.FILE, where, index) if read is None else ast.Module(body=read, type_ignores=[])
         self.source = typing.cast(str, source)
-        self.lines = LINE_BREAKS.split(self.source)  # Python's own line breaks: what `lineno` counts
         self.body = main_body(tree)
         self.globals = spec.instantiate()
         self.base = dict(self.globals)

@@ -130,8 +130,8 @@ async def _with_rules_and_program(
             update["decided"] = stored.decided
         body = body.model_copy(update=update)
     if not isinstance(body.history, str):
-        history = [e if isinstance(e, dict) else e.model_dump() for e in body.history]
-        chars = offload.rendering_chars(body.spec_text(), sum(len(json.dumps(e, default=str)) for e in history))
+        history = body.model_dump(include={"history"})["history"]  # events and messages as plain data, at once
+        chars = offload.rendering_chars(body.spec_text(), len(json.dumps(history, default=str)))
         program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history, tag)
         if isinstance(program, checks.Problem):
             return program
