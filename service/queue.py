@@ -252,6 +252,10 @@ class JobQueue:
         queue = await self._queue_of(job_id, status.kind)
         if status.status == "queued" and await self._cancel_queued(job_id, status.kind, queue):
             return await self.status(job_id)
+        async with self.redis.pipeline(transaction=False) as pipe:  # the mark, and its worker woken to read it
+            pipe.zadd(abort_jobs_ss, {job_id: timestamp_ms()})
+            pipe.publish(wake_channel(queue), b"1")
+            await pipe.execute()
         job = self._job(job_id, queue)
         with contextlib.suppress(TimeoutError):
             await job.abort(timeout=confirm_s, poll_delay=min(0.1, confirm_s / 4))

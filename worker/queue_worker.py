@@ -46,6 +46,10 @@ log = logging.getLogger("precond.worker")
 NOTICE_WAIT_S = 1.0
 """How long the new-job listener blocks per read of its connection (a notice ends the read at once, and so
 does cancelling it): long, so that an idle listener costs no wake-ups."""
+SAFETY_POLL_S = 1.0
+"""How often a worker reads its queue while notices work (a notice can be lost, a job handed back)."""
+RESUBSCRIBE_S = 1.0
+"""Pause between attempts to subscribe to the wake channel again while its connection is down."""
 RETRY_KEY_TTL_S = 88_400
 """arq's lifetime of a job's try count."""
 
@@ -159,8 +163,10 @@ class TenantShareWorker(Worker):
     later poll).
 
     arq sleeps `poll_delay` between reads of the queue, and for a check that sleep was most of its latency.
-    Here the read runs again as soon as a gateway publishes on the queue's wake channel or a slot frees up
-    while jobs wait, and at the latest after `idle_poll_s` (a lost notice costs no more than arq's own poll)."""
+    Here the read runs again as soon as a gateway publishes on the queue's wake channel (a new job, an abort
+    mark) or a slot frees up while jobs wait, and otherwise every `SAFETY_POLL_S` while the wake channel is
+    subscribed, every `idle_poll_s` while it is not (then it is subscribed again every `RESUBSCRIBE_S`). Read
+    every 10 ms as they were, the two fast queues cost an idle worker 9 % of a core beside the checks."""
 
     def __init__(self, *args: Any, tenant_slots: int, idle_poll_s: float, claims: Claims, **kwargs: Any) -> None:
         super().__init__(*args, poll_delay=0, **kwargs)
@@ -169,6 +175,7 @@ class TenantShareWorker(Worker):
         self.claims = claims
         self._woken = asyncio.Event()
         self._listener: asyncio.Task[None] | None = None
+        self.subscribed = False
 
     # ---------------------------------------------------------------------------------- choosing and taking
 
@@ -186,7 +193,7 @@ class TenantShareWorker(Worker):
                 task.result()  # an error of the run (Redis refused its end) ends this arq worker, as in arq
         await self.heart_beat()
         with contextlib.suppress(TimeoutError):
-            await asyncio.wait_for(self._woken.wait(), self.idle_poll_s)
+            await asyncio.wait_for(self._woken.wait(), SAFETY_POLL_S if self.subscribed else self.idle_poll_s)
 
     async def _poll_once(self) -> bool:
         """One `_POLL`: the abort marks acted on, and the next job taken and started when a slot is free.
@@ -344,26 +351,34 @@ class TenantShareWorker(Worker):
             await pubsub.subscribe(wake_channel(self.queue_name))
         except (RedisError, OSError) as exc:
             self._lost(exc)
+            with contextlib.suppress(RedisError, OSError):
+                await pubsub.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
             return None
+        self.subscribed = True
         return pubsub
 
     async def _listen(self, pubsub: PubSub | None) -> None:
-        """Wake on the gateway's notices until the connection fails (then arq's pace, until the next worker)."""
-        if pubsub is None:
-            return
-        try:
-            while True:
-                if await pubsub.get_message(ignore_subscribe_messages=True, timeout=NOTICE_WAIT_S) is not None:
-                    self._woken.set()
-        except (RedisError, OSError) as exc:
-            self._lost(exc)
-        finally:
-            with contextlib.suppress(RedisError, OSError):
-                await pubsub.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
+        """Wake on the gateway's notices; when the subscription fails, subscribe again every `RESUBSCRIBE_S`
+        (polling at `idle_poll_s` meanwhile), and read the queue once it is back."""
+        while True:
+            if pubsub is not None:
+                try:
+                    while True:
+                        if await pubsub.get_message(ignore_subscribe_messages=True, timeout=NOTICE_WAIT_S):
+                            self._woken.set()
+                except (RedisError, OSError) as exc:
+                    self._lost(exc)
+                finally:
+                    self.subscribed = False
+                    with contextlib.suppress(RedisError, OSError):
+                        await pubsub.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
+            await asyncio.sleep(RESUBSCRIBE_S)
+            pubsub = await self._subscribe()
+            self._woken.set()  # a notice may have been missed meanwhile
 
     def _lost(self, exc: Exception) -> None:
-        log.warning("queue %s: new-job notices lost (%s); reading it every %ss", self.queue_name, exc,
-                    self.idle_poll_s)
+        log.warning("queue %s: new-job notices lost (%s); reading it every %ss until they are back",
+                    self.queue_name, exc, self.idle_poll_s)
 
     async def close(self) -> None:
         if self._listener is not None:

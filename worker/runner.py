@@ -42,6 +42,7 @@ from jobs.keys import (
     MODEL_QUEUES,
     QUEUES,
     TRAIN_QUEUE,
+    wake_channel,
     worker_key,
 )
 from sandbox import SandboxUnavailable
@@ -247,6 +248,10 @@ class WorkerProcess:
         self.claims.dropped -= dropped
         if released:
             log.warning("handed back to the queue (their run is gone): %s", ", ".join(released))
+            async with redis.pipeline(transaction=False) as pipe:  # a worker reads its queue at once
+                for queue in QUEUES:
+                    pipe.publish(wake_channel(queue), b"1")
+                await pipe.execute()
 
     async def _heartbeat(self, redis: Redis[bytes]) -> None:
         while True:

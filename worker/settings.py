@@ -53,15 +53,16 @@ class WorkerSettings(QueueSettings):
         "queue's concurrency, at least 1.",
     )
     worker_poll_s: float = Field(
-        default=0.1, gt=0, description="How often an idle worker reads the model queue (infer, next-action) when no "
-        "new-job notice wakes it first (a gateway publishes one with every job it enqueues)."
+        default=0.1, gt=0, description="How often an idle worker reads the model and training queues while it "
+        "cannot hear new-job notices (its subscription is down; a gateway publishes one with every job it "
+        "enqueues). While it can, it reads them every second, and at once on a notice."
     )
     check_poll_s: float = Field(
         default=0.01,
         gt=0,
-        description="How often an idle worker reads the check queue when no new-job notice wakes it first "
-        "(a gateway publishes one with every job it enqueues): the most a lost notice adds to a check's "
-        "latency (each read is a few cheap Redis commands).",
+        description="How often an idle worker reads the check and model-free queues while it cannot hear new-job "
+        "notices (its subscription is down): what a lost notice adds to a check's latency then. While it can, "
+        "it reads them every second, and at once on a notice.",
     )
     drain_s: int = Field(
         default=30, ge=0, description="On SIGTERM, how long a worker lets running jobs finish."

@@ -22,9 +22,10 @@ from redis.exceptions import RedisError
 
 from jobs import keys
 from jobs.heartbeats import Heartbeat, beat
-from jobs.keys import RUNNING_KEY, STATS_KEY, worker_key
+from jobs.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
 from jobs.notices import notice_channel, read_notice, waiters_key
 from stack.local import RedisServer
+from worker import queue_worker
 from worker.queue_worker import JobEnd, TenantShareWorker
 from worker.runner import RunClaims
 
@@ -63,11 +64,11 @@ def run(redis_server: RedisServer, scenario: Callable[[ArqRedis, Redis[bytes]], 
 
 @contextlib.asynccontextmanager
 async def worker(redis_server: RedisServer, operation: Operation = answer, timeout_s: float = 30,
-                 max_tries: int = 3, claims: RunClaims | None = None) -> Any:
+                 max_tries: int = 3, claims: RunClaims | None = None, idle_poll_s: float = 0.05) -> Any:
     claims = claims or RunClaims("w1", heartbeat, 5.0)
     queue_worker = TenantShareWorker(
         functions=[func(operation, name=FUNCTION, timeout=timeout_s)], queue_name=QUEUE,
-        redis_settings=RedisSettings.from_dsn(redis_server.url), max_jobs=2, tenant_slots=2, idle_poll_s=0.05,
+        redis_settings=RedisSettings.from_dsn(redis_server.url), max_jobs=2, tenant_slots=2, idle_poll_s=idle_poll_s,
         claims=claims, allow_abort_jobs=True, handle_signals=False, max_tries=max_tries, keep_result=60,
     )
     task = asyncio.create_task(queue_worker.async_run())
@@ -316,3 +317,32 @@ def test_a_running_job_marked_for_abort_is_cancelled_and_ends_so(redis_server: R
         assert await plain.zscore(abort_jobs_ss, job) is None
 
     run(redis_server, scenario)
+
+
+def test_a_worker_whose_wake_channel_dropped_subscribes_again(redis_server: RedisServer,
+                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its polls are a minute apart here, so only the gateway's notice can start the job at once: after Redis
+    dropped the subscription, the worker subscribes again and is woken by the next notice."""
+    monkeypatch.setattr(queue_worker, "SAFETY_POLL_S", 60.0)
+    monkeypatch.setattr(queue_worker, "RESUBSCRIBE_S", 0.1)
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async with worker(redis_server, idle_poll_s=60.0) as running:
+            await wait_for(lambda: running.subscribed)
+            await plain.execute_command("CLIENT", "KILL", "TYPE", "pubsub")
+            await wait_for(lambda: not running.subscribed)
+            await wait_for(lambda: running.subscribed)
+            job = job_id(13)
+            await redis.enqueue_job(FUNCTION, 4, _job_id=job, _queue_name=QUEUE)
+            await plain.publish(wake_channel(QUEUE), b"1")  # as the gateway's submission does
+            info = await result_of(redis, job, timeout_s=20)
+        assert info.success and info.result == {"n": 4}
+
+    run(redis_server, scenario)
+
+
+async def wait_for(predicate: Callable[[], bool], timeout_s: float = 10) -> None:
+    deadline = asyncio.get_running_loop().time() + timeout_s
+    while not predicate():
+        assert asyncio.get_running_loop().time() < deadline, "never happened"
+        await asyncio.sleep(0.02)
