@@ -1,12 +1,13 @@
 """The arq worker of one queue, with each job's start and end one Redis script on arq's own keys.
 
-arq spends round trips on every job: four to claim it (WATCH, EXISTS, ZSCORE, MULTI/EXEC), one to read it,
-one to record its end; around them this service added its own (the claim under a fresh heartbeat, the
-queue-time and job counts, the result cache, the completion notice, the claim's release). For a check that
-is nine round trips on a job whose work takes a millisecond. Here a job is taken in one script (`_TAKE`:
-arq's in-progress key, its try count and abort mark, the job's bytes, and this service's claim with a fresh
-heartbeat, atomically) and ended in one (`_FINISH`: arq's result and clean-up, the counts, the claim's
-release and the notice, atomically; the result cache, on its own Redis, at the same time). The keys and
+arq spends round trips on every job: one to read the queue, four to claim a job (WATCH, EXISTS, ZSCORE,
+MULTI/EXEC), one to read it, one for the abort marks, one to record its end; around them this service added its
+own (the claim under a fresh heartbeat, the queue-time and job counts, the result cache, the completion notice,
+the claim's release). For a check that was seven round trips in a row on a job whose work takes a
+millisecond. Here one script reads the abort marks and the queue and takes the next job (`_POLL`: arq's
+in-progress key, its try count and abort mark, the job's bytes, and this service's claim with a fresh
+heartbeat, atomically), and one ends it (`_FINISH`: arq's result and clean-up, the counts, the claim's release
+and the notice with the end, atomically; the result cache, on its own Redis, at the same time). The keys and
 values are arq's, so the gateway (status, cancel, abort) and the heartbeats' hand-back read them as before;
 arq is pinned to the 0.28 series whose internals this subclasses.
 
@@ -199,21 +200,20 @@ class TenantShareWorker(Worker):
         """One `_POLL`: the abort marks acted on, and the next job taken and started when a slot is free.
         Whether to poll again at once (a job started, others were seen, a slot is still free). A take whose
         answer is lost may still have claimed a job: its claim is handed back by the next beat."""
-        take = self.allow_pick_jobs and self.job_counter < self.max_jobs
-        claim = self.claims.open()
-        if take:
+        claim = self.claims.open() if self.allow_pick_jobs and self.job_counter < self.max_jobs else None
+        if claim is not None:
             await self.sem.acquire()
             self.job_counter += 1
         try:
-            aborts, taken, more = await self._poll_script(claim if take else None, self._at_share())
+            aborts, taken, more = await self._poll_script(claim, self._at_share())
         except BaseException:
-            if take:
+            if claim is not None:
                 self.claims.lost(claim.token)
                 self._release_sem_dec_counter_on_complete()
             raise
         await self._abort(aborts)
-        if taken is None:
-            if take:
+        if taken is None or claim is None:
+            if claim is not None:
                 self._release_sem_dec_counter_on_complete()
             return False
         self.claims.taken(taken.id, claim.token)
