@@ -49,6 +49,16 @@ async def answer(ctx: dict[str, Any], n: int) -> JobEnd:
     return JobEnd({"n": n}, {"jobs:test:succeeded": 1.0})
 
 
+def long_run(started: asyncio.Event) -> Operation:
+    """An operation that says it started, then runs for half a minute (until a shutdown, an abort or a timeout)."""
+    async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+        started.set()
+        await asyncio.sleep(30)
+        return JobEnd({"n": n})
+
+    return operation
+
+
 def run(redis_server: RedisServer, scenario: Callable[[ArqRedis, Redis[bytes]], Awaitable[None]]) -> None:
     async def main() -> None:
         arq_redis = ArqRedis.from_url(redis_server.url)
@@ -184,13 +194,9 @@ def test_a_job_that_must_not_run_ends_failed_as_arq_ends_it(redis_server: RedisS
 
 def test_a_run_past_its_timeout_ends_failed(redis_server: RedisServer) -> None:
     async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
-            await asyncio.sleep(30)
-            return JobEnd({"n": n})
-
         job = job_id(4)
         await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
-        async with worker(redis_server, operation, timeout_s=0.2):
+        async with worker(redis_server, long_run(asyncio.Event()), timeout_s=0.2):
             info = await result_of(redis, job)
         assert not info.success and isinstance(info.result, TimeoutError)
 
@@ -201,14 +207,9 @@ def test_a_run_a_shutdown_cancels_goes_back_to_its_queue(redis_server: RedisServ
     started = asyncio.Event()
 
     async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
-            started.set()
-            await asyncio.sleep(30)
-            return JobEnd({"n": n})
-
         job = job_id(5)
         await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
-        async with worker(redis_server, operation):
+        async with worker(redis_server, long_run(started)):
             await asyncio.wait_for(started.wait(), 10)
         # cancelled by the shutdown: queued again, runnable at once, its try counted, no result, no claim
         assert await Job(job, redis, _queue_name=QUEUE).status() == JobStatus.queued
@@ -302,14 +303,9 @@ def test_a_running_job_marked_for_abort_is_cancelled_and_ends_so(redis_server: R
     started = asyncio.Event()
 
     async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
-            started.set()
-            await asyncio.sleep(30)
-            return JobEnd({"n": n})
-
         job = job_id(12)
         await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
-        async with worker(redis_server, operation):
+        async with worker(redis_server, long_run(started)):
             await asyncio.wait_for(started.wait(), 10)
             assert await Job(job, redis, _queue_name=QUEUE).abort(timeout=10)  # arq's abort, as the gateway's
             info = await result_of(redis, job)
