@@ -6,10 +6,10 @@ group and replaced; the caller gets SandboxCrashed. Only this module talks to se
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import os
-import queue
 import secrets
 import select
 import signal
@@ -46,6 +46,8 @@ BOOTSTRAP = (
 
 CANCEL_POLL_S = 0.1
 """How often a call waiting on its server asks whether it was cancelled."""
+RECENT_SCOPES = 4
+"""Scopes a server is taken to hold warm children of: its last ones (the server keeps `WARM_PER_SERVER`, 4)."""
 
 
 class ServerGone(Exception):
@@ -80,6 +82,9 @@ class ForkServer:
         self._buffer = bytearray()
         self._hello: dict[str, Any] | None = None
         self._cancelled: Callable[[], bool] | None = None
+        self.scopes: collections.deque[str] = collections.deque(maxlen=RECENT_SCOPES)
+        """The scopes of its last scoped calls that were answered, the latest last: where its warm children
+        probably are. Only a hint for choosing a server; the server alone decides which child answers."""
 
     def ready(self) -> dict[str, Any]:
         """The server's hello, read once: whether its children are confined by the kernel policy."""
@@ -115,6 +120,10 @@ class ForkServer:
             return header, b""
         size = int(header["size"])
         payload = self._read_exact(size + 1, deadline)
+        if scope is not None:
+            with suppress(ValueError):
+                self.scopes.remove(scope)
+            self.scopes.append(scope)
         return header, payload[:size]
 
     def shutdown(self, wait_s: float = 2.0) -> None:
@@ -180,7 +189,14 @@ class ForkServer:
 
 
 class ServerPool:
-    """N warm servers; a thread borrows one per call, so N calls run at once."""
+    """N warm servers; a thread borrows one per call, so N calls run at once.
+
+    A scoped call borrows the idle server that answered its scope most recently, where that scope's warm child
+    waits; a call of a scope no idle server knows takes the idle server with the fewest scopes, so that the
+    servers' warm children spread over the scopes; among equals the most recently used server (its memory is
+    still in the CPU's caches). Taken in turn instead, every server kept a warm child of every busy scope and
+    each child ran one call in N.
+    """
 
     def __init__(self, size: int, limits: Mapping[str, float | int], allowed_imports: Collection[str],
                  seccomp: bytes | None, allow_unconfined: bool) -> None:
@@ -189,12 +205,13 @@ class ServerPool:
         self._limits = dict(limits)
         self._allowed = frozenset(allowed_imports)
         self._seccomp, self._allow_unconfined = seccomp, allow_unconfined
-        self._idle: queue.Queue[ForkServer] = queue.Queue()
+        self._idle: list[ForkServer] = []  # the most recently used last
+        self._returned = threading.Condition()
         self._all: set[ForkServer] = set()
         self._lock = threading.Lock()
         self._closed = False
         for _ in range(size):
-            self._idle.put(self._start())
+            self._idle.append(self._start())
         try:
             hellos = [server.ready() for server in self._all]  # every server checks its own children
             self.hello = hellos[0]
@@ -214,12 +231,23 @@ class ServerPool:
         with self._lock:
             self._all.discard(server)
 
+    def _borrow(self, scope: str | None) -> ForkServer:
+        with self._returned:
+            while not self._idle:
+                self._returned.wait()
+            return self._idle.pop(_choice(self._idle, scope))
+
+    def _give_back(self, server: ForkServer) -> None:
+        with self._returned:
+            self._idle.append(server)
+            self._returned.notify()
+
     @contextmanager
-    def server(self) -> Iterator[ForkServer]:
-        """Lend a server; a server that failed is replaced rather than returned."""
+    def server(self, scope: str | None = None) -> Iterator[ForkServer]:
+        """Lend a server (for `scope`: see the class); a server that failed is replaced rather than returned."""
         if self._closed:
             raise SandboxError("sandbox is closed")
-        server = self._idle.get()
+        server = self._borrow(scope)
         try:
             yield server
         except ServerGone as exc:
@@ -239,11 +267,11 @@ class ServerPool:
             if self._closed:
                 server.shutdown()
             else:
-                self._idle.put(server)
+                self._give_back(server)
 
     def call(self, message: dict[str, Any], wait_s: float, cancelled: Callable[[], bool] | None = None,
              scope: str | None = None) -> tuple[dict[str, Any], bytes]:
-        with self.server() as server:
+        with self.server(scope) as server:
             try:
                 return server.request(message, wait_s, cancelled, scope)
             except (OSError, ValueError, KeyError) as exc:
@@ -256,3 +284,13 @@ class ServerPool:
             self._all.clear()
         for server in servers:
             server.shutdown()
+
+
+def _choice(idle: list[ForkServer], scope: str | None) -> int:
+    """The index in `idle` (the most recently used last) of the server a call of `scope` borrows."""
+    if scope is not None:
+        for index in range(len(idle) - 1, -1, -1):
+            if scope in idle[index].scopes:
+                return index
+    fewest = min(len(server.scopes) for server in idle)
+    return max(index for index, server in enumerate(idle) if len(server.scopes) == fewest)

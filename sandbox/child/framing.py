@@ -68,21 +68,31 @@ def split_frames(buffer: bytearray, cap: int) -> typing.Iterator[dict[str, typin
 
 
 class Reporter:
-    """The child's side of the stream; a budget keeps a hostile result from filling the server."""
+    """The child's side of the stream; a budget keeps a hostile result from filling the server.
+
+    A unit's result waits to be written with the frame that follows it (the next `begin`, a `phase` or the
+    `end`): one write where there were two, and one wake-up of the server fewer. Nothing untrusted runs
+    between a unit's result and that frame (untrusted code runs only after a `phase` or a `begin`, which are
+    written at once), so a child that dies loses no result it had."""
 
     def __init__(self, fd: int | None, cap: int) -> None:
         self._fd, self._left = fd, cap
+        self._pending = b""
 
-    def _send(self, frame: dict[str, object]) -> None:
+    def _send(self, frame: dict[str, object], wait: bool = False) -> None:
         if self._fd is None:
             return
         data = encode_frame(frame)
         self._left -= len(data)
         if self._left < 0:
-            write_all(self._fd, encode_frame({"t": "end", "result": {"error": {
+            write_all(self._fd, self._pending + encode_frame({"t": "end", "result": {"error": {
                 "kind": "limit", "limit": "result", "message": "result larger than the result limit"}}}))
             os._exit(0)
-        write_all(self._fd, data)
+        if wait:
+            self._pending += data
+            return
+        write_all(self._fd, self._pending + data)
+        self._pending = b""
 
     def phase(self, where: str) -> None:
         self._send({"t": "phase", "where": where})
@@ -91,7 +101,7 @@ class Reporter:
         self._send({"t": "begin", "unit": unit, "where": where})
 
     def unit(self, unit: int, result: dict[str, object]) -> None:
-        self._send({"t": "unit", "unit": unit, "result": result})
+        self._send({"t": "unit", "unit": unit, "result": result}, wait=True)
 
     def end(self, result: dict[str, object]) -> None:
         self._send({"t": "end", "result": result})

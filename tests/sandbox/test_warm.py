@@ -9,7 +9,17 @@ from __future__ import annotations
 from collections.abc import Iterator
 
 import pytest
-from warm_probe import EXPECTED, LIMITS, UNIT_LIMITS, idle_spin, scope_sequence, unfit_child
+from warm_probe import (
+    COUNTING_SPEC,
+    EXPECTED,
+    FIRST_TIME,
+    HISTORY,
+    LIMITS,
+    UNIT_LIMITS,
+    idle_spin,
+    scope_sequence,
+    unfit_child,
+)
 
 from sandbox import Sandbox
 
@@ -25,6 +35,18 @@ def test_a_warm_child_is_reused_by_its_own_scope_only(one_server: Sandbox) -> No
     # a, a (the same child: it kept the count), b (never a's child), no scope twice (always fresh, never kept),
     # b (b's own warm child), a (a's, still there)
     assert scope_sequence(one_server) == EXPECTED
+
+
+def test_a_scope_goes_back_to_the_server_of_its_warm_child() -> None:
+    """With several servers, a tenant's calls go to the one holding its warm child (taken in turn, each of
+    the three servers answered a's first three calls with a fresh child), and a new tenant to another one."""
+    def first_time(scope: str) -> bool:
+        (verdict,) = sandbox.check(COUNTING_SPEC, FIRST_TIME, HISTORY, ["room.enter()"], scope)
+        return verdict.allowed and verdict.error is None
+
+    with Sandbox(LIMITS, workers=3) as sandbox:
+        assert [first_time(scope) for scope in ("a", "a", "b", "a", "b", "a")] == [True, False, True, False, False,
+                                                                                  False]
 
 
 def test_a_warm_child_uses_no_cpu_while_it_waits_and_a_stuck_one_is_replaced(one_server: Sandbox) -> None:
