@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from redis.asyncio import ConnectionPool, Redis
 
 from jobs.cache import ResultCache
+from jobs.redis_packing import pack_with_hiredis
 from service import errors
 from service.api_keys import KeyStore
 from service.completions import Completions
@@ -41,6 +42,7 @@ Reasoners"). POSTs wait up to `?wait=` seconds; a job not finished by then answe
 def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     settings = settings or get_gateway_settings()
     metrics = Metrics()
+    pack_with_hiredis()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -45,6 +45,7 @@ from jobs.keys import (
     wake_channel,
     worker_key,
 )
+from jobs.redis_packing import pack_with_hiredis
 from sandbox import SandboxUnavailable
 from worker import logs
 from worker.jobs import JobCounts, run_operation
@@ -275,6 +276,7 @@ class WorkerProcess:
 
 def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
     logs.configure()
+    pack_with_hiredis()
     asyncio.run(WorkerProcess(settings, queues or list(QUEUES)).run())
 
 
