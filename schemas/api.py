@@ -7,10 +7,12 @@ Size bounds are part of the contract: they turn hostile inputs into 422s before 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Annotated, Any, Literal
 
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Discriminator,
     Field,
@@ -55,12 +57,16 @@ class StrictBody(BaseModel):
     @model_validator(mode="before")
     @classmethod
     def _first_unknown_field_only(cls, data: Any) -> Any:
-        """Only the first unknown field is reported: pydantic builds an error object per unknown field, so 400,000
-        of them in a 4 MB body cost the gateway 500 MB for one 422 that quotes only the first."""
-        if isinstance(data, dict) and len(data) > len(cls.model_fields):
-            first = next((key for key in data if key not in cls.model_fields), None)
-            data = {key: value for key, value in data.items() if key in cls.model_fields or key == first}
-        return data
+        return _first_unknown_field_only(data, cls.model_fields)
+
+
+def _first_unknown_field_only(data: Any, fields: Mapping[str, Any]) -> Any:
+    """Only the first unknown field is reported: pydantic builds an error object per unknown field, so 400,000
+    of them in a 4 MB body cost the gateway 500 MB for one 422 that quotes only the first."""
+    if isinstance(data, dict) and len(data) > len(fields):
+        first = next((key for key in data if key not in fields), None)
+        data = {key: value for key, value in data.items() if key in fields or key == first}
+    return data
 
 
 MAX_ACTIONS = 256
@@ -238,8 +244,11 @@ Scalar = Annotated[
 """An event argument: str, int, float, bool or null; anything else is refused (422) when the history is rendered."""
 
 
-class HistoryEvent(StrictBody):
-    """One step of a structured history: `actor.act(*args)`."""
+class HistoryEvent(BaseModel):
+    """One step of a structured history: `actor.act(*args)`. Unknown fields are errors, as in `StrictBody`,
+    whose guard runs once for all of a history's events (`_events_first_unknown_field_only`)."""
+
+    model_config = ConfigDict(extra="forbid")
 
     actor: str = Field(max_length=100, description="The spec class's variable: its name in lower case (`user`, "
                        "`system`; `agent`, `environment`).")
@@ -265,6 +274,14 @@ ChatMessage = Annotated[
 """A message of a tool-calling agent's log; its shape is checked when the history is rendered (422 naming it)."""
 
 
+def _events_first_unknown_field_only(events: Any) -> Any:
+    """`StrictBody`'s guard for each event, in one call for the whole history: called by pydantic for each event
+    instead, it took most of the validation of a 40 events history (80-138 → 35 µs)."""
+    if isinstance(events, list):
+        return [_first_unknown_field_only(event, HistoryEvent.model_fields) for event in events]
+    return events
+
+
 def _history_kind(value: Any) -> str:
     if isinstance(value, str):
         return "text"
@@ -274,7 +291,8 @@ def _history_kind(value: Any) -> str:
 
 History = Annotated[
     Annotated[str, Tag("text"), Field(max_length=MAX_SOURCE_CHARS)]
-    | Annotated[list[HistoryEvent], Tag("events"), Field(max_length=MAX_HISTORY_EVENTS)]
+    | Annotated[list[HistoryEvent], Field(max_length=MAX_HISTORY_EVENTS),
+                BeforeValidator(_events_first_unknown_field_only), Tag("events")]
     | Annotated[list[ChatMessage], Tag("openai"), Field(max_length=MAX_HISTORY_EVENTS)],
     Discriminator(_history_kind),
 ]
