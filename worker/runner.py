@@ -25,6 +25,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
+import uvloop
 from arq import func
 from arq.connections import RedisSettings
 from arq.worker import Worker
@@ -277,7 +278,7 @@ class WorkerProcess:
 def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
     logs.configure()
     pack_with_hiredis()
-    asyncio.run(WorkerProcess(settings, queues or list(QUEUES)).run())
+    uvloop.run(WorkerProcess(settings, queues or list(QUEUES)).run())
 
 
 if __name__ == "__main__":
