@@ -15,8 +15,10 @@ Every request carries an API key (two tenants, `quiet` and `flood`). Measures
     queue would have made the quiet tenant wait).
 `--root DIR` runs gateway and worker from another checkout (e.g. `git archive HEAD | tar -x -C DIR`); given
 twice or more, every checkout is measured in turn in one invocation and the table has a column per checkout
-(`--root OLD --root .`: before and after on the same machine). `--env K=V` passes settings (e.g.
-PRECOND_CHECK_POLL_S=0.05).
+(`--root OLD --root .`: before and after on the same machine). `--interleave` keeps every checkout's stack up
+at once and sends each uncached check to every checkout in turn, so that a machine whose speed drifts within
+seconds slows every checkout alike (the other rows are still measured one checkout after the other, the idle
+stacks up beside them). `--env K=V` passes settings (e.g. PRECOND_CHECK_POLL_S=0.05).
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -124,16 +126,22 @@ def percentile(samples: list[float], q: float) -> float:
 
 def latencies(base: str, path: str, bodies: list[dict[str, Any]], warmup: int, key: str) -> dict[str, float]:
     """Sequential POSTs; every body must be new to the cache. Milliseconds."""
-    seconds = []
     with httpx.Client(base_url=base, timeout=300, headers=auth(key)) as client:
-        for i, body in enumerate(bodies):
-            started = time.perf_counter()
-            answer = client.post(path, json=body, params={"wait": 300})
-            elapsed = time.perf_counter() - started
-            if answer.status_code != 200:
-                raise SystemExit(f"{path}: {answer.status_code} {answer.text[:300]}")
-            if i >= warmup:
-                seconds.append(elapsed)
+        seconds = [timed_post(client, path, body) for body in bodies]
+    return summary(seconds[warmup:])
+
+
+def timed_post(client: httpx.Client, path: str, body: dict[str, Any]) -> float:
+    """Seconds one POST took to answer 200 (anything else ends the benchmark)."""
+    started = time.perf_counter()
+    answer = client.post(path, json=body, params={"wait": 300})
+    elapsed = time.perf_counter() - started
+    if answer.status_code != 200:
+        raise SystemExit(f"{path}: {answer.status_code} {answer.text[:300]}")
+    return elapsed
+
+
+def summary(seconds: list[float]) -> dict[str, float]:
     ms = [s * 1000 for s in seconds]
     return {"n": len(ms), "p50_ms": percentile(ms, 50), "p95_ms": percentile(ms, 95), "p99_ms": percentile(ms, 99),
             "mean_ms": statistics.mean(ms)}
@@ -152,6 +160,11 @@ def dialog_events(n: int) -> list[dict[str, Any]]:
 
 def stored_set_checks(base: str, check: dict[str, Any], args: argparse.Namespace, key: str) -> dict[str, float]:
     """check-actions naming a stored set (its rules are the example's) over a 40-event history, uncached."""
+    return latencies(base, "/check-actions", stored_set_bodies(base, check, args, key), warmup=5, key=key)
+
+
+def stored_set_bodies(base: str, check: dict[str, Any], args: argparse.Namespace, key: str) -> list[dict[str, Any]]:
+    """Stores the example's rules as a set; checks naming it, each with a new call after the same 40 events."""
     with httpx.Client(base_url=base, timeout=60, headers=auth(key)) as client:
         rules = {"spec": check["spec"], "preconditions": check["preconditions"]}
         answer = client.post("/precondition-sets", json=rules)
@@ -159,9 +172,37 @@ def stored_set_checks(base: str, check: dict[str, Any], args: argparse.Namespace
             raise SystemExit(f"/precondition-sets: {answer.status_code} {answer.text[:300]}")
         reference = answer.json()["id"]
     history = dialog_events(40)
-    bodies = [{"precondition_set": reference, "history": history, "calls": [f"system.REQUEST('set_{i}')"]}
-              for i in range(args.check_n + 5)]
-    return latencies(base, "/check-actions", bodies, warmup=5, key=key)
+    return [{"precondition_set": reference, "history": history, "calls": [f"system.REQUEST('set_{i}')"]}
+            for i in range(args.check_n + 5)]
+
+
+def uncached_bodies(check: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
+    """check-actions bodies with one new call each: a fresh job every time."""
+    return [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
+
+
+def interleaved_checks(stacks: list[tuple[str, dict[str, str]]], check: dict[str, Any], args: argparse.Namespace
+                       ) -> list[dict[str, dict[str, float]]]:
+    """The two uncached check rows of every checkout, each request sent to every stack in turn (the order
+    rotated at each round): on a machine whose speed drifts within seconds, every checkout sees the same
+    drift, where measured one after the other a checkout could get a slow phase and another a fast one."""
+    clients = [httpx.Client(base_url=base, timeout=300, headers=auth(keys["quiet"])) for base, keys in stacks]
+    try:
+        plain = uncached_bodies(check, args)
+        stored = [stored_set_bodies(base, check, args, keys["quiet"]) for base, keys in stacks]
+        rows: list[dict[str, dict[str, float]]] = [{} for _ in stacks]
+        for row, bodies in (("check_actions_uncached", [plain] * len(stacks)), ("stored_set_40_events", stored)):
+            seconds: list[list[float]] = [[] for _ in stacks]
+            for i in range(args.check_n + 5):
+                for step in range(len(stacks)):
+                    k = (i + step) % len(stacks)
+                    seconds[k].append(timed_post(clients[k], "/check-actions", bodies[k][i]))
+            for k, taken in enumerate(seconds):
+                rows[k][row] = summary(taken[5:])
+        return rows
+    finally:
+        for client in clients:
+            client.close()
 
 
 def fairness(base: str, check: dict[str, Any], keys: dict[str, str], args: argparse.Namespace) -> dict[str, Any]:
@@ -260,6 +301,9 @@ def main() -> None:
     parser.add_argument("--fair-n", type=int, default=50, help="the quiet tenant's requests, alone and flooded")
     parser.add_argument("--gateway-processes", type=int, default=1,
                         help="gateway processes behind the port (PRECOND_GATEWAY_PROCESSES)")
+    parser.add_argument("--interleave", action="store_true",
+                        help="with several --root: all stacks up at once, the uncached check rows measured with "
+                        "each request sent to every checkout in turn")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     roots = [root.resolve() for root in args.root or [ROOT]]
@@ -267,25 +311,36 @@ def main() -> None:
     check = json.loads((EXAMPLES / "check-actions.json").read_text())
     next_action = json.loads((EXAMPLES / "next-action.json").read_text())
     runs = []
-    for root in roots:
-        args.root = root
-        results: dict[str, Any] = {"model": args.model, "root": str(root), "env": args.env, "cpus": os.cpu_count(),
-                                   "gateway_processes": args.gateway_processes}
-        with tempfile.TemporaryDirectory(prefix="service-bench-") as name:
-            keys = make_keys(Path(name) / "keys.jsonl")
-            with stack(args, Path(name)) as base:
-                measure(base, Path(name), keys, check, next_action, args, results)
-        runs.append(results)
+    with ExitStack() as running:
+        stacks = [start(root, args, running) for root in roots] if args.interleave else []
+        interleaved = (interleaved_checks([(base, keys) for base, _, keys in stacks], check, args) if stacks
+                       else [{} for _ in roots])
+        for index, root in enumerate(roots):
+            results: dict[str, Any] = {"model": args.model, "root": str(root), "env": args.env,
+                                       "cpus": os.cpu_count(), "gateway_processes": args.gateway_processes,
+                                       "interleaved": bool(stacks), **interleaved[index]}
+            with ExitStack() as one:
+                base, tmp, keys = stacks[index] if stacks else start(root, args, one)
+                measure(base, tmp, keys, check, next_action, args, results)
+            runs.append(results)
     report(runs, args)
+
+
+def start(root: Path, args: argparse.Namespace, running: ExitStack) -> tuple[str, Path, dict[str, str]]:
+    """A stack running `root`'s gateway and worker until `running` closes: its URL, directory and keys."""
+    tmp = Path(running.enter_context(tempfile.TemporaryDirectory(prefix="service-bench-")))
+    keys = make_keys(tmp / "keys.jsonl")
+    return running.enter_context(stack(argparse.Namespace(**{**vars(args), "root": root}), tmp)), tmp, keys
 
 
 def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], next_action: dict[str, Any],
             args: argparse.Namespace, results: dict[str, Any]) -> None:
     key = keys["quiet"]
-    # check-actions, uncached: one new call per request (a fresh job each time).
-    bodies = [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
-    results["check_actions_uncached"] = latencies(base, "/check-actions", bodies, warmup=5, key=key)
-    results["stored_set_40_events"] = stored_set_checks(base, check, args, key)
+    # check-actions, uncached: one new call per request (a fresh job each time), then against a stored set.
+    if "check_actions_uncached" not in results:  # measured interleaved already
+        results["check_actions_uncached"] = latencies(base, "/check-actions", uncached_bodies(check, args), warmup=5,
+                                                      key=key)
+        results["stored_set_40_events"] = stored_set_checks(base, check, args, key)
     # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
     bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
     results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
@@ -309,7 +364,8 @@ def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
                        ("stored_set_40_events", "check-actions, stored set, 40 events, uncached"),
                        ("next_action_uncached", "next-action, uncached")):
         r = results[key]
-        rows.append((f"{label} (n={r['n']} sequential)", f"p50 {r['p50_ms']:.1f} ms, p95 {r['p95_ms']:.1f} ms"))
+        how = "interleaved" if results.get("interleaved") and key != "next_action_uncached" else "sequential"
+        rows.append((f"{label} (n={r['n']} {how})", f"p50 {r['p50_ms']:.1f} ms, p95 {r['p95_ms']:.1f} ms"))
     fair = results["fairness"]
     for key, label in (("quiet_alone", "quiet tenant, alone"), ("quiet_during_flood", "quiet tenant, flooded")):
         r = fair[key]

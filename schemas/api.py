@@ -245,9 +245,10 @@ Scalar = Annotated[
 
 
 class HistoryEvent(BaseModel):
-    """One step of a structured history: `actor.act(*args)`. Unknown fields are errors, as in `StrictBody`,
-    whose guard runs once for all of a history's events (`_events_first_unknown_field_only`)."""
+    """One step of a structured history: `actor.act(*args)`."""
 
+    # Unknown fields are errors, as in StrictBody, whose guard runs once for all of a history's events
+    # (_events_first_unknown_field_only); the docstring above is the API's description.
     model_config = ConfigDict(extra="forbid")
 
     actor: str = Field(max_length=100, description="The spec class's variable: its name in lower case (`user`, "
