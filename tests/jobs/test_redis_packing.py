@@ -7,8 +7,10 @@ import asyncio
 from typing import Any
 
 import pytest
+from redis._parsers.encoders import Encoder
 from redis.asyncio import Redis
 from redis.asyncio.connection import Connection
+from redis.connection import PythonRespSerializer  # type: ignore[attr-defined]  # types-redis predates it
 from redis.exceptions import DataError
 
 from jobs.redis_packing import pack_with_hiredis
@@ -19,11 +21,14 @@ ECHO = LuaScript("return ARGV")
 
 
 def test_the_packed_bytes_are_redis_py_s_own() -> None:
-    python_packed = b"".join(Connection().pack_command("CONFIG GET", "maxmemory"))
+    """Against redis-py's Python packer (`PythonRespSerializer`, the asyncio connection's algorithm), which
+    this process may already have replaced on the asyncio connection."""
+    python = PythonRespSerializer(6000, Encoder("utf-8", "strict", False).encode)  # type: ignore[no-untyped-call]
     pack_with_hiredis()
     pack_with_hiredis()  # a second call changes nothing
     connection = Connection()
-    assert b"".join(connection.pack_command("CONFIG GET", "maxmemory")) == python_packed
+    for args in (("CONFIG GET", "maxmemory"), ("EVALSHA", "f" * 40, 2, "k1", b"k2", 0.1, -7, "h\u00e9", b"")):
+        assert b"".join(connection.pack_command(*args)) == b"".join(python.pack(*args))
     assert connection.pack_command("SET", "k", "h\u00e9llo", 0.1, 2**70, b"\x00\xff") == [
         b"*6\r\n$3\r\nSET\r\n$1\r\nk\r\n$6\r\nh\xc3\xa9llo\r\n$3\r\n0.1\r\n$22\r\n1180591620717411303424\r\n"
         b"$2\r\n\x00\xff\r\n"
