@@ -16,6 +16,7 @@ from fastapi import FastAPI
 from redis.asyncio import ConnectionPool, Redis
 
 from jobs.cache import ResultCache
+from jobs.redis_checkout import check_out_without_read
 from jobs.redis_packing import pack_with_hiredis
 from service import errors
 from service.api_keys import KeyStore
@@ -43,6 +44,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     settings = settings or get_gateway_settings()
     metrics = Metrics()
     pack_with_hiredis()
+    check_out_without_read()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

@@ -46,6 +46,7 @@ from jobs.keys import (
     wake_channel,
     worker_key,
 )
+from jobs.redis_checkout import check_out_without_read
 from jobs.redis_packing import pack_with_hiredis
 from sandbox import SandboxUnavailable
 from worker import logs
@@ -278,6 +279,7 @@ class WorkerProcess:
 def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
     logs.configure()
     pack_with_hiredis()
+    check_out_without_read()
     uvloop.run(WorkerProcess(settings, queues or list(QUEUES)).run())
 
 
