@@ -14,7 +14,7 @@ import redis
 
 from jobs import cache, keys
 from schemas.api import CheckRequest
-from service.server import MAX_REQUEST_HEAD_BYTES
+from service.http_protocol import MAX_REQUEST_HEAD_BYTES, MAX_URL_BYTES
 from stack.local import (
     Stack,
     check_body,
@@ -324,9 +324,71 @@ def _raw_get(stack: Stack, path: str) -> tuple[int, bytes]:
 
 def test_a_long_url_sent_in_pieces_gets_the_apps_json_error(stack: Stack) -> None:
     """h11's default 16 KiB head buffer made a 60 KiB URL a plain-text 400 or the app's JSON 404 depending on
-    how TCP split it (a CI run failed on it); under the gateway's head limit the app always answers."""
-    status, body = _raw_get(stack, "/jobs/infer-" + "0" * (MAX_REQUEST_HEAD_BYTES - 1024))
+    how TCP split it (a CI run failed on it); under the gateway's bounds the app always answers (a URL up to
+    `MAX_URL_BYTES`, httptools' URL parser's own bound)."""
+    status, body = _raw_get(stack, "/jobs/infer-" + "0" * (MAX_URL_BYTES - 1024))
     assert status == 404 and json.loads(body)["error"]["type"] == "not_found"
+
+
+def _endless_head(stack: Stack, start: bytes, piece: bytes, pause_s: float, budget: int) -> tuple[bytes, int]:
+    """Sends `start`, then `piece` after `piece` (never the blank line that ends a head) until the server answers
+    or closes, or `budget` bytes went out: what it answered, and how many bytes it had been sent by then."""
+    sent = 0
+    with socket.create_connection(("127.0.0.1", stack.port), timeout=30) as conn:
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        conn.sendall(start)
+        conn.settimeout(pause_s or 0.001)
+        while sent < budget:
+            try:
+                conn.sendall(piece)
+            except OSError:  # reset: the server closed while we were still sending
+                break
+            sent += len(piece)
+            try:
+                if conn.recv(65536, socket.MSG_PEEK):
+                    break
+            except TimeoutError:
+                continue
+        conn.settimeout(10)
+        answer = b""
+        try:
+            while chunk := conn.recv(65536):
+                answer += chunk
+        except (TimeoutError, ConnectionResetError):
+            pass
+    return answer, sent
+
+
+@pytest.mark.parametrize("start,piece", [
+    (b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n", b"X-Filler: " + b"a" * 1000 + b"\r\n"),  # many headers
+    (b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Long: ", b"a" * 1024),  # one header's value, in pieces
+    (b"GET /health?q=", b"a" * 1024),  # the URL, in pieces
+], ids=["headers", "value", "url"])
+def test_a_head_that_never_ends_is_refused_at_the_bound(stack: Stack, start: bytes, piece: bytes) -> None:
+    """httptools keeps a head's URL and header values for as long as they come; without the gateway's bound
+    this client, sending 4 MiB, got no answer at all and the gateway held all of it."""
+    answer, sent = _endless_head(stack, start, piece, 0.0, 4 << 20)
+    assert answer.startswith(b"HTTP/1.1 400 "), answer[:100]
+    assert b"connection: close" in answer.lower()
+    assert sent <= MAX_REQUEST_HEAD_BYTES + (1 << 20)  # refused near the bound (one read, socket buffers)
+
+
+def test_a_head_trickled_in_many_reads_is_refused(stack: Stack) -> None:
+    """Few bytes a read: each read would copy the whole URL so far again (quadratic); 256 reads at most."""
+    answer, sent = _endless_head(stack, b"GET /health?q=", b"a" * 8, 0.002, 64 << 10)
+    assert answer.startswith(b"HTTP/1.1 400 "), answer[:100]
+    assert sent < 32 << 10  # long before the byte bound
+
+
+def test_a_whole_head_past_the_bound_is_refused_however_it_arrives(stack: Stack) -> None:
+    fillers = "".join(f"X-Filler-{i}: {'a' * (MAX_REQUEST_HEAD_BYTES // 3)}\r\n" for i in range(4))
+    head = f"GET /health HTTP/1.1\r\nHost: x\r\n{fillers}\r\n".encode()
+    with socket.create_connection(("127.0.0.1", stack.port), timeout=30) as conn:
+        conn.sendall(head)
+        answer = b""
+        while chunk := conn.recv(65536):
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 400 "), answer[:100]
 
 
 def test_health_ready_metrics(client: httpx.Client) -> None:

@@ -1,0 +1,58 @@
+"""The gateway's HTTP/1.1 protocol: uvicorn's httptools (llhttp, C) implementation with a bound on the request
+head, which httptools does not have.
+
+h11 (pure Python) took about an eighth of the gateway's CPU per check and was kept only for its bounded head
+buffer. httptools accumulates the URL and every header value for as long as the client sends them (uvicorn
+joins the URL's pieces with `+=`, httptools a value's pieces the same way: quadratic in the number of reads).
+So a head is refused with the server's plain-text 400 and the connection closed when, still incomplete, it has
+taken more than `MAX_REQUEST_HEAD_BYTES` (one read more at most) or `MAX_REQUEST_HEAD_READS` reads, or when,
+complete, its URL and headers pass `MAX_REQUEST_HEAD_BYTES`: the same bound whatever the segmentation (h11
+checked only a head that arrived over several reads). Within the bound every head reaches the app, which
+answers with its own JSON error.
+"""
+
+from __future__ import annotations
+
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+MAX_REQUEST_HEAD_BYTES = 128 * 1024
+"""URL and headers of one request; the longest head a legitimate client of this API sends is a few KiB."""
+
+MAX_URL_BYTES = 65535
+"""httptools' own bound: its URL parser keeps offsets in 16 bits, and uvicorn answers a longer URL with its 400."""
+
+MAX_REQUEST_HEAD_READS = 256
+"""Reads one incomplete head may take: bounds the quadratic joining above to 256 x 128 KiB of copying."""
+
+HEAD_TOO_LARGE = "Request head too large."
+
+
+class HeadTooLarge(ValueError):
+    """Raised inside the parser's callback: httptools stops, uvicorn answers 400 and closes."""
+
+
+class BoundedHttpToolsProtocol(HttpToolsProtocol):
+    _in_head = False
+    _head_bytes = 0
+    _head_reads = 0
+
+    def on_message_begin(self) -> None:
+        super().on_message_begin()
+        self._in_head, self._head_bytes, self._head_reads = True, 0, 0
+
+    def on_headers_complete(self) -> None:
+        self._in_head = False
+        size = len(self.url) + sum(len(name) + len(value) for name, value in self.headers)
+        if size > MAX_REQUEST_HEAD_BYTES:
+            raise HeadTooLarge(f"{size} bytes")
+        super().on_headers_complete()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if not self._in_head or self.transport.is_closing():
+            return
+        self._head_bytes += len(data)  # the whole read: it began or continued this head
+        self._head_reads += 1
+        if self._head_bytes > MAX_REQUEST_HEAD_BYTES or self._head_reads > MAX_REQUEST_HEAD_READS:
+            self.logger.warning(HEAD_TOO_LARGE)
+            self.send_400_response(HEAD_TOO_LARGE)
