@@ -9,6 +9,8 @@ Every request carries an API key (two tenants, `quiet` and `flood`). Measures
     script; falls back to an httpx asyncio client when wrk is not installed (the table says which);
   * check-actions latency, uncached: sequential requests whose calls differ, so every one is a new job;
   * the same against a stored precondition set, with a history of 40 events (what a dialog system sends);
+  * both again timed by `wrk -c1` (one request at a time, a new call in each), when wrk is installed: the
+    service's latency without this script's httpx client, whose own CPU is some 2 ms a request on 2 cores;
   * next-action latency through the gateway, uncached (a different seed per request);
   * fairness: the quiet tenant's uncached check-actions latency alone, and while the other tenant has
     `--flood` check-actions jobs queued (and how long those take to drain: what a first-come-first-served
@@ -16,9 +18,9 @@ Every request carries an API key (two tenants, `quiet` and `flood`). Measures
 `--root DIR` runs gateway and worker from another checkout (e.g. `git archive HEAD | tar -x -C DIR`); given
 twice or more, every checkout is measured in turn in one invocation and the table has a column per checkout
 (`--root OLD --root .`: before and after on the same machine). `--interleave` keeps every checkout's stack up
-at once and sends each uncached check to every checkout in turn, so that a machine whose speed drifts within
-seconds slows every checkout alike (the other rows are still measured one checkout after the other, the idle
-stacks up beside them). `--env K=V` passes settings (e.g. PRECOND_CHECK_POLL_S=0.05).
+at once and sends each uncached check to every checkout in turn (wrk: one-second runs in turn), so that a
+machine whose speed drifts within seconds slows every checkout alike (the other rows are still measured one
+checkout after the other, the idle stacks up beside them). `--env K=V` passes settings (e.g. PRECOND_CHECK_POLL_S=0.05).
 """
 
 from __future__ import annotations
@@ -45,7 +47,6 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 sys.path.insert(0, str(ROOT))
 
-from service.server import gateway_args  # noqa: E402
 from stack.local import free_port, wait_until  # noqa: E402
 
 TENANTS = ("quiet", "flood")
@@ -97,8 +98,8 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
     argvs = [
         [redis_server, "--port", str(redis_port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
          "--dir", str(tmp)],
-        [sys.executable, "-m", "uvicorn", *gateway_args(args.gateway_processes), "--port", str(http_port),
-         "--log-level", "warning", "--no-access-log"],
+        [sys.executable, "-m", "uvicorn", *root_gateway_args(args.root, args.gateway_processes, env),
+         "--port", str(http_port), "--log-level", "warning", "--no-access-log"],
         [sys.executable, "-c", "from cli.main import app; app()", "worker"],
     ]
     processes: list[subprocess.Popen[bytes]] = []
@@ -117,6 +118,14 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
                 process.wait(15)
             except subprocess.TimeoutExpired:
                 process.kill()
+
+
+def root_gateway_args(root: Path, processes: int, env: dict[str, str]) -> list[str]:
+    """The uvicorn options of `root`'s own `service.server` (a checkout's gateway may start differently)."""
+    code = "import json, sys; from service.server import gateway_args as a; print(json.dumps(a(int(sys.argv[1]))))"
+    out = subprocess.run([sys.executable, "-c", code, str(processes)], env=env, cwd=root, capture_output=True,
+                         text=True, check=True).stdout
+    return list(json.loads(out))
 
 
 def percentile(samples: list[float], q: float) -> float:
@@ -165,15 +174,18 @@ def stored_set_checks(base: str, check: dict[str, Any], args: argparse.Namespace
 
 def stored_set_bodies(base: str, check: dict[str, Any], args: argparse.Namespace, key: str) -> list[dict[str, Any]]:
     """Stores the example's rules as a set; checks naming it, each with a new call after the same 40 events."""
+    template = stored_set_template(base, check, key)
+    return [{**template, "calls": [f"system.REQUEST('set_{i}')"]} for i in range(args.check_n + 5)]
+
+
+def stored_set_template(base: str, check: dict[str, Any], key: str) -> dict[str, Any]:
+    """A check naming a new stored set of the example's rules, after 40 events (its calls still to add)."""
     with httpx.Client(base_url=base, timeout=60, headers=auth(key)) as client:
         rules = {"spec": check["spec"], "preconditions": check["preconditions"]}
         answer = client.post("/precondition-sets", json=rules)
         if answer.status_code != 201:
             raise SystemExit(f"/precondition-sets: {answer.status_code} {answer.text[:300]}")
-        reference = answer.json()["id"]
-    history = dialog_events(40)
-    return [{"precondition_set": reference, "history": history, "calls": [f"system.REQUEST('set_{i}')"]}
-            for i in range(args.check_n + 5)]
+    return {"precondition_set": answer.json()["id"], "history": dialog_events(40)}
 
 
 def uncached_bodies(check: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
@@ -231,6 +243,80 @@ wrk.headers["Content-Type"] = "application/json"
 wrk.headers["Authorization"] = "Bearer {key}"
 wrk.body = io.open("{body}"):read("*a")
 """
+
+
+WRK_SEQUENTIAL_LUA = r"""local pre, post = [=======[{pre}]=======], [=======[{post}]=======]
+local ffi = require("ffi")
+ffi.cdef[[ typedef struct {{ long s; long ns; }} bench_time; int clock_gettime(int, bench_time *); ]]
+local clock = ffi.new("bench_time")
+local function now_us() ffi.C.clock_gettime(1, clock); return tonumber(clock.s) * 1e6 + tonumber(clock.ns) / 1e3 end
+local threads, tag, i, sent = {{}}, "", 0, 0
+samples = {{}}
+wrk.method = "POST"
+wrk.path = "/check-actions?wait=300"
+wrk.headers["Content-Type"] = "application/json"
+wrk.headers["Authorization"] = "Bearer {key}"
+function setup(thread) table.insert(threads, thread) end
+function init(args) tag = args[1] end
+function request()
+  i = i + 1
+  sent = now_us()
+  return wrk.format(nil, nil, nil, pre .. tag .. "_" .. i .. post)
+end
+function response(status, headers, body)
+  if status == 200 then samples[#samples + 1] = math.floor(now_us() - sent) end
+end
+function done(summary, latency, requests)
+  local e = summary.errors
+  io.write(string.format("errors %d\n", e.connect + e.read + e.write + e.status + e.timeout))
+  for _, thread in ipairs(threads) do
+    for _, us in ipairs(thread:get("samples")) do io.write(string.format("%d\n", us)) end
+  end
+end
+"""
+"""One connection, one request at a time, each with a new call (`tag`_`i`): a check no cache holds. Each
+answer's latency (write of the request to the end of the answer, CLOCK_MONOTONIC through LuaJIT's ffi) is
+printed by `done`, so that short runs can be merged (wrk's own histogram cannot be read from its scripts)."""
+
+CALL = "@@CALL@@"
+
+
+def wrk_sequential_rows(stacks: list[tuple[str, dict[str, str]]], check: dict[str, Any], args: argparse.Namespace,
+                        tmp: Path) -> list[dict[str, dict[str, float]]]:
+    """The two uncached check rows again, timed by wrk (C) rather than this script's httpx client, whose own
+    CPU (some 2 ms a request on a 2-core machine) is not the service's latency: one-second runs of
+    `wrk -c1`, every checkout in turn (the order rotated), `--wrk-seconds` of them per checkout and row."""
+    rows: list[dict[str, dict[str, float]]] = [{} for _ in stacks]
+    templates = {
+        "check_actions_uncached_wrk": [{**check} for _ in stacks],
+        "stored_set_40_events_wrk": [stored_set_template(base, check, keys["quiet"]) for base, keys in stacks],
+    }
+    for row, bodies in templates.items():
+        scripts = []
+        for k, ((_, keys), body) in enumerate(zip(stacks, bodies, strict=True)):
+            pre, post = json.dumps({**body, "calls": [f"system.REQUEST('{CALL}')"]}).split(CALL)
+            scripts.append(tmp / f"{row}-{k}.lua")
+            scripts[-1].write_text(WRK_SEQUENTIAL_LUA.format(pre=pre, post=post, key=keys["quiet"]))
+        samples: list[list[float]] = [[] for _ in stacks]
+        for r in range(args.wrk_seconds):
+            for step in range(len(stacks)):
+                k = (r + step) % len(stacks)
+                tag = f"{row}{r}-{time.time()}"
+                argv = ["wrk", "-t1", "-c1", "-d1s", "-s", str(scripts[k]), stacks[k][0], "--", tag]
+                out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+                samples[k] += _seconds(out)
+        for k, taken in enumerate(samples):
+            rows[k][row] = summary(taken)
+    return rows
+
+
+def _seconds(out: str) -> list[float]:
+    """The latencies a `WRK_SEQUENTIAL_LUA` run printed; a failed request ends the benchmark."""
+    lines = out.splitlines()
+    errors = next((line.split()[1] for line in lines if line.startswith("errors ")), "?")
+    if errors != "0":
+        raise SystemExit(f"wrk: {errors} requests failed")
+    return [int(line) / 1e6 for line in lines if line.isdigit()]
 
 
 def cache_hits_wrk(base: str, body_file: Path, tmp: Path, args: argparse.Namespace, key: str) -> dict[str, Any]:
@@ -293,8 +379,10 @@ def main() -> None:
                         help="checkout to run gateway and worker from (repeat to compare; default: this one)")
     parser.add_argument("--env", action="append", default=[], metavar="K=V", help="extra settings")
     parser.add_argument("--check-n", type=int, default=200, help="uncached check-actions requests")
-    parser.add_argument("--next-n", type=int, default=30, help="uncached next-action requests")
+    parser.add_argument("--next-n", type=int, default=30, help="uncached next-action requests (0: no such row)")
     parser.add_argument("--duration", type=int, default=10, help="seconds of cache-hit load")
+    parser.add_argument("--wrk-seconds", type=int, default=10,
+                        help="seconds of the uncached rows timed by wrk, per checkout and row (0: none)")
     parser.add_argument("--connections", type=int, default=32)
     parser.add_argument("--threads", type=int, default=2, help="wrk threads")
     parser.add_argument("--flood", type=int, default=500, help="jobs the flooding tenant queues at once")
@@ -315,6 +403,9 @@ def main() -> None:
         stacks = [start(root, args, running) for root in roots] if args.interleave else []
         interleaved = (interleaved_checks([(base, keys) for base, _, keys in stacks], check, args) if stacks
                        else [{} for _ in roots])
+        if stacks and shutil.which("wrk") and args.wrk_seconds > 0:
+            timed = wrk_sequential_rows([(base, keys) for base, _, keys in stacks], check, args, stacks[0][1])
+            interleaved = [{**a, **b} for a, b in zip(interleaved, timed, strict=True)]
         for index, root in enumerate(roots):
             results: dict[str, Any] = {"model": args.model, "root": str(root), "env": args.env,
                                        "cpus": os.cpu_count(), "gateway_processes": args.gateway_processes,
@@ -341,9 +432,12 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
         results["check_actions_uncached"] = latencies(base, "/check-actions", uncached_bodies(check, args), warmup=5,
                                                       key=key)
         results["stored_set_40_events"] = stored_set_checks(base, check, args, key)
+        if shutil.which("wrk") and args.wrk_seconds > 0:
+            results.update(wrk_sequential_rows([(base, keys)], check, args, tmp)[0])
     # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
-    bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
-    results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
+    if args.next_n > 0:
+        bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
+        results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
     # cache hits: the first check-actions body is cached by now.
     body_file = tmp / "body.json"
     body_file.write_text(json.dumps({**check, "calls": ["system.REQUEST('slot_0')"]}))
@@ -362,7 +456,11 @@ def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
              f"{hit['requests_per_s']:.0f} req/s, p50 {hit['p50_ms']:.1f} ms, p99 {hit.get('p99_ms', 0):.1f} ms")]
     for key, label in (("check_actions_uncached", "check-actions, uncached"),
                        ("stored_set_40_events", "check-actions, stored set, 40 events, uncached"),
+                       ("check_actions_uncached_wrk", "check-actions, uncached, wrk -c1"),
+                       ("stored_set_40_events_wrk", "check-actions, stored set, 40 events, uncached, wrk -c1"),
                        ("next_action_uncached", "next-action, uncached")):
+        if key not in results:  # --next-n 0, --wrk-seconds 0 or no wrk
+            continue
         r = results[key]
         how = "interleaved" if results.get("interleaved") and key != "next_action_uncached" else "sequential"
         rows.append((f"{label} (n={r['n']} {how})", f"p50 {r['p50_ms']:.1f} ms, p95 {r['p95_ms']:.1f} ms"))
