@@ -432,7 +432,7 @@ class Engine:
     # ---- check ------------------------------------------------------------------------------------
     def check(self, request: CheckRequest) -> CheckResponse:
         spec = remembered_spec(scope.current(), _spec_of(request))
-        check_preconditions(spec, request.preconditions)
+        check_preconditions(spec, request.preconditions, scope.current())
         history = rendered_history(spec.source, request.history)  # parsed by check_calls, once per scope and text
         try:
             calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls])

@@ -69,10 +69,14 @@ def resolve_actions(spec: Spec, requested: Sequence[str] | None) -> list[str]:
         raise as_error(exc) from exc
 
 
-def check_preconditions(spec: Spec, preconditions: dict[str, list[str]]) -> None:
-    """Known action names (else the closest), and each rule one expression (`assert x` says to drop it)."""
+def check_preconditions(spec: Spec, preconditions: dict[str, list[str]], scope: str | None = None) -> None:
+    """Known action names (else the closest), and each rule one expression (`assert x` says to drop it);
+    with `scope`, a success is remembered for that scope (`checks.remembered_check_preconditions`)."""
     try:
-        checks.check_preconditions(spec.methods, preconditions)
+        if scope is None:
+            checks.check_preconditions(spec.methods, preconditions)
+        else:
+            checks.remembered_check_preconditions(scope, spec.source, preconditions)
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
 

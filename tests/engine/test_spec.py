@@ -4,7 +4,14 @@ from typing import Any
 import pytest
 
 from engine.prompting import KNOWN_RULES_CHARS, inference_suffix
-from engine.spec import action_header, observation_source, parse_spec, render_program, resolve_actions
+from engine.spec import (
+    action_header,
+    check_preconditions,
+    observation_source,
+    parse_spec,
+    render_program,
+    resolve_actions,
+)
 from schemas.errors import InvalidProgram, UnknownAction
 
 
@@ -63,3 +70,38 @@ def test_the_known_rules_shown_are_bounded(restaurants: dict[str, Any]) -> None:
     suffix = inference_suffix(spec, "SYSTEM.NOTIFY_FAILURE", known)
     assert KNOWN_RULES_CHARS // 2 < len(suffix) <= KNOWN_RULES_CHARS + len(action_header(spec, "SYSTEM.NOTIFY_FAILURE"))
     assert suffix.endswith("def NOTIFY_FAILURE(self):\n    assert")
+
+
+def test_rules_that_passed_are_not_parsed_again_for_their_scope(restaurants: dict[str, Any],
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    from programs import checks
+
+    parsed: list[str] = []
+    real = checks.expression_problem
+
+    def counted(text: str) -> str | None:
+        parsed.append(text)
+        return real(text)
+
+    monkeypatch.setattr(checks, "expression_problem", counted)
+    spec = str(restaurants["spec_program"])
+    rules = {"SYSTEM.INFORM": ["self.user.requested_slot[slot]", "not self.user.no_more"]}
+    for _ in range(3):
+        check_preconditions(parse_spec(spec), {**rules}, "tenant-a")
+    assert len(parsed) == 2  # the first check only
+    check_preconditions(parse_spec(spec), {**rules}, "tenant-b")
+    assert len(parsed) == 4  # another scope reads them itself
+    check_preconditions(parse_spec(spec), {"SYSTEM.INFORM": [*rules["SYSTEM.INFORM"], "True"]}, "tenant-a")
+    assert len(parsed) == 7  # other rules: read again
+
+
+def test_rules_that_failed_fail_again_with_the_same_problem(restaurants: dict[str, Any]) -> None:
+    spec = parse_spec(str(restaurants["spec_program"]))
+    for rules, kind in (({"SYSTEM.INFORM": ["self.user.requested_slot[slot"]}, InvalidProgram),
+                        ({"SYSTEM.DANCE": ["True"]}, UnknownAction)):
+        messages = set()
+        for _ in range(3):
+            with pytest.raises(kind) as err:
+                check_preconditions(spec, rules, "tenant-a")
+            messages.add((str(err.value), err.value.field))
+        assert len(messages) == 1, messages
