@@ -29,7 +29,8 @@ log = logging.getLogger(__name__)
 PACKAGE_DIR = Path(__file__).resolve().parent
 ROOT_DIR = PACKAGE_DIR.parent  # where `programs`, the stdlib-only program reader, lives too
 START_TIMEOUT_S = 30.0
-READ_CHUNK = 1 << 20
+READ_CHUNK = 1 << 16
+"""As `sandbox.child.framing.CHUNK`: a pipe holds 64 KiB, and a larger read only costs a larger allocation."""
 # `python -I -S`: no environment, no site-packages, no user paths. `sandbox` is registered as a bare
 # package so that `sandbox.child` loads without the worker-side modules of `sandbox/__init__.py`.
 BOOTSTRAP = (

@@ -18,7 +18,10 @@ import os
 import typing
 
 LENGTH_CHARS = 8
-CHUNK = 1 << 20
+CHUNK = 1 << 16
+"""Bytes asked of one read of a pipe. A pipe holds 64 KiB, so a larger read returns no more, yet `os.read`
+allocates all of it first: 1 MiB (mapped and unmapped at every read) cost ~30 µs a read against ~2 µs, on
+every frame of the guard's hot path."""
 
 
 def write_all(fd: int, data: bytes) -> None:
