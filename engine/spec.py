@@ -76,7 +76,7 @@ def check_preconditions(spec: Spec, preconditions: dict[str, list[str]], scope: 
         if scope is None:
             checks.check_preconditions(spec.methods, preconditions)
         else:
-            checks.remembered_check_preconditions(scope, spec.source, preconditions)
+            checks.remembered_check_preconditions(scope, spec.source, spec.methods, preconditions)
     except checks.ProgramProblem as exc:
         raise as_error(exc) from exc
 

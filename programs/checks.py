@@ -160,14 +160,15 @@ REMEMBERED_RULES_CHARS = 64_000
 kept is bounded by 64 such sets."""
 
 
-def remembered_check_preconditions(scope: str, spec: str, preconditions: Mapping[str, Sequence[str]]) -> None:
-    """`check_preconditions` against `spec`'s methods, its success remembered per scope, spec and rules: a guard
-    sends the same rules, or names the same stored set, with every check, and each rule is parsed again in the
-    gateway's screen and in the worker (some 8 µs a rule; a learned SGD set has 20-40). A failure is never
+def remembered_check_preconditions(scope: str, spec: str, methods: Mapping[str, Method],
+                                   preconditions: Mapping[str, Sequence[str]]) -> None:
+    """`check_preconditions` against `spec`'s `methods`, its success remembered per scope, spec and rules: a
+    guard sends the same rules, or names the same stored set, with every check, and each rule is parsed again in
+    the gateway's screen and in the worker (some 8 µs a rule; a learned SGD set has 20-40). A failure is never
     remembered: the same rules fail again with the same problem."""
     rules = tuple((name, tuple(expressions)) for name, expressions in preconditions.items())
     if len(spec) > REMEMBERED_SPEC_CHARS or sum(len(e) for _, es in rules for e in es) > REMEMBERED_RULES_CHARS:
-        check_preconditions(remembered_spec_methods(scope, spec)[1], preconditions)
+        check_preconditions(methods, preconditions)
         return
     _remembered_passing_rules(scope, spec, rules)
 
@@ -346,7 +347,7 @@ def check_check(spec: str, preconditions: Mapping[str, Sequence[str]], history: 
                 calls: Sequence[str] = (), scope: str = "") -> None:
     """`scope`: whose check this is; the spec's reading is remembered per scope (`remembered_spec_methods`)."""
     _, methods = remembered_spec_methods(scope, spec)
-    remembered_check_preconditions(scope, spec, preconditions)
+    remembered_check_preconditions(scope, spec, methods, preconditions)
     check_calls(methods, preconditions, history_receivers(scope, spec_classes(methods), history), calls)
 
 
