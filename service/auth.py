@@ -23,7 +23,6 @@ if TYPE_CHECKING:
     from service.quotas import Refusal
 
 OPEN_TENANT = "public"
-_bearer = HTTPBearer(auto_error=False, description="An API key made by `precond keys create`.")
 
 
 def _tenant_of(store: KeyStore, credentials: HTTPAuthorizationCredentials | None) -> str:
@@ -45,9 +44,7 @@ def refusal_error(services: Services, tag: str, refusal: Refusal) -> ServiceErro
                         headers={"Retry-After": str(refusal.retry_after_s)})
 
 
-async def authenticate(
-    request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
-) -> Caller:
+async def authenticate(request: Request, credentials: HTTPAuthorizationCredentials | None) -> Caller:
     """The caller's tenant: from its key when keys are configured, else the one open tenant. Every route that
     needs a key takes a token of its tenant's request rate here; a source address that failed to authenticate
     too often is refused before its key is looked at (the source is the TCP peer: behind a reverse proxy, let
@@ -69,7 +66,20 @@ async def authenticate(
     return caller
 
 
-CurrentCaller = Annotated[Caller, Depends(authenticate)]
+class ApiKeyBearer(HTTPBearer):
+    """The key's header as the API's security scheme (OpenAPI) and the caller it names, in one dependency: a
+    `Depends` of its own for the header cost every keyed request another level of FastAPI's dependency
+    solving."""
+
+    async def __call__(self, request: Request) -> Caller:  # type: ignore[override]  # as FastAPI's HTTPBasic
+        return await authenticate(request, await super().__call__(request))
+
+
+CurrentCaller = Annotated[
+    Caller,
+    Depends(ApiKeyBearer(auto_error=False, scheme_name="HTTPBearer",
+                         description="An API key made by `precond keys create`.")),
+]
 
 RATE_LIMITED: dict[str, Any] = {
     "model": ErrorResponse,

@@ -51,6 +51,11 @@ class GatewaySettings(QueueSettings):
         default=False,
         description="Refuse to start without a keys file holding at least one key (docker-compose sets it).",
     )
+    recent_results_bytes: int = Field(
+        default=16 * 1024 * 1024, ge=0,
+        description="Memory per gateway process for the cached results it read last (each up to 64 KiB, kept a "
+        "minute at most): a repeated request is answered without a round trip to the cache Redis. 0: none.",
+    )
     share_cache: bool = Field(
         default=False,
         description="Let tenants share cached results of identical requests (each tenant's own by default).",

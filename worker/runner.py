@@ -48,6 +48,7 @@ from jobs.keys import (
 )
 from jobs.redis_checkout import check_out_without_read
 from jobs.redis_packing import pack_with_hiredis
+from jobs.redis_sending import send_without_task
 from sandbox import SandboxUnavailable
 from worker import logs
 from worker.jobs import JobCounts, run_operation
@@ -280,6 +281,7 @@ def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
     logs.configure()
     pack_with_hiredis()
     check_out_without_read()
+    send_without_task()
     uvloop.run(WorkerProcess(settings, queues or list(QUEUES)).run())
 
 

@@ -4,12 +4,13 @@ Redis, and that the limits let a tenant through again once its bucket has a toke
 from __future__ import annotations
 
 import asyncio
+import time
 
 from arq.connections import ArqRedis
 from redis.asyncio import ConnectionPool
 
 from service.caller import Caller
-from service.quotas import MAX_BLOCKED_SOURCES, AuthLimit, Quotas, _remember
+from service.quotas import LEASE_S, MAX_BLOCKED_SOURCES, AuthLimit, Lease, Quotas, _remember
 from stack.local import RedisServer
 
 
@@ -31,6 +32,59 @@ def test_a_tenant_past_its_rate_is_refused_without_asking_redis_again(redis_serv
     answers, evals = asyncio.run(flood())
     assert answers[:3] == [True, True, True] and not any(answers[3:])
     assert evals <= 5, f"{evals} Lua calls for 50 requests: every refusal went to Redis"
+
+
+def test_busy_processes_take_tokens_in_leases_and_never_more_than_the_bucket_gives(
+    redis_server: RedisServer,
+) -> None:
+    """Two gateway processes of one tenant, each sending as fast as it can for half a second: together they are
+    let through no more than the burst and what the rate refilled, and each takes its tokens in leases (a few
+    Lua calls) rather than one round trip to Redis per request."""
+    rate, burst = 400.0, 100
+
+    async def flood() -> tuple[int, float, int]:
+        processes = [_quotas(redis_server, rate=rate, burst=burst) for _ in range(2)]
+        allowed, caller = 0, Caller("a", "tag-a")
+        started = time.monotonic()
+        while time.monotonic() - started < 0.5:
+            for quotas in processes:
+                allowed += await quotas.take_request(caller) is None
+        return allowed, time.monotonic() - started, _evals(redis_server)
+
+    allowed, elapsed, evals = asyncio.run(flood())
+    assert allowed <= burst + rate * (elapsed + 0.05), f"{allowed} let through in {elapsed:.2f} s"
+    assert allowed >= 0.5 * (burst + rate * elapsed), f"only {allowed} let through in {elapsed:.2f} s"
+    assert evals <= allowed / 4, f"{evals} Lua calls for {allowed} requests let through"
+
+
+def test_a_tenant_of_a_low_rate_takes_one_token_a_request(redis_server: RedisServer) -> None:
+    async def run() -> tuple[int, float]:
+        quotas = _quotas(redis_server, rate=20, burst=100)  # 20/s refills 5 tokens in a lease's time: no more
+        for _ in range(10):
+            assert await quotas.take_request(Caller("a", "tag-a")) is None
+        tokens = await quotas.redis.hget("precond:tenant:tag-a:rate", "tokens")
+        return _evals(redis_server), float(tokens or 0)
+
+    evals, tokens = asyncio.run(run())
+    assert evals < 10  # leases of 1, 2, 4 and then at most 5 tokens
+    assert tokens <= 100 - 10 + 1  # every token spent came from the bucket (plus what refilled meanwhile)
+
+
+def test_a_lease_grows_while_it_is_spent_in_time_and_shrinks_to_what_was_spent() -> None:
+    assert Lease(size=4, tokens=0, until=10.0).next_size(now=9.0, largest=64) == 8
+    assert Lease(size=4, tokens=0, until=10.0).next_size(now=9.0, largest=6) == 6
+    assert Lease(size=8, tokens=5, until=10.0).next_size(now=11.0, largest=64) == 3
+    assert Lease(size=8, tokens=8, until=10.0).next_size(now=11.0, largest=64) == 1
+    assert Lease(size=8, tokens=0, until=10.0).next_size(now=11.0, largest=64) == 8
+
+
+def test_the_memory_of_leases_is_bounded(redis_server: RedisServer) -> None:
+    quotas = _quotas(redis_server, rate=1000, burst=1000)
+    for i in range(MAX_BLOCKED_SOURCES + 500):
+        quotas._lease(f"t{i}", Lease(4, 3, until=100.0), now=50.0)
+    assert len(quotas._leases) == MAX_BLOCKED_SOURCES
+    quotas._lease("late", Lease(4, 3, until=100.0 + LEASE_S), now=200.0)  # the others ended: they make room
+    assert list(quotas._leases) == ["late"]
 
 
 def test_the_refusal_ends_when_a_token_is_back_and_other_tenants_are_not_touched(redis_server: RedisServer) -> None:
