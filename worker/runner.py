@@ -100,7 +100,8 @@ class WorkerProcess:
         self.secret = settings.secret_bytes()  # MissingSecret: refuse to start, results could not be signed
         self.settings = settings
         self.queues = queues
-        self.id = f"{socket.gethostname()}-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        self.host, self.pid = socket.gethostname(), os.getpid()  # read once: every take writes a heartbeat
+        self.id = f"{self.host}-{self.pid}-{uuid.uuid4().hex[:6]}"
         self.engine: Engine | None = None
         self.sandbox, self.sandbox_error = "unavailable", None
         try:
@@ -218,10 +219,10 @@ class WorkerProcess:
         gc.freeze()  # the model's modules and objects too (a full collection would walk them all again)
 
     def _heartbeat_body(self) -> Heartbeat:
-        return Heartbeat(
+        return Heartbeat.model_construct(  # this process's own values: nothing to validate
             id=self.id,
-            host=socket.gethostname(),
-            pid=os.getpid(),
+            host=self.host,
+            pid=self.pid,
             queues=self.queues,
             model_loaded=self.engine is not None and self.engine.model_loaded,
             model_error=self.model_error,
