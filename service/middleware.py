@@ -7,6 +7,7 @@ before it is buffered, which is the point of a 413.
 
 from __future__ import annotations
 
+import asyncio
 import re
 import time
 import uuid
@@ -28,7 +29,14 @@ _CLIENT_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 
 
 class RequestContext:
-    """Gives each request an id (the client's X-Request-Id when sane), echoes it, counts and times it."""
+    """Gives each request an id (the client's X-Request-Id when sane), echoes it, counts and times it, and lets
+    the event loop serve the others first.
+
+    A request answered from this process's memory (a result read recently, a token of the tenant's lease, a
+    refusal already known) never waits on anything, and uvicorn then served some connections far less often
+    than others: 32 connections of cache hits on one process, p90 147 ms and p99 234 ms against a p50 of 13 ms
+    (4 and 60 ms before those answers came from memory). One turn of the loop per request, before it is
+    handled, puts it behind the requests that came meanwhile (p99 back to ~50 ms in a bare ASGI app)."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
         self.app = app
@@ -42,6 +50,7 @@ class RequestContext:
         rid = sent if _CLIENT_ID.match(sent) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = rid
         started, status = time.perf_counter(), 500
+        await asyncio.sleep(0)
 
         async def send_with_id(message: Message) -> None:
             nonlocal status
