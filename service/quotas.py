@@ -181,6 +181,7 @@ class Quotas:
         self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
         self._empty: dict[str, float] = {}  # tenant tag -> until its rate bucket has a token again
         self._leases: dict[str, Lease] = {}  # tenant tag -> its tokens taken ahead (bounded as `_remember` is)
+        self._leasing: set[str] = set()  # tenant tags whose lease is being taken now
         self._largest_lease = max(1, min(MAX_LEASE, burst // 4, math.floor(rate_per_s * LEASE_S)))
 
     async def _take(self, key: str, rate: float, burst: int, want: int = 1) -> tuple[int, float]:
@@ -208,14 +209,29 @@ class Quotas:
         if until > now:
             wait = until - now
         else:
-            want = 1 if lease is None else lease.next_size(now, self._largest_lease)
-            granted, wait = await self._take(_rate_key(caller.tag), self.rate_per_s, self.burst, want)
+            granted, wait = await self._take_for(caller.tag, lease, now)
             if granted:
-                self._lease(caller.tag, Lease(granted, granted - 1, now + LEASE_S), now)
                 return None
             _remember(self._empty, caller.tag, now + wait, now)
         return Refusal("rate", f"rate limit: tenant {caller.name!r} may send {self.rate_per_s:g} requests/s "
                                f"(bursts of {self.burst})", max(1, math.ceil(wait)))
+
+    async def _take_for(self, tag: str, lease: Lease | None, now: float) -> tuple[int, float]:
+        """Tokens for a request that found no lease to spend. One take at a time per tenant leases (its grant
+        replaces the spent or ended lease); requests that come while it is on the way take one token each, so
+        that concurrent requests neither hoard the bucket nor overwrite each other's leases (whose tokens,
+        taken from the bucket, would then be lost)."""
+        if tag in self._leasing:
+            return await self._take(_rate_key(tag), self.rate_per_s, self.burst)
+        self._leasing.add(tag)
+        try:
+            want = 1 if lease is None else lease.next_size(now, self._largest_lease)
+            granted, wait = await self._take(_rate_key(tag), self.rate_per_s, self.burst, want)
+        finally:
+            self._leasing.discard(tag)
+        if granted:
+            self._lease(tag, Lease(granted, granted - 1, now + LEASE_S), now)
+        return granted, wait
 
     def auth_blocked(self, source: str) -> Refusal | None:
         """Whether this source used up its failed authentications (no Redis: checked before every key)."""

@@ -57,6 +57,31 @@ def test_busy_processes_take_tokens_in_leases_and_never_more_than_the_bucket_giv
     assert evals <= allowed / 4, f"{evals} Lua calls for {allowed} requests let through"
 
 
+def test_concurrent_requests_of_a_tenant_lose_no_token_they_took(redis_server: RedisServer) -> None:
+    """Sixteen requests at a time: every token taken from the bucket is spent or still in the live lease (a
+    lease overwritten by a concurrent one lost its tokens: the tenant was refused under its rate)."""
+
+    async def run() -> tuple[int, int, int]:
+        quotas = _quotas(redis_server, rate=400, burst=100)
+        taken, take = [0], quotas._take
+
+        async def counted(key: str, rate: float, burst: int, want: int = 1) -> tuple[int, float]:
+            granted, wait = await take(key, rate, burst, want)
+            taken[0] += granted
+            return granted, wait
+
+        quotas._take = counted  # type: ignore[method-assign]
+        allowed = 0
+        for _ in range(20):
+            answers = await asyncio.gather(*(quotas.take_request(Caller("a", "tag-a")) for _ in range(16)))
+            allowed += sum(answer is None for answer in answers)
+        lease = quotas._leases.get("tag-a")
+        return taken[0], allowed, lease.tokens if lease is not None else 0
+
+    taken, allowed, left = asyncio.run(run())
+    assert taken == allowed + left, f"{taken} tokens taken, {allowed} requests let through, {left} left"
+
+
 def test_a_tenant_of_a_low_rate_takes_one_token_a_request(redis_server: RedisServer) -> None:
     async def run() -> tuple[int, float]:
         quotas = _quotas(redis_server, rate=20, burst=100)  # 20/s refills 5 tokens in a lease's time: no more
