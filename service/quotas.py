@@ -128,10 +128,10 @@ class Lease:
     cache hit. A lease takes several at once; every token spent was taken from the shared bucket first, so
     across processes a tenant still never gets more than its rate and burst allow. A token left when the lease
     ends (`LEASE_S`) is lost: the tenant gets less, never more. A lease's size follows the tenant's demand in
-    this process: one token at first (a tenant sending a request now and then is counted exactly as before),
-    twice the last when that was spent within its time, what was spent of it when not, and never more than a
-    quarter of the burst or what the rate refills in `LEASE_S` (so that the other processes of a tenant near
-    its limit are not refused while this one holds its tokens)."""
+    this process: one token at first (a tenant whose requests come more than `LEASE_S` apart takes one token a
+    request, as before), twice the last when that was spent within its time, what was spent of it when not,
+    and never more than a quarter of the burst or what the rate refills in `LEASE_S` (so that the other
+    processes of a tenant near its limit are not refused while this one holds its tokens)."""
 
     size: int
     tokens: int
