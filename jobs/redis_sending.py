@@ -4,7 +4,7 @@ redis-py 5 writes every command under `asyncio.wait_for(write and drain, socket_
 3.11 `wait_for` runs its coroutine as a new task: a task made and scheduled, a turn of the event loop, a timer
 set and cancelled, for a write the kernel nearly always takes at once (a command is a few hundred bytes; a
 socket's send buffer holds megabytes). 20-50 µs of CPU per command on the 2-core machine, and a check sends
-some eight commands across the gateway and the worker.
+five or six commands across the gateway and the worker.
 
 The timeout is there for a write that cannot finish: a send buffer full because Redis stopped reading. Only
 then has `drain` anything to wait for, so a command is written first and is done when the transport holds

@@ -89,7 +89,7 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
             await connection.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 
     # The gateway's metrics are Prometheus' (`/metrics`); FastAPI's own OpenTelemetry, on by default, looked
-    # up the global providers at every request (~20 µs of a cache hit's ~1 ms) to find none configured.
+    # up the global providers at every request (2% of a cache hit's CPU under cProfile) to find none configured.
     app = FastAPI(
         title="Precondition reasoning service", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
         telemetry={"tracing": False, "metrics": False, "logs": False},
