@@ -17,17 +17,8 @@ RUN apt-get update && apt-get install -y --no-install-recommends libseccomp2 && 
 WORKDIR /app
 COPY pyproject.toml README.md* ./
 COPY scripts/install.sh scripts/install.sh
-COPY schemas schemas
-COPY service service
-COPY jobs jobs
-COPY engine engine
-COPY programs programs
-COPY worker worker
-COPY sandbox sandbox
-COPY cli cli
-COPY convert convert
+COPY precond precond
 COPY precond_client precond_client
-COPY evaluation evaluation
 COPY examples examples
 COPY docker docker
 RUN bash scripts/install.sh

@@ -32,13 +32,13 @@ from typing import Any
 
 import torch
 
-from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
-from engine.models.backend import choose_dtype
-from engine.models.prefixes import Prefix, PrefixStore
-from engine.prompting import inference_prefix, inference_suffix
-from engine.spec import parse_spec, resolve_actions
-from evaluation.report import cpu_model
-from evaluation.settings import data_path
+from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
+from precond.engine.models.backend import choose_dtype
+from precond.engine.models.prefixes import Prefix, PrefixStore
+from precond.engine.prompting import inference_prefix, inference_suffix
+from precond.engine.spec import parse_spec, resolve_actions
+from precond.evaluation.report import cpu_model
+from precond.evaluation.settings import data_path
 
 logger = logging.getLogger("model_bench")
 
@@ -163,7 +163,7 @@ def bench_backend(dtype: str, threads: int, repeat: int) -> dict[str, Any]:
 
 
 def embedded_gguf(directory: Path) -> Path:
-    from engine.models.store import EMBEDDED_NAME, EMBEDDED_SHA256, find_embedded_parts, join_parts
+    from precond.engine.models.store import EMBEDDED_NAME, EMBEDDED_SHA256, find_embedded_parts, join_parts
 
     target = directory / f"{EMBEDDED_NAME}.gguf"
     join_parts(find_embedded_parts(), target, EMBEDDED_SHA256)

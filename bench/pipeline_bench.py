@@ -26,12 +26,12 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from engine.engine import Engine
-from engine.models.stopping import StopRule, stop_index
-from engine.settings import ModelSettings, SandboxSettings
-from evaluation.report import cpu_model
-from evaluation.settings import data_path
-from schemas.api import InferRequest, ModelInfo, NextActionRequest
+from precond.engine.engine import Engine
+from precond.engine.models.stopping import StopRule, stop_index
+from precond.engine.settings import ModelSettings, SandboxSettings
+from precond.evaluation.report import cpu_model
+from precond.evaluation.settings import data_path
+from precond_client.schemas.api import InferRequest, ModelInfo, NextActionRequest
 
 logger = logging.getLogger("pipeline_bench")
 
@@ -97,7 +97,7 @@ def run(runtime: str, dtype: str, threads: int, name: str, turns: int) -> dict[s
             gguf = embedded_gguf(Path(scratch))
             loader: Callable[[], Any] = lambda: LlamaCppModel(gguf, threads)  # noqa: E731
         else:
-            from engine.models import load_code_model
+            from precond.engine.models import load_code_model
 
             loader = lambda: load_code_model(ModelSettings(dtype=dtype, threads=threads))  # noqa: E731
         with SandboxSettings().build() as sandbox:

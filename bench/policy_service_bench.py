@@ -29,9 +29,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.service_bench import auth, make_keys, stack  # noqa: E402
-from evaluation.domains import load_sgd  # noqa: E402
-from evaluation.report import cpu_model  # noqa: E402
-from evaluation.settings import DataSettings  # noqa: E402
+from precond.evaluation.domains import load_sgd  # noqa: E402
+from precond.evaluation.report import cpu_model  # noqa: E402
+from precond.evaluation.settings import DataSettings  # noqa: E402
 
 
 def worker_rss_mb() -> float:

@@ -14,11 +14,11 @@ import json
 import time
 from pathlib import Path
 
-from engine.engine import Engine
-from evaluation.domains import load_domains
-from evaluation.settings import DataSettings
-from sandbox import Sandbox
-from schemas.api import InferOptions, InferRequest, PriorSource
+from precond.engine.engine import Engine
+from precond.evaluation.domains import load_domains
+from precond.evaluation.settings import DataSettings
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import InferOptions, InferRequest, PriorSource
 
 
 def _seconds(engine: Engine, request: InferRequest) -> float:

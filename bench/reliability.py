@@ -11,8 +11,8 @@ append-only file), hostile (the hostile corpus over HTTP, production sandbox lim
 all operations), overload (48 clients on one worker, queue bound 8), shutdown (SIGTERM mid-job, drain longer
 and shorter than the job), attacks (one tenant runs each attack of issue 28 while another measures its uncached
 check-actions and enumerate-only inference latencies, /health, the gateway's resident size and worker
-deaths: stack/attacks.py). Each runs on its own redis-server + gateway + workers on free loopback ports,
-with the tiny random model of stack/tiny_model.py (model-free enumerate jobs do the real work).
+deaths: precond/stack/attacks.py). Each runs on its own redis-server + gateway + workers on free loopback ports,
+with the tiny random model of precond/stack/tiny_model.py (model-free enumerate jobs do the real work).
 """
 
 from __future__ import annotations
@@ -27,11 +27,11 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stack import attacks, scenarios  # noqa: E402
-from stack.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
-from stack.keyed import keyed_stack  # noqa: E402
-from stack.local import wait_until  # noqa: E402
-from stack.tiny_model import build_tiny_model  # noqa: E402
+from precond.stack import attacks, scenarios  # noqa: E402
+from precond.stack.harness import FAST_SANDBOX, scenario_stack  # noqa: E402
+from precond.stack.keyed import keyed_stack  # noqa: E402
+from precond.stack.local import wait_until  # noqa: E402
+from precond.stack.tiny_model import build_tiny_model  # noqa: E402
 
 FULL: dict[str, dict[str, Any]] = {
     "crash": {"jobs": 200, "kills": 6, "millions": 5},

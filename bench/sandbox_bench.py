@@ -20,8 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from evaluation.settings import data_path
-from sandbox import Limits, Sandbox
+from precond.evaluation.settings import data_path
+from precond.sandbox import Limits, Sandbox
 
 ATOMS = (
     "self.user.requested_slot[slot]", "not self.user.requested_slot[slot]",

@@ -1,6 +1,6 @@
 """Service latency and throughput on loopback: own redis-server, uvicorn gateway, one `precond worker`.
 
-    python bench/service_bench.py                     # tiny random model (stack/tiny_model.py)
+    python bench/service_bench.py                     # tiny random model (precond/stack/tiny_model.py)
     python bench/service_bench.py --model embedded    # the embedded code model (slow on CPU)
     python bench/service_bench.py --json bench/service.json
 
@@ -47,13 +47,13 @@ ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 sys.path.insert(0, str(ROOT))
 
-from stack.local import free_port, wait_until  # noqa: E402
+from precond.stack.local import free_port, wait_until  # noqa: E402
 
 TENANTS = ("quiet", "flood")
 
 
 def make_keys(path: Path) -> dict[str, str]:
-    from service.api_keys import KeyRecord, digest, new_key, write_records
+    from precond.gateway.api_keys import KeyRecord, digest, new_key, write_records
 
     keys, records = {}, []
     for tenant in TENANTS:
@@ -87,7 +87,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
         "MODEL_THREADS": "1",
     }
     if args.model == "tiny":
-        from stack.tiny_model import build_tiny_model
+        from precond.stack.tiny_model import build_tiny_model
 
         env["MODEL_PATH"] = str(build_tiny_model(tmp / "tiny-model"))
     else:
@@ -100,7 +100,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
          "--dir", str(tmp)],
         [sys.executable, "-m", "uvicorn", *root_gateway_args(args.root, args.gateway_processes, env),
          "--port", str(http_port), "--log-level", "warning", "--no-access-log"],
-        [sys.executable, "-c", "from cli.main import app; app()", "worker"],
+        [sys.executable, "-c", f"from {layout(args.root, 'cli')}.main import app; app()", "worker"],
     ]
     processes: list[subprocess.Popen[bytes]] = []
     try:
@@ -120,9 +120,17 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
                 process.kill()
 
 
+def layout(root: Path, package: str) -> str:
+    """A package's module path in `root`: under `precond` now; at the top level in checkouts older than that."""
+    if (root / "precond").is_dir():
+        return f"precond.{'gateway' if package == 'service' else package}"
+    return package
+
+
 def root_gateway_args(root: Path, processes: int, env: dict[str, str]) -> list[str]:
-    """The uvicorn options of `root`'s own `service.server` (a checkout's gateway may start differently)."""
-    code = "import json, sys; from service.server import gateway_args as a; print(json.dumps(a(int(sys.argv[1]))))"
+    """The uvicorn options of `root`'s own gateway (a checkout's gateway may start differently)."""
+    code = (f"import json, sys; from {layout(root, 'service')}.server import gateway_args as a; "
+            "print(json.dumps(a(int(sys.argv[1]))))")
     out = subprocess.run([sys.executable, "-c", code, str(processes)], env=env, cwd=root, capture_output=True,
                          text=True, check=True).stdout
     return list(json.loads(out))

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.service_bench import latencies, make_keys, stack  # noqa: E402
-from convert.openai import convert  # noqa: E402
+from precond.convert.openai import convert  # noqa: E402
 
 READ = "reservation_id in self.results['get_reservation_details']"
 WRITES = ("cancel_reservation", "update_reservation_flights", "update_reservation_baggages",

@@ -16,14 +16,14 @@ import tempfile
 import time
 from pathlib import Path
 
-from engine.models.backend import load_weights
-from engine.settings import ModelSettings
-from engine.spec import parse_spec
-from engine.training import train_policy
-from evaluation.domains import load_sgd
-from evaluation.report import cpu_model
-from evaluation.settings import DataSettings
-from schemas.training import TrainPolicyOptions, TrainPolicyRequest
+from precond.engine.models.backend import load_weights
+from precond.engine.settings import ModelSettings
+from precond.engine.spec import parse_spec
+from precond.engine.training import train_policy
+from precond.evaluation.domains import load_sgd
+from precond.evaluation.report import cpu_model
+from precond.evaluation.settings import DataSettings
+from precond_client.schemas.training import TrainPolicyOptions, TrainPolicyRequest
 
 
 def main() -> None:

@@ -1,5 +1,5 @@
 """How fast the review page shows a set: a real stack (redis-server, gateway, one worker with the tiny model) and
-Debian's Chromium (stack/browser.py).
+Debian's Chromium (precond/stack/browser.py).
 
     python bench/ui_bench.py                          # examples/infer-enumerate.json: SGD Restaurants_1, 12 actions
     python bench/ui_bench.py --request buses/request.json --runs 20
@@ -28,9 +28,9 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from stack import browser  # noqa: E402
-from stack.local import Stack, make_stack, serving  # noqa: E402
-from stack.tiny_model import build_tiny_model  # noqa: E402
+from precond.stack import browser  # noqa: E402
+from precond.stack.local import Stack, make_stack, serving  # noqa: E402
+from precond.stack.tiny_model import build_tiny_model  # noqa: E402
 
 VIEWPORTS = {"1280x800": (1280, 800), "390x844": (390, 844)}
 SCREENSHOT_RULE = ("SYSTEM.INFORM", "self.user.selected")

@@ -66,6 +66,6 @@ if __name__ == "__main__":
         main(Path(sys.argv[1]))
     else:
         sys.path.insert(0, str(HERE.parent))
-        from evaluation.settings import data_path
+        from precond.evaluation.settings import data_path
 
         main(data_path("sgd", "Restaurants_1.json"))

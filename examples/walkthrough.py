@@ -5,7 +5,7 @@ system would call it (events, never code strings, for what the user said).
     python examples/walkthrough.py --server http://127.0.0.1:8000 --api-key pk_...   # a running service
     python examples/walkthrough.py                                                    # a throwaway local stack
 
-Without --server it starts a local stack of its own (stack/local.py: Redis, gateway, one worker; needs
+Without --server it starts a local stack of its own (precond/stack/local.py: Redis, gateway, one worker; needs
 redis-server and the full install). Every step checks what it got and exits non-zero when the answer is
 not what the guide says (tests/client/test_walkthrough.py runs it, so the guide cannot rot).
 """
@@ -222,8 +222,8 @@ def main() -> None:
         with Client(args.server, api_key=args.api_key) as client:
             walkthrough(client)
         return
-    from stack.local import make_stack, serving
-    from stack.tiny_model import build_tiny_model
+    from precond.stack.local import make_stack, serving
+    from precond.stack.tiny_model import build_tiny_model
 
     with tempfile.TemporaryDirectory() as tmp:
         model = build_tiny_model(Path(tmp) / "model")  # the steps here are model-free: a tiny model suffices

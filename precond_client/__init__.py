@@ -1,52 +1,34 @@
 """Python client of the precondition service: `Client` (blocking) and `AsyncClient` (asyncio), both over httpx.
 
-Light on purpose: it needs httpx and pydantic and this project's `schemas` (the request and response models,
-pydantic only), never torch, transformers or fastapi. Install it alone: README.md, "Python client".
+Light on purpose: it needs httpx and pydantic and its own `precond_client.schemas` (the request and response
+models, pydantic only), never torch, transformers or fastapi. Install it alone: README.md, "Python client".
+
+The names below are loaded when first used (PEP 562), so that the service, which shares
+`precond_client.schemas` as its wire contract, imports those models without the client's transport.
 """
 
-from precond_client import rules
-from precond_client._core import Polling, Progress, Retry, RetryHook
-from precond_client.aio import AsyncClient
-from precond_client.errors import (
-    Cancelled,
-    Conflict,
-    InvalidInput,
-    JobTimeout,
-    NotFound,
-    PrecondError,
-    RateLimited,
-    Unauthorized,
-    Unavailable,
-)
-from precond_client.history import History, event
-from precond_client.sync import Client
-from schemas.api import (
-    AllowedCall,
-    CallVerdict,
-    CheckRequest,
-    CheckResponse,
-    HistoryEvent,
-    InferOptions,
-    InferRequest,
-    InferResponse,
-    JobProgress,
-    JobStatus,
-    NextActionOptions,
-    NextActionRequest,
-    NextActionResponse,
-    PreconditionSet,
-    PreconditionSetCreate,
-    PreconditionSetList,
-    PreconditionSetSummary,
-    PredictedAction,
-    PriorSource,
-    RuleChange,
-    RuleEdit,
-    SetDiff,
-    ToolCall,
-)
-from schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyOptions, TrainPolicyRequest
+from __future__ import annotations
 
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_SOURCES: dict[str, tuple[str, ...]] = {
+    "precond_client._core": ("Polling", "Progress", "Retry", "RetryHook"),
+    "precond_client.aio": ("AsyncClient",),
+    "precond_client.sync": ("Client",),
+    "precond_client.errors": ("Cancelled", "Conflict", "InvalidInput", "JobTimeout", "NotFound", "PrecondError",
+                              "RateLimited", "Unauthorized", "Unavailable"),
+    "precond_client.history": ("History", "event"),
+    "precond_client.schemas.api": (
+        "AllowedCall", "CallVerdict", "CheckRequest", "CheckResponse", "HistoryEvent", "InferOptions",
+        "InferRequest", "InferResponse", "JobProgress", "JobStatus", "NextActionOptions", "NextActionRequest",
+        "NextActionResponse", "PreconditionSet", "PreconditionSetCreate", "PreconditionSetList",
+        "PreconditionSetSummary", "PredictedAction", "PriorSource", "RuleChange", "RuleEdit", "SetDiff", "ToolCall",
+    ),
+    "precond_client.schemas.training": ("PolicyAdapter", "PolicyAdapterList", "TrainPolicyOptions",
+                                        "TrainPolicyRequest"),
+}
+_WHERE = {name: module for module, names in _SOURCES.items() for name in names}
 __all__ = [
     "AllowedCall",
     "AsyncClient",
@@ -94,3 +76,66 @@ __all__ = [
     "event",
     "rules",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    if name == "rules":
+        return importlib.import_module("precond_client.rules")
+    if name not in _WHERE:
+        raise AttributeError(f"module 'precond_client' has no attribute {name!r}")
+    value = getattr(importlib.import_module(_WHERE[name]), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return __all__
+
+
+if TYPE_CHECKING:
+    from precond_client import rules
+    from precond_client._core import Polling, Progress, Retry, RetryHook
+    from precond_client.aio import AsyncClient
+    from precond_client.errors import (
+        Cancelled,
+        Conflict,
+        InvalidInput,
+        JobTimeout,
+        NotFound,
+        PrecondError,
+        RateLimited,
+        Unauthorized,
+        Unavailable,
+    )
+    from precond_client.history import History, event
+    from precond_client.schemas.api import (
+        AllowedCall,
+        CallVerdict,
+        CheckRequest,
+        CheckResponse,
+        HistoryEvent,
+        InferOptions,
+        InferRequest,
+        InferResponse,
+        JobProgress,
+        JobStatus,
+        NextActionOptions,
+        NextActionRequest,
+        NextActionResponse,
+        PreconditionSet,
+        PreconditionSetCreate,
+        PreconditionSetList,
+        PreconditionSetSummary,
+        PredictedAction,
+        PriorSource,
+        RuleChange,
+        RuleEdit,
+        SetDiff,
+        ToolCall,
+    )
+    from precond_client.schemas.training import (
+        PolicyAdapter,
+        PolicyAdapterList,
+        TrainPolicyOptions,
+        TrainPolicyRequest,
+    )

@@ -23,7 +23,7 @@ from precond_client.errors import (
     RateLimited,
     Unavailable,
 )
-from schemas.api import (
+from precond_client.schemas.api import (
     ADAPTER_REFERENCE,
     SET_REFERENCE,
     CheckRequest,
@@ -45,7 +45,7 @@ from schemas.api import (
     RuleEdit,
     ToolCall,
 )
-from schemas.training import PolicyAdapter
+from precond_client.schemas.training import PolicyAdapter
 
 Progress = Callable[[JobStatus], object]
 """Called with the job's status (its `progress`: phase, done, total) on the 202 and on every poll."""

@@ -12,7 +12,7 @@ from pydantic import BaseModel
 
 from precond_client import _core
 from precond_client.errors import JobTimeout, PrecondError
-from schemas.api import (
+from precond_client.schemas.api import (
     CheckRequest,
     CheckResponse,
     InferOptions,
@@ -27,7 +27,7 @@ from schemas.api import (
     PreconditionSetList,
     RuleEdit,
 )
-from schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
+from precond_client.schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
 
 RequestLike = BaseModel | Mapping[str, Any]
 

@@ -6,8 +6,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from stack.local import RedisServer
-from stack.tiny_model import build_tiny_model
+from precond.stack.local import RedisServer
+from precond.stack.tiny_model import build_tiny_model
 
 # Two threads on two busy cores run torch ~10x slower than one.
 torch.set_num_threads(1)

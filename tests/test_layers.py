@@ -1,8 +1,9 @@
 """Data flows one way, gateway → queue → worker → engine → sandbox: each package's imports, read from its AST.
 
-The gateway (`service/`) and the queue worker (`worker/`) speak the job protocol (`jobs/`) and never import
-each other; the engine knows nothing of queues or HTTP; the sandbox and the spec reader (`programs/`) stand
-alone, and `programs/` (imported by the sandbox's stdlib-only child) uses the standard library only.
+The gateway (`precond.gateway`) and the queue worker (`precond.worker`) speak the job protocol (`precond.jobs`)
+and never import each other; the engine knows nothing of queues or HTTP; the sandbox and the spec reader
+(`precond.programs`) stand alone, and `precond.programs` (imported by the sandbox's stdlib-only child) uses the
+standard library only. Layers are named by their module path below the distribution's packages.
 """
 
 from __future__ import annotations
@@ -15,26 +16,44 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PROJECT = ("schemas", "jobs", "engine", "programs", "sandbox", "service", "worker", "cli", "evaluation", "stack",
-           "precond_client", "convert")
+LAYERS = {f"precond.{name}" for name in ("jobs", "engine", "programs", "sandbox", "gateway", "worker", "cli",
+                                        "evaluation", "stack", "convert")}
+SCHEMAS = "precond_client.schemas"
+CLIENT = "precond_client"
+PROJECT = (*sorted(LAYERS), SCHEMAS, CLIENT)
+
+
+def p(*names: str) -> set[str]:
+    return {f"precond.{name}" for name in names}
+
 
 FORBIDDEN: dict[str, set[str]] = {
-    "service": {"worker", "engine", "cli", "evaluation", "stack"},
-    "worker": {"service", "cli", "evaluation", "stack"},
-    "engine": {"worker", "jobs", "service", "cli", "evaluation", "stack"},
-    "jobs": {"service", "worker", "cli", "evaluation", "stack"},
-    "sandbox": set(PROJECT) - {"sandbox", "programs"},
-    "programs": set(PROJECT) - {"programs"},
-    "schemas": set(PROJECT) - {"schemas"},
-    "precond_client": set(PROJECT) - {"precond_client", "schemas"},  # light: installable without the service
-    "convert": set(PROJECT) - {"convert", "programs", "schemas"},
+    "precond.gateway": p("worker", "engine", "cli", "evaluation", "stack"),
+    "precond.worker": p("gateway", "cli", "evaluation", "stack"),
+    "precond.engine": p("worker", "jobs", "gateway", "cli", "evaluation", "stack"),
+    "precond.jobs": p("gateway", "worker", "cli", "evaluation", "stack"),
+    "precond.sandbox": set(PROJECT) - p("sandbox", "programs"),
+    "precond.programs": set(PROJECT) - p("programs"),
+    SCHEMAS: set(PROJECT) - {SCHEMAS},
+    CLIENT: LAYERS,  # light: installable without the service (its own schemas included)
+    "precond.convert": set(PROJECT) - {*p("convert", "programs"), SCHEMAS},
 }
+
+
+def layer_of(module: str) -> str | None:
+    """The project layer a module belongs to (the longest layer name it starts with), or None outside it."""
+    found = [layer for layer in PROJECT if module == layer or module.startswith(layer + ".")]
+    return max(found, key=len) if found else None
+
+
+def directory(package: str) -> Path:
+    return ROOT.joinpath(*package.split("."))
 
 
 def imports(package: str) -> list[tuple[str, str]]:
     """(file, absolute module name) of every import in the package; relative imports stay in the package."""
     found = []
-    for path in sorted((ROOT / package).rglob("*.py")):
+    for path in sorted(directory(package).rglob("*.py")):
         tree = ast.parse(path.read_text(encoding="utf-8"))
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
@@ -49,56 +68,65 @@ def imports(package: str) -> list[tuple[str, str]]:
 def test_package_imports_only_what_its_layer_allows(package: str) -> None:
     wrong = [
         f"{file}: {module}" for file, module in imports(package)
-        if module.split(".")[0] in FORBIDDEN[package]
+        if layer_of(module) in FORBIDDEN[package]
     ]
-    assert not wrong, f"{package}/ must not import these (see README, How it fits together):\n" + "\n".join(wrong)
+    assert not wrong, f"{package} must not import these (see README, How it fits together):\n" + "\n".join(wrong)
 
 
 def test_programs_is_stdlib_only() -> None:
     outside = [
-        f"{file}: {module}" for file, module in imports("programs")
-        if module.split(".")[0] not in {*sys.stdlib_module_names, "programs", "__future__"}
+        f"{file}: {module}" for file, module in imports("precond.programs")
+        if module.split(".")[0] not in {*sys.stdlib_module_names, "__future__"}
+        and layer_of(module) != "precond.programs"
     ]
     assert not outside, outside
 
 
 def test_the_checker_sees_imports() -> None:
     # a guard against a walker that finds nothing and so passes everything
-    assert ("worker/runner.py", "jobs.heartbeats") in imports("worker")
-    assert any(module.startswith("engine.") for _, module in imports("worker"))
+    assert ("precond/worker/runner.py", "precond.jobs.heartbeats") in imports("precond.worker")
+    assert any(module.startswith("precond.engine.") for _, module in imports("precond.worker"))
+    assert layer_of("precond_client.schemas.api") == SCHEMAS and layer_of("precond_client.aio") == CLIENT
 
 
-@pytest.mark.parametrize("directory", ["stack", "bench"])
-def test_test_support_and_benchmarks_never_import_tests(directory: str) -> None:
-    wrong = [f"{file}: {module}" for file, module in imports(directory) if module.split(".")[0] == "tests"]
-    assert not wrong, f"{directory}/ must not import tests/ (shared helpers belong in stack/):\n" + "\n".join(wrong)
+@pytest.mark.parametrize("package", ["precond.stack", "bench"])
+def test_test_support_and_benchmarks_never_import_tests(package: str) -> None:
+    wrong = [f"{file}: {module}" for file, module in imports(package) if module.split(".")[0] == "tests"]
+    assert not wrong, f"{package} must not import tests/ (shared helpers belong in precond.stack):\n" + "\n".join(wrong)
 
 
 def test_the_sandbox_child_is_stdlib_only_and_apart_from_the_worker_side() -> None:
-    """It runs under `python -I -S` with a bare `sandbox` package: no site-packages, no `sandbox/__init__`."""
+    """It runs under `python -I -S` with bare `precond` and `precond.sandbox` packages: no site-packages, no
+    `precond/sandbox/__init__.py`."""
     outside = [
-        f"{file}: {module}" for file, module in imports("sandbox/child")
-        if module.split(".")[0] not in {*sys.stdlib_module_names, "programs", "__future__", "sandbox/child"}
+        f"{file}: {module}" for file, module in imports("precond.sandbox.child")
+        if module.split(".")[0] not in {*sys.stdlib_module_names, "__future__"}
+        and layer_of(module) != "precond.programs" and module != "precond.sandbox.child"
+        and not module.startswith("precond.sandbox.child.")
     ]
     assert not outside, outside
 
 
 def loaded_by(statement: str) -> set[str]:
-    """Top-level packages a fresh interpreter has loaded after `statement` (what an import drags in, not only
-    what the files name)."""
-    code = f"import sys\n{statement}\nprint(' '.join(sorted({{m.split('.')[0] for m in sys.modules}})))"
+    """Modules, top-level packages and project layers a fresh interpreter has loaded after `statement` (what an
+    import drags in, not only what the files name)."""
+    code = f"import sys\n{statement}\nprint(' '.join(sorted(sys.modules)))"
     result = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120,
                             check=True)
-    return set(result.stdout.split())
+    modules = result.stdout.split()
+    return {*modules, *(m.split(".")[0] for m in modules), *(layer for m in modules if (layer := layer_of(m)))}
 
 
 @pytest.mark.parametrize(("statement", "never"), [
-    ("from service.app import create_app; create_app", {"sandbox", "engine", "worker", "torch", "transformers"}),
-    ("import jobs.keys, jobs.records, jobs.heartbeats, jobs.cache", {"sandbox", "engine", "service", "worker",
-                                                                     "torch"}),
-    ("import worker.runner", {"service", "cli", "torch", "transformers"}),
+    ("from precond.gateway.app import create_app; create_app",
+     {*p("sandbox", "engine", "worker"), "torch", "transformers"}),
+    ("import precond.jobs.keys, precond.jobs.records, precond.jobs.heartbeats, precond.jobs.cache",
+     {*p("sandbox", "engine", "gateway", "worker"), "torch"}),
+    ("import precond.worker.runner", {*p("gateway", "cli"), "torch", "transformers"}),
+    ("import precond_client.schemas.api", {*LAYERS, "precond_client.aio", "precond_client.sync", "httpx"}),
 ])
 def test_importing_a_layer_loads_nothing_below_or_above_it(statement: str, never: set[str]) -> None:
-    """The gateway computes job ids and checks programs without the engine or the sandbox, and the worker loads
-    the model code only when it builds a model, never at import."""
+    """The gateway computes job ids and checks programs without the engine or the sandbox, the worker loads
+    the model code only when it builds a model, never at import, and the service reads the wire contract
+    (`precond_client.schemas`) without the client's transport."""
     assert not loaded_by(statement) & never

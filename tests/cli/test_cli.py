@@ -15,7 +15,7 @@ EXAMPLES = ROOT / "examples"
 
 def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
-        [sys.executable, "-m", "cli", *args], input=stdin, capture_output=True, text=True, timeout=300, cwd=ROOT
+        [sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True, timeout=300, cwd=ROOT
     )
 
 
@@ -121,7 +121,7 @@ def test_missing_file_is_a_clear_error() -> None:
 def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> None:
     missing = tmp_path / "no-data"
     result = subprocess.run(
-        [sys.executable, "-m", "cli", "eval", "preconditions", "--cache", str(tmp_path / "cache")],
+        [sys.executable, "-m", "precond.cli", "eval", "preconditions", "--cache", str(tmp_path / "cache")],
         capture_output=True, text=True, timeout=300, cwd=ROOT, env={**os.environ, "PRECOND_DATA_DIR": str(missing)},
     )
     assert result.returncode == 2, result.stderr
@@ -130,12 +130,12 @@ def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> Non
 
 
 def test_serve_prints_one_line_when_ready(tmp_path: Path, tiny_model_dir: Path) -> None:
-    from stack.local import free_port, make_stack
+    from precond.stack.local import free_port, make_stack
 
     stack = make_stack(tmp_path, tiny_model_dir)
     port = free_port()
-    process = subprocess.Popen([sys.executable, "-m", "cli", "serve", "--port", str(port)], env=stack.env, cwd=ROOT,
-                               stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    process = subprocess.Popen([sys.executable, "-m", "precond.cli", "serve", "--port", str(port)], env=stack.env,
+                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     guard = threading.Timer(240, process.terminate)  # a supervisor that never says so fails, not hangs
     guard.start()
     try:

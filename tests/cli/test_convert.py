@@ -15,9 +15,9 @@ from typing import Any
 
 import pytest
 
-from convert import events as events_converter
-from convert import sgd as sgd_converter
-from schemas.api import InferRequest
+from precond.convert import events as events_converter
+from precond.convert import sgd as sgd_converter
+from precond_client.schemas.api import InferRequest
 
 ROOT = Path(__file__).resolve().parents[2]
 RAW = ROOT / "tests" / "fixtures" / "sgd_raw"
@@ -25,7 +25,7 @@ DATA = ROOT / "tests" / "fixtures" / "data" / "sgd"
 
 
 def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cli", *args], input=stdin, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True,
                           timeout=300, cwd=ROOT, check=False)
 
 

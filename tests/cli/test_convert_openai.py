@@ -16,16 +16,16 @@ from typing import Any
 
 import pytest
 
-from convert import openai as openai_converter
-from convert.shape import ConvertError
-from schemas.api import InferRequest
+from precond.convert import openai as openai_converter
+from precond.convert.shape import ConvertError
+from precond_client.schemas.api import InferRequest
 
 ROOT = Path(__file__).resolve().parents[2]
 TAU = ROOT / "tests" / "fixtures" / "tau_airline"
 
 
 def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "cli", *args], input=stdin, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True,
                           timeout=300, cwd=ROOT, check=False)
 
 

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import redis
 
-from cli.supervisor import Supervisor
-from stack.local import RedisServer, free_port
-from worker.settings import WorkerSettings
+from precond.cli.supervisor import Supervisor
+from precond.stack.local import RedisServer, free_port
+from precond.worker.settings import WorkerSettings
 
 
 def _supervisor(tmp_path: Path, ports: tuple[int, int]) -> Supervisor:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from stack.keyed import KeyedStack, keyed_stack
+from precond.stack.keyed import KeyedStack, keyed_stack
 
 TENANTS = ("acme", "throttled", "cli", "walkthrough", "light")
 

@@ -8,15 +8,15 @@ import os
 import subprocess
 import sys
 
-from stack.keyed import KeyedStack
-from stack.local import ROOT, check_body, infer_body
+from precond.stack.keyed import KeyedStack
+from precond.stack.local import ROOT, check_body, infer_body
 
 
 def precond(*args: str, stdin: str, api_key: str | None = None) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if k not in ("PRECOND_API_KEY", "PRECOND_SERVER")}
     if api_key is not None:
         env["PRECOND_API_KEY"] = api_key
-    return subprocess.run([sys.executable, "-m", "cli", *args], input=stdin, capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True,
                           timeout=300, cwd=ROOT, env=env, check=False)
 
 
@@ -50,7 +50,7 @@ def test_server_errors_exit_2_naming_the_field_or_the_key(keyed: KeyedStack) -> 
 
 
 def test_an_unreachable_server_exits_4() -> None:
-    from stack.local import free_port
+    from precond.stack.local import free_port
 
     done = precond("check", "-", "--server", f"http://127.0.0.1:{free_port()}", stdin=json.dumps(check_body()),
                    api_key="pk_x")

@@ -11,7 +11,9 @@ import time
 
 import pytest
 
-from jobs.keys import tenant_tag
+from precond.jobs.keys import tenant_tag
+from precond.stack.keyed import KeyedStack
+from precond.stack.local import ROOT, check_body, heavy_infer_body, infer_body, slow_model_body
 from precond_client import (
     AsyncClient,
     Cancelled,
@@ -29,8 +31,6 @@ from precond_client import (
     Unauthorized,
     Unavailable,
 )
-from stack.keyed import KeyedStack
-from stack.local import ROOT, check_body, heavy_infer_body, infer_body, slow_model_body
 
 SECRET = "stack-secret-for-tests"
 

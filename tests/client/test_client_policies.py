@@ -8,6 +8,8 @@ import asyncio
 
 import pytest
 
+from precond.stack.keyed import KeyedStack
+from precond.stack.local import DEMOS, SPEC, example
 from precond_client import (
     AsyncClient,
     Client,
@@ -18,8 +20,6 @@ from precond_client import (
     TrainPolicyOptions,
     TrainPolicyRequest,
 )
-from stack.keyed import KeyedStack
-from stack.local import DEMOS, SPEC, example
 
 REQUEST = TrainPolicyRequest(spec=SPEC, demonstrations=DEMOS[:2], options=TrainPolicyOptions(steps=2, max_tokens=1024))
 

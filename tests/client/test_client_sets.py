@@ -8,6 +8,8 @@ import asyncio
 
 import pytest
 
+from precond.stack.keyed import KeyedStack
+from precond.stack.local import DEMOS, SPEC
 from precond_client import (
     AsyncClient,
     Client,
@@ -22,8 +24,6 @@ from precond_client import (
     event,
     rules,
 )
-from stack.keyed import KeyedStack
-from stack.local import DEMOS, SPEC
 
 ENUMERATE = InferOptions(generators=["enumerate"])
 HISTORY = History().user("INFORM_INTENT", "FindRestaurants").system("REQUEST", "city").user("INFORM", "city")

@@ -1,4 +1,5 @@
-"""The light client distribution (clients/python): its wheel holds `precond_client` and `schemas` only and
+"""The light client distribution (clients/python): its wheel holds `precond_client` (its schemas
+included) only and
 depends on httpx and pydantic only; installed alone in a fresh virtual environment (no system site packages),
 it imports without torch, fastapi or redis and works against a real stack."""
 
@@ -16,18 +17,17 @@ from pathlib import Path
 
 import pytest
 
-from stack.keyed import KeyedStack
-from stack.local import DEMOS, ROOT, SPEC
+from precond.stack.keyed import KeyedStack
+from precond.stack.local import DEMOS, ROOT, SPEC
 
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Built from a copy of the three directories it needs (the build writes egg-info beside its sources)."""
+    """Built from a copy of the two directories it needs (the build writes egg-info beside its sources)."""
     tree = tmp_path_factory.mktemp("light-src")
     shutil.copytree(ROOT / "clients" / "python", tree / "clients" / "python",
                     ignore=shutil.ignore_patterns("build", "*.egg-info"))
-    for package in ("precond_client", "schemas"):
-        shutil.copytree(ROOT / package, tree / package, ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "precond_client", tree / "precond_client", ignore=shutil.ignore_patterns("__pycache__"))
     out = tmp_path_factory.mktemp("light-wheel")
     done = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
                            "-w", str(out), str(tree / "clients" / "python")],
@@ -43,9 +43,9 @@ def test_the_wheel_holds_the_client_and_its_schemas_and_needs_httpx_and_pydantic
         [metadata] = [n for n in names if n.endswith(".dist-info/METADATA")]
         headers = Parser().parsestr(archive.read(metadata).decode())
     packages = {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")}
-    assert packages == {"precond_client", "schemas"}
+    assert packages == {"precond_client"}
     expected = {f"precond_client/{p.name}" for p in (ROOT / "precond_client").glob("*.py")}
-    expected |= {f"schemas/{p.name}" for p in (ROOT / "schemas").glob("*.py")}
+    expected |= {f"precond_client/schemas/{p.name}" for p in (ROOT / "precond_client" / "schemas").glob("*.py")}
     assert {n for n in names if n.endswith(".py")} == expected
     assert headers["Name"] == "precond-client"
     requires = sorted(headers.get_all("Requires-Dist") or [])
@@ -63,7 +63,7 @@ with Client(args["url"], api_key=args["key"]) as client:
     pinned = client.edit_set(made.id, [rules.require("SYSTEM.GOODBYE", "self.user.no_more")])
     history = History().user("INFORM_INTENT", "FindRestaurants").user("INFORM", "city'); import os; ('")
     verdict = client.check_with_set(pinned.reference, history, ["system.GOODBYE()"]).results[0]
-heavy = sorted(m for m in ("torch", "transformers", "fastapi", "redis", "arq", "engine", "service")
+heavy = sorted(m for m in ("torch", "transformers", "fastapi", "redis", "arq", "precond")
                if m in sys.modules)
 print(json.dumps({"version": pinned.version, "allowed": verdict.allowed, "violations": verdict.violations,
                   "heavy": heavy, "file": precond_client.__file__}))

@@ -7,8 +7,8 @@ import os
 import subprocess
 import sys
 
-from stack.keyed import KeyedStack
-from stack.local import ROOT
+from precond.stack.keyed import KeyedStack
+from precond.stack.local import ROOT
 
 
 def test_the_walkthrough_runs_end_to_end(keyed: KeyedStack) -> None:

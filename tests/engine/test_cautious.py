@@ -8,10 +8,10 @@ from typing import Any
 
 import pytest
 
-from engine.cautious import polarity
-from engine.engine import UNSEEN_RULE, Engine
-from sandbox import Sandbox
-from schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
+from precond.engine.cautious import polarity
+from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
 
 CARD_SPEC = """from collections import defaultdict
 class USER:

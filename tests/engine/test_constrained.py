@@ -1,12 +1,12 @@
-"""What the constrained mode enumerates (engine/constrained.py): static, no sandbox, no model."""
+"""What the constrained mode enumerates (precond/engine/constrained.py): static, no sandbox, no model."""
 
 from __future__ import annotations
 
 import ast
 import math
 
-from engine import constrained
-from engine.spec import parse_spec
+from precond.engine import constrained
+from precond.engine.spec import parse_spec
 
 SPEC = """class Env:
   def __init__(self):

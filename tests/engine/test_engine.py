@@ -9,12 +9,12 @@ from typing import Any
 
 import pytest
 
-from engine.engine import Engine
-from engine.scope import scoped
-from engine.spec import parse_spec, skip_statements
-from sandbox import Sandbox
-from schemas.api import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
-from schemas.errors import Cancelled, InvalidInput, InvalidProgram, UnknownAction
+from precond.engine.engine import Engine
+from precond.engine.scope import scoped
+from precond.engine.spec import parse_spec, skip_statements
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
+from precond_client.schemas.errors import Cancelled, InvalidInput, InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
 from tests.sandbox.warm_probe import COUNTING_SPEC
 

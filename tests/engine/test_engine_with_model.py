@@ -7,10 +7,10 @@ from typing import Any
 
 import pytest
 
-from engine.engine import Engine
-from engine.models import ModelSettings, load_code_model
-from sandbox import Sandbox
-from schemas.api import InferRequest, NextActionRequest
+from precond.engine.engine import Engine
+from precond.engine.models import ModelSettings, load_code_model
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import InferRequest, NextActionRequest
 
 pytestmark = pytest.mark.model
 

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import ast
 
-from engine.engine import Engine
-from engine.enumeration import MAX_QUERY_CALLS, StateModel, enumerate_atoms
-from engine.spec import parse_spec
-from engine.work import COMPILE_POINTS
-from sandbox import Sandbox
-from sandbox.types import ActionInfo, Limits
-from schemas.api import InferRequest
+from precond.engine.engine import Engine
+from precond.engine.enumeration import MAX_QUERY_CALLS, StateModel, enumerate_atoms
+from precond.engine.spec import parse_spec
+from precond.engine.work import COMPILE_POINTS
+from precond.sandbox import Sandbox
+from precond.sandbox.types import ActionInfo, Limits
+from precond_client.schemas.api import InferRequest
 
 
 def poison_spec(query_params: int) -> str:

@@ -1,4 +1,4 @@
-"""The statistics of evidence-weighted validation (engine/evidence.py), on counts alone."""
+"""The statistics of evidence-weighted validation (precond/engine/evidence.py), on counts alone."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from engine.evidence import (
+from precond.engine.evidence import (
     CHANCE_ALPHA,
     MIN_DIALOGS,
     MIN_OCCURRENCES,
@@ -20,7 +20,7 @@ from engine.evidence import (
     verdict,
     wilson_lower,
 )
-from sandbox.types import Point, PointGrid
+from precond.sandbox.types import Point, PointGrid
 
 
 def test_binomial_tail_matches_the_exact_sum() -> None:

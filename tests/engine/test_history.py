@@ -1,4 +1,4 @@
-"""Structured histories rendered to programs (programs/history.py): literals only, checked against the spec."""
+"""Structured histories rendered to programs (precond/programs/history.py): literals only, checked against the spec."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from programs.checks import ProgramProblem
-from programs.history import render
+from precond.programs.checks import ProgramProblem
+from precond.programs.history import render
 from tests.engine.conftest import SHARED
 
 

@@ -1,4 +1,5 @@
-"""The code model as judge (engine/judge.py): what it may decide, and the engine asking it through a real sandbox."""
+"""The code model as judge (precond.engine.judge): what it may decide, and the engine asking it through a real
+sandbox."""
 
 from __future__ import annotations
 
@@ -7,11 +8,11 @@ from typing import Any
 
 import pytest
 
-from engine import judge
-from engine.engine import Engine
-from engine.spec import parse_spec
-from sandbox import Sandbox
-from schemas.api import InferRequest
+from precond.engine import judge
+from precond.engine.engine import Engine
+from precond.engine.spec import parse_spec
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import InferRequest
 
 NEUTRAL = "def check(self):\n    assert"
 

@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from engine.engine import UNSEEN_RULE, Engine
-from sandbox import Sandbox
-from schemas.api import MAX_PRIOR_RULES, InferOptions, InferRequest, InferResponse, PriorSource
-from schemas.errors import InvalidInput, InvalidProgram
+from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import MAX_PRIOR_RULES, InferOptions, InferRequest, InferResponse, PriorSource
+from precond_client.schemas.errors import InvalidInput, InvalidProgram
 
 SPEC = """from collections import defaultdict
 class USER:

@@ -1,4 +1,4 @@
-from engine.ranking import (
+from precond.engine.ranking import (
     ActionEvidence,
     Candidate,
     cluster,
@@ -10,7 +10,7 @@ from engine.ranking import (
     within_budget,
     zero_shot,
 )
-from sandbox.types import Point
+from precond.sandbox.types import Point
 
 
 def c(expression: str, bits: str) -> Candidate:

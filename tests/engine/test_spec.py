@@ -3,8 +3,8 @@ from typing import Any
 
 import pytest
 
-from engine.prompting import KNOWN_RULES_CHARS, inference_suffix
-from engine.spec import (
+from precond.engine.prompting import KNOWN_RULES_CHARS, inference_suffix
+from precond.engine.spec import (
     action_header,
     check_preconditions,
     observation_source,
@@ -12,7 +12,7 @@ from engine.spec import (
     render_program,
     resolve_actions,
 )
-from schemas.errors import InvalidProgram, UnknownAction
+from precond_client.schemas.errors import InvalidProgram, UnknownAction
 
 
 def test_default_actions_are_the_stub_methods(restaurants: dict[str, Any]) -> None:
@@ -74,7 +74,7 @@ def test_the_known_rules_shown_are_bounded(restaurants: dict[str, Any]) -> None:
 
 def test_rules_that_passed_are_not_parsed_again_for_their_scope(restaurants: dict[str, Any],
                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    from programs import checks
+    from precond.programs import checks
 
     parsed: list[str] = []
     real = checks.expression_problem

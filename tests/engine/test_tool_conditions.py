@@ -1,16 +1,16 @@
-"""The enumerator's conditions over a tool-calling agent's state (engine/tool_conditions.py), on programs that
-`convert/openai.py` writes: reads bound to the call's own argument, result fields with the demonstrated
+"""The enumerator's conditions over a tool-calling agent's state (precond/engine/tool_conditions.py), on programs that
+`precond/convert/openai.py` writes: reads bound to the call's own argument, result fields with the demonstrated
 values, arguments against the result, disjunctions, and the bound on how many."""
 
 from __future__ import annotations
 
 import ast
 
-from convert.openai import convert
-from engine import tool_conditions
-from engine.enumeration import StateModel, enumerate_atoms
-from engine.spec import parse_spec
-from sandbox.types import ActionInfo
+from precond.convert.openai import convert
+from precond.engine import tool_conditions
+from precond.engine.enumeration import StateModel, enumerate_atoms
+from precond.engine.spec import parse_spec
+from precond.sandbox.types import ActionInfo
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}

@@ -1,4 +1,4 @@
-"""ALFWorld next-action scoring's pure parts (evaluation/alfworld_next.py), on the fixture trajectories."""
+"""ALFWorld next-action scoring's pure parts (precond/evaluation/alfworld_next.py), on the fixture trajectories."""
 
 from __future__ import annotations
 
@@ -7,8 +7,15 @@ import json
 from pathlib import Path
 from typing import Any
 
-from evaluation.alfworld_next import Episode, history_before, predicted_command, sample_episodes, scored, summarize
-from evaluation.domains import action_positions
+from precond.evaluation.alfworld_next import (
+    Episode,
+    history_before,
+    predicted_command,
+    sample_episodes,
+    scored,
+    summarize,
+)
+from precond.evaluation.domains import action_positions
 
 DATA = Path(__file__).resolve().parents[1] / "fixtures" / "data" / "alfworld"
 

@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from evaluation import counterfactual
-from evaluation.cache import JsonCache
-from evaluation.domains import Domain
-from evaluation.scoring import Satisfaction
-from sandbox import Sandbox
-from sandbox.types import Point
+from precond.evaluation import counterfactual
+from precond.evaluation.cache import JsonCache
+from precond.evaluation.domains import Domain
+from precond.evaluation.scoring import Satisfaction
+from precond.sandbox import Sandbox
+from precond.sandbox.types import Point
 
 SPEC = """\
 class USER:

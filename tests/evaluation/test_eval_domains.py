@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
-from evaluation.domains import action_positions, alfworld_points, gt_assertions, load_sgd, parse_command
-from sandbox.types import Point
+from precond.evaluation.domains import action_positions, alfworld_points, gt_assertions, load_sgd, parse_command
+from precond.sandbox.types import Point
 
 
 @pytest.mark.parametrize(("command", "parsed"), [

@@ -1,10 +1,10 @@
-"""Metric edge cases (documented in evaluation/metrics.py) and the policy's turn F1."""
+"""Metric edge cases (documented in precond/evaluation/metrics.py) and the policy's turn F1."""
 
 from __future__ import annotations
 
 import pytest
 
-from evaluation.metrics import PRF, macro, percentile, prf_from_counts, score_action, turn_f1
+from precond.evaluation.metrics import PRF, macro, percentile, prf_from_counts, score_action, turn_f1
 
 
 def test_exact_prediction_scores_one() -> None:

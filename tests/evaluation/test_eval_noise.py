@@ -7,9 +7,9 @@ from typing import Any
 
 import pytest
 
-from evaluation.configs import GRIDS, parse_config
-from evaluation.noise import corrupt, sample
-from evaluation.sweep import Setting, collect, setting
+from precond.evaluation.configs import GRIDS, parse_config
+from precond.evaluation.noise import corrupt, sample
+from precond.evaluation.sweep import Setting, collect, setting
 from tests.engine.conftest import SHARED
 
 

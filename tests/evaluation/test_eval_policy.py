@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import pytest
 
-from evaluation.configs import expand, parse_config
-from evaluation.domains import Domain
-from evaluation.policy import _predict, action_of, parse_policy_config, receivers, segments, summarize_policy
-from schemas.api import CheckRequest, CheckResponse, NextActionRequest, NextActionResponse
+from precond.evaluation.configs import expand, parse_config
+from precond.evaluation.domains import Domain
+from precond.evaluation.policy import _predict, action_of, parse_policy_config, receivers, segments, summarize_policy
+from precond_client.schemas.api import CheckRequest, CheckResponse, NextActionRequest, NextActionResponse
 
 DIALOG = {
     "program": "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('Find')\nsystem.REQUEST(\"city\")\n"

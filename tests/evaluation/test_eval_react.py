@@ -7,7 +7,7 @@ import ast
 import json
 from pathlib import Path
 
-from evaluation.react_thoughts import load, thought_positions, with_thoughts
+from precond.evaluation.react_thoughts import load, thought_positions, with_thoughts
 
 DEMOS = json.loads((Path(__file__).resolve().parents[1] / "fixtures" / "data" / "alfworld" / "demos.json")
                    .read_text())["trajectories"]

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from evaluation.cache import JsonCache
-from evaluation.report import main_table, store_precondition_results
+from precond.evaluation.cache import JsonCache
+from precond.evaluation.report import main_table, store_precondition_results
 
 GOOD = {"config": "model/recency", "domain": "Buses_1", "benchmark": "sgd", "error": None,
         "macro": {"precision": 0.9, "recall": 0.5, "f1": 0.6}}
@@ -22,9 +22,9 @@ def test_failed_rerun_keeps_the_measurement(tmp_path: Path) -> None:
 
 
 def test_sized_run_is_a_table_with_intervals_and_a_plot(tmp_path: Path) -> None:
-    from evaluation.plots import sized_plot
-    from evaluation.report import sized_table
-    from evaluation.sized import summarize
+    from precond.evaluation.plots import sized_plot
+    from precond.evaluation.report import sized_table
+    from precond.evaluation.sized import summarize
 
     row = {"turn": 1, "reference": ["x()"], "seconds": 1.0, "domain": "D"}
     results = {"base": [row | {"dialog": d, "predicted": ["y()"], "compatible": [False]} for d in "abc"],
@@ -37,7 +37,7 @@ def test_sized_run_is_a_table_with_intervals_and_a_plot(tmp_path: Path) -> None:
 
 
 def test_the_next_action_section_is_replaced_in_place_and_the_rest_kept(tmp_path: Path) -> None:
-    from evaluation.report import NEXT_ACTION_HEADING, write_next_action_section
+    from precond.evaluation.report import NEXT_ACTION_HEADING, write_next_action_section
 
     store = JsonCache(tmp_path / "cache")
     out = tmp_path / "results.md"

@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from evaluation.cache import JsonCache
-from evaluation.domains import Domain
-from evaluation.metrics import PRF, domain_macro
-from evaluation.scoring import Satisfaction, conjunction, score
-from sandbox import Sandbox
-from sandbox.types import EvaluateResult, Point
+from precond.evaluation.cache import JsonCache
+from precond.evaluation.domains import Domain
+from precond.evaluation.metrics import PRF, domain_macro
+from precond.evaluation.scoring import Satisfaction, conjunction, score
+from precond.sandbox import Sandbox
+from precond.sandbox.types import EvaluateResult, Point
 
 SPEC = """\
 class Door:

@@ -1,5 +1,5 @@
 """The sized next-action evaluation's pure parts: the seeded sample of dialogs, per-dialog units, the summary,
-and the memo that lets configurations share completions (evaluation/sized.py, evaluation/memo.py)."""
+and the memo that lets configurations share completions (precond/evaluation/sized.py, precond/evaluation/memo.py)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ from typing import Any
 
 import pytest
 
-from engine.models import Sampling
-from evaluation.cache import JsonCache
-from evaluation.memo import MemoModel
-from evaluation.sized import sample_dialogs, summarize, units
-from schemas.api import ModelInfo
+from precond.engine.models import Sampling
+from precond.evaluation.cache import JsonCache
+from precond.evaluation.memo import MemoModel
+from precond.evaluation.sized import sample_dialogs, summarize, units
+from precond_client.schemas.api import ModelInfo
 
 
 def _dialog(name: str, system_turns: int) -> dict[str, Any]:
@@ -103,15 +103,15 @@ class CheckOnly:
         raise AssertionError("a cached-only summary predicted")
 
     def check(self, request: Any) -> Any:
-        from schemas.api import CallVerdict, CheckResponse
+        from precond_client.schemas.api import CallVerdict, CheckResponse
 
         return CheckResponse(results=[CallVerdict(call=c, allowed=True) for c in request.calls])
 
 
 def test_cached_only_takes_the_dialogs_every_config_finished(tmp_path: Path) -> None:
-    from evaluation.domains import Domain
-    from evaluation.policy import parse_policy_config, segments
-    from evaluation.sized import Task, finished, run
+    from precond.evaluation.domains import Domain
+    from precond.evaluation.policy import parse_policy_config, segments
+    from precond.evaluation.sized import Task, finished, run
 
     program = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM('a')\nsystem.REQUEST('b')\n"
     dialogs = [{"dialogue_id": name, "program": program, "turns": [{"speaker": "USER", "steps": [0, 1]},

@@ -1,10 +1,10 @@
-"""Bootstrap intervals and paired differences (evaluation/stats.py): pure functions, seeded."""
+"""Bootstrap intervals and paired differences (precond/evaluation/stats.py): pure functions, seeded."""
 
 from __future__ import annotations
 
 import pytest
 
-from evaluation.stats import bootstrap, paired_difference
+from precond.evaluation.stats import bootstrap, paired_difference
 
 
 def test_constant_values_have_a_zero_width_interval() -> None:

@@ -1,15 +1,15 @@
-"""Leave-one-domain-out priors (evaluation/transfer.py): the held-out domain's priors are the other domains'
+"""Leave-one-domain-out priors (precond/evaluation/transfer.py): the held-out domain's priors are the other domains'
 *inferred* rules, never any ground truth, and never its own."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from evaluation.cache import JsonCache
-from evaluation.configs import parse_config
-from evaluation.domains import Domain
-from evaluation.transfer import sources_for
-from schemas.api import InferRequest, InferResponse, InferStats, StageCounts
+from precond.evaluation.cache import JsonCache
+from precond.evaluation.configs import parse_config
+from precond.evaluation.domains import Domain
+from precond.evaluation.transfer import sources_for
+from precond_client.schemas.api import InferRequest, InferResponse, InferStats, StageCounts
 
 
 def _domain(name: str) -> Domain:

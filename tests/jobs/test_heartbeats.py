@@ -1,5 +1,5 @@
-"""Crash recovery's one Lua script (`jobs/heartbeats._BEAT`) against a real redis-server: whose jobs a beat hands
-back to the queue, and whose it never touches."""
+"""Crash recovery's one Lua script (`precond.jobs.heartbeats._BEAT`) against a real redis-server: whose jobs a beat
+hands back to the queue, and whose it never touches."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from collections.abc import Awaitable, Callable
 from arq.constants import in_progress_key_prefix, result_key_prefix
 from redis.asyncio import Redis
 
-from jobs.heartbeats import Heartbeat, beat, live_workers, new_claim
-from jobs.keys import CHECK_QUEUE, RUNNING_KEY, UNCLAIMED_KEY, worker_key
-from stack.local import RedisServer
+from precond.jobs.heartbeats import Heartbeat, beat, live_workers, new_claim
+from precond.jobs.keys import CHECK_QUEUE, RUNNING_KEY, UNCLAIMED_KEY, worker_key
+from precond.stack.local import RedisServer
 
 TTL_S = 0.5
 
@@ -28,7 +28,7 @@ async def started(redis: Redis[bytes], job: str) -> None:
 
 
 async def claim(redis: Redis[bytes], worker: Heartbeat, ttl_s: float, job: str, token: str) -> None:
-    """A claim as the worker's take writes it (worker/queue_worker.py): the job's claim under a fresh heartbeat."""
+    """A claim as the worker's take writes it (precond.worker.queue_worker): the job's claim under a fresh heartbeat."""
     await redis.set(worker_key(worker.id), worker.model_dump_json(), px=int(ttl_s * 1000))
     await redis.hset(RUNNING_KEY, job, token)
 

@@ -7,8 +7,8 @@ import os
 
 import pytest
 
-from engine.settings import ModelSettings
-from jobs import keys
+from precond.engine.settings import ModelSettings
+from precond.jobs import keys
 
 
 def test_the_gateway_reads_the_variables_the_model_settings_read() -> None:

@@ -1,4 +1,4 @@
-"""Scripts run by digest (jobs/scripts.py) against a real redis-server: a Redis that lost its scripts (a restart,
+"""Scripts run by digest (precond.jobs.scripts) against a real redis-server: a Redis that lost its scripts (a restart,
 SCRIPT FLUSH) still runs them, from their text."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import asyncio
 
 from redis.asyncio import Redis
 
-from jobs.scripts import LuaScript
-from stack.local import RedisServer
+from precond.jobs.scripts import LuaScript
+from precond.stack.local import RedisServer
 
 INCREMENT = LuaScript("return redis.call('INCRBY', KEYS[1], ARGV[1])")
 

@@ -1,4 +1,4 @@
-"""A connection handed out without redis-py's read (jobs/redis_checkout.py) still never answers a command with
+"""A connection handed out without redis-py's read (precond/jobs/redis_checkout.py) still never answers a command with
 a reply meant for another, and a connection the server closed is still replaced before it is used; against a
 real redis-server."""
 
@@ -12,8 +12,8 @@ import pytest
 from redis._parsers.hiredis import _AsyncHiredisParser
 from redis.asyncio import Redis
 
-from jobs.redis_checkout import check_out_without_read
-from stack.local import RedisServer
+from precond.jobs.redis_checkout import check_out_without_read
+from precond.stack.local import RedisServer
 
 
 def run(redis_server: RedisServer, body: Callable[[Redis[bytes]], Awaitable[Any]]) -> Any:

@@ -1,4 +1,4 @@
-"""A command written without redis-py's task (jobs/redis_sending.py) is still bounded by the socket timeout when
+"""A command written without redis-py's task (precond/jobs/redis_sending.py) is still bounded by the socket timeout when
 Redis stops reading, still arrives whole when it is larger than the socket takes at once, and a connection the
 server closed still fails or reconnects as with redis-py's own send; against a real redis-server."""
 
@@ -16,9 +16,9 @@ import pytest
 from redis import exceptions
 from redis.asyncio import Redis
 
-from jobs.redis_checkout import check_out_without_read
-from jobs.redis_sending import send_without_task
-from stack.local import RedisServer
+from precond.jobs.redis_checkout import check_out_without_read
+from precond.jobs.redis_sending import send_without_task
+from precond.stack.local import RedisServer
 
 
 def run(url: str, body: Callable[[Redis[bytes]], Awaitable[Any]], timeout_s: float = 5) -> Any:

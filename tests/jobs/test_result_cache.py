@@ -1,4 +1,4 @@
-"""The gateway's memory of results it read (jobs/cache.py, `recent_bytes`): a repeated read costs no round
+"""The gateway's memory of results it read (precond/jobs/cache.py, `recent_bytes`): a repeated read costs no round
 trip to Redis, the memory stays within its bound however small or large the results, and an entry this
 deployment did not sign is never kept; against a real redis-server."""
 
@@ -10,9 +10,9 @@ from typing import Any
 
 from redis.asyncio import Redis
 
-from jobs.cache import RECENT_ENTRY_BYTES, RECENT_ENTRY_OVERHEAD, ResultCache
-from jobs.keys import cache_key
-from stack.local import RedisServer
+from precond.jobs.cache import RECENT_ENTRY_BYTES, RECENT_ENTRY_OVERHEAD, ResultCache
+from precond.jobs.keys import cache_key
+from precond.stack.local import RedisServer
 
 SECRET = b"s" * 32
 

@@ -1,6 +1,6 @@
-"""The merge of a re-inference with its base version, as a pure function (jobs/precondition_sets.py): required
+"""The merge of a re-inference with its base version, as a pure function (precond/jobs/precondition_sets.py): required
 rules kept, rejected ones kept out, and every base rule accounted for in the diff with a reason when it is gone; and the
-worker's store of the version it makes (worker/reinfer.py), on a stand-in for Redis."""
+worker's store of the version it makes (precond/worker/reinfer.py), on a stand-in for Redis."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import asyncio
 
 import pytest
 
-from engine.reinference import explain_removed, merge
-from jobs.payloads import ReinferJob
-from jobs.precondition_sets import APPEND_CONFLICT, normal, union
-from schemas.api import CandidateReport, PreconditionSet
-from schemas.errors import Conflict
-from worker.reinfer import store
+from precond.engine.reinference import explain_removed, merge
+from precond.jobs.payloads import ReinferJob
+from precond.jobs.precondition_sets import APPEND_CONFLICT, normal, union
+from precond.worker.reinfer import store
+from precond_client.schemas.api import CandidateReport, PreconditionSet
+from precond_client.schemas.errors import Conflict
 
 
 def _base(**changes: object) -> PreconditionSet:

@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from jobs.precondition_sets import decided, how_decided, summary
-from schemas.api import CandidateReport, PreconditionSet, RuleEvidence
+from precond.jobs.precondition_sets import decided, how_decided, summary
+from precond_client.schemas.api import CandidateReport, PreconditionSet, RuleEvidence
 
 
 def _evidence(occurrences: int, verdict: str = "held") -> RuleEvidence:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from engine.settings import SandboxSettings
-from service.settings import GatewaySettings
+from precond.engine.settings import SandboxSettings
+from precond.gateway.settings import GatewaySettings
 
 
 @pytest.mark.parametrize("variable", ["PRECOND_MAX_WORK_POINTS", "SANDBOX_MAX_POINTS"])

@@ -9,9 +9,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from engine.models import CodeModel, ModelSettings, Sampling, load_code_model
-from engine.models.backend import cpu_dtype, cpu_flags
-from engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
+from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
+from precond.engine.models.backend import cpu_dtype, cpu_flags
+from precond.engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
 
 pytestmark = pytest.mark.model
 

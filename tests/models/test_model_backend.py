@@ -6,11 +6,11 @@ from typing import Any
 import pytest
 import torch
 
-from engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
-from engine.models.backend import PREFILL_CHUNK, CodeModel, choose_dtype, cpu_dtype, cpu_flags
-from engine.models.prefixes import Prefix, PrefixStore
-from engine.models.stopping import StopRule, statement_end, stop_index
-from engine.scope import scoped
+from precond.engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
+from precond.engine.models.backend import PREFILL_CHUNK, CodeModel, choose_dtype, cpu_dtype, cpu_flags
+from precond.engine.models.prefixes import Prefix, PrefixStore
+from precond.engine.models.stopping import StopRule, statement_end, stop_index
+from precond.engine.scope import scoped
 
 PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12
 SUFFIXES = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert", "user = USER()\n"]
@@ -268,7 +268,7 @@ CONTINUATIONS = [" self.informed_slot[slot]", " not self.informed_slot[slot]", "
 def test_scores_match_one_plain_forward_pass(tiny_model_dir: Path, max_nodes: int,
                                             monkeypatch: pytest.MonkeyPatch) -> None:
     """Whatever the trees' size (one continuation per pass, a few, all), the same log-likelihoods."""
-    monkeypatch.setattr("engine.models.backend.MAX_TREE_NODES", max_nodes)
+    monkeypatch.setattr("precond.engine.models.backend.MAX_TREE_NODES", max_nodes)
     model = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32"))
     prefix = PREFIX + SUFFIXES[0]
     expected = [reference_score(model, prefix, text) for text in CONTINUATIONS]

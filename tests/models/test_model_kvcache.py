@@ -5,7 +5,7 @@ import copy
 import torch
 from transformers import DynamicLayer
 
-from engine.models.kvcache import GrowingLayer
+from precond.engine.models.kvcache import GrowingLayer
 
 
 def _states(batch: int, length: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:

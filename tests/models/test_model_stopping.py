@@ -2,7 +2,7 @@ from __future__ import annotations
 
 import pytest
 
-from engine.models.stopping import line_end, statement_end, stop_index
+from precond.engine.models.stopping import line_end, statement_end, stop_index
 
 
 @pytest.mark.parametrize(

@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from engine.models import store
-from engine.models.store import EMBEDDED_SHA256, ModelStoreError, embedded_model_dir, find_embedded_parts
+from precond.engine.models import store
+from precond.engine.models.store import EMBEDDED_SHA256, ModelStoreError, embedded_model_dir, find_embedded_parts
 
 
 def test_parts_are_found_without_importing_them() -> None:

@@ -2,7 +2,7 @@
 
 import torch
 
-from engine.models.tree import TokenTree, groups
+from precond.engine.models.tree import TokenTree, groups
 
 
 def test_shared_heads_are_one_node_and_paths_spell_each_tail() -> None:

@@ -6,9 +6,9 @@ from pathlib import Path
 
 from arq.constants import in_progress_key_prefix
 
-from stack import harness, scenarios
-from stack.harness import scenario_stack
-from stack.local import infer_body, wait_until
+from precond.stack import harness, scenarios
+from precond.stack.harness import scenario_stack
+from precond.stack.local import infer_body, wait_until
 
 
 def test_sigkilled_workers_lose_no_job(tmp_path: Path, tiny_model_dir: Path) -> None:

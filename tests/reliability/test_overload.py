@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from stack import scenarios
-from stack.harness import scenario_stack
+from precond.stack import scenarios
+from precond.stack.harness import scenario_stack
 
 
 def test_overload_is_429_and_cheap_paths_stay_fast(tmp_path: Path, tiny_model_dir: Path) -> None:

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from stack import scenarios
-from stack.harness import scenario_stack
+from precond.stack import scenarios
+from precond.stack.harness import scenario_stack
 
 
 @pytest.mark.parametrize("kill", [False, True], ids=["sigterm", "sigkill"])

@@ -11,8 +11,8 @@ import json
 import os
 import sys
 
-from sandbox import Limits, Sandbox
-from stack.hostile_corpus import ATTACKS, GUARDS_OFF
+from precond.sandbox import Limits, Sandbox
+from precond.stack.hostile_corpus import ATTACKS, GUARDS_OFF
 
 SPEC = "class A:\n    def __init__(self):\n        self.x = 1\n    def act(self, v):\n        pass\n"
 CANARY = "/tmp/sandbox_boundary_canary"

@@ -7,7 +7,7 @@ from collections.abc import Iterator
 import pytest
 from sandbox_helpers import SMALL
 
-from sandbox import Limits, Sandbox
+from precond.sandbox import Limits, Sandbox
 
 
 @pytest.fixture(scope="session")

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from sandbox import Limits
+from precond.sandbox import Limits
 
 DATA = Path(__file__).resolve().parents[1] / "fixtures" / "data"
 SMALL = Limits(timeout_s=3.0, cpu_s=2, memory_mb=512, output_bytes=100_000, recursion=200)

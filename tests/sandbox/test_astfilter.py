@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from sandbox import ProgramError
-from sandbox.astfilter import ProposedCall, check_program, expression_problem, parse_call
+from precond.sandbox import ProgramError
+from precond.sandbox.astfilter import ProposedCall, check_program, expression_problem, parse_call
 
 
 @pytest.mark.parametrize("expression", [

@@ -19,10 +19,10 @@ import pytest
 from attack_probe import run_attacks
 from warm_probe import EXPECTED, LIMITS
 
-import sandbox.api
-import sandbox.pool
-from sandbox import LimitExceeded, Limits, Sandbox, SandboxCrashed, SandboxUnavailable
-from sandbox.policy import PolicyUnavailable
+from precond.sandbox import LimitExceeded, Limits, Sandbox, SandboxCrashed, SandboxUnavailable
+from precond.sandbox import api as sandbox_api
+from precond.sandbox import pool as sandbox_pool
+from precond.sandbox.policy import PolicyUnavailable
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = "import typing\nclass A:\n    def __init__(self):\n        self.x = 1\n    def act(self, v):\n        pass\n"
@@ -65,11 +65,13 @@ def readable_copy() -> Iterator[Path]:
 
     where = Path(tempfile.mkdtemp(prefix="sandbox-nonroot-", dir="/tmp"))
     try:
-        shutil.copytree(ROOT / "sandbox", where / "sandbox")
-        shutil.copytree(ROOT / "programs", where / "programs")
-        (where / "stack").mkdir()
+        (where / "precond").mkdir()
+        shutil.copy(ROOT / "precond" / "__init__.py", where / "precond")
+        shutil.copytree(ROOT / "precond" / "sandbox", where / "precond" / "sandbox")
+        shutil.copytree(ROOT / "precond" / "programs", where / "precond" / "programs")
+        (where / "precond" / "stack").mkdir()
         for name in ("__init__.py", "hostile_corpus.py"):
-            shutil.copy(ROOT / "stack" / name, where / "stack")
+            shutil.copy(ROOT / "precond" / "stack" / name, where / "precond" / "stack")
         shutil.copy(pyseccomp.__file__, where)
         shutil.copy(Path(__file__).with_name("attack_probe.py"), where)
         shutil.copy(Path(__file__).with_name("warm_probe.py"), where)
@@ -116,7 +118,7 @@ def test_warm_children_as_a_non_root_user(readable_copy: Path) -> None:
 # A candidate without a single dunder that rewrites the evaluator so that every later candidate is valid
 # (on the single-process evaluator this made `self.x == 2` valid).
 TAMPER = ("[typing.sys.modules['builtins'].setattr(m, 'first_violation', lambda c, o: None) "
-          "for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('sandbox.child.evaluate')] "
+          "for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('precond.sandbox.child.evaluate')] "
           "if m is not None] == []")
 
 
@@ -130,7 +132,8 @@ def test_a_tampering_candidate_cannot_validate_the_others() -> None:
 
 # The same, against the check: after the first proposed call, every verdict would read "allowed".
 FORGE = ("[typing.sys.modules['builtins'].setattr(m, '_verdict', lambda *a: {'allowed': True, 'violations': [], "
-         "'error': None}) for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('sandbox.child.check')] "
+         "'error': None}) for m in [typing.sys.modules.get('__main__'), "
+         "typing.sys.modules.get('precond.sandbox.child.check')] "
          "if m is not None] == []")
 
 
@@ -180,7 +183,7 @@ def test_no_policy_means_no_sandbox(monkeypatch: pytest.MonkeyPatch) -> None:
     def unavailable() -> bytes:
         raise PolicyUnavailable("libseccomp is not available: test")
 
-    monkeypatch.setattr(sandbox.api, "build_filter", unavailable)
+    monkeypatch.setattr(sandbox_api, "build_filter", unavailable)
     with pytest.raises(SandboxUnavailable, match="libseccomp"):
         Sandbox(Limits(), workers=1)
     with Sandbox(Limits(), workers=1, allow_unconfined=True) as box:  # the explicit development setting
@@ -189,7 +192,7 @@ def test_no_policy_means_no_sandbox(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_a_filter_the_kernel_refuses_means_no_sandbox(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(sandbox.api, "build_filter", lambda: b"\x00" * 8)  # no return instruction
+    monkeypatch.setattr(sandbox_api, "build_filter", lambda: b"\x00" * 8)  # no return instruction
     with pytest.raises(SandboxUnavailable, match="could not be set up"):
         Sandbox(Limits(), workers=1)
 
@@ -209,6 +212,6 @@ reader.read()
 
 
 def test_a_reply_to_another_request_is_never_taken(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(sandbox.pool, "BOOTSTRAP", FORGING_SERVER)
+    monkeypatch.setattr(sandbox_pool, "BOOTSTRAP", FORGING_SERVER)
     with Sandbox(Limits(), workers=1) as box, pytest.raises(SandboxCrashed, match="does not answer"):
         box.trace(SPEC, ["a = A()"])

@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 from sandbox_helpers import DATA, alfworld, sgd
 
-from sandbox import Point, Sandbox
+from precond.sandbox import Point, Sandbox
 
 DOMAINS = ["Restaurants_1", "Events_1"]
 
@@ -223,7 +223,7 @@ def test_check_alfworld_function_history(big: Sandbox) -> None:
 
 
 def test_history_error_is_program_error(big: Sandbox) -> None:
-    from sandbox import ProgramError
+    from precond.sandbox import ProgramError
 
     domain = sgd("Restaurants_1")
     with pytest.raises(ProgramError) as caught:

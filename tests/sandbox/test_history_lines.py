@@ -1,4 +1,4 @@
-"""A history read line by line (programs/lines.py, used by the warm child): the statements a whole parse gives,
+"""A history read line by line (precond/programs/lines.py, used by the warm child): the statements a whole parse gives,
 or None, so that the whole text is parsed, whenever reading by lines could differ."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from programs.lines import LINE_BREAKS, line_statements
+from precond.programs.lines import LINE_BREAKS, line_statements
 
 
 def remembered() -> Any:

@@ -8,8 +8,8 @@ import time
 import pytest
 from sandbox_helpers import SMALL
 
-from sandbox import LimitExceeded, ProgramError, Sandbox, SandboxCrashed, SandboxError
-from stack.hostile_corpus import CALLS, CANDIDATES, FIND, OUTSIDE, PASSWD_MARK, PROGRAMS
+from precond.sandbox import LimitExceeded, ProgramError, Sandbox, SandboxCrashed, SandboxError
+from precond.stack.hostile_corpus import CALLS, CANDIDATES, FIND, OUTSIDE, PASSWD_MARK, PROGRAMS
 
 SPEC = "class A:\n    def __init__(self):\n        self.x = 1\n    def act(self, v):\n        pass\n"
 STRUCTURED = (ProgramError, LimitExceeded, SandboxCrashed)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from sandbox_helpers import sgd
 
-from sandbox import Sandbox
+from precond.sandbox import Sandbox
 
 MUTABLE_SPEC = """
 class Box:

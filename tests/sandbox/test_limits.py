@@ -6,10 +6,10 @@ import time
 
 import pytest
 
-from sandbox import LimitExceeded, Limits, ProgramError, Sandbox
-from sandbox.policy import build_filter
-from sandbox.pool import ForkServer
-from stack.hostile_corpus import FIND
+from precond.sandbox import LimitExceeded, Limits, ProgramError, Sandbox
+from precond.sandbox.policy import build_filter
+from precond.sandbox.pool import ForkServer
+from precond.stack.hostile_corpus import FIND
 
 SPEC = "class A:\n    def act(self, v):\n        pass\n"
 LOOP = "while True:\n    pass\n"

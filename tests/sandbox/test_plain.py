@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sandbox.plain import is_plain, vocabulary
+from precond.sandbox.plain import is_plain, vocabulary
 
 SPEC = '''import typing
 from collections import defaultdict

@@ -21,7 +21,7 @@ from warm_probe import (
     unfit_child,
 )
 
-from sandbox import Sandbox
+from precond.sandbox import Sandbox
 
 
 @pytest.fixture()

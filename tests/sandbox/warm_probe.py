@@ -1,4 +1,4 @@
-"""Attacks on a tenant's warm sandbox child (`sandbox.child.server`), from the tenant's own spec.
+"""Attacks on a tenant's warm sandbox child (`precond.sandbox.child.server`), from the tenant's own spec.
 
 Run by test_warm.py in-process and, as a separate program, under another (non-root) uid: it prints one JSON
 object with what each attack saw. Kept as a plain script so the same attacks run unchanged in both
@@ -14,7 +14,7 @@ import sys
 import time
 from typing import Any
 
-from sandbox import Limits, Sandbox
+from precond.sandbox import Limits, Sandbox
 
 # The spec counts, in a module every child shares with the server's import, how often `mark` ran in this
 # process: a fresh child always sees 1 after the history below, a reused one more. (The rule reads the count

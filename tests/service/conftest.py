@@ -8,7 +8,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from stack.local import Stack, make_stack, serving
+from precond.stack.local import Stack, make_stack, serving
 
 
 @pytest.fixture(scope="module")

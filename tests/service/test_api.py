@@ -12,10 +12,9 @@ import httpx
 import pytest
 import redis
 
-from jobs import cache, keys
-from schemas.api import CheckRequest
-from service.http_protocol import MAX_REQUEST_HEAD_BYTES, MAX_URL_BYTES
-from stack.local import (
+from precond.gateway.http_protocol import MAX_REQUEST_HEAD_BYTES, MAX_URL_BYTES
+from precond.jobs import cache, keys
+from precond.stack.local import (
     Stack,
     check_body,
     example,
@@ -23,6 +22,7 @@ from stack.local import (
     slow_model_body,
     wait_until,
 )
+from precond_client.schemas.api import CheckRequest
 
 
 def jobs_started(stack: Stack) -> int:

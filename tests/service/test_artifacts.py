@@ -13,29 +13,29 @@ import jsonschema
 import pytest
 import yaml
 
-from cli import export
-from schemas.api import CheckRequest, InferRequest, NextActionRequest
-from service.server import GATEWAY_ARGS
+from precond.cli import export
+from precond.gateway.server import GATEWAY_ARGS
+from precond_client.schemas.api import CheckRequest, InferRequest, NextActionRequest
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent
 
 
 def test_gateway_never_imports_torch() -> None:
-    code = "import sys, service.app, cli.export; service.app.create_app(); print('torch' in sys.modules)"
+    code = "import sys, precond.gateway.app as a, precond.cli.export; a.create_app(); print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
 
 def test_openapi_file_matches_app() -> None:
     assert (ROOT / "openapi" / "openapi.json").read_text() == export.openapi_text(), (
-        "run python -m cli.export"
+        "run python -m precond.cli.export"
     )
 
 
 def test_configuration_doc_matches_settings() -> None:
     assert (ROOT / "docs" / "configuration.md").read_text() == export.configuration_text(), (
-        "python -m cli.export"
+        "python -m precond.cli.export"
     )
 
 
@@ -185,7 +185,7 @@ def test_gateway_refuses_to_start_open_when_auth_is_required(tmp_path: Path) -> 
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "PRECOND_SECRET": "s", "PRECOND_REQUIRE_AUTH": "true",
            "PRECOND_API_KEYS_FILE": str(tmp_path / "empty.jsonl")}
     (tmp_path / "empty.jsonl").write_text("")
-    code = ("import asyncio, service.app as a\nasync def main():\n"
+    code = ("import asyncio, precond.gateway.app as a\nasync def main():\n"
             "    async with a.create_app().router.lifespan_context(None):\n        pass\nasyncio.run(main())")
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60,
                           check=False)

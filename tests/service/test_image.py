@@ -2,7 +2,8 @@
 
 The compose file's other tests read its YAML; this one rebuilds the image's /app from the Dockerfile's COPY lines
 into an empty directory and imports from there alone (no project package from anywhere else), because a module
-the Dockerfile forgets fails only when a container starts: `keys`, the gateway and the workers all import `cli`.
+the Dockerfile forgets fails only when a container starts: `keys`, the gateway and the workers all import
+`precond.cli`.
 """
 
 from __future__ import annotations
@@ -19,18 +20,17 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 
 ENTRY_POINTS = (
-    "cli.main",  # `precond serve|worker|keys` (CMD, compose's keys and workers)
-    "service.app",  # the gateway (uvicorn service.app:create_app)
-    "cli.supervisor",  # `precond serve` imports it when it starts
-    "worker.runner",  # `precond worker`
-    "engine.factory",  # `precond infer|check` in-process
+    "precond.cli.main",  # `precond serve|worker|keys` (CMD, compose's keys and workers)
+    "precond.gateway.app",  # the gateway (uvicorn precond.gateway.app:create_app)
+    "precond.cli.supervisor",  # `precond serve` imports it when it starts
+    "precond.worker.runner",  # `precond worker`
+    "precond.engine.factory",  # `precond infer|check` in-process
     "precond_client",  # `precond infer --server URL`
 )
 
 ISOLATED_IMPORT = """
 import importlib, sys
-PROJECT = {"schemas", "jobs", "engine", "programs", "sandbox", "service", "worker", "cli", "evaluation", "stack",
-           "precond_client", "convert"}
+PROJECT = {"precond", "precond_client"}
 # Only the copied /app: drop the development checkout's editable-install finder and any path into it.
 sys.meta_path[:] = [f for f in sys.meta_path if not getattr(f, "__module__", "").startswith("__editable__")]
 sys.path[:] = [sys.argv[1]] + [p for p in sys.path if "site-packages" in p or "lib/python" in p]
@@ -66,7 +66,7 @@ def build_app_dir(target: Path) -> None:
 
 def test_copy_lines_are_read() -> None:
     # a guard against a parser that finds nothing and so imports from nowhere
-    assert {"service", "cli", "worker", "scripts/install.sh"} <= set(copied_paths((ROOT / "Dockerfile").read_text()))
+    assert {"precond", "precond_client", "scripts/install.sh"} <= set(copied_paths((ROOT / "Dockerfile").read_text()))
 
 
 def test_every_entry_point_imports_from_what_the_dockerfile_copies(tmp_path: Path) -> None:
@@ -80,10 +80,10 @@ def test_every_entry_point_imports_from_what_the_dockerfile_copies(tmp_path: Pat
 def test_a_module_the_dockerfile_forgets_is_caught(tmp_path: Path) -> None:
     app = tmp_path / "app"
     build_app_dir(app)
-    shutil.rmtree(app / "convert")
-    out = subprocess.run([sys.executable, "-I", "-c", ISOLATED_IMPORT, str(app), "cli.main"], cwd=app,
+    shutil.rmtree(app / "precond" / "convert")
+    out = subprocess.run([sys.executable, "-I", "-c", ISOLATED_IMPORT, str(app), "precond.cli.main"], cwd=app,
                          capture_output=True, text=True, timeout=300)
-    assert out.returncode != 0 and "No module named 'convert'" in out.stderr
+    assert out.returncode != 0 and "No module named 'precond.convert'" in out.stderr
 
 
 def _compose_client() -> list[str] | None:

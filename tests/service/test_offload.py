@@ -8,7 +8,7 @@ from __future__ import annotations
 import asyncio
 import os
 
-from service.offload import INLINE_CHARS, CheckPool, rendering_chars
+from precond.gateway.offload import INLINE_CHARS, CheckPool, rendering_chars
 
 SPEC = "class AGENT:\n    def cancel_reservation(self, reservation_id): pass\n" * 40
 

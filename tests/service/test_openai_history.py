@@ -11,7 +11,7 @@ from typing import Any
 import httpx
 import pytest
 
-from convert.openai import convert
+from precond.convert.openai import convert
 from precond_client import Client, ToolCall
 
 TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 from typing import get_args
 
-from schemas.api import CheckRequest, JobKind
-from service.routes.operations import OPERATIONS
+from precond.gateway.routes.operations import OPERATIONS
+from precond_client.schemas.api import CheckRequest, JobKind
 
 
 def test_every_submitted_kind_has_a_row() -> None:

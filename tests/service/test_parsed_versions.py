@@ -3,8 +3,8 @@ out another's."""
 
 from __future__ import annotations
 
-from schemas.api import PreconditionSet
-from service.set_store import ParsedVersions
+from precond.gateway.set_store import ParsedVersions
+from precond_client.schemas.api import PreconditionSet
 
 
 def version(set_id: str, number: int) -> PreconditionSet:

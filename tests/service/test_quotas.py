@@ -9,9 +9,9 @@ import time
 from arq.connections import ArqRedis
 from redis.asyncio import ConnectionPool
 
-from service.caller import Caller
-from service.quotas import LEASE_S, MAX_BLOCKED_SOURCES, AuthLimit, Lease, Quotas, _remember
-from stack.local import RedisServer
+from precond.gateway.caller import Caller
+from precond.gateway.quotas import LEASE_S, MAX_BLOCKED_SOURCES, AuthLimit, Lease, Quotas, _remember
+from precond.stack.local import RedisServer
 
 
 def _quotas(server: RedisServer, rate: float, burst: int) -> Quotas:

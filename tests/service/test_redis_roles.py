@@ -25,12 +25,12 @@ import pytest
 import redis
 from redis.asyncio import Redis as AsyncRedis
 
-from jobs import cache, keys
-from jobs.cache import ResultCache
-from jobs.settings import QueueSettings
-from schemas.api import CheckRequest, CheckResponse
-from service.settings import GatewaySettings
-from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
+from precond.gateway.settings import GatewaySettings
+from precond.jobs import cache, keys
+from precond.jobs.cache import ResultCache
+from precond.jobs.settings import QueueSettings
+from precond.stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
+from precond_client.schemas.api import CheckRequest, CheckResponse
 
 PASSWORD = "roles-test-redis-password"
 QUEUE_MAXMEMORY = 64 * 1024 * 1024

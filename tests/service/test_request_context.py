@@ -9,8 +9,8 @@ import asyncio
 
 from starlette.types import Message, Receive, Scope, Send
 
-from service.middleware import RequestContext
-from service.prometheus import Metrics
+from precond.gateway.middleware import RequestContext
+from precond.gateway.prometheus import Metrics
 
 
 async def _answered_from_memory(scope: Scope, receive: Receive, send: Send) -> None:

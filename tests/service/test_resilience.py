@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from arq.jobs import deserialize_result
 
-from stack.local import Stack, check_body, heavy_infer_body, make_stack, serving, wait_until
+from precond.stack.local import Stack, check_body, heavy_infer_body, make_stack, serving, wait_until
 
 HANDBACK_BOUND_S = 15
 """A SIGKILLed worker's job must be done by another worker this soon after the kill. The job timeout is the

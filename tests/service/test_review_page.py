@@ -13,10 +13,10 @@ from typing import Any
 import httpx
 import pytest
 
-from jobs.keys import tenant_tag
-from jobs.precondition_sets import set_key
-from stack import browser
-from stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
+from precond.jobs.keys import tenant_tag
+from precond.jobs.precondition_sets import set_key
+from precond.stack import browser
+from precond.stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
 from tests.service import test_precondition_sets as sets_tests
 from tests.service.test_tenants import SECRET, client_for
 

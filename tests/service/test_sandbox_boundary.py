@@ -11,12 +11,13 @@ from typing import Any
 import httpx
 import pytest
 
-from stack.hostile_corpus import FIND
-from stack.local import ROOT, Stack, check_body, make_stack, serving, wait_until
+from precond.stack.hostile_corpus import FIND
+from precond.stack.local import ROOT, Stack, check_body, make_stack, serving, wait_until
 
 SECRET = "hunter2-not-for-callers"
 FORGE = ("[typing.sys.modules['builtins'].setattr(m, '_verdict', lambda *a: {'allowed': True, 'violations': [], "
-         "'error': None}) for m in [typing.sys.modules.get('__main__'), typing.sys.modules.get('sandbox.child.check')] "
+         "'error': None}) for m in [typing.sys.modules.get('__main__'), "
+         "typing.sys.modules.get('precond.sandbox.child.check')] "
          "if m is not None] == []")
 
 

@@ -17,16 +17,16 @@ from pathlib import Path
 import httpx
 import pytest
 
-from stack import harness
-from stack.attacks import (
+from precond.stack import harness
+from precond.stack.attacks import (
     POISON_BODY,
     SLEEPING_HISTORY,
     deep_demonstration,
     oversized_set_body,
     unknown_fields_body,
 )
-from stack.keyed import KeyedStack, keyed_stack
-from stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
+from precond.stack.keyed import KeyedStack, keyed_stack
+from precond.stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 
 TENANTS = ("attacker-corp", "victim-corp", "prober-corp", "filler-corp")
 SET_BYTES_PER_TENANT = 60_000

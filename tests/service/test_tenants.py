@@ -15,9 +15,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from jobs.keys import CHECK_QUEUE, MODEL_QUEUE, owner_of, tenant_tag
-from service.api_keys import KeyRecord, digest, new_key, read_records, write_records
-from stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
+from precond.gateway.api_keys import KeyRecord, digest, new_key, read_records, write_records
+from precond.jobs.keys import CHECK_QUEUE, MODEL_QUEUE, owner_of, tenant_tag
+from precond.stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
 
 SECRET = b"stack-secret-for-tests"
 
@@ -85,7 +85,7 @@ def test_a_revoked_key_stops_working_without_a_restart(stack: Stack, keys_file: 
     key_id, key = make_key(keys_file, "acme")
     with client_for(stack, key) as client:
         assert client.get("/jobs/" + queued(stack, 100, key)).status_code == 200
-        done = subprocess.run([sys.executable, "-m", "cli", "keys", "revoke", key_id, "--file", str(keys_file)],
+        done = subprocess.run([sys.executable, "-m", "precond.cli", "keys", "revoke", key_id, "--file", str(keys_file)],
                               cwd=ROOT, capture_output=True, text=True, check=False)
         assert done.returncode == 0, done.stderr
         answer = client.post("/check-actions", json=check_body())
@@ -175,7 +175,7 @@ def test_a_tenant_over_its_rate_is_429_naming_the_limit(rate_limited: tuple[Stac
 
 
 def test_serve_refuses_an_open_non_loopback_address() -> None:
-    done = subprocess.run([sys.executable, "-m", "cli", "serve", "--host", "0.0.0.0"], cwd=ROOT,
+    done = subprocess.run([sys.executable, "-m", "precond.cli", "serve", "--host", "0.0.0.0"], cwd=ROOT,
                           capture_output=True, text=True, timeout=60, check=False,
                           env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)})
     assert done.returncode == 2

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from stack.local import check_body, infer_body, make_stack, serving
+from precond.stack.local import check_body, infer_body, make_stack, serving
 
 HOUR = "3600"
 

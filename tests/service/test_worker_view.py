@@ -7,9 +7,9 @@ import asyncio
 
 from redis.asyncio import Redis
 
-from jobs.keys import worker_key
-from service.worker_view import UNKNOWN, WorkerView
-from stack.local import RedisServer
+from precond.gateway.worker_view import UNKNOWN, WorkerView
+from precond.jobs.keys import worker_key
+from precond.stack.local import RedisServer
 
 
 def _beat(sandbox: str) -> str:

@@ -5,11 +5,11 @@ from __future__ import annotations
 from functools import partial
 from typing import Any
 
-from engine.scope import current
-from jobs.keys import job_id, owner_of, tenant_tag
-from schemas.api import CheckRequest, CheckResponse
-from worker.jobs import _outcome
-from worker.memory import MemoryGuard
+from precond.engine.scope import current
+from precond.jobs.keys import job_id, owner_of, tenant_tag
+from precond.worker.jobs import _outcome
+from precond.worker.memory import MemoryGuard
+from precond_client.schemas.api import CheckRequest, CheckResponse
 
 
 class SeesScope:

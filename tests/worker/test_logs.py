@@ -8,8 +8,8 @@ import sys
 import time
 from pathlib import Path
 
-from stack.local import RedisServer
-from worker.logs import Deduplicated
+from precond.stack.local import RedisServer
+from precond.worker.logs import Deduplicated
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -40,7 +40,7 @@ def test_a_worker_process_logs_its_start_once(tmp_path: Path) -> None:
     redis.start()
     env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT), "REDIS_URL": redis.url, "PRECOND_SECRET": "x" * 32,
            "OMP_NUM_THREADS": "1", "PRECOND_PRELOAD_MODEL": "false"}
-    code = ("import threading, os, signal; from worker.runner import run; from worker.settings import "
+    code = ("import threading, os, signal; from precond.worker.runner import run; from precond.worker.settings import "
             "get_worker_settings; threading.Timer(4, lambda: os.kill(os.getpid(), signal.SIGTERM)).start(); "
             "run(get_worker_settings())")
     try:

@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from schemas.errors import ResourceLimit
-from worker.memory import MemoryGuard
+from precond.worker.memory import MemoryGuard
+from precond_client.schemas.errors import ResourceLimit
 
 
 def test_the_job_that_grows_the_worker_is_stopped_and_the_others_go_on() -> None:

@@ -1,4 +1,4 @@
-"""The queue worker's take and finish scripts (worker/queue_worker.py) against a real redis-server: a job is
+"""The queue worker's take and finish scripts (precond/worker/queue_worker.py) against a real redis-server: a job is
 claimed with its in-progress key in one step, ends with arq's result, the counts, the claim's release and the
 notice in one step, and every way arq ends a run (expired, aborted before it started, out of tries, timed out,
 cancelled by a shutdown) still ends the same way."""
@@ -20,14 +20,14 @@ from arq.worker import JobExecutionFailed
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
-from jobs import keys
-from jobs.heartbeats import Heartbeat, beat
-from jobs.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
-from jobs.notices import notice_channel, read_notice, waiters_key
-from stack.local import RedisServer
-from worker import queue_worker
-from worker.queue_worker import JobEnd, TenantShareWorker
-from worker.runner import RunClaims
+from precond.jobs import keys
+from precond.jobs.heartbeats import Heartbeat, beat
+from precond.jobs.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
+from precond.jobs.notices import notice_channel, read_notice, waiters_key
+from precond.stack.local import RedisServer
+from precond.worker import queue_worker
+from precond.worker.queue_worker import JobEnd, TenantShareWorker
+from precond.worker.runner import RunClaims
 
 QUEUE = "test:queue"
 FUNCTION = "operation"
@@ -86,7 +86,7 @@ async def worker(redis_server: RedisServer, operation: Operation = answer, timeo
         yield queue_worker
     finally:
         queue_worker.handle_sig(signal.SIGUSR1)
-        # a Redis error ends arq's run, and its close (the worker process starts another: worker/runner.py)
+        # a Redis error ends arq's run, and its close (the worker process starts another: precond/worker/runner.py)
         with contextlib.suppress(asyncio.CancelledError, RedisError):
             await task
         with contextlib.suppress(RedisError):

@@ -1,3 +1,0 @@
-"""Turn users' own dialog data into specs, demonstration programs and requests (docs/converting.md):
-`sgd` reads the Schema-Guided Dialogue dataset's files, `events` generic JSON event logs. Standard library,
-`programs/` and `schemas/` only."""

@@ -1,0 +1,1 @@
+"""precondition-service: verified action preconditions learned from demonstrations, as a service."""

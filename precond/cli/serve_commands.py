@@ -1,0 +1,90 @@
+"""`precond serve` and `precond worker`: the service's processes, configured by flags over the environment."""
+
+from __future__ import annotations
+
+import ipaddress
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from precond.gateway.settings import get_gateway_settings
+from precond.worker.settings import get_worker_settings
+
+
+def serve(
+    port: Annotated[int | None, typer.Option(help="Gateway port [PORT, default 8000].")] = None,
+    host: Annotated[str, typer.Option(help="Gateway bind address.")] = "127.0.0.1",
+    workers: Annotated[int, typer.Option(min=1, help="Worker processes (each serves both queues).")] = 1,
+    data_dir: Annotated[
+        Path, typer.Option(help="Data dir of the private queue redis-server, if one is started.")
+    ] = Path("var/redis"),
+    no_auth: Annotated[
+        bool, typer.Option("--no-auth", help="Serve without API keys on a non-loopback address (anyone may call).")
+    ] = False,
+    redis_maxmemory: Annotated[
+        str, typer.Option(help="maxmemory of the private queue Redis (noeviction: full means 503, never loss).")
+    ] = "512mb",
+    cache_maxmemory: Annotated[
+        str, typer.Option(help="maxmemory of the private cache Redis (allkeys-lru: evicts old results).")
+    ] = "256mb",
+    redis_url: Annotated[
+        str | None,
+        typer.Option(help="Use this Redis (sets REDIS_URL for every process), even one without a password; "
+                     "default: REDIS_URL, else two private ones started here. A Redis already answering on 6379 "
+                     "without a password is refused unless named here.", show_default=False),
+    ] = None,
+) -> None:
+    """Run gateway, workers and, when REDIS_URL is unset, two private redis-servers (queue on 6379, cache on
+    6380; 127.0.0.1 only, with a random password per start); says at start which Redis it uses.
+
+    Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
+    other unless --no-auth says so.
+    """
+    from precond.cli.supervisor import Supervisor
+
+    settings = get_gateway_settings()
+    if settings.api_keys_file is None:
+        if not _loopback(host) and not no_auth:
+            typer.echo(f"error: refusing to serve on {host} without API keys: anyone who can reach it could use it. "
+                       "Make a key (precond keys create --tenant NAME --file keys.jsonl) and set "
+                       "PRECOND_API_KEYS_FILE, or pass --no-auth.", err=True)
+            raise typer.Exit(2)
+        typer.echo(f"note: no API keys: the API on {host} is open to anyone who can reach it", err=True)
+    port = settings.port if port is None else port
+    worker_settings = get_worker_settings()
+    if redis_url is not None:
+        worker_settings = worker_settings.model_copy(update={"redis_url": redis_url})
+    supervisor = Supervisor(
+        worker_settings, host, port, workers, data_dir, gateway_processes=settings.processes,
+        redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory,
+    )
+    raise typer.Exit(supervisor.run())
+
+
+def _loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+def worker(
+    concurrency: Annotated[
+        int | None, typer.Option(min=1, help="Model jobs at once [PRECOND_WORKER_CONCURRENCY].")
+    ] = None,
+    check_concurrency: Annotated[
+        int | None, typer.Option(min=1, help="check-actions jobs at once [PRECOND_CHECK_CONCURRENCY].")
+    ] = None,
+) -> None:
+    """Run one worker process: loads the model, heartbeats, runs model and check jobs from Redis."""
+    from precond.worker.runner import run
+
+    overrides = {"worker_concurrency": concurrency, "check_concurrency": check_concurrency}
+    settings = get_worker_settings().model_copy(update={k: v for k, v in overrides.items() if v is not None})
+    run(settings)
+
+
+def register(app: typer.Typer) -> None:
+    app.command()(serve)
+    app.command()(worker)

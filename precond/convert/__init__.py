@@ -1,0 +1,3 @@
+"""Turn users' own dialog data into specs, demonstration programs and requests (docs/converting.md):
+`sgd` reads the Schema-Guided Dialogue dataset's files, `events` generic JSON event logs. Standard library,
+`precond/programs/` and `precond_client/schemas/` only."""

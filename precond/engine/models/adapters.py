@@ -1,0 +1,123 @@
+"""A trained policy as files: a LoRA adapter (peft's format, so any peft user can load it) and what trained it.
+
+An adapter directory holds `adapter_model.safetensors` (the weights: safetensors, never a pickle),
+`adapter_config.json` (peft's, written for other tools and never read here) and `policy.json` (the
+`TrainPolicyResult`: the base model it was trained on, its rank, its losses). Loading trusts none of it: the
+sizes are bounded before reading, the base must be the one this process serves, the weights must be exactly
+the tensors the rank and the base model's attention projections call for, and they are merged into the
+weights (no adapter layers stay behind to slow serving).
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from precond_client.schemas.api import ModelInfo
+from precond_client.schemas.errors import InvalidInput
+from precond_client.schemas.training import MAX_ADAPTER_BYTES, TrainPolicyResult
+
+TARGET_MODULES = ("q_proj", "k_proj", "v_proj", "o_proj")
+WEIGHTS = "adapter_model.safetensors"
+RESULT = "policy.json"
+MAX_RESULT_BYTES = 1_000_000
+
+
+class AdapterError(InvalidInput):
+    """An adapter that cannot be used here (or saved), and why."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, field="adapter")
+
+
+def lora_config(rank: int) -> Any:
+    from peft import LoraConfig
+
+    return LoraConfig(r=rank, lora_alpha=2 * rank, target_modules=list(TARGET_MODULES), lora_dropout=0.0,
+                      bias="none", task_type="CAUSAL_LM")
+
+
+def save_adapter(peft_model: Any, directory: Path, result: TrainPolicyResult) -> TrainPolicyResult:
+    """Written whole or not at all: a temporary directory beside the target, renamed into place once complete
+    and within MAX_ADAPTER_BYTES (a cancelled or oversized training leaves nothing behind)."""
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(dir=directory.parent, prefix=f".{directory.name}-"))
+    try:
+        peft_model.save_pretrained(scratch, safe_serialization=True)
+        size = (scratch / WEIGHTS).stat().st_size
+        if size > MAX_ADAPTER_BYTES:
+            raise AdapterError(f"the adapter is {size} bytes, over the limit of {MAX_ADAPTER_BYTES}: lower "
+                               "options.rank")
+        result = result.model_copy(update={"adapter_bytes": size})
+        (scratch / RESULT).write_text(result.model_dump_json(indent=1))
+        if directory.exists():
+            shutil.rmtree(directory)
+        os.replace(scratch, directory)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return result
+
+
+def read_result(directory: Path) -> TrainPolicyResult:
+    path = directory / RESULT
+    if not path.is_file() or path.stat().st_size > MAX_RESULT_BYTES:
+        raise AdapterError(f"{directory}: no {RESULT} (or over {MAX_RESULT_BYTES} bytes): not a trained policy")
+    try:
+        return TrainPolicyResult.model_validate_json(path.read_bytes())
+    except ValidationError as exc:
+        raise AdapterError(f"{path}: {exc.errors()[0]['msg']} at {exc.errors()[0]['loc']}") from None
+
+
+def merge_adapter(model: Any, directory: Path, base: ModelInfo) -> tuple[str, TrainPolicyResult]:
+    """Merge the adapter at `directory` into `model` (in place); its name for the `model` block of responses,
+    and what trained it."""
+    result = read_result(directory)
+    if (result.base_model, result.base_sha256) != (base.name, base.sha256):
+        raise AdapterError(f"{directory}: trained on {result.base_model} ({result.base_sha256}), but this process "
+                           f"serves {base.name} ({base.sha256})")
+    weights = directory / WEIGHTS
+    if not weights.is_file() or weights.stat().st_size > MAX_ADAPTER_BYTES:
+        raise AdapterError(f"{directory}: no {WEIGHTS} of at most {MAX_ADAPTER_BYTES} bytes")
+    data = weights.read_bytes()
+    _load_into(model, data, result.options.rank)
+    calls = [c for c in result.calls if _one_call(c)]
+    return f"{directory.name}@{hashlib.sha256(data).hexdigest()[:12]}", result.model_copy(update={"calls": calls})
+
+
+def _one_call(text: str) -> bool:
+    """A known call must be what training wrote, one call expression; anything else is left out, never run."""
+    try:
+        body = ast.parse(text).body
+    except (SyntaxError, ValueError, RecursionError):
+        return False
+    return len(body) == 1 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Call)
+
+
+def _load_into(model: Any, data: bytes, rank: int) -> None:
+    from peft import get_peft_model, set_peft_model_state_dict
+    from safetensors import SafetensorError
+    from safetensors.torch import load as load_tensors
+
+    try:
+        tensors = load_tensors(data)
+    except SafetensorError as exc:
+        raise AdapterError(f"{WEIGHTS} is not a safetensors file: {exc}") from None
+    peft_model = get_peft_model(model, lora_config(rank))
+    expected = {k.replace(".default", ""): v.shape for k, v in peft_model.state_dict().items() if "lora_" in k}
+    if set(tensors) != set(expected):
+        extra = sorted(set(tensors) - set(expected))[:3]
+        missing = sorted(set(expected) - set(tensors))[:3]
+        raise AdapterError(f"{WEIGHTS} does not fit this model at rank {rank}: unexpected {extra}, missing {missing}")
+    wrong = [k for k, t in tensors.items() if t.shape != expected[k]]
+    if wrong:
+        raise AdapterError(f"{WEIGHTS}: {wrong[0]} has shape {tuple(tensors[wrong[0]].shape)}, "
+                           f"expected {tuple(expected[wrong[0]])}")
+    set_peft_model_state_dict(peft_model, tensors)
+    peft_model.merge_and_unload()

@@ -1,0 +1,227 @@
+"""Prior rules: what a tenant learned for its other services, as candidates for a new one (issue 32).
+
+The rules still wrong after inference are the ones a service's demonstrations cannot teach: an action never or
+thinly demonstrated, a correlate the calls never separate from the requirement, the polarity of a failure. A
+team's services share their dialog acts, so the rules it already learned for those acts are the best guess
+there. They are candidates, never verdicts: each runs on this request's demonstrations like any candidate (the
+sandbox judges it), and one that does not hold at the demonstrated calls is refuted. Only where the
+demonstrations do not decide does a surviving prior win (`prefer`), and its rule says `decided: transferred`
+with its sources.
+
+Several sources are several votes: where they disagree on an action (one service learned `not
+self.query_success`, another `self.query_success is None`), the surviving priors most sources name are
+preferred; ties are all kept (a conjunction two sources share).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+from precond.engine.cautious import Choice
+from precond.engine.ranking import ActionEvidence, Candidate, Cluster
+from precond.engine.spec import Spec, as_error
+from precond.programs import checks
+from precond.programs.checks import normal
+from precond.sandbox.types import CandidateResult
+from precond_client.schemas.api import Decided, InferOptions, Verdict
+from precond_client.schemas.errors import InvalidInput
+
+SURVIVING: tuple[Verdict, ...] = ("held", "tolerated", "chance")
+"""Verdicts of a prior that holds at the demonstrated calls (a 'chance' one is common elsewhere too: the calls
+cannot refute it, and the other services' evidence is what speaks for it)."""
+SURVIVING_THIN: tuple[Verdict, ...] = (*SURVIVING, "thin")
+
+
+@dataclass
+class Prior:
+    """One prior rule for one action, with every source that names it (canonical text)."""
+
+    expression: str
+    sources: list[str] = field(default_factory=list)
+
+
+@dataclass
+class Priors:
+    """Per action of this request: the applicable prior rules by canonical text, and why others were dropped."""
+
+    rules: dict[str, dict[str, Prior]] = field(default_factory=dict)
+    dropped: dict[str, list[str]] = field(default_factory=dict)
+
+    def expressions(self, action: str) -> list[str]:
+        return [p.expression for p in self.rules.get(action, {}).values()]
+
+    def source_of(self, action: str, expression: str) -> str | None:
+        prior = self.rules.get(action, {}).get(normal(expression))
+        return ", ".join(prior.sources) if prior else None
+
+
+def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstrations: Sequence[str]) -> Priors:
+    """The priors of a request that apply to its actions. A rule that is not one expression, or that calls
+    something, is bad input (422 naming it); one that names what this spec does not define, or an action this
+    request does not infer, does not apply and is dropped with a reason."""
+    if options.prior_sets:
+        raise InvalidInput("prior_sets are resolved by the service: send their rules in options.prior_sources here",
+                           field="options.prior_sets")
+    sources = options.priors()
+    try:
+        checks.check_prior_rules([(where, table) for _, where, table in sources])
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
+    literals = _literals([spec.source, *demonstrations])
+    attributes = _attributes(spec.tree)
+    found = Priors()
+    for source, _, table in sources:
+        for action, rules in table.items():
+            if action not in actions:  # another service's action, or one this request does not infer
+                continue
+            for rule in rules:
+                why = _undefined(rule, _parameters(spec, action), attributes, literals)
+                if why is not None:
+                    found.dropped.setdefault(action, []).append(f"{rule!r} from {source}: {why}")
+                    continue
+                prior = found.rules.setdefault(action, {}).setdefault(normal(rule), Prior(rule.strip()))
+                if source not in prior.sources:
+                    prior.sources.append(source)
+    return found
+
+
+def _parameters(spec: Spec, action: str) -> tuple[str, ...]:
+    method = spec.methods[action]
+    return (*method.positional, *method.kwonly)
+
+
+def _undefined(rule: str, params: Sequence[str], attributes: set[str], literals: set[object]) -> str | None:
+    """What the rule names that this spec does not define: an argument the action does not take, an attribute no
+    class sets, a key (a slot, an intent) neither the spec nor a demonstration mentions; a constant rule (the
+    placeholder `False` of a never-demonstrated action) says nothing learned."""
+    tree = ast.parse(rule.strip(), mode="eval")
+    if isinstance(tree.body, ast.Constant):
+        return "a constant says nothing learned about the action"
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Name) and node.id != "self" and node.id not in params and node.id != "None":
+            return f"names {node.id!r}, which the action does not take"
+        if isinstance(node, ast.Attribute) and node.attr not in attributes:
+            return f"names the attribute {node.attr!r}, which no class of this spec sets"
+        if isinstance(node, ast.Subscript) and isinstance(node.slice, ast.Constant) \
+                and isinstance(node.slice.value, str) and node.slice.value not in literals:
+            return f"names {node.slice.value!r}, which neither the spec nor a demonstration mentions"
+    return None
+
+
+def _attributes(tree: ast.Module) -> set[str]:
+    """Every `self.<name>` the spec assigns, and its methods' names."""
+    names: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            names.add(node.attr)
+        elif isinstance(node, ast.FunctionDef):
+            names.add(node.name)
+    return names
+
+
+def _literals(programs: Sequence[str]) -> set[object]:
+    found: set[object] = set()
+    for program in programs:
+        try:
+            tree = ast.parse(program)
+        except (SyntaxError, ValueError, RecursionError):
+            continue
+        found |= {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)}
+    return found
+
+
+def state_read(expression: str) -> frozenset[tuple[str, object]]:
+    """The state a condition is about: its outermost attributes, with a literal key where it subscripts one
+    (`self.user.informed_slot['city']` reads ('informed_slot', 'city'); `self.user` is only the way there)."""
+    try:
+        tree = ast.parse(expression, mode="eval")
+    except (SyntaxError, ValueError, RecursionError):
+        return frozenset()
+    inner = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Attribute)}
+    keyed = {id(n.value): n for n in ast.walk(tree) if isinstance(n, ast.Subscript)}
+    found: set[tuple[str, object]] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and id(node) not in inner:
+            sub = keyed.get(id(node))
+            key = sub.slice.value if sub is not None and isinstance(sub.slice, ast.Constant) else None
+            found.add((node.attr, key))
+    return frozenset(found)
+
+
+def preferred(priors: Sequence[Prior], results: Mapping[str, CandidateResult], verdicts: Mapping[str, Verdict],
+              evidence: ActionEvidence, demonstrated: bool, sparse: bool) -> list[Candidate]:
+    """The surviving priors most sources name: for a never-demonstrated action every prior the sandbox could
+    judge survives; otherwise one that held at every demonstrated call (on thin evidence too)."""
+    mask = evidence.occurrence_mask
+    fates = SURVIVING_THIN if sparse else SURVIVING
+    alive: list[tuple[Prior, CandidateResult]] = []
+    for prior in priors:
+        result = results.get(prior.expression)
+        if result is None or result.status == "rejected":
+            continue
+        if demonstrated and (verdicts.get(prior.expression) not in fates or mask & ~result.satisfied):
+            continue
+        alive.append((prior, result))
+    best = max((len(p.sources) for p, _ in alive), default=0)
+    return [Candidate(p.expression, "prior", r.satisfied) for p, r in alive if len(p.sources) == best]
+
+
+def support(priors: Sequence[Prior]) -> dict[str, int]:
+    """How many sources name each prior, by its expression."""
+    return {p.expression: len(p.sources) for p in priors}
+
+
+def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[str, int], sparse: bool) -> Choice:
+    """The action's rules with the preferred priors where the demonstrations do not decide.
+
+    Never or thinly demonstrated: the priors replace the zero-shot and assumed guesses. Otherwise:
+    * a kept rule a prior names too becomes the prior's (transferred: two services agree);
+    * an established rule about the state a prior is about (`state_read`: `self.query_success is not None`
+      beside the prior `not self.query_success`) is another reading of it, which the calls cannot tell apart:
+      the prior's reading replaces it (and a rule the demonstrations and a prior agree on settles the
+      reading of its state: no other prior, no other established rule about it);
+    * assumed rules stay unless a prior reads their state: another service's rule says what it requires,
+      not that this one's correlates are not required;
+    * a prior the ranking passed over (a phase, a common fact) joins when two or more sources name it.
+    """
+    if not chosen_priors:
+        return choice
+    prior_decided: dict[str, Decided] = {c.expression: "transferred" for c in chosen_priors}
+    if sparse:
+        return Choice([Cluster((c,)) for c in chosen_priors], prior_decided, _notes(chosen_priors), choice.search)
+    by_text = {normal(c.expression): c for c in chosen_priors}
+    own = {normal(c.representative.expression): c for c in choice.chosen}
+    agreed = [by_text[t] for t in by_text if t in own]
+    settled = [state_read(c.expression) for c in agreed]
+    others = [c for c in chosen_priors if normal(c.expression) not in own
+              and not any(_about(state_read(c.expression), s) for s in settled)]
+    readings = [c for c in others if any(choice.decided.get(k.representative.expression) == "established"
+                                         and _about(state_read(k.representative.expression), state_read(c.expression))
+                                         for k in choice.chosen)]
+    joining = [c for c in others if c not in readings and support.get(c.expression, 0) >= 2]
+    transferred = [*agreed, *readings, *joining]
+    if not transferred:
+        return choice
+    replaced = {normal(c.expression) for c in agreed}
+    states = [*settled, *(state_read(r.expression) for r in readings)]
+    kept = [c for c in choice.chosen if choice.decided.get(c.representative.expression) in ("established", "assumed")
+            and normal(c.representative.expression) not in replaced
+            and not any(_about(state_read(c.representative.expression), s) for s in states)]
+    decided: dict[str, Decided] = {c.representative.expression: choice.decided[c.representative.expression]
+                                   for c in kept}
+    decided.update({c.expression: "transferred" for c in transferred})
+    notes = {e: n for e, n in choice.notes.items() if e in decided}
+    return Choice([*kept, *(Cluster((c,)) for c in transferred)], decided, {**notes, **_notes(transferred)},
+                  choice.search)
+
+
+def _about(state: frozenset[tuple[str, object]], other: frozenset[tuple[str, object]]) -> bool:
+    """Whether a rule reading `state` is about (part of) what `other` reads."""
+    return bool(state) and state <= other
+
+
+def _notes(transferred: Sequence[Candidate]) -> dict[str, str]:
+    return {c.expression: "transferred: a prior rule that held at every demonstrated call, preferred where the "
+            "demonstrations do not decide" for c in transferred}

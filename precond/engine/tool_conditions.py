@@ -1,0 +1,256 @@
+"""Enumerated conditions over a tool-calling agent's state: the spec `precond convert openai` writes.
+
+There, each tool result is an observation `agent.result(tool, key, ok, value)` that keeps the parsed JSON
+result of a read in `self.results[tool][key]`, `key` being the call's identifying argument (a state-changing
+tool, named in the spec's module-level `WRITES`, keeps its results in `self.changes`: conditions are about
+what the agent read). Generic atoms cannot say
+"a successful read of *this* reservation came before the write" or "that reservation is not basic economy",
+so this module adds, for an action whose parameter names the key of an earlier tool's results:
+
+- the read: `reservation_id in self.results['get_reservation_details']`;
+- fields of that result, with the values the demonstrations show
+  (`... and self.results['get_reservation_details'][reservation_id]['cabin'] != 'basic_economy'`), and
+  disjunctions of a few of them that together cover every demonstrated call (policies say "if A, or B, or C");
+- the call's arguments against the result's field of the same name (`total_baggages >= ...['total_baggages']`,
+  `len(passengers) == len(...['passengers'])`).
+
+The demonstrations are read statically (their literals replayed, never run): which values a field takes and
+which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
+Everything is bounded: MAX_VALUES values a field, MAX_ATOMS atoms an action.
+"""
+
+from __future__ import annotations
+
+import ast
+import itertools
+import re
+from collections import Counter
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+
+from precond.engine.spec import Spec
+
+RESULT_PARAMS = ("tool", "key", "ok", "value")
+RESULTS = "self.results"
+MAX_VALUES = 6
+MAX_DISJUNCTS = 3
+MAX_DISJUNCTIONS = 24
+MIN_COVER = 0.75
+MAX_ATOMS = 400
+ISO_DATE = re.compile(r"^\d{4}-\d{2}-\d{2}")
+Scalar = str | int | float | bool | None
+
+
+@dataclass
+class Seen:
+    """One demonstrated call of an action: its arguments and the successful results known at that moment."""
+
+    args: dict[str, object]
+    results: dict[tuple[str, object], object]
+
+
+@dataclass
+class ToolFacts:
+    key_param: dict[str, str] = field(default_factory=dict)
+    """tool → the parameter whose argument keys its results."""
+    values: dict[str, dict[str, Counter[Scalar]]] = field(default_factory=dict)
+    """tool → scalar field → how often each value occurs in its (dict) results."""
+    lists: dict[str, set[str]] = field(default_factory=dict)
+    """tool → fields whose value is a list."""
+    seen: dict[str, list[Seen]] = field(default_factory=dict)
+    """action name → its demonstrated calls."""
+
+
+def tool_class(spec: Spec) -> str | None:
+    """The class that has the `result(tool, key, ok, value)` observation, if the spec is a tool spec."""
+    return next((m.cls for m in spec.methods.values()
+                 if m.name == "result" and m.positional == RESULT_PARAMS and not m.stub), None)
+
+
+def writes_of(spec: Spec) -> frozenset[str]:
+    """The spec's `WRITES = (...)`: the tools whose results are changes, not reads."""
+    for node in spec.tree.body:
+        if (isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)
+                and node.targets[0].id == "WRITES"):
+            ok, value = _literal(node.value)
+            if ok and isinstance(value, tuple | list | set | frozenset):
+                return frozenset(v for v in value if isinstance(v, str))
+    return frozenset()
+
+
+def _literal(node: ast.expr) -> tuple[bool, object]:
+    try:
+        return True, ast.literal_eval(node)
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
+        return False, None
+
+
+class _Replay:
+    """Walks one demonstration's statements in order, keeping the results as the spec's observation would."""
+
+    def __init__(self, facts: ToolFacts, params: dict[str, tuple[str, ...]], writes: frozenset[str]) -> None:
+        self.facts, self.params, self.writes = facts, params, writes
+        self.results: dict[tuple[str, object], object] = {}
+        self.pending: list[tuple[str, dict[str, object]]] = []
+
+    def statement(self, node: ast.stmt) -> None:
+        call = node.value if isinstance(node, ast.Expr) else None
+        if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute)) or call.keywords:
+            return
+        parsed = [_literal(a) for a in call.args]
+        if not all(ok for ok, _ in parsed):
+            return
+        values = [v for _, v in parsed]
+        if call.func.attr == "result" and len(values) == len(RESULT_PARAMS):
+            self.result(*values)
+        elif call.func.attr in self.params:
+            args = dict(zip(self.params[call.func.attr], values, strict=False))
+            self.facts.seen.setdefault(call.func.attr, []).append(Seen(args, dict(self.results)))
+            self.pending.append((call.func.attr, args))
+
+    def result(self, tool: object, key: object, ok: object, value: object) -> None:
+        if not self.pending or not isinstance(tool, str):
+            return
+        called, args = self.pending.pop(0)
+        if called != tool or tool in self.writes:
+            return
+        if key is not None and tool not in self.facts.key_param:
+            param = next((p for p, v in args.items() if v == key), None)
+            if param is not None:
+                self.facts.key_param[tool] = param
+        if ok is True and isinstance(value, dict):
+            self.results[(tool, key)] = value
+            self._note_fields(tool, value)
+
+    def _note_fields(self, tool: str, value: dict[object, object]) -> None:
+        counts = self.facts.values.setdefault(tool, {})
+        lists = self.facts.lists.setdefault(tool, set())
+        for name, item in value.items():
+            if not isinstance(name, str):
+                continue
+            if isinstance(item, list):
+                lists.add(name)
+            elif item is None or isinstance(item, str | int | float | bool):
+                counts.setdefault(name, Counter())[item] += 1
+
+
+def read_facts(spec: Spec, cls: str, demos: Iterable[ast.Module]) -> ToolFacts:
+    facts = ToolFacts()
+    params = {m.name: m.positional for m in spec.methods.values() if m.cls == cls and m.stub}
+    writes = writes_of(spec)
+    for module in demos:
+        replay = _Replay(facts, params, writes)
+        for node in module.body:
+            replay.statement(node)
+    return facts
+
+
+def _ordered(values: Iterable[Scalar]) -> bool:
+    """Numbers, or ISO dates: fields a threshold is meaningful for."""
+    items = list(values)
+    numbers = all(isinstance(v, int | float) and not isinstance(v, bool) for v in items)
+    return bool(items) and (numbers or all(isinstance(v, str) and ISO_DATE.match(v) for v in items))
+
+
+@dataclass(frozen=True)
+class _Test:
+    """A positive condition on a result field and the demonstrated calls it covers (for disjunctions)."""
+
+    text: str
+    field: str
+    covers: frozenset[int]
+
+
+class _Builder:
+    def __init__(self, facts: ToolFacts, action: str, params: Sequence[str], key: str, tool: str) -> None:
+        self.facts, self.params, self.key, self.tool = facts, params, key, tool
+        self.table = f"{RESULTS}[{tool!r}]"
+        self.has = f"{key} in {self.table}"
+        self.got = f"{self.table}[{key}]"
+        self.seen = [s.results.get((tool, s.args.get(key))) for s in facts.seen.get(action, [])]
+
+    def read(self) -> list[str]:
+        return [self.has, f"{self.key} not in {self.table}"]
+
+    def _at_calls(self, name: str) -> list[object]:
+        return [r.get(name) for r in self.seen if isinstance(r, dict)]
+
+    def fields(self) -> tuple[list[str], list[_Test]]:
+        atoms: list[str] = []
+        tests: list[_Test] = []
+        for name, counts in sorted(self.facts.values.get(self.tool, {}).items()):
+            common = [v for v, _ in counts.most_common(MAX_VALUES)]
+            if len(counts) <= MAX_VALUES:
+                for value in common:
+                    ref = f"{self.got}[{name!r}]"
+                    atoms += [f"{self.has} and {ref} == {value!r}", f"{self.has} and {ref} != {value!r}"]
+                    tests.append(self._test(f"{ref} == {value!r}", name, _equals(name, value)))
+            if _ordered(counts):
+                atoms += self._thresholds(name)
+        return atoms, tests
+
+    def _thresholds(self, name: str) -> list[str]:
+        at_calls = [v for v in self._at_calls(name) if _ordered([v])]  # type: ignore[list-item]
+        if not at_calls:
+            return []
+        ref = f"{self.got}[{name!r}]"
+        low, high = min(at_calls), max(at_calls)  # type: ignore[type-var]
+        return [f"{self.has} and {ref} >= {low!r}", f"{self.has} and {ref} <= {high!r}"]
+
+    def _test(self, text: str, name: str, holds: Callable[[dict[str, object]], bool]) -> _Test:
+        covers = frozenset(i for i, r in enumerate(self.seen) if isinstance(r, dict) and holds(r))
+        return _Test(text, name, covers)
+
+    def arguments(self) -> list[str]:
+        """The call's own arguments against the same-named field of the result."""
+        atoms: list[str] = []
+        scalars = self.facts.values.get(self.tool, {})
+        for param in self.params:
+            if param == self.key:
+                continue
+            ref = f"{self.got}[{param!r}]"
+            if param in scalars:
+                ops = ("==", "!=", ">=", "<=") if _ordered(scalars[param]) else ("==", "!=")
+                atoms += [f"{self.has} and {param} {op} {ref}" for op in ops]
+            if param in self.facts.lists.get(self.tool, set()):
+                atoms += [f"{self.has} and len({param}) == len({ref})", f"{self.has} and len({param}) != len({ref})"]
+        return atoms
+
+    def disjunctions(self, tests: list[_Test]) -> list[str]:
+        """Two or three tests on different fields that together hold at MIN_COVER of the demonstrated calls,
+        none of which alone does (policies say "if A, or B, or C"; logs hold a few slips, which evidence-weighted
+        validation may tolerate), the most covering first."""
+        every = frozenset(i for i, r in enumerate(self.seen) if isinstance(r, dict))
+        partial = [t for t in tests if t.covers and t.covers != every]
+        if not every or len(partial) < 2:
+            return []
+        found: list[tuple[int, int, str]] = []
+        for size in range(2, MAX_DISJUNCTS + 1):
+            for group in itertools.combinations(partial, size):
+                covered = frozenset().union(*(t.covers for t in group))
+                if (len(covered) >= MIN_COVER * len(every) and len({t.field for t in group}) == size
+                        and not _redundant(group)):
+                    found.append((-len(covered), size, f"{self.has} and ({' or '.join(t.text for t in group)})"))
+        return [text for _, _, text in sorted(found)[:MAX_DISJUNCTIONS]]
+
+
+def _equals(name: str, value: Scalar) -> Callable[[dict[str, object]], bool]:
+    return lambda result: result.get(name) == value
+
+
+def _redundant(group: Sequence[_Test]) -> bool:
+    """A member whose calls the others already cover adds nothing."""
+    return any(t.covers <= frozenset().union(*(o.covers for o in group if o is not t)) for t in group)
+
+
+def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """The atoms for one action (a stub of the tool class), at most MAX_ATOMS."""
+    atoms: list[str] = []
+    for key in params:
+        for tool, param in sorted(facts.key_param.items()):
+            if param != key or tool == action:
+                continue
+            builder = _Builder(facts, action, params, key, tool)
+            fields, tests = builder.fields()
+            atoms += builder.read() + builder.arguments() + builder.disjunctions(tests) + fields
+    return list(dict.fromkeys(atoms))[:MAX_ATOMS]

@@ -1,0 +1,275 @@
+"""Per-tenant limits and fair ordering, kept in Redis so that every gateway sees the same counts.
+
+- A token bucket per tenant bounds its request rate on every route (`PRECOND_TENANT_RATE_PER_S`,
+  `PRECOND_TENANT_BURST`), and one per source address its failed authentications
+  (`PRECOND_AUTH_FAILURES_PER_S`, `PRECOND_AUTH_FAILURE_BURST`): a source whose bucket is empty gets 429
+  before its key is even looked at, on every gateway process that saw it fail.
+- A set per tenant of its unfinished jobs bounds how many it may have queued or running
+  (`PRECOND_TENANT_MAX_JOBS`); a job leaves the set once arq's job key is gone (done, failed or cancelled).
+- Fair ordering: arq serves a queue in score order, and a job's score here is its tenant's *virtual start
+  time*, not its arrival time: one more than the larger of the queue's head and the tenant's last job. A
+  tenant with 500 jobs queued has scores far ahead; another tenant's one job lands right behind the head,
+  so it waits for at most the jobs already running plus one. Scores count up from a fixed epoch long past,
+  so every job is due at once (arq treats a score as the time a job may start).
+
+Each rule is Lua run by Redis atomically, so concurrent requests cannot both take the last slot; the job cap
+and the fair place are functions of the queue's one submission script (service.queue), which admits, places
+and enqueues a job in one step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Final
+
+from arq.connections import ArqRedis
+from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
+
+from precond.gateway.caller import Caller
+from precond.jobs.keys import PREFIX
+from precond.jobs.scripts import LuaScript
+
+FAIR_EPOCH_MS: Final = 946_684_800_000  # 2000-01-01: every fair score is in the past, so due at once
+STATE_TTL_S: Final = 7 * 24 * 3600
+
+_TAKE_TOKENS = LuaScript("""
+local rate, burst, now, want = tonumber(ARGV[1]), tonumber(ARGV[2]), tonumber(ARGV[3]), tonumber(ARGV[4])
+local state = redis.call('HMGET', KEYS[1], 'tokens', 'at')
+local tokens, at = tonumber(state[1]) or burst, tonumber(state[2]) or now
+tokens = math.min(burst, tokens + math.max(0, now - at) * rate)
+local granted = math.min(want, math.floor(tokens))
+tokens = tokens - granted
+redis.call('HSET', KEYS[1], 'tokens', tokens, 'at', now)
+redis.call('EXPIRE', KEYS[1], math.ceil(burst / rate) + 60)
+return {granted, tostring(tokens)}
+""")
+"""Up to `want` whole tokens from a bucket: how many it gave, and what is left (a fraction below one when none)."""
+
+LEASE_S: Final = 0.25
+"""How long a gateway process may spend the tokens it took ahead of its requests (`Lease`)."""
+MAX_LEASE: Final = 64
+
+# A tenant's unfinished jobs, for the queue's submission script (service.queue), which admits a job and
+# enqueues it in the same step: the count of the tenant's live jobs when it has `limit` already, else -1 (a job
+# the tenant already has, an identical request, is free). Ids whose job key is gone (done, failed, cancelled)
+# leave the set on the way.
+TENANT_JOBS_FUNCTION = """
+local function tenant_full(jobs, id, limit, job_prefix)
+  if redis.call('ZSCORE', jobs, id) then return -1 end
+  for _, other in ipairs(redis.call('ZRANGE', jobs, 0, -1)) do
+    if redis.call('EXISTS', job_prefix .. other) == 0 then redis.call('ZREM', jobs, other) end
+  end
+  local count = redis.call('ZCARD', jobs)
+  if count >= tonumber(limit) then return count end
+  return -1
+end
+"""
+
+# Virtual time is the queue's head score; with nothing queued, the highest score handed out so far (all
+# of those jobs are done, so a tenant's old backlog gives it no head start and no debt). A Lua function, for
+# the queue's submission script (service.queue), which enqueues a job at this score in the same step.
+FAIR_SCORE_FUNCTION = """
+local function fair_score(queue, fair, tag, epoch, ttl)
+  local head = redis.call('ZRANGE', queue, 0, 0, 'WITHSCORES')
+  local highest = tonumber(redis.call('HGET', fair, '~max') or epoch)
+  local clock = highest
+  if head[2] then
+    clock = tonumber(head[2])
+  end
+  local score = math.max(clock, tonumber(redis.call('HGET', fair, tag) or 0)) + 1
+  redis.call('HSET', fair, tag, score, '~max', math.max(highest, score))
+  redis.call('EXPIRE', fair, ttl)
+  return score
+end
+"""
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """Which limit a request hit, for its 429."""
+
+    limit: str  # "rate" | "jobs" | "auth"
+    message: str
+    retry_after_s: int
+
+
+def _rate_key(tag: str) -> str:
+    return f"{PREFIX}:tenant:{tag}:rate"
+
+
+def _auth_key(source: str) -> str:
+    return f"{PREFIX}:source:{source}:auth-failures"
+
+
+def tenant_jobs_key(tag: str) -> str:
+    return f"{PREFIX}:tenant:{tag}:jobs"
+
+
+def fair_key(queue: str) -> str:
+    return f"{PREFIX}:fair:{queue}"
+
+
+@dataclass(frozen=True)
+class AuthLimit:
+    failures_per_s: float
+    burst: int
+
+
+MAX_BLOCKED_SOURCES: Final = 10_000
+
+
+@dataclass
+class Lease:
+    """Tokens a gateway process took from a tenant's bucket ahead of its requests, spent here without Redis.
+
+    A busy tenant's every request took its token in a round trip to Redis: a fifth of the gateway's CPU per
+    cache hit. A lease takes several at once; every token spent was taken from the shared bucket first, so
+    across processes a tenant still never gets more than its rate and burst allow. A token left when the lease
+    ends (`LEASE_S`) is lost: the tenant gets less, never more. A lease's size follows the tenant's demand in
+    this process: one token at first (a tenant whose requests come more than `LEASE_S` apart takes one token a
+    request, as before), twice the last when that was spent within its time, what was spent of it when not,
+    and never more than a quarter of the burst or what the rate refills in `LEASE_S` (so that the other
+    processes of a tenant near its limit are not refused while this one holds its tokens)."""
+
+    size: int
+    tokens: int
+    until: float
+
+    def next_size(self, now: float, largest: int) -> int:
+        spent = self.size - self.tokens
+        return min(largest, 2 * self.size if self.tokens == 0 and now <= self.until else max(1, spent))
+
+
+class SourceBuckets:
+    """Token buckets per source address kept in this process, for the routes open without a key (`/health`,
+    `/ready`, `/metrics`): they must answer while Redis is down, so their rate cannot live there."""
+
+    def __init__(self, rate_per_s: float, burst: int) -> None:
+        self.rate_per_s, self.burst = rate_per_s, burst
+        self._buckets: dict[str, tuple[float, float]] = {}  # source -> (tokens, at)
+
+    def take(self, source: str) -> Refusal | None:
+        now = datetime.now(UTC).timestamp()
+        if len(self._buckets) >= MAX_BLOCKED_SOURCES:  # keep only the empty ones (a forgotten bucket is full)
+            self._buckets = {s: b for s, b in self._buckets.items() if b[0] + (now - b[1]) * self.rate_per_s < 1}
+        tokens, at = self._buckets.get(source, (float(self.burst), now))
+        tokens = min(float(self.burst), tokens + (now - at) * self.rate_per_s)
+        if tokens < 1:
+            self._buckets[source] = (tokens, now)
+            wait = max(1, math.ceil((1 - tokens) / self.rate_per_s))
+            return Refusal("rate", f"rate limit: this address may call the open routes {self.rate_per_s:g} "
+                                   f"times/s (bursts of {self.burst})", wait)
+        self._buckets[source] = (tokens - 1, now)
+        return None
+
+
+def _remember(blocked: dict[str, float], who: str, until: float, now: float) -> None:
+    """Note until when `who` is refused, keeping at most MAX_BLOCKED_SOURCES live entries."""
+    if len(blocked) >= MAX_BLOCKED_SOURCES:
+        for stale in [k for k, t in blocked.items() if t <= now]:
+            del blocked[stale]
+        if len(blocked) >= MAX_BLOCKED_SOURCES:
+            return  # all live: this one is asked of Redis each time, as before
+    blocked[who] = until
+
+
+class Quotas:
+    def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int, auth: AuthLimit) -> None:
+        self.redis, self.rate_per_s, self.burst, self.max_jobs, self.auth = redis, rate_per_s, burst, max_jobs, auth
+        self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
+        self._empty: dict[str, float] = {}  # tenant tag -> until its rate bucket has a token again
+        self._leases: dict[str, Lease] = {}  # tenant tag -> its tokens taken ahead (bounded as `_remember` is)
+        self._leasing: set[str] = set()  # tenant tags whose lease is being taken now
+        self._largest_lease = max(1, min(MAX_LEASE, burst // 4, math.floor(rate_per_s * LEASE_S)))
+
+    async def _take(self, key: str, rate: float, burst: int, want: int = 1) -> tuple[int, float]:
+        """Up to `want` tokens from the bucket at `key`: how many, and the seconds until the next one when none.
+        While the queue Redis is full (noeviction refuses the bucket's write) the request goes on uncounted:
+        reading a job's state must keep working then, and every request that would write is refused by that
+        Redis anyway."""
+        now = datetime.now(UTC).timestamp()
+        try:
+            granted, tokens = await _TAKE_TOKENS(self.redis, [key], [rate, burst, now, want])
+        except OutOfMemoryError:
+            return 1, 0.0
+        return int(granted), max(0.0, (1 - float(tokens)) / rate)
+
+    async def take_request(self, caller: Caller) -> Refusal | None:
+        """A token of the tenant's rate: from this process's lease when it holds one (`Lease`), else from the
+        shared bucket. While this process knows the bucket is empty, the refusal costs no Redis round trip: a
+        tenant flooding past its rate must not cost the others the shared Redis's time."""
+        now = datetime.now(UTC).timestamp()
+        lease = self._leases.get(caller.tag)
+        if lease is not None and lease.tokens > 0 and now <= lease.until:
+            lease.tokens -= 1
+            return None
+        until = self._empty.get(caller.tag, 0.0)
+        if until > now:
+            wait = until - now
+        else:
+            granted, wait = await self._take_for(caller.tag, lease, now)
+            if granted:
+                return None
+            _remember(self._empty, caller.tag, now + wait, now)
+        return Refusal("rate", f"rate limit: tenant {caller.name!r} may send {self.rate_per_s:g} requests/s "
+                               f"(bursts of {self.burst})", max(1, math.ceil(wait)))
+
+    async def _take_for(self, tag: str, lease: Lease | None, now: float) -> tuple[int, float]:
+        """Tokens for a request that found no lease to spend. One take at a time per tenant leases (its grant
+        replaces the spent or ended lease); requests that come while it is on the way take one token each, so
+        that concurrent requests neither hoard the bucket nor overwrite each other's leases (whose tokens,
+        taken from the bucket, would then be lost)."""
+        if tag in self._leasing:
+            return await self._take(_rate_key(tag), self.rate_per_s, self.burst)
+        self._leasing.add(tag)
+        try:
+            want = 1 if lease is None else lease.next_size(now, self._largest_lease)
+            granted, wait = await self._take(_rate_key(tag), self.rate_per_s, self.burst, want)
+        finally:
+            self._leasing.discard(tag)
+        if granted:
+            self._lease(tag, Lease(granted, granted - 1, now + LEASE_S), now)
+        return granted, wait
+
+    def auth_blocked(self, source: str) -> Refusal | None:
+        """Whether this source used up its failed authentications (no Redis: checked before every key)."""
+        until = self._blocked.get(source)
+        now = datetime.now(UTC).timestamp()
+        if until is None or until <= now:
+            return None
+        return self._auth_refusal(math.ceil(until - now))
+
+    def _lease(self, tag: str, lease: Lease, now: float) -> None:
+        """Keep `lease`, within MAX_BLOCKED_SOURCES leases (the page's sources count as tenants here): the
+        ended ones make room, and with none ended the new one is not kept (its tokens are lost)."""
+        if tag not in self._leases and len(self._leases) >= MAX_BLOCKED_SOURCES:
+            self._leases = {t: kept for t, kept in self._leases.items() if kept.until >= now}
+            if len(self._leases) >= MAX_BLOCKED_SOURCES:
+                return
+        self._leases[tag] = lease
+
+    async def auth_failed(self, source: str) -> Refusal | None:
+        """Count one failed authentication of `source`; a refusal once its bucket is empty."""
+        granted, taken = await self._take(_auth_key(source), self.auth.failures_per_s, self.auth.burst)
+        if granted:
+            return None
+        wait = max(1, math.ceil(taken))  # a whole second at least: a penalty, not just the next token
+        now = datetime.now(UTC).timestamp()
+        _remember(self._blocked, source, now + wait, now)
+        return self._auth_refusal(wait)
+
+    def _auth_refusal(self, wait: int) -> Refusal:
+        return Refusal("auth", f"too many failed authentications from this address: at most "
+                               f"{self.auth.failures_per_s:g}/s (bursts of {self.auth.burst})", max(1, wait))
+
+    def jobs_refusal(self, caller: Caller, count: int, retry_after_s: int) -> Refusal:
+        """The 429 of a tenant at its cap of queued and running jobs (`PRECOND_TENANT_MAX_JOBS`)."""
+        return Refusal("jobs", f"job limit: tenant {caller.name!r} has {count} jobs queued or running "
+                               f"(at most {self.max_jobs})", retry_after_s)
+
+
+JOB_EXPIRY: Final = timedelta(days=1)
+"""How long a queued job may wait before arq drops it (arq's own default; passed explicitly because a past
+`_defer_until` would otherwise give it a negative lifetime)."""

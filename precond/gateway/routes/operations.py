@@ -1,0 +1,301 @@
+"""The three operations: each becomes a job (or a cache hit), answered within the client's wait bound."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+from typing import Annotated, Any, Final, Generic, TypeVar
+
+from fastapi import APIRouter, Body, Query, Request
+from fastapi.responses import JSONResponse, Response
+from pydantic import BaseModel, ValidationError
+
+from precond.convert.openai import call_lines
+from precond.gateway import offload
+from precond.gateway.auth import CurrentCaller
+from precond.gateway.caller import Caller
+from precond.gateway.deps import Services, ServicesDep
+from precond.gateway.errors import ServiceError, error_response, status_for
+from precond.gateway.examples import openapi_examples
+from precond.gateway.middleware import OffloadedBodyRoute
+from precond.gateway.submission import submit_job
+from precond.jobs import keys, policy_adapters
+from precond.jobs.payloads import ReinferJob, TrainPolicyJob
+from precond.programs import checks
+from precond_client.schemas.api import (
+    CheckRequest,
+    CheckResponse,
+    ErrorInfo,
+    ErrorResponse,
+    InferOptions,
+    InferRequest,
+    InferResponse,
+    JobKind,
+    JobStatus,
+    NextActionRequest,
+    NextActionResponse,
+    PriorSource,
+)
+
+router = APIRouter(tags=["operations"], route_class=OffloadedBodyRoute)
+
+B = TypeVar("B", bound=BaseModel)
+RulesRequest = TypeVar("RulesRequest", CheckRequest, NextActionRequest)
+"""A request that names rules (or a stored set of them) and a history: completed alike for both kinds."""
+
+Wait = Annotated[
+    float | None,
+    Query(
+        ge=0, description="Seconds to wait for the result before answering 202; capped by the server's bound."
+    ),
+]
+ERRORS: dict[int | str, dict[str, Any]] = {
+    202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
+    400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
+    404: {"model": ErrorResponse, "description": "`precondition_set` names no set (or version) of yours; another "
+          "tenant's set is not found either."},
+    413: {"model": ErrorResponse, "description": "Body larger than the configured bound."},
+    401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
+    422: {"model": ErrorResponse,
+          "description": "Malformed body, input the engine cannot use, or over the work budget."},
+    429: {"model": ErrorResponse,
+          "description": "A limit: the tenant's request rate (`rate_limited`), its jobs queued or running "
+          "(`jobs_limited`), the queue's length (`queue_full`), or failed authentications from this address "
+          "(`auth_limited`); see Retry-After."},
+    503: {"model": ErrorResponse, "description": "Queue backend unreachable or model unavailable."},
+}
+
+
+@router.post("/infer-preconditions", response_model=InferResponse, responses=ERRORS)
+async def infer_preconditions(
+    body: Annotated[
+        InferRequest, Body(openapi_examples=openapi_examples("infer-enumerate", "infer-kept", "infer-model"))
+    ],
+    request: Request,
+    services: ServicesDep,
+    caller: CurrentCaller,
+    wait: Wait = None,
+) -> Response:
+    """Verified preconditions per action. Demonstrations none of which calls an action are refused (422); an
+    action no demonstration calls is listed in `warnings` ("no occurrence"), never a silent empty rule.
+    `generators: ["enumerate"]` runs on the model-free queue, never behind model jobs."""
+    return await answer(services, request, caller, "infer", body, wait)
+
+
+@router.post("/next-action", response_model=NextActionResponse, responses=ERRORS)
+async def next_action(
+    body: Annotated[NextActionRequest, Body(openapi_examples=openapi_examples("next-action"))],
+    request: Request,
+    services: ServicesDep,
+    caller: CurrentCaller,
+    wait: Wait = None,
+) -> Response:
+    """The next action(s), verified against the preconditions. `options.mode` "constrained" (default): the
+    sandbox judges every call the agent could make now and the model chooses among the allowed ones; when none
+    is allowed, `nothing_allowed` says so (with every call in `rejected`, by the failing rule). "sample": the
+    paper's Algorithm 1; when no attempt passes, `call` is null with every attempt in `rejected`, unless
+    `options.fallback` is "greedy". A call is always a call of an action; a history that itself breaks the
+    preconditions is answered with `history_violation` set (line and rule), not refused."""
+    return await answer(services, request, caller, "next-action", body, wait)
+
+
+@router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
+async def check_actions(
+    body: Annotated[CheckRequest, Body(openapi_examples=openapi_examples("check-actions"))],
+    request: Request,
+    services: ServicesDep,
+    caller: CurrentCaller,
+    wait: Wait = None,
+) -> Response:
+    """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
+    ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
+    and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
+    return await answer(services, request, caller, "check", body, wait)
+
+
+async def _with_rules_and_program(
+    services: Services, tag: str, body: RulesRequest
+) -> RulesRequest | checks.Problem:
+    """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
+    tenant has no such set), its demonstrations too for a next action that sends none (they name the argument
+    values the agent could use), and a structured history (events or OpenAI messages) and tool calls rendered to
+    program text (literals only)."""
+    if body.precondition_set is not None:
+        stored = await services.sets.get(tag, body.precondition_set)
+        update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
+        if isinstance(body, NextActionRequest) and not body.demonstrations:
+            update["demonstrations"] = stored.demonstrations
+        if isinstance(body, CheckRequest):
+            update["decided"] = stored.decided
+        body = body.model_copy(update=update)
+    if not isinstance(body.history, str):
+        history = body.model_dump(include={"history"})["history"]  # events and messages as plain data, at once
+        chars = offload.rendering_chars(body.spec_text(), len(json.dumps(history, default=str)))
+        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history, tag)
+        if isinstance(program, checks.Problem):
+            return program
+        body = body.model_copy(update={"history": program})
+    if isinstance(body, CheckRequest) and not all(isinstance(c, str) for c in body.calls):
+        try:
+            calls = call_lines(body.spec_text(), [c if isinstance(c, str) else c.model_dump() for c in body.calls])
+        except checks.ProgramProblem as exc:
+            return exc.problem
+        body = body.model_copy(update={"calls": calls})
+    return body
+
+
+async def with_prior_sets(services: Services, tag: str, options: InferOptions) -> InferOptions:
+    """The options with the tenant's stored sets named in `prior_sets` resolved to their rules (404 for a set
+    that is not the tenant's), so that the worker never reads a set and the job id depends on the rules
+    themselves, not on a reference whose latest version may change."""
+    sources = list(options.prior_sources)
+    for reference in options.prior_sets:
+        stored = await services.sets.get(tag, reference)
+        sources.append(PriorSource(source=stored.reference, rules=stored.preconditions))
+    try:
+        return InferOptions.model_validate(
+            {**options.model_dump(), "prior_sets": [], "prior_sources": [s.model_dump() for s in sources]})
+    except ValidationError as exc:
+        raise ServiceError(422, f"options.prior_sets: {exc.errors()[0]['msg']}", "invalid_input",
+                           field="options.prior_sets") from None
+
+
+def _text(history: object) -> str:
+    return history if isinstance(history, str) else ""
+
+
+def _program_chars(body: BaseModel) -> int:
+    body = body.request if isinstance(body, TrainPolicyJob) else body
+    texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
+             *getattr(body, "demonstrations", []), *getattr(body, "calls", [])]
+    return sum(len(text) for text in texts)
+
+
+StaticCheck = tuple[Callable[..., None], tuple[Any, ...]]
+"""A static check of a request's programs (parsed, never run) and its work estimate, as a function and its
+arguments for the check pool: 422 before anything is queued, not a failed job after the wait."""
+
+
+@dataclass(frozen=True)
+class Operation(Generic[B]):
+    """What the gateway does with one kind's body before it becomes a job: complete it as a worker runs it,
+    name the model its answer depends on (part of the job id), and check its programs statically."""
+
+    prepare: Callable[[Services, str, B], Awaitable[B]]
+    model: Callable[[B], str | None]
+    static_check: Callable[[B, int, str], StaticCheck] | None
+    """None where the route screened the request itself before building the job (a re-inference). Its arguments:
+    the body, the work budget and the caller's tag (what a check may remember is remembered per tenant)."""
+
+
+async def _with_prior_sets(services: Services, tag: str, body: InferRequest) -> InferRequest:
+    if not body.options.prior_sets:
+        return body
+    return body.model_copy(update={"options": await with_prior_sets(services, tag, body.options)})
+
+
+async def _with_rules(services: Services, tag: str, body: RulesRequest) -> RulesRequest:
+    prepared = await _with_rules_and_program(services, tag, body)
+    if isinstance(prepared, checks.Problem):
+        raise _unusable(prepared)
+    return prepared
+
+
+async def _with_rules_and_policy(services: Services, tag: str, body: NextActionRequest) -> NextActionRequest:
+    """`_with_rules`, and `options.policy` naming the version it runs with (the latest for a bare id), so that
+    the job id and its cached answer belong to that version: 404 when the tenant has no such trained policy."""
+    body = await _with_rules(services, tag, body)
+    if body.options.policy is None:
+        return body
+    reference = body.options.policy.removeprefix("adapter:")
+    stored = await policy_adapters.get(services.redis, tag, reference)
+    if stored is None:
+        raise ServiceError(404, f"options.policy: no trained policy {reference} of yours (POST /policies trains "
+                           "one; another tenant's is not found either)", field="options.policy")
+    options = body.options.model_copy(update={"policy": f"adapter:{stored.reference}"})
+    return body.model_copy(update={"options": options})
+
+
+async def _as_sent(services: Services, tag: str, body: ReinferJob | TrainPolicyJob) -> ReinferJob | TrainPolicyJob:
+    return body
+
+
+def _model_if_generated(body: InferRequest | ReinferJob) -> str | None:
+    return keys.model_identity() if "model" in body.options.generators else None
+
+
+def _infer_check(body: InferRequest, max_work_points: int, _tag: str) -> StaticCheck:
+    return checks.check_infer_with_priors, (body.spec, body.demonstrations, body.actions, max_work_points,
+                                            [(where, rules) for _, where, rules in body.options.priors()])
+
+
+def _next_action_check(body: NextActionRequest, max_work_points: int, _tag: str) -> StaticCheck:
+    return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
+                                      _text(body.history), max_work_points)
+
+
+def _training_check(body: TrainPolicyJob, max_work_points: int, _tag: str) -> StaticCheck:
+    return checks.check_training, (body.request.spec, body.request.demonstrations)
+
+
+def _check_check(body: CheckRequest, max_work_points: int, tag: str) -> StaticCheck:
+    # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
+    return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
+                                [c for c in body.calls if isinstance(c, str)], tag)
+
+
+OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
+    "infer": Operation(_with_prior_sets, _model_if_generated, _infer_check),
+    "next-action": Operation(_with_rules_and_policy, lambda body: keys.model_identity(), _next_action_check),
+    "check": Operation(_with_rules, lambda body: None, _check_check),
+    "reinfer": Operation(_as_sent, _model_if_generated, None),
+    "train-policy": Operation(_as_sent, lambda body: keys.model_identity(), _training_check),
+}
+"""Every kind a route submits through `answer` (a set's validation is submitted by its route directly)."""
+
+
+async def answer(
+    services: Services,
+    request: Request,
+    caller: Caller,
+    kind: JobKind,
+    body: BaseModel,
+    wait: float | None,
+) -> Response:
+    """The operation's answer: the request completed as a worker runs it, then submitted (`submit_job`), its
+    programs checked statically only when it must run."""
+    operation = OPERATIONS[kind]
+    body = await operation.prepare(services, caller.tag, body)
+    static_check = operation.static_check
+
+    async def screen() -> None:
+        if static_check is None:
+            return
+        check, args = static_check(body, services.settings.max_work_points, caller.tag)
+        problem = await services.checks.run(caller.tag, _program_chars(body), offload.problem_of, check, *args)
+        if problem is not None:
+            if problem.type == checks.WORK_BUDGET:
+                services.metrics.rejections.labels(caller.tag, "work").inc()
+            raise _unusable(problem)
+
+    payload = body.model_dump(mode="json")
+    status = await submit_job(services, caller, kind, payload, operation.model(body), wait, screen)
+    return respond(request, status)
+
+
+def _unusable(problem: checks.Problem) -> ServiceError:
+    return ServiceError(422, problem.message, problem.type, field=problem.field)
+
+
+def respond(request: Request, status: JobStatus) -> Response:
+    """200 with the result, the job's error with its status, or 202 pointing at the job while it runs."""
+    headers = {"X-Job-Id": status.id}
+    if status.status == "succeeded":
+        return JSONResponse(status.result, headers=headers)
+    if status.status in ("failed", "cancelled"):
+        error = status.error or ErrorInfo(type="internal", message="job failed")
+        code = 409 if status.status == "cancelled" else status_for(error)
+        return error_response(request, code, error, headers=headers)
+    headers["Location"] = f"/jobs/{status.id}"
+    return JSONResponse(status.model_dump(mode="json"), status_code=202, headers=headers)

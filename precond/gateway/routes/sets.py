@@ -1,0 +1,222 @@
+"""Precondition sets: create, read any version, edit by making a new version (checked against the demonstrations
+by a worker: the gateway never runs code). Another tenant's set is a 404, word for word as a missing one."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query, Request
+from fastapi.responses import JSONResponse, Response
+
+from precond.gateway import offload
+from precond.gateway.auth import RATE_LIMITED, CurrentCaller
+from precond.gateway.caller import Caller
+from precond.gateway.deps import Services, ServicesDep
+from precond.gateway.errors import ServiceError, status_for
+from precond.gateway.middleware import OffloadedBodyRoute
+from precond.gateway.routes.operations import ERRORS, Wait, answer, with_prior_sets
+from precond.gateway.set_store import Report, apply_edits, blocking_message, new_id, not_found, version_of
+from precond.gateway.submission import submit_job
+from precond.jobs.payloads import ReinferJob, ValidateRequest
+from precond.jobs.precondition_sets import normal, set_warnings, union
+from precond.programs import checks
+from precond_client.schemas.api import (
+    MAX_DEMONSTRATIONS,
+    ErrorInfo,
+    ErrorResponse,
+    PreconditionSet,
+    PreconditionSetCreate,
+    PreconditionSetEdit,
+    PreconditionSetList,
+    PreconditionSetReinfer,
+    ValidateResponse,
+)
+
+router = APIRouter(prefix="/precondition-sets", tags=["precondition sets"], route_class=OffloadedBodyRoute)
+RESPONSES: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
+    401: {"model": ErrorResponse, "description": "Missing, unknown, revoked or expired API key."},
+    404: {"model": ErrorResponse, "description": "No such set (or version) of yours: another tenant's set is not "
+          "found either."},
+    409: {"model": ErrorResponse, "description": "`base_version` is no longer the latest version."},
+    413: {"model": ErrorResponse, "description": "A version over PRECOND_MAX_SET_BYTES."},
+    422: {"model": ErrorResponse, "description": "Malformed body or rule (field names it, e.g. `edits[2]`), a rule "
+          "that would block a demonstrated call (unless `force`), or over a bound (`sets_limited`)."},
+    429: {"model": ErrorResponse, "description": "A limit of the tenant (request rate, jobs), of failed "
+          "authentications from this address, or of the check queue (see Retry-After)."},
+    503: {"model": ErrorResponse, "description": "Queue backend unreachable, or the check against the "
+          "demonstrations did not finish in time (retry: its result is cached)."},
+}
+SetReference = Annotated[str, Path(max_length=100, description="`id`, or `id@version`.")]
+SetId = Annotated[str, Path(max_length=100)]
+MAX_LISTED_SETS = 100
+
+
+@router.post("", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
+async def create_set(body: PreconditionSetCreate, services: ServicesDep, caller: CurrentCaller) -> JSONResponse:
+    """Store rules as version 1 of a new set, by hand or from an inference (its `preconditions`, with the `spec`
+    and `demonstrations` it was inferred from). Rules that would block a demonstrated call are refused (422,
+    naming the rule and the demonstration) unless `force`; the report is kept in `validation`."""
+    rules = await _static_check(services, caller, body.spec, body.preconditions, body.demonstrations)
+    validation = await _validate(services, caller, body.spec, rules, body.demonstrations)
+    _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")
+    set_id = new_id()
+    report = Report.of(body)
+    warnings = set_warnings(body.spec, rules, {}, report.warnings)
+    version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings,
+                         report)
+    stored = await services.sets.create(caller.tag, version)
+    return JSONResponse(stored.model_dump(mode="json"), status_code=201)
+
+
+@router.get("", response_model=PreconditionSetList, responses={
+    401: RESPONSES[401], 422: {"model": ErrorResponse, "description": "`offset` or `limit` out of range."},
+    429: RATE_LIMITED})
+async def list_sets(services: ServicesDep, caller: CurrentCaller,
+                    offset: Annotated[int, Query(ge=0, le=10**6)] = 0,
+                    limit: Annotated[int, Query(ge=1, le=MAX_LISTED_SETS)] = 20) -> PreconditionSetList:
+    """The tenant's sets, newest first: per set its latest version, actions, and how many rules are `assumed`,
+    `zero-shot` or without evidence (the ones a human should read). `next_offset` pages on."""
+    return await services.sets.summaries(caller.tag, offset, limit)
+
+
+@router.get("/{reference}", response_model=PreconditionSet, responses=RESPONSES)
+async def get_set(reference: SetReference, services: ServicesDep, caller: CurrentCaller) -> Response:
+    """The latest version (`id`) or a given one (`id@version`)."""
+    return _as_json(await services.sets.get(caller.tag, reference))
+
+
+@router.get("/{set_id}/versions/{number}", response_model=PreconditionSet, responses=RESPONSES)
+async def get_version(set_id: SetId, number: Annotated[int, Path(ge=1, le=10**9)], services: ServicesDep,
+                      caller: CurrentCaller) -> Response:
+    return _as_json(await services.sets.get(caller.tag, f"{set_id}@{number}"))
+
+
+def _as_json(version: PreconditionSet) -> Response:
+    """Serialised by pydantic at once: a version with an inference's candidates is hundreds of KB, and FastAPI's
+    re-validation and generic encoding of a returned model took 35 ms of the review page's 300."""
+    return Response(version.model_dump_json(), media_type="application/json")
+
+
+@router.post("/{set_id}/versions", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
+async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesDep,
+                   caller: CurrentCaller) -> JSONResponse:
+    """A new version from the latest by edits: `add` a rule, `remove` one, `require` one, `reject` one (removed,
+    and kept out of re-inference). The new rules are checked against the set's demonstrations in the sandbox;
+    one that would block a demonstrated call is refused (422 naming the rule and the demonstration) unless
+    `force`. Earlier versions stay as they were."""
+    tag = caller.tag
+    base = await _latest(services, tag, set_id, body.base_version)
+    rules, required, rejected = apply_edits(base, body.edits)
+    rules = await _static_check(services, caller, base.spec, rules, [], field="edits")
+    before = {(a, r) for a, rs in base.preconditions.items() for r in rs}
+    new = {(a, r) for a, rs in rules.items() for r in rs} - before
+    validation = await _validate(services, caller, base.spec, rules, base.demonstrations)
+    _refuse_blocking(validation, new, body.force, "edits")
+    edited = {edit.action for edit in body.edits}
+    known = {action: warning for action, warning in base.warnings.items() if action not in edited}
+    version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
+                         body.edits, validation, set_warnings(base.spec, rules, rejected, known), Report.of(base))
+    stored = await services.sets.append(tag, version)
+    return JSONResponse(stored.model_dump(mode="json"), status_code=201)
+
+
+REINFER_RESPONSES: dict[int | str, dict[str, Any]] = {
+    **RESPONSES, 202: ERRORS[202],
+    409: {"model": ErrorResponse, "description": "`base_version` is not the latest version, or the set got a new "
+          "version while the re-inference ran (`conflict`)."},
+    422: {"model": ErrorResponse, "description": "Malformed body or demonstration (field names it, e.g. "
+          "`demonstrations[2]`), a new demonstration that a required rule would block (`blocks_demonstration`, "
+          "unless `force`), over a bound (`sets_limited`, `work_budget`)."},
+    429: ERRORS[429], 503: ERRORS[503],
+}
+
+
+@router.post("/{set_id}/reinfer", response_model=PreconditionSet, responses=REINFER_RESPONSES)
+async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Request, services: ServicesDep,
+                      caller: CurrentCaller, wait: Wait = None) -> Response:
+    """Re-infer the set's rules from its stored demonstrations and new ones (a job, like `/infer-preconditions`:
+    200 with the new version when done within `wait`, else 202 and `/jobs/{id}`). The new version keeps every
+    rule marked *required* (refused, 422 naming the new demonstration and line, when a new demonstration breaks
+    one, unless `force`), never brings back a rule marked *rejected*, stores the union of the demonstrations,
+    and carries `diff` against its base: rules `added`, `removed` (each with why it was dropped), `kept`,
+    `required_kept`, `rejected_suppressed`."""
+    tag = caller.tag
+    base = await _latest(services, tag, set_id, body.base_version)
+    demonstrations = union(base.demonstrations, body.demonstrations)
+    if len(demonstrations) > MAX_DEMONSTRATIONS:
+        raise ServiceError(422, f"the set's {len(base.demonstrations)} demonstrations and these would be "
+                           f"{len(demonstrations)}, over {MAX_DEMONSTRATIONS}", "invalid_input",
+                           field="demonstrations")
+    options = await with_prior_sets(services, tag, body.options) if body.options.prior_sets else body.options
+    chars = len(base.spec) + sum(map(len, demonstrations))
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(tag, chars, offload.problem_of, checks.check_reinfer, base.spec,
+                                        body.demonstrations, demonstrations, body.actions,
+                                        services.settings.max_work_points)
+    if problem is not None:
+        field = problem.field if problem.field.startswith(("actions", "demonstrations[")) else "demonstrations"
+        raise ServiceError(422, problem.message, problem.type, field=field)
+    job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=options,
+                     force=body.force,
+                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
+                     max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
+    return await answer(services, request, caller, "reinfer", job, wait)
+
+
+async def _latest(services: Services, tag: str, set_id: str, base_version: int | None) -> PreconditionSet:
+    """The set a new version builds on: a bare id (a version reference is 404), whose latest version must be
+    `base_version` when the caller names one (optimistic concurrency: otherwise 409)."""
+    if "@" in set_id:
+        raise not_found(set_id)
+    base = await services.sets.get(tag, set_id)
+    if base_version is not None and base_version != base.latest:
+        raise ServiceError(409, f"base_version {base_version} is not the latest version ({base.latest})",
+                           "conflict")
+    return base
+
+
+async def _static_check(services: Services, caller: Caller, spec: str, rules: dict[str, list[str]],
+                        demonstrations: list[str], field: str | None = None) -> dict[str, list[str]]:
+    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations; after the
+    size bound (413 before any parse), in the check pool when large (parsing holds the event loop)."""
+    chars = len(spec) + sum(map(len, demonstrations)) + sum(len(r) for rs in rules.values() for r in rs)
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(caller.tag, chars, offload.problem_of, checks.check_set, spec,
+                                        rules, demonstrations)
+    if problem is not None:
+        raise ServiceError(422, problem.message, problem.type, field=field or problem.field)
+    return {action: _unique(rs) for action, rs in rules.items() if rs}
+
+
+def _unique(rules: list[str]) -> list[str]:
+    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `jobs.precondition_sets.normal`), as first
+    written."""
+    first: dict[str, str] = {}
+    for rule in rules:
+        first.setdefault(normal(rule), rule.strip())
+    return list(first.values())
+
+
+def _refuse_blocking(validation: ValidateResponse | None, new: set[tuple[str, str]], force: bool, field: str) -> None:
+    if validation is None or force:
+        return
+    refusal = blocking_message(validation, new)
+    if refusal is not None:
+        raise ServiceError(422, refusal[0], "blocks_demonstration", field=field)
+
+
+async def _validate(services: Services, caller: Caller, spec: str, rules: dict[str, list[str]],
+                    demonstrations: list[str]) -> ValidateResponse | None:
+    """The rules judged against the demonstrations by a worker (a `validate` job on the check queue)."""
+    if not demonstrations or not rules:
+        return None
+    payload = ValidateRequest(spec=spec, preconditions=rules, demonstrations=demonstrations).model_dump(mode="json")
+    status = await submit_job(services, caller, "validate", payload, None, None)
+    if status.status in ("queued", "running"):
+        raise ServiceError(503, "the check of the rules against the demonstrations did not finish in time; retry "
+                           "(its result is kept)", headers={"Retry-After": str(services.settings.retry_after_s)})
+    if status.status != "succeeded" or status.result is None:
+        error = status.error or ErrorInfo(type="internal", message="the check against the demonstrations failed")
+        raise ServiceError(status_for(error), error.message, error.type, field=error.field)
+    return ValidateResponse.model_validate(status.result)

@@ -1,0 +1,127 @@
+"""Names the gateway and the workers must agree on: queues, job ids and the Redis keys beside arq's own.
+
+A job id is `<kind>-<tenant tag>-<digest>`: the kind names its queue (GET /jobs/{id} needs no lookup), the
+tenant tag names its owner (another tenant's GET or DELETE is a 404 without any lookup), and the digest is an
+HMAC, keyed by the deployment's secret, of the tenant and the normalised request, so identical requests of
+one tenant share one job and one cached result, and nobody without the secret can compute an id.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+import os
+import re
+from functools import lru_cache
+from importlib import metadata
+from typing import Any, Final, get_args
+
+from precond_client.schemas.api import JobKind
+
+PREFIX: Final = "precond"
+MODEL_QUEUE: Final = f"{PREFIX}:queue:model"
+CHECK_QUEUE: Final = f"{PREFIX}:queue:check"
+MODEL_FREE_QUEUE: Final = f"{PREFIX}:queue:model-free"
+"""Inference without the model (`options.generators == ["enumerate"]`): seconds, never behind model jobs,
+and apart from the millisecond check jobs, which it must not hold up either."""
+TRAIN_QUEUE: Final = f"{PREFIX}:queue:train"
+"""Policy training (minutes of the model's CPU): its own queue and one slot per worker, so that a training never
+holds the model queue's slot and other tenants' next actions go on beside it."""
+QUEUES: Final = (MODEL_QUEUE, MODEL_FREE_QUEUE, CHECK_QUEUE, TRAIN_QUEUE)
+MODEL_QUEUES: Final = (MODEL_QUEUE, TRAIN_QUEUE)
+"""The queues whose jobs need the code model."""
+JOB_FUNCTION: Final = "run_operation"
+STATS_KEY: Final = f"{PREFIX}:stats"
+WORKER_PREFIX: Final = f"{PREFIX}:worker:"
+WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
+RUNNING_KEY: Final = f"{PREFIX}:running"
+"""Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
+UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
+"""Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
+WAKE_PREFIX: Final = f"{PREFIX}:wake:"
+
+TAG_CHARS: Final = 16
+ID_DIGEST_CHARS: Final = 48
+_JOB_ID = re.compile(
+    rf"^({'|'.join(map(re.escape, get_args(JobKind)))})-([0-9a-f]{{{TAG_CHARS}}})-[0-9a-f]{{{ID_DIGEST_CHARS}}}$"
+)
+OWNER_SPAN_FROM_END: Final = (-(ID_DIGEST_CHARS + 1 + TAG_CHARS), -(ID_DIGEST_CHARS + 2))
+"""Where a job id carries its tenant's tag, counted from its end (Lua's `string.sub(id, first, last)`): a
+script that reads the owner without parsing the id."""
+SHARED: Final = "shared"
+
+
+def cache_key(job_id: str) -> str:
+    return f"{PREFIX}:cache:{job_id}"
+
+
+def progress_key(job_id: str) -> str:
+    return f"{PREFIX}:progress:{job_id}"
+
+
+def wake_channel(queue: str) -> str:
+    """Pub/sub channel on which a gateway tells idle workers that `queue` has a new job (advisory: workers
+    still poll, less often)."""
+    return f"{WAKE_PREFIX}{queue}"
+
+
+def worker_key(worker_id: str) -> str:
+    return f"{WORKER_PREFIX}{worker_id}"
+
+
+def kind_of(job_id: str) -> JobKind | None:
+    """The kind a job id names, or None for ids this service never hands out."""
+    match = _JOB_ID.match(job_id)
+    return match.group(1) if match else None  # type: ignore[return-value]
+
+
+def owner_of(job_id: str) -> str | None:
+    """The tenant tag a job id carries."""
+    match = _JOB_ID.match(job_id)
+    return match.group(2) if match else None
+
+
+def tenant_tag(secret: bytes, tenant: str) -> str:
+    """A tenant's name in ids and Redis keys: stable, fixed-length, and not the name itself."""
+    return hmac.new(secret, b"tenant\0" + tenant.encode(), hashlib.sha256).hexdigest()[:TAG_CHARS]
+
+
+MODEL_ENV_PREFIX: Final = "MODEL_"
+"""The workers' model settings (`engine.settings.ModelSettings`) are the environment variables with this
+prefix, read case-insensitively and from nowhere else."""
+
+
+@lru_cache(maxsize=1)
+def model_identity() -> str:
+    """What makes a model answer differ: the `MODEL_*` variables this deployment sets and the code version
+    that loads them, as `[version, [[variable, value], ...]]`.
+
+    Read from the environment itself, not through the workers' settings class, so that computing a job id
+    loads neither the engine nor the sandbox into the gateway; compose gives gateway and workers one
+    environment block for this reason. A variable the model ignores only splits the cache, never merges it.
+    """
+    model_env = sorted((name.upper(), value) for name, value in os.environ.items()
+                       if name.upper().startswith(MODEL_ENV_PREFIX))
+    return json.dumps([metadata.version("precondition-service"), model_env])
+
+
+def _canonical(kind: JobKind, body: dict[str, Any], model: str | None) -> bytes:
+    """Canonical JSON of kind, body (defaults filled in) and, when the job uses it, the model."""
+    return json.dumps(
+        {"kind": kind, "body": body, "model": model}, sort_keys=True, separators=(",", ":"), ensure_ascii=False
+    ).encode()
+
+
+def job_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes, tag: str) -> str:
+    """The job of this request for the tenant whose tag (`tenant_tag`) is `tag`: identical requests of one
+    tenant share it, another tenant's never does."""
+    digest = hmac.new(secret, tag.encode() + b"\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
+    return f"{kind}-{tag}-{digest[:ID_DIGEST_CHARS]}"
+
+
+def cache_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: bytes) -> str:
+    """Where a result is cached when the operator lets tenants share results: a digest of the request alone
+    (otherwise a result is cached under its job id, each tenant's own)."""
+    digest = hmac.new(secret, b"shared\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
+    return f"{kind}-{SHARED}-{digest[:ID_DIGEST_CHARS]}"

@@ -1,0 +1,157 @@
+"""Precondition sets as the gateway and the workers share them: where versions live in the queue Redis, the
+atomic append of a version (the gateway for edits, a worker for re-inference), the review's summary of a
+version and the union of stored and new demonstrations. The merge of a re-inference with its base version is
+the engine's (`engine.reinference`).
+
+    precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
+    precond:set-bytes:<tenant tag>     bytes of all the tenant's stored versions (bounded per tenant)
+    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten);
+                                       `created` (of version 1) and `summary` (of the latest) for the list
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from typing import Any, Final
+
+from precond.jobs.keys import PREFIX
+from precond.programs import checks
+from precond.programs.checks import normal as normal  # re-exported: the sets code compares rules by it
+from precond_client.schemas.api import CandidateReport, PreconditionSet, RuleEvidence
+
+_TENANT_BYTES = """
+local function over_bytes(key, record, bound)
+  return bound > 0 and tonumber(redis.call('get', key) or '0') + #record > bound
+end
+"""
+
+CREATE_SCRIPT: Final = _TENANT_BYTES + """
+if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
+if over_bytes(KEYS[3], ARGV[3], tonumber(ARGV[4])) then return -4 end
+redis.call('sadd', KEYS[1], ARGV[1])
+redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3], 'created', ARGV[5], 'summary', ARGV[6])
+redis.call('incrby', KEYS[3], #ARGV[3])
+return 1
+"""
+"""Create a set with its version 1 unless the tenant is at its bound of sets or bytes: count and write in one
+step (with its creation time and the summary the list of sets reads, so listing never reads whole versions)."""
+
+APPEND_SCRIPT: Final = _TENANT_BYTES + """
+local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
+if latest == 0 then return -1 end
+if latest ~= tonumber(ARGV[1]) then return -2 end
+if latest >= tonumber(ARGV[2]) then return -3 end
+if over_bytes(KEYS[2], ARGV[3], tonumber(ARGV[4])) then return -4 end
+redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3], 'summary', ARGV[5])
+redis.call('incrby', KEYS[2], #ARGV[3])
+return latest + 1
+"""
+"""Append version latest+1, only if `latest` is still the version it was made from and the tenant's stored
+bytes stay within its bound."""
+
+APPEND_MISSING: Final = -1
+APPEND_CONFLICT: Final = -2
+APPEND_FULL: Final = -3
+TENANT_BYTES_FULL: Final = -4
+
+
+def index_key(tag: str) -> str:
+    return f"{PREFIX}:sets:{tag}"
+
+
+def set_key(tag: str, set_id: str) -> str:
+    return f"{PREFIX}:set:{tag}:{set_id}"
+
+
+def bytes_key(tag: str) -> str:
+    return f"{PREFIX}:set-bytes:{tag}"
+
+
+def tenant_bytes_message(max_tenant_bytes: int) -> str:
+    return (f"this tenant's precondition sets would take more than {max_tenant_bytes:,} bytes, the bound "
+            "(PRECOND_MAX_SET_BYTES_PER_TENANT)")
+
+
+async def append(redis: Any, tag: str, version: PreconditionSet, record: str, max_versions: int,
+                 max_tenant_bytes: int | None) -> int:
+    """Store `record` (version n's JSON) as version n if n-1 is still the latest and the tenant's sets stay within
+    `max_tenant_bytes` (None: unbounded): n, or an APPEND_* / TENANT_BYTES_FULL code."""
+    return int(await redis.eval(APPEND_SCRIPT, 2, set_key(tag, version.id), bytes_key(tag), version.version - 1,
+                                max_versions, record, max_tenant_bytes or 0, summary(version)))
+
+
+ESTABLISHED_AT: Final = 3
+"""Occurrences below which a rule that held is only assumed: the engine's bound for thin evidence."""
+
+
+def how_decided(evidence: RuleEvidence | None, report: CandidateReport | None) -> str:
+    """How one rule was decided: the engine's own word (`RuleEvidence.decided`); for a report stored before the
+    engine said it, read from the evidence and the candidate's reason."""
+    if evidence is not None and evidence.decided is not None:
+        return evidence.decided
+    reason = (report.reason if report is not None else None) or ""
+    if reason.startswith("kept by the code model's judgment"):
+        return "zero-shot" if "never demonstrated" in reason else "assumed"
+    if reason.startswith("zero-shot") or (evidence is not None and evidence.occurrences == 0):
+        return "zero-shot"
+    if evidence is None:
+        return "no evidence"
+    return "assumed" if evidence.verdict == "thin" or evidence.occurrences < ESTABLISHED_AT else "established"
+
+
+def decided(preconditions: Mapping[str, Sequence[str]], evidence: Mapping[str, Mapping[str, RuleEvidence]],
+            candidates: Mapping[str, Sequence[CandidateReport]]) -> dict[str, dict[str, str]]:
+    """`how_decided` for every rule, its evidence and report matched by canonical text."""
+    labels: dict[str, dict[str, str]] = {}
+    for action, rules in preconditions.items():
+        found = {normal(rule): ev for rule, ev in evidence.get(action, {}).items()}
+        reports = {normal(c.assertion): c for c in candidates.get(action, ())}
+        labels[action] = {rule: how_decided(found.get(normal(rule)), reports.get(normal(rule))) for rule in rules}
+    return labels
+
+
+def summary(version: PreconditionSet) -> str:
+    """The latest version as the list of sets shows it (JSON; the set's creation time is stored apart)."""
+    labels = [label for rules in version.decided.values() for label in rules.values()]
+    known = {*version.preconditions, *version.candidates, *version.warnings, *version.rejected}
+    return json.dumps({
+        "id": version.id, "latest": version.version, "reference": version.reference, "updated": version.created,
+        "actions": sorted(known), "rules": sum(len(r) for r in version.preconditions.values()),
+        "assumed": labels.count("assumed"), "zero_shot": labels.count("zero-shot"),
+        "no_evidence": sum(len(r) for r in version.preconditions.values()) - len(labels) + labels.count("no evidence"),
+        "required": sum(len(r) for r in version.required.values()),
+        "rejected": sum(len(r) for r in version.rejected.values()),
+    })
+
+
+def union(stored: Sequence[str], new: Sequence[str]) -> list[str]:
+    """The stored demonstrations, then the new ones not already stored (in their order)."""
+    seen = set(stored)
+    out = list(stored)
+    for demo in new:
+        if demo not in seen:
+            seen.add(demo)
+            out.append(demo)
+    return out
+
+
+def set_warnings(spec: str, rules: Mapping[str, Sequence[str]], rejected: Mapping[str, Sequence[str]],
+                 known: Mapping[str, str]) -> dict[str, str]:
+    """Per action of the spec whose rule in this version is empty or not backed by evidence, why: a reviewer's
+    rejection that left it without a rule first (the inference's warning about it is then out of date), then
+    the `known` warning (the inference's: no occurrence, thin evidence), then plainly no rule. An empty rule
+    allows every call, so none is left unsaid."""
+    _, methods = checks.spec_methods(spec)
+    warnings: dict[str, str] = {}
+    for action in (name for name, method in methods.items() if method.stub):
+        gone = list(rejected.get(action, ()))
+        if not rules.get(action) and gone:
+            warnings[action] = (f"empty rule: a reviewer rejected {', '.join(map(repr, gone))} and no rule of "
+                                f"{action} is left, so every call of it is allowed")
+        elif action in known:
+            warnings[action] = known[action]
+        elif not rules.get(action):
+            warnings[action] = (f"empty rule: the set has no rule for {action} (none inferred, or every one "
+                                "removed), so every call of it is allowed")
+    return warnings

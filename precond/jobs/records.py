@@ -1,0 +1,109 @@
+"""What a worker writes and the gateway reads back, typed on both sides: outcomes, progress and stats.
+
+* `Outcome`: what a job returns to arq (stored as plain JSON-able data, so nothing but this module has to
+  agree on its shape); the gateway turns it into a `JobStatus`.
+* Progress: `JobProgress` (the API's own shape) as JSON under `progress_key(job id)`.
+* Stats: the workers' counters in one Redis hash (`STATS_KEY`), named by the functions here and read back
+  into a `StatsSnapshot` for /metrics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from pydantic import BaseModel
+from redis.asyncio import Redis
+
+from precond.jobs.keys import STATS_KEY, kind_of, owner_of, progress_key
+from precond_client.schemas.api import ErrorInfo, JobKind, JobProgress
+from precond_client.schemas.errors import PrecondError
+
+OutcomeState = Literal["succeeded", "failed"]
+
+
+class Outcome(BaseModel):
+    """A finished run: the response body, or the engine's user-facing error (an input error is an outcome
+    too, the client's: 422, not a crash)."""
+
+    status: OutcomeState
+    result: dict[str, Any] | None = None
+    error: ErrorInfo | None = None
+
+    def to_arq(self) -> dict[str, Any]:
+        return self.model_dump(mode="json")
+
+    @classmethod
+    def from_arq(cls, stored: Any) -> Outcome:
+        return cls.model_validate(stored)
+
+    @classmethod
+    def failed(cls, exc: PrecondError) -> Outcome:
+        """The outcome of a job the engine (or its store) refused: the error's type, message and field."""
+        return cls(status="failed", error=ErrorInfo(type=exc.kind, message=exc.message, field=exc.field))
+
+
+# ---- progress -------------------------------------------------------------------------------------------
+
+
+async def write_progress(redis: Redis[bytes], job_id: str, progress: JobProgress, ttl_s: int) -> None:
+    await redis.set(progress_key(job_id), progress.model_dump_json(), ex=ttl_s)
+
+
+def parse_progress(raw: bytes | None) -> JobProgress:
+    """A job's progress as stored at `progress_key` (the gateway reads it in one round trip with the rest)."""
+    return JobProgress() if raw is None else JobProgress.model_validate_json(raw)
+
+
+# ---- stats ----------------------------------------------------------------------------------------------
+
+SANDBOX_FAILURES = "sandbox_failures"
+
+
+def job_counts(kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> dict[str, float]:
+    """A finished job's counts, by kind and outcome (and whether a sandbox limit stopped it): added by the
+    script that records the job's end (precond/worker/queue_worker.py)."""
+    counts = {f"jobs:{kind}:{status}": 1.0}
+    if sandbox_limit:
+        counts[SANDBOX_FAILURES] = 1.0
+    return counts
+
+
+def queue_time_counts(job_id: str, seconds: float) -> dict[str, float]:
+    """How long a job waited before a worker started it, per tenant: fairness, as the operator sees it."""
+    tag, kind = owner_of(job_id), kind_of(job_id)
+    if tag is None or kind is None:
+        return {}
+    return {f"queue_sum:{tag}:{kind}": max(0.0, seconds), f"queue_count:{tag}:{kind}": 1.0}
+
+
+async def record_phase(redis: Redis[bytes], kind: JobKind, phase: str, seconds: float) -> None:
+    """Add one engine phase's wall time to its kind's running sum and count."""
+    await redis.hincrbyfloat(STATS_KEY, f"phase_sum:{kind}:{phase}", seconds)
+    await redis.hincrby(STATS_KEY, f"phase_count:{kind}:{phase}", 1)
+
+
+@dataclass
+class StatsSnapshot:
+    jobs: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, outcome) -> count
+    phase_sum: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, phase) -> seconds
+    phase_count: dict[tuple[str, str], float] = field(default_factory=dict)  # (kind, phase) -> runs
+    queue_sum: dict[tuple[str, str], float] = field(default_factory=dict)  # (tenant tag, kind) -> seconds
+    queue_count: dict[tuple[str, str], float] = field(default_factory=dict)  # (tenant tag, kind) -> jobs
+    sandbox_failures: float = 0.0
+
+
+async def read_stats(redis: Redis[bytes]) -> StatsSnapshot:
+    snapshot = StatsSnapshot()
+    for raw_name, raw_value in (await redis.hgetall(STATS_KEY)).items():
+        name, value = raw_name.decode(), float(raw_value)
+        if name == SANDBOX_FAILURES:
+            snapshot.sandbox_failures = value
+            continue
+        table, _, rest = name.partition(":")
+        kind, _, label = rest.partition(":")
+        target = {"jobs": snapshot.jobs, "phase_sum": snapshot.phase_sum, "phase_count": snapshot.phase_count,
+                  "queue_sum": snapshot.queue_sum, "queue_count": snapshot.queue_count}
+        if table in target:
+            target[table][(kind, label)] = value
+    return snapshot

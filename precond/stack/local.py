@@ -1,0 +1,254 @@
+"""Real Redis, real worker processes and a real uvicorn gateway, each on free ports in temp dirs.
+
+Every piece runs as its own process so tests can stop Redis, SIGKILL a worker or restart things the way an
+operator would. Workers run the production engine (`engine.factory.build_engine`) with the real sandbox;
+their code model is the tiny random model of precond/stack/tiny_model.py (`MODEL_PATH`), whose output is noise, so
+model jobs end in real rejections rather than in useful rules.
+
+Request bodies are the ones in examples/ (SGD Restaurants_1: its spec program and two demonstrations).
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import httpx
+import redis
+
+from precond.gateway.server import gateway_args
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLES = {
+    name: json.loads((ROOT / "examples" / f"{name}.json").read_text())
+    for name in ("infer-enumerate", "infer-model", "next-action", "check-actions")
+}
+SPEC: str = EXAMPLES["infer-enumerate"]["spec"]
+DEMOS: list[str] = EXAMPLES["infer-enumerate"]["demonstrations"]
+HEAVY_STATEMENT = "heavy = sum(range({n}))\n"
+"""Legal, CPU-bound demonstration code: slows every sandbox run of the demonstration down (about 15 ms per
+million on this project's CI machines), well within the sandbox's limits."""
+
+
+def example(name: str) -> dict[str, Any]:
+    body: dict[str, Any] = copy.deepcopy(EXAMPLES[name])
+    return body
+
+
+def infer_body(seed: int = 0, **changes: Any) -> dict[str, Any]:
+    """A model-free (enumerate-only) inference on the SGD demonstrations: real, and done in about a second."""
+    body = example("infer-enumerate")
+    body["options"]["seed"] = seed  # unused by enumeration, but part of the job id: a fresh job per seed
+    body.update(changes)
+    return body
+
+
+def heavy_infer_body(seed: int, millions: int) -> dict[str, Any]:
+    """An enumerate-only inference whose first demonstration burns CPU each time the sandbox runs it."""
+    anchor = "system = SYSTEM(user)\n"
+    first = DEMOS[0].replace(anchor, anchor + HEAVY_STATEMENT.format(n=millions * 1_000_000), 1)
+    return infer_body(seed, demonstrations=[first])
+
+
+def slow_model_body(seed: int) -> dict[str, Any]:
+    """A model inference long enough to be caught running (tens of seconds with the tiny model): 64 samples
+    of 256 tokens per prompt. The engine polls its cancel predicate between decode steps."""
+    return {
+        "spec": SPEC,
+        "demonstrations": DEMOS,
+        "actions": ["SYSTEM.REQUEST", "SYSTEM.INFORM"],
+        "options": {
+            "generators": ["model"],
+            "samples_per_prompt": 64,
+            "prompts_per_action": 2,
+            "max_new_tokens": 256,
+            "seed": seed,
+        },
+    }
+
+
+def check_body(*calls: str) -> dict[str, Any]:
+    body = example("check-actions")
+    if calls:
+        body["calls"] = list(calls)
+    return body
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def wait_until(predicate: Callable[[], object], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            if predicate():
+                return
+        except (OSError, redis.RedisError, httpx.HTTPError):
+            pass
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@dataclass
+class RedisServer:
+    directory: Path
+    port: int = field(default_factory=free_port)
+    process: subprocess.Popen[bytes] | None = None
+    password: str | None = None
+    config: tuple[str, ...] = ()
+    """More redis-server options, e.g. `("--maxmemory", "2mb", "--maxmemory-policy", "allkeys-lru")`."""
+
+    @property
+    def url(self) -> str:
+        """Without the password: the stack hands it over in a file (`PRECOND_REDIS_PASSWORD_FILE`)."""
+        return f"redis://127.0.0.1:{self.port}/0"
+
+    def client(self) -> redis.Redis[bytes]:
+        return redis.Redis(port=self.port, password=self.password, socket_timeout=2)
+
+    def argv(self, persistence: list[str]) -> list[str]:
+        argv = ["/usr/bin/redis-server", "--port", str(self.port), "--bind", "127.0.0.1",
+                "--dir", str(self.directory), *persistence, *self.config]
+        return argv if self.password is None else [*argv, "--requirepass", self.password]
+
+    def start(self) -> None:
+        self.process = subprocess.Popen(self.argv(["--save", "", "--appendonly", "no"]), stdout=subprocess.DEVNULL)
+        wait_until(lambda: self.client().ping(), 10, "redis-server")
+
+    def stop(self) -> None:
+        if self.process:
+            self.process.terminate()
+            self.process.wait(10)
+
+
+@dataclass
+class Stack:
+    """Redis + gateway + workers sharing one environment (the settings under test)."""
+
+    redis: RedisServer
+    env: dict[str, str]
+    logs: Path
+    port: int = field(default_factory=free_port)
+    processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
+    cache_redis: RedisServer | None = None
+    """A cache Redis of its own (`PRECOND_CACHE_REDIS_URL`); None: the cache shares the queue Redis."""
+
+    @property
+    def base_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}"
+
+    def http(self, timeout: float = 30) -> httpx.Client:
+        return httpx.Client(base_url=self.base_url, timeout=timeout)
+
+    def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
+        log = (self.logs / f"{name}-{len(self.processes)}.log").open("wb")
+        process = subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        self.processes.append(process)
+        return process
+
+    def start_gateway(self) -> None:
+        processes = int(self.env.get("PRECOND_GATEWAY_PROCESSES", "1"))
+        argv = [sys.executable, "-m", "uvicorn", *gateway_args(processes), "--port", str(self.port)]
+        self._spawn("gateway", [*argv, "--log-level", "warning"])
+        wait_until(lambda: self.http().get("/health").status_code == 200, 20, "gateway")
+
+    def start_worker(self) -> subprocess.Popen[bytes]:
+        before = self.worker_pids()
+        process = self._spawn("worker", [sys.executable, "-m", "precond.worker.runner"])
+        wait_until(lambda: self.worker_pids() - before, 60, "worker heartbeat")
+        return process
+
+    def heartbeats(self) -> list[dict[str, object]]:
+        client = self.redis.client()
+        return [json.loads(raw) for raw in client.mget(client.keys("precond:worker:*") or ["-"]) if raw]
+
+    def worker_pids(self) -> set[int]:
+        return {int(str(beat["pid"])) for beat in self.heartbeats()}
+
+    def stop(self) -> None:
+        for process in self.processes:
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+        for process in self.processes:
+            try:
+                process.wait(10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+def make_stack(
+    tmp: Path,
+    model_dir: Path,
+    *,
+    redis_config: str = "",
+    cache_config: str | None = None,
+    password: str | None = "stack-redis-password",
+    **settings: str,
+) -> Stack:
+    """A stack on a fresh queue Redis (more redis-server options in `redis_config`, e.g. "--maxmemory 64mb"),
+    and on a cache Redis of its own when `cache_config` is given; with `password` (the default), both require
+    it and gateway and workers read it from a file, as in docker-compose."""
+    server = RedisServer(tmp, password=password, config=tuple(redis_config.split()))
+    server.start()
+    cache = None
+    if cache_config is not None:
+        cache = RedisServer(tmp, password=password, config=tuple(cache_config.split()))
+        cache.start()
+    redis_env = {"REDIS_URL": server.url}
+    if cache is not None:
+        redis_env["PRECOND_CACHE_REDIS_URL"] = cache.url
+    if password is not None:
+        secret_file = tmp / "redis-password"
+        secret_file.write_text(password + "\n")
+        redis_env["PRECOND_REDIS_PASSWORD_FILE"] = str(secret_file)
+    env = {
+        **os.environ,
+        **redis_env,
+        "MODEL_PATH": str(model_dir),
+        "MODEL_THREADS": "1",
+        "OMP_NUM_THREADS": "1",
+        "TOKENIZERS_PARALLELISM": "false",
+        "SANDBOX_WORKERS": "2",
+        # the slow jobs of these tests are legal programs: generous limits keep a busy machine from
+        # turning them into limit errors (the limits themselves are tested in tests/sandbox)
+        "SANDBOX_TIMEOUT_S": "60",
+        "SANDBOX_CPU_S": "60",
+        "PRECOND_HEARTBEAT_S": "0.5",
+        "PRECOND_WORKER_POLL_S": "0.05",
+        "PRECOND_WAIT_POLL_S": "0.02",
+        "PRECOND_DRAIN_S": "1",
+        "PRECOND_MAX_BODY_BYTES": "65536",
+        "PYTHONPATH": str(ROOT),
+        "PRECOND_SECRET": "stack-secret-for-tests",
+        **settings,
+    }
+    return Stack(server, env, tmp, cache_redis=cache)
+
+
+@contextmanager
+def serving(stack: Stack, workers: int = 0) -> Iterator[Stack]:
+    """The gateway (and `workers` workers) up for the block; everything the stack started is stopped after."""
+    try:
+        stack.start_gateway()
+        for _ in range(workers):
+            stack.start_worker()
+        yield stack
+    finally:
+        stack.stop()
+        stack.redis.stop()
+        if stack.cache_redis is not None:
+            stack.cache_redis.stop()

@@ -1,0 +1,201 @@
+"""The arq job: run one engine operation in a thread, report its progress, cache its result.
+
+The engine is CPU-bound and synchronous; running it in a thread keeps the worker's event loop free for
+arq's polling, abort checks and the heartbeat. Cancellation crosses the thread boundary as a predicate the
+engine polls between steps.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import threading
+import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from functools import partial
+from typing import Any, Final
+
+from pydantic import BaseModel
+from redis.asyncio import Redis
+
+from precond.engine.engine import Engine
+from precond.engine.scope import scoped
+from precond.jobs.cache import ResultCache
+from precond.jobs.keys import owner_of
+from precond.jobs.kinds import KINDS
+from precond.jobs.payloads import ReinferJob
+from precond.jobs.records import Outcome, job_counts, record_phase, write_progress
+from precond.worker import policies
+from precond.worker.memory import MemoryGuard
+from precond.worker.queue_worker import JobEnd
+from precond.worker.reinfer import reinfer, store
+from precond.worker.settings import WorkerSettings
+from precond_client.schemas.api import (
+    ErrorInfo,
+    JobKind,
+    JobProgress,
+    PreconditionSet,
+)
+from precond_client.schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
+
+ProgressFn = Callable[[str, int, int], None]
+CancelledFn = Callable[[], bool]
+
+
+@dataclass
+class JobCounts:
+    """The worker's own count of its runs, for its heartbeat: incremented when a run is taken (each try counts)
+    and when it returns its outcome; never derived from arq's internals, never lower."""
+
+    started: int = 0
+    complete: int = 0
+
+
+class ProgressReporter:
+    """Engine progress → a Redis key the gateway reads, and per-phase wall time → the workers' stats hash.
+
+    Called from the engine's thread, so writes are handed to the event loop and not awaited: progress is
+    advisory and must never slow the engine down.
+    """
+
+    def __init__(
+        self, redis: Redis[bytes], job_id: str, kind: JobKind, loop: asyncio.AbstractEventLoop, ttl_s: int
+    ) -> None:
+        self.redis, self.job_id, self.kind, self.loop, self.ttl_s = redis, job_id, kind, loop, ttl_s
+        self.phase: str | None = None
+        self.phase_started = time.perf_counter()
+
+    def __call__(self, phase: str, done: int, total: int) -> None:
+        if phase != self.phase:
+            self.finish_phase()
+            self.phase, self.phase_started = phase, time.perf_counter()
+        progress = JobProgress(phase=phase, done=done, total=total)
+        self._submit(write_progress(self.redis, self.job_id, progress, self.ttl_s))
+
+    def finish_phase(self) -> None:
+        if self.phase is None:
+            return
+        self._submit(record_phase(self.redis, self.kind, self.phase, time.perf_counter() - self.phase_started))
+        self.phase = None
+
+    def _submit(self, coroutine: Any) -> None:
+        asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+
+
+Runner = Callable[[Engine, Any, ProgressFn, CancelledFn], BaseModel]
+RUNNERS: Final[dict[JobKind, Runner]] = {
+    "infer": lambda engine, job, progress, cancelled: engine.infer(job, progress, cancelled),
+    "next-action": lambda engine, job, progress, cancelled: engine.next_action(job, progress, cancelled),
+    "check": lambda engine, job, _progress, _cancelled: engine.check(job),
+    "validate": lambda engine, job, _progress, _cancelled: engine.validate(
+        job.spec, job.preconditions, job.demonstrations),
+    "reinfer": reinfer,
+    "train-policy": policies.train,
+}
+"""What the engine does with each kind's payload (`jobs.kinds.KINDS` says which payload that is)."""
+
+
+def _operate(
+    engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
+) -> BaseModel:
+    job = KINDS[kind].payload.model_validate(body)
+    answer: BaseModel = RUNNERS[kind](engine, job, progress, cancelled)
+    return answer
+
+
+def _outcome(
+    engine_of: Callable[[], Engine], kind: JobKind, body: dict[str, Any], progress: ProgressFn,
+    cancelled: CancelledFn, max_response_bytes: int, scope: str, memory: Callable[[], AbstractContextManager[None]],
+) -> tuple[Outcome, bool]:
+    """A finished job's outcome, and whether a sandbox limit stopped it. A result larger than the bound is
+    refused here, before Redis stores it twice (result and cache) and a client has to read it. The engine runs
+    in the job's tenant's cache scope (precond/engine/scope.py): its model reuses only that tenant's prompt prefixes;
+    `engine_of` is the served engine, or builds the one of the tenant's trained policy the job names."""
+    try:
+        with memory(), scoped(scope):
+            result = _operate(engine_of(), kind, body, progress, cancelled).model_dump(mode="json")
+    except PrecondError as exc:
+        return Outcome.failed(exc), isinstance(exc, ResourceLimit)
+    size = len(json.dumps(result))
+    if size > max_response_bytes:
+        message = (f"the answer would be {size:,} bytes, over PRECOND_MAX_RESPONSE_BYTES ({max_response_bytes:,}): "
+                   "ask for fewer calls, actions or candidates")
+        return Outcome(status="failed", error=ErrorInfo(type=ResponseTooLarge.kind, message=message)), False
+    return Outcome(status="succeeded", result=result), False
+
+
+async def _store_version(redis: Redis[bytes], job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+    """A re-inference's version, stored (the set's next version) or refused (conflict, bounds): its outcome."""
+    try:
+        stored = await store(redis, owner_of(job_id) or "", ReinferJob.model_validate(body),
+                             PreconditionSet.model_validate(result))
+    except PrecondError as exc:
+        return Outcome.failed(exc)
+    return Outcome(status="succeeded", result=stored.model_dump(mode="json"))
+
+
+async def run_operation(
+    ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], cache_key: str | None = None
+) -> JobEnd:
+    """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop.
+    A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with the
+    job's end (precond/worker/queue_worker.py)."""
+    redis: Redis[bytes] = ctx["redis"]
+    tag = owner_of(ctx["job_id"]) or ""
+    counts: JobCounts = ctx["counts"]
+    try:
+        engine_of, body = await _engine_for(ctx, tag, kind, body)
+        outcome, sandbox_limit = await _run(ctx, kind, body, engine_of)
+        if KINDS[kind].stores_version and outcome.result is not None:
+            outcome = await _store_version(redis, ctx["job_id"], body, outcome.result)
+        if KINDS[kind].stores_adapter and outcome.result is not None:
+            outcome = await policies.store(redis, tag, ctx["job_id"], body, outcome.result)
+    except PrecondError as exc:
+        outcome, sandbox_limit = Outcome.failed(exc), False
+    finally:
+        if KINDS[kind].stores_adapter:
+            policies.discard(body)
+    counts.complete += 1
+    # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
+    cache: ResultCache = ctx["cache"]
+    writes = () if outcome.result is None else (cache.put(cache_key or ctx["job_id"], outcome.result),)
+    return JobEnd(outcome.to_arq(), job_counts(kind, outcome.status, sandbox_limit), writes)
+
+
+async def _engine_for(ctx: dict[str, Any], tag: str, kind: JobKind, body: dict[str, Any]
+                      ) -> tuple[Callable[[], Engine], dict[str, Any]]:
+    """The engine a job runs on, and its body as it runs: a next action naming a trained policy runs on that
+    policy's engine, read under the job owner's tag (NotFound when it is not the owner's)."""
+    engine: Engine = ctx["engine"]
+    policy = body.get("options", {}).get("policy") if kind == "next-action" else None
+    if not policy:
+        return (lambda: engine), body
+    stored = await policies.fetch(ctx["redis"], tag, policy)
+    adapted: policies.AdaptedEngines = ctx["policies"]
+    return partial(adapted.engine, engine, stored), policies.with_resolved_policy(body, stored)
+
+
+async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_of: Callable[[], Engine]
+               ) -> tuple[Outcome, bool]:
+    """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope."""
+    settings: WorkerSettings = ctx["settings"]
+    job_id: str = ctx["job_id"]
+    guard: MemoryGuard = ctx["memory"]
+    loop = asyncio.get_running_loop()
+    reporter = ProgressReporter(ctx["redis"], job_id, kind, loop, settings.result_ttl_s)
+    stop = threading.Event()
+    allowance = settings.training_max_memory_mb * 1024 * 1024 if KINDS[kind].stores_adapter else 0
+    future = loop.run_in_executor(
+        None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,
+        owner_of(job_id) or job_id, partial(guard.running, job_id, allowance),
+    )
+    try:
+        return await asyncio.shield(future)
+    except asyncio.CancelledError:
+        stop.set()
+        await asyncio.wait([future])
+        raise
+    finally:
+        reporter.finish_phase()

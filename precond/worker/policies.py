@@ -1,0 +1,166 @@
+"""Trained policies in the worker: a training job's adapter stored as the tenant's, and the engine of the
+adapter a next action names.
+
+A training writes its adapter into a scratch directory of this process (mode 0700, one per job, removed when
+the job ends however it ends); the worker then stores the weights and what trained them in the queue Redis
+(`precond/jobs/policy_adapters.py`) under the tag of the job's owner. A next action naming `adapter:<id>@<n>` is
+answered by an engine whose model is the served model with that adapter merged into a copy of the tensors it
+changes (`engine.models.backend.with_adapter`): the adapter is read under the job's owner's tag, never under
+anything the payload says, so one tenant's job cannot reach another tenant's adapter even with its id.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+import tempfile
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from pydantic import ValidationError
+
+from precond.engine.engine import Engine
+from precond.jobs import policy_adapters
+from precond.jobs.payloads import TrainPolicyJob
+from precond.jobs.records import Outcome
+from precond.worker.memory import give_back_freed
+from precond_client.schemas.errors import Conflict, InvalidInput, NotFound
+from precond_client.schemas.training import PolicyAdapter, TrainPolicyResult
+
+ProgressFn = Callable[[str, int, int], None]
+CancelledFn = Callable[[], bool]
+ADAPTED_ENGINES = 1
+"""Adapted models a worker keeps (each holds its own copy of the attention projections, ~180 MB for the
+embedded model in float32); a next action of another adapter builds its own (about a second) in its place."""
+
+
+@cache
+def _scratch_root() -> Path:
+    return Path(tempfile.mkdtemp(prefix="precond-policies-"))  # 0700, this process's own
+
+
+def scratch_of(job: TrainPolicyJob) -> Path:
+    """Where a training job's adapter is written: unique per job (its adapter id and version)."""
+    return _scratch_root() / f"{job.adapter}-v{job.version}"
+
+
+def train(engine: Engine, job: TrainPolicyJob, progress: ProgressFn, cancelled: CancelledFn) -> TrainPolicyResult:
+    """What trained the adapter, which is left in `scratch_of(job)` for `store`."""
+    scratch = scratch_of(job)
+    shutil.rmtree(scratch, ignore_errors=True)  # a run of this job before a restart of this process
+    scratch.mkdir(mode=0o700)
+    try:
+        return engine.train_policy(job.request, scratch / "adapter", progress, cancelled)
+    finally:
+        give_back_freed()
+
+
+def discard(body: dict[str, Any]) -> None:
+    """Remove a training job's scratch directory (after it was stored, failed or was cancelled)."""
+    try:
+        job = TrainPolicyJob.model_validate(body)
+    except ValidationError:  # never a job: nothing was written
+        return
+    shutil.rmtree(scratch_of(job), ignore_errors=True)
+
+
+_REFUSALS = {
+    policy_adapters.MISSING: (NotFound, "no trained policy {id} of yours: it was deleted while this training ran"),
+    policy_adapters.CONFLICT: (Conflict, "trained policy {id} got version {version} from another training while "
+                                         "this one ran: train again to make the next version"),
+    policy_adapters.TOO_MANY_ADAPTERS: (InvalidInput, "this tenant has {max_adapters} trained policies, the bound "
+                                                      "(PRECOND_MAX_POLICIES_PER_TENANT): delete one first"),
+    policy_adapters.TOO_MANY_VERSIONS: (InvalidInput, "trained policy {id} has {max_versions} versions, the bound "
+                                                      "(PRECOND_MAX_POLICY_VERSIONS)"),
+    policy_adapters.TENANT_BYTES_FULL: (InvalidInput, "this tenant's trained policies would take more than "
+                                                      "{max_tenant_bytes:,} bytes, the bound "
+                                                      "(PRECOND_MAX_POLICY_BYTES_PER_TENANT): delete one first"),
+}
+
+
+async def store(redis: Any, tag: str, job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+    """The trained adapter stored as the tenant's (its `PolicyAdapter` is the job's result), or refused at a
+    bound or on a conflict; the scratch directory is removed either way."""
+    from precond.engine.models.adapters import WEIGHTS  # not at import: the model code loads torch
+
+    job = TrainPolicyJob.model_validate(body)
+    try:
+        weights = await asyncio.to_thread((scratch_of(job) / "adapter" / WEIGHTS).read_bytes)
+        adapter = PolicyAdapter(id=job.adapter, version=job.version, reference=f"{job.adapter}@{job.version}",
+                                created=datetime.now(UTC).isoformat(timespec="seconds"),
+                                result=TrainPolicyResult.model_validate(result))
+        code = await policy_adapters.store(redis, tag, adapter, weights, job_id, job.max_adapters, job.max_versions,
+                                           job.max_tenant_bytes)
+    finally:
+        discard(body)
+    if code < 0:
+        error, message = _REFUSALS[code]
+        text = message.format(id=job.adapter, version=job.version, max_adapters=job.max_adapters,
+                              max_versions=job.max_versions, max_tenant_bytes=job.max_tenant_bytes)
+        return Outcome.failed(error(text))
+    stored = await policy_adapters.get(redis, tag, f"{job.adapter}@{code}")
+    return Outcome(status="succeeded", result=(stored or adapter).model_dump(mode="json"))
+
+
+@dataclass(frozen=True)
+class StoredPolicy:
+    tag: str
+    adapter: PolicyAdapter
+    weights: bytes
+
+    @property
+    def policy(self) -> str:
+        return f"adapter:{self.adapter.reference}"
+
+
+async def fetch(redis: Any, tag: str, policy: str) -> StoredPolicy:
+    """The adapter version `policy` names, read under the job owner's `tag`; NotFound when it is not there
+    (deleted since the gateway resolved it, or never the tenant's)."""
+    adapter = await policy_adapters.get(redis, tag, policy.removeprefix("adapter:"))
+    weights = await policy_adapters.weights(redis, tag, adapter) if adapter is not None else None
+    if adapter is None or weights is None:
+        raise NotFound(f"no trained policy {policy.removeprefix('adapter:')[:40]} of yours", field="options.policy")
+    return StoredPolicy(tag, adapter, weights)
+
+
+class AdaptedEngines:
+    """The engines of the trained policies this worker served last, keyed by tenant and adapter version."""
+
+    def __init__(self, capacity: int = ADAPTED_ENGINES) -> None:
+        self.capacity = capacity
+        self._engines: OrderedDict[tuple[str, str], Engine] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def engine(self, base: Engine, stored: StoredPolicy) -> Engine:
+        """Called in the job's thread (building merges the adapter: CPU work, under the job's memory bound)."""
+        key = (stored.tag, stored.adapter.reference)
+        with self._lock:
+            if key in self._engines:
+                self._engines.move_to_end(key)
+                return self._engines[key]
+            while len(self._engines) >= self.capacity:
+                self._engines.popitem(last=False)
+            engine = self._engines[key] = _build(base, stored)
+            return engine
+
+
+def _build(base: Engine, stored: StoredPolicy) -> Engine:
+    from precond.engine.models.adapters import RESULT, WEIGHTS  # not at import: the model code loads torch
+
+    with tempfile.TemporaryDirectory(prefix="precond-adapter-") as scratch:
+        directory = Path(scratch) / f"{stored.adapter.id}-v{stored.adapter.version}"
+        directory.mkdir(mode=0o700)
+        (directory / WEIGHTS).write_bytes(stored.weights)
+        (directory / RESULT).write_text(stored.adapter.result.model_dump_json())
+        return base.with_policy(directory, stored.policy)
+
+
+def with_resolved_policy(body: dict[str, Any], stored: StoredPolicy) -> dict[str, Any]:
+    """The next action's body naming the version it runs with (the engine answers only the policy it is)."""
+    return {**body, "options": {**body.get("options", {}), "policy": stored.policy}}

@@ -1,0 +1,139 @@
+"""Re-inference of a stored precondition set (job kind `reinfer`): the engine's inference on the set's spec with
+its stored demonstrations and the new ones, merged with the base version (`engine.reinference.merge`: required rules
+kept, rejected ones kept out), judged against all demonstrations, and stored as the next version.
+
+The computing (`reinfer`) runs in the engine's thread; the storing (`store`) on the event loop, after it.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from datetime import UTC, datetime
+from typing import Any
+
+from precond.engine import reinference
+from precond.engine.engine import Engine
+from precond.jobs import precondition_sets as sets
+from precond.jobs.payloads import ReinferJob
+from precond_client.schemas.api import InferRequest, PreconditionSet, ValidateResponse
+from precond_client.schemas.errors import BlocksDemonstration, Conflict, PrecondError, SetsLimited
+
+ProgressFn = Callable[[str, int, int], None]
+CancelledFn = Callable[[], bool]
+_DEMO_FIELD = re.compile(r"^demonstrations\[(\d+)\]")
+
+
+def _fields(job: ReinferJob, demos: list[str]) -> Callable[[str | None], str | None]:
+    """Field of the union of demonstrations → field of the request: a new demonstration is named by its index
+    in the request (`demonstrations[i]`), a stored one as `base.demonstrations[i]`."""
+    stored = len(job.base.demonstrations)
+
+    def field(name: str | None) -> str | None:
+        match = _DEMO_FIELD.match(name or "")
+        if match is None:
+            return name
+        index = int(match.group(1))
+        if index < stored:
+            return f"base.demonstrations[{index}]" + name[match.end():]  # type: ignore[index]
+        return f"demonstrations[{job.demonstrations.index(demos[index])}]" + name[match.end():]  # type: ignore[index]
+
+    return field
+
+
+def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: CancelledFn) -> PreconditionSet:
+    base = job.base
+    demos = sets.union(base.demonstrations, job.demonstrations)
+    field = _fields(job, demos)
+    try:
+        required = {action: rules for action, rules in base.required.items() if rules}
+        if required:
+            progress("validate required", 0, 1)
+            report = engine.validate(base.spec, required, demos)
+            new = [b for b in report.blocked if b.demonstration >= len(base.demonstrations)]
+            if new and not job.force:
+                first = new[0]
+                where = f"demonstrations[{first.demonstration}]"  # of the union: renamed below, like any field
+                more = f", and {len(new) - 1} more demonstrated call(s)" if len(new) > 1 else ""
+                raise BlocksDemonstration(
+                    f"required rule {first.rule!r} of {first.action} would block {field(where)}, line {first.line} "
+                    f"({first.call}){more}; fix the demonstration, un-require the rule, or send force: true",
+                    field=where,
+                )
+        options = job.options.model_copy(update={"candidates": "all"})  # the diff's reasons come from them
+        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=options)
+        inferred = engine.infer(request, progress, cancelled)
+        merged = reinference.merge(base, inferred.preconditions, inferred.candidates,
+                                   len(demos) - len(base.demonstrations), job.actions)
+        judged = {a: list(dict.fromkeys([*merged.preconditions.get(a, []), *merged.unexplained.get(a, [])]))
+                  for a in {*merged.preconditions, *merged.unexplained}}
+        progress("validate", 0, 1)
+        report = (engine.validate(base.spec, judged, demos)
+                  if judged else ValidateResponse())
+    except PrecondError as exc:
+        exc.field = field(exc.field)
+        raise
+    blocked: dict[tuple[str, str], str] = {}
+    for b in report.blocked:
+        blocked.setdefault((b.action, b.rule), f"{field(f'demonstrations[{b.demonstration}]')}, line {b.line} "
+                                               f"({b.call})")
+    final = {(a, r) for a, rs in merged.preconditions.items() for r in rs}
+    validation = ValidateResponse(
+        blocked=[b for b in report.blocked if (b.action, b.rule) in final],
+        unjudged={k: v for k, v in report.unjudged.items() if tuple(k.split(": ", 1)) in final},
+    )
+    number = base.latest + 1
+    evidence = {**base.evidence, **inferred.evidence}  # actions not re-inferred keep what was said of them
+    candidates = {**base.candidates, **inferred.candidates}
+    return PreconditionSet(
+        id=base.id, version=number, latest=number, reference=f"{base.id}@{number}",
+        created=datetime.now(UTC).isoformat(timespec="seconds"), spec=base.spec,
+        preconditions=merged.preconditions, demonstrations=demos, required=base.required, rejected=base.rejected,
+        edits=[], validation=validation,
+        diff=reinference.explain_removed(merged, blocked),
+        warnings=_warnings(job, merged.preconditions, inferred.warnings), evidence=evidence,
+        candidates=candidates, decided=sets.decided(merged.preconditions, evidence, candidates),
+    )
+
+
+def _warnings(job: ReinferJob, rules: dict[str, list[str]], inferred: dict[str, str]) -> dict[str, str]:
+    """The inference's warnings, the base's for the actions not re-inferred, and every empty rule's."""
+    base = job.base
+    kept = {a: w for a, w in base.warnings.items() if job.actions is not None and a not in job.actions}
+    return sets.set_warnings(base.spec, rules, base.rejected, {**kept, **inferred})
+
+
+async def store(redis: Any, tag: str, job: ReinferJob, version: PreconditionSet) -> PreconditionSet:
+    """Append the version if its base is still the latest; the errors a client can act on otherwise."""
+    record = version.model_dump_json()
+    if len(record.encode()) > job.max_bytes:
+        raise SetsLimited(f"the re-inferred version takes {len(record.encode()):,} bytes, over the bound of "
+                          f"{job.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="demonstrations")
+    answer = await sets.append(redis, tag, version, record, job.max_versions, job.max_tenant_bytes)
+    if answer == sets.TENANT_BYTES_FULL:
+        raise SetsLimited(sets.tenant_bytes_message(job.max_tenant_bytes or 0))
+    if answer == sets.APPEND_CONFLICT:
+        mine = await _stored_by_an_earlier_run(redis, tag, version)
+        if mine is not None:
+            return mine
+    if answer in (sets.APPEND_CONFLICT, sets.APPEND_MISSING):
+        raise Conflict(f"precondition set {version.id} got a new version while it was re-inferred from version "
+                       f"{job.base.version}: read the latest and re-infer again")
+    if answer == sets.APPEND_FULL:
+        raise SetsLimited(f"precondition set {version.id} has {job.max_versions} versions, the bound "
+                          "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version")
+    return version.model_copy(update={"latest": answer})
+
+
+async def _stored_by_an_earlier_run(redis: Any, tag: str, version: PreconditionSet) -> PreconditionSet | None:
+    """The version this job makes, when an earlier run of it stored it already (its worker died before arq
+    recorded the end, and the job was handed back): the same rules, demonstrations and diff at the same number."""
+    raw = await redis.hget(sets.set_key(tag, version.id), str(version.version))
+    latest = await redis.hget(sets.set_key(tag, version.id), "latest")
+    if raw is None or latest is None:
+        return None
+    stored = PreconditionSet.model_validate_json(raw)
+    same = ("preconditions", "demonstrations", "required", "rejected", "diff")
+    if any(getattr(stored, name) != getattr(version, name) for name in same):
+        return None
+    return stored.model_copy(update={"latest": int(latest)})
