@@ -3,7 +3,10 @@
 The gateway (`precond.gateway`) and the queue worker (`precond.worker`) speak the job protocol (`precond.jobs`)
 and never import each other; the engine knows nothing of queues or HTTP; the sandbox and the spec reader
 (`precond.programs`) stand alone, and `precond.programs` (imported by the sandbox's stdlib-only child) uses the
-standard library only. Layers are named by their module path below the distribution's packages.
+standard library only. The client (`precond_client`) imports no service layer; the reading of an OpenAI agent's
+messages (`precond_client.openai_log`), which the converter and the client's embedded guard share, and the guard's
+rule interpreter (`precond_client.rule_interpreter`) use the standard library only and import nothing else of the
+project. Layers are named by their module path below the distribution's packages.
 """
 
 from __future__ import annotations
@@ -19,8 +22,12 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {f"precond.{name}" for name in ("jobs", "engine", "programs", "sandbox", "gateway", "worker", "cli",
                                         "evaluation", "stack", "convert")}
 SCHEMAS = "precond_client.schemas"
+OPENAI_LOG = "precond_client.openai_log"
+INTERPRETER = "precond_client.rule_interpreter"
 CLIENT = "precond_client"
-PROJECT = (*sorted(LAYERS), SCHEMAS, CLIENT)
+STANDALONE = (OPENAI_LOG, INTERPRETER)
+"""Standard library only, nothing else of the project: shared by the service and the light client."""
+PROJECT = (*sorted(LAYERS), SCHEMAS, *STANDALONE, CLIENT)
 
 
 def p(*names: str) -> set[str]:
@@ -35,8 +42,10 @@ FORBIDDEN: dict[str, set[str]] = {
     "precond.sandbox": set(PROJECT) - p("sandbox", "programs"),
     "precond.programs": set(PROJECT) - p("programs"),
     SCHEMAS: set(PROJECT) - {SCHEMAS},
+    OPENAI_LOG: set(PROJECT) - {OPENAI_LOG},
+    INTERPRETER: set(PROJECT) - {INTERPRETER},
     CLIENT: LAYERS,  # light: installable without the service (its own schemas included)
-    "precond.convert": set(PROJECT) - {*p("convert", "programs"), SCHEMAS},
+    "precond.convert": set(PROJECT) - {*p("convert", "programs"), SCHEMAS, OPENAI_LOG},
 }
 
 
@@ -50,10 +59,16 @@ def directory(package: str) -> Path:
     return ROOT.joinpath(*package.split("."))
 
 
+def sources(layer: str) -> list[Path]:
+    """The files of a package, or the one file of a module."""
+    folder = directory(layer)
+    return sorted(folder.rglob("*.py")) if folder.is_dir() else [folder.with_suffix(".py")]
+
+
 def imports(package: str) -> list[tuple[str, str]]:
     """(file, absolute module name) of every import in the package; relative imports stay in the package."""
     found = []
-    for path in sorted(directory(package).rglob("*.py")):
+    for path in sources(package):
         tree = ast.parse(path.read_text(encoding="utf-8"))
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
@@ -73,13 +88,14 @@ def test_package_imports_only_what_its_layer_allows(package: str) -> None:
     assert not wrong, f"{package} must not import these (see README, How it fits together):\n" + "\n".join(wrong)
 
 
-def test_programs_is_stdlib_only() -> None:
+@pytest.mark.parametrize("layer", ["precond.programs", *STANDALONE])
+def test_shared_readers_are_stdlib_only(layer: str) -> None:
+    found = imports(layer)
     outside = [
-        f"{file}: {module}" for file, module in imports("precond.programs")
-        if module.split(".")[0] not in {*sys.stdlib_module_names, "__future__"}
-        and layer_of(module) != "precond.programs"
+        f"{file}: {module}" for file, module in found
+        if module.split(".")[0] not in {*sys.stdlib_module_names, "__future__"} and layer_of(module) != layer
     ]
-    assert not outside, outside
+    assert found and not outside, outside
 
 
 def test_the_checker_sees_imports() -> None:
@@ -87,6 +103,8 @@ def test_the_checker_sees_imports() -> None:
     assert ("precond/worker/runner.py", "precond.jobs.heartbeats") in imports("precond.worker")
     assert any(module.startswith("precond.engine.") for _, module in imports("precond.worker"))
     assert layer_of("precond_client.schemas.api") == SCHEMAS and layer_of("precond_client.aio") == CLIENT
+    assert ("precond/convert/openai.py", OPENAI_LOG) in imports("precond.convert")
+    assert ("precond_client/guard.py", INTERPRETER) in imports(CLIENT)
 
 
 @pytest.mark.parametrize("package", ["precond.stack", "bench"])
@@ -124,9 +142,11 @@ def loaded_by(statement: str) -> set[str]:
      {*p("sandbox", "engine", "gateway", "worker"), "torch"}),
     ("import precond.worker.runner", {*p("gateway", "cli"), "torch", "transformers"}),
     ("import precond_client.schemas.api", {*LAYERS, "precond_client.aio", "precond_client.sync", "httpx"}),
+    ("import precond_client.guard", {*LAYERS, "httpx", "agents", "langgraph", "langchain_core"}),
 ])
 def test_importing_a_layer_loads_nothing_below_or_above_it(statement: str, never: set[str]) -> None:
     """The gateway computes job ids and checks programs without the engine or the sandbox, the worker loads
     the model code only when it builds a model, never at import, and the service reads the wire contract
-    (`precond_client.schemas`) without the client's transport."""
+    (`precond_client.schemas`) without the client's transport; the embedded guard needs neither the network
+    nor an agent framework."""
     assert not loaded_by(statement) & never

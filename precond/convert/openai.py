@@ -5,88 +5,32 @@ the schema's order; two observations: `user.says(text)` for a user message and `
 value)` for a tool's result, which keeps the parsed JSON result in `agent.results[tool][key]` (errors in
 `agent.errors`), `key` being the call's identifying argument (its first `*_id` parameter), so that a rule can
 say "a successful read of *this* reservation came before this write". Calls and results are paired by position
-(tool-call ids repeat in real logs). Arguments and results are JSON parsed here and written with `repr` as
-literals: nothing in a log can become code. Standard library only: the gateway renders histories with it.
+(tool-call ids repeat in real logs). Arguments and results are JSON, read by `precond_client.openai_log` (which
+the embedded guard shares) and written with `repr` as literals: nothing in a log can become code. Standard
+library, `precond/programs/` and that module only: the gateway renders histories with it.
 """
 
 from __future__ import annotations
 
-import json
 import keyword
-import math
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from precond.convert.shape import ConvertError
 from precond.programs import checks
 from precond.programs.history import render as render_events
-
-USER_SPEC = '''from collections import defaultdict
-class USER:
-  def __init__(self):
-    self.messages = 0
-    self.last_said = None
-  def says(self, text):
-    self.messages += 1
-    self.last_said = text
-'''
-AGENT_STATE = '''class AGENT:
-  def __init__(self, user):
-    self.user = user
-    self.results = defaultdict(dict)
-    self.changes = defaultdict(dict)
-    self.errors = defaultdict(dict)
-    self.last_ok = None
-  def result(self, tool, key, ok, value):
-    self.last_ok = ok
-    if not ok:
-      self.errors[tool][key] = value
-    elif tool in WRITES:
-      self.changes[tool][key] = value
-    else:
-      self.results[tool][key] = value
-'''
-PREAMBLE = ("user = USER()", "agent = AGENT(user)")
-RESERVED = {"result", "says", "user", "results", "changes", "errors", "last_ok"}
-"""Names of the spec's own members: a tool cannot be called so."""
-WRITE_VERBS = {"book", "cancel", "update", "send", "create", "delete", "modify", "add", "remove", "set", "change",
-               "refund", "pay", "exchange", "return", "issue", "transfer_money"}
-"""A tool whose name starts with one of these verbs changes state (`book_reservation`); `--writes` overrides."""
-SKIPPED_ROLES = {"system", "developer"}
-MAX_DEPTH = 32
-DOC_CHARS = 200
-
-
-@dataclass(frozen=True)
-class Tool:
-    name: str
-    params: tuple[str, ...]
-    """Required parameters in the schema's order, then the optional ones (which default to None)."""
-    required: frozenset[str]
-    description: str = ""
-
-    @property
-    def key(self) -> str | None:
-        """The identifying argument: the first parameter named `id` or `*_id` (None: results keyed None)."""
-        return next((p for p in self.params if p == "id" or p.endswith("_id")), None)
-
-
-def writes_of(tools: Iterable[Tool]) -> set[str]:
-    return {t.name for t in tools if t.name.split("_")[0] in WRITE_VERBS or t.name in WRITE_VERBS}
-
-
-@dataclass
-class Call:
-    """A tool call as the log has it: what the evaluation labels and the guard judges."""
-
-    tool: str
-    arguments: dict[str, Any]
-    line: int
-    """Its line in the program (0-based): the lines before it are the history it is judged after."""
-    key: Any = None
-    result: tuple[bool, Any] | None = None
-    """(success, parsed value), once its result has come."""
+from precond_client.openai_log import (
+    PREAMBLE,
+    RESERVED,
+    RESERVED_PARAMETERS,
+    Call,
+    PlaceError,
+    Reader,
+    Tool,
+    call_line,
+    spec_program,
+    writes_of,
+)
 
 
 @dataclass
@@ -108,14 +52,6 @@ class Converted:
     def without_writes(self) -> int:
         """Trajectories with no state-changing call: accepted and counted, never dropped silently."""
         return sum(1 for t in self.trajectories if not any(c.tool in self.writes for c in t.calls))
-
-
-class PlaceError(ConvertError):
-    """Bad input at a place: `where` names it (a file and key, or a request's field such as `history[3]`)."""
-
-    def __init__(self, where: str, problem: str) -> None:
-        super().__init__(f"{where}: {problem}")
-        self.where = where
 
 
 def _fail(where: str, message: str) -> PlaceError:
@@ -148,7 +84,7 @@ def read_tools(data: Any, source: str) -> list[Tool]:
             raise _fail(f"{where}.function.parameters", "expected {'properties': {...}, 'required': [...]}")
         for param in properties:
             _identifier(param, f"{where}.function.parameters.properties", "parameter")
-            if param in ("self", "tool", "key", "ok", "value"):
+            if param in RESERVED_PARAMETERS:
                 raise _fail(f"{where}.function.parameters.properties", f"parameter {param!r} is reserved")
         unknown = [r for r in required if r not in properties]
         if unknown:
@@ -160,158 +96,32 @@ def read_tools(data: Any, source: str) -> list[Tool]:
     return list(tools.values())
 
 
-def spec_program(tools: Sequence[Tool], writes: Iterable[str]) -> str:
-    lines = [USER_SPEC.rstrip("\n"), f"WRITES = {tuple(sorted(writes))!r}", AGENT_STATE.rstrip("\n")]
-    for tool in tools:
-        params = [p for p in tool.params if p in tool.required] + [f"{p}=None" for p in tool.params
-                                                                   if p not in tool.required]
-        doc = " ".join(tool.description.split())
-        doc = doc if len(doc) <= DOC_CHARS else doc[: DOC_CHARS - 3] + "..."
-        lines.append(f"  def {tool.name}({', '.join(['self', *params])}):")
-        lines.append(f"    {doc!r}" if doc else "    pass")
-    return "\n".join(lines) + "\n"
-
-
-def literal(value: Any, where: str) -> str:
-    """`repr` of a JSON value, after checking it is one (finite numbers, bounded nesting)."""
-    _check_json(value, where, 0)
-    return repr(value)
-
-
-def _check_json(value: Any, where: str, depth: int) -> None:
-    if depth > MAX_DEPTH:
-        raise _fail(where, f"nested deeper than {MAX_DEPTH} levels")
-    if isinstance(value, float) and not math.isfinite(value):
-        raise _fail(where, "only finite numbers are allowed")
-    if isinstance(value, list):
-        for item in value:
-            _check_json(item, where, depth + 1)
-    elif isinstance(value, dict):
-        for name, item in value.items():
-            if not isinstance(name, str):
-                raise _fail(where, f"a key {name!r} is not a string")
-            _check_json(item, where, depth + 1)
-    elif not (value is None or isinstance(value, str | bool | int | float)):
-        raise _fail(where, f"{type(value).__name__} is not a JSON value")
-
-
-def _no_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a finite number")
-
-
-def parse_json(text: str) -> Any:
-    """JSON with NaN/Infinity refused; raises ValueError (or RecursionError) on anything else."""
-    return json.loads(text, parse_constant=_no_constant)
-
-
-def _text(content: Any, where: str) -> str | None:
-    if content is None or isinstance(content, str):
-        return content
-    if isinstance(content, list) and all(isinstance(p, dict) and isinstance(p.get("text"), str) for p in content):
-        return "".join(p["text"] for p in content)
-    raise _fail(where, "content must be a string, null or a list of {'type': 'text', 'text'} parts")
-
-
-class Renderer:
+class Renderer(Reader):
     """One trajectory's messages → program lines, calls paired with results by position."""
 
     def __init__(self, tools: Sequence[Tool], where: str) -> None:
-        self.tools = {t.name: t for t in tools}
-        self.where = where
+        super().__init__(tools, where)
         self.lines: list[str] = list(PREAMBLE)
         self.calls: list[Call] = []
-        self.pending: list[Call] = []
 
-    def message(self, index: int, message: Any) -> None:
-        at = f"{self.where}[{index}]"
-        if not isinstance(message, dict) or not isinstance(message.get("role"), str):
-            raise _fail(at, "not an OpenAI chat message (an object with a 'role')")
-        role = message["role"]
-        if role == "user":
-            text = _text(message.get("content"), f"{at}.content")
-            self.lines.append(f"user.says({text!r})")
-        elif role == "assistant":
-            _text(message.get("content"), f"{at}.content")
-            calls = message.get("tool_calls") or []
-            if not isinstance(calls, list):
-                raise _fail(f"{at}.tool_calls", "must be a list")
-            for n, call in enumerate(calls):
-                self.call(call, f"{at}.tool_calls[{n}]")
-        elif role in ("tool", "function"):
-            self.result(message, at)
-        elif role not in SKIPPED_ROLES:
-            raise _fail(f"{at}.role", f"{role!r} is not an OpenAI role (system, user, assistant, tool)")
+    def said(self, text: str | None) -> None:
+        self.lines.append(f"user.says({text!r})")
 
-    def call(self, call: Any, at: str) -> str:
+    def called(self, call: Call) -> None:
+        self.lines.append(call_line(call, self.tools[call.tool]))
+        self.calls.append(call)
+
+    def answered(self, call: Call) -> None:
+        ok, value = call.result or (False, None)
+        self.lines.append(f"agent.result({call.tool!r}, {call.key!r}, {ok}, {value!r})")
+
+    def line(self, call: Any, at: str) -> str:
         """A call as `agent.tool(args...)`; also what the gateway makes of a proposed `{name, arguments}`."""
-        function = call.get("function", call) if isinstance(call, dict) else None
-        if not isinstance(function, dict):
-            raise _fail(at, "expected {'function': {'name', 'arguments'}}")
-        at = f"{at}.function" if "function" in call else at
-        name = function.get("name")
-        tool = self.tools.get(name) if isinstance(name, str) else None
-        if tool is None:
-            known = ", ".join(sorted(self.tools)[:20])
-            raise _fail(f"{at}.name", f"no tool {name!r} in the tools ({known})")
-        arguments = self.arguments(tool, function.get("arguments", {}), f"{at}.arguments")
-        rendered = ", ".join(literal(arguments.get(p), f"{at}.arguments.{p}") for p in tool.params)
-        line = f"agent.{tool.name}({rendered})"
-        made = Call(tool.name, arguments, len(self.lines), _key(arguments.get(tool.key)) if tool.key else None)
-        self.lines.append(line)
-        self.calls.append(made)
-        self.pending.append(made)
-        return line
-
-    @staticmethod
-    def arguments(tool: Tool, raw: Any, at: str) -> dict[str, Any]:
-        if isinstance(raw, str):
-            try:
-                raw = parse_json(raw) if raw.strip() else {}
-            except (ValueError, RecursionError) as exc:
-                raise _fail(at, f"not valid JSON: {exc}") from None
-        if not isinstance(raw, dict):
-            raise _fail(at, f"must be a JSON object, found {type(raw).__name__}")
-        unknown = [k for k in raw if k not in tool.params]
-        if unknown:
-            raise _fail(at, f"{tool.name} has no parameter {unknown[0]!r} ({', '.join(tool.params) or 'none'})")
-        missing = [p for p in tool.params if p in tool.required and p not in raw]
-        if missing:
-            raise _fail(at, f"missing required argument {missing[0]!r} of {tool.name}")
-        return raw
-
-    def result(self, message: dict[str, Any], at: str) -> None:
-        if not self.pending:
-            raise _fail(at, "a tool result that pairs with no call (every earlier call already has its result)")
-        pending = self.pending.pop(0)
-        name = message.get("name")
-        if name is not None and name != pending.tool:
-            raise _fail(f"{at}.name", f"result of {name!r} pairs by position with a call of {pending.tool!r}")
-        content = _text(message.get("content"), f"{at}.content") or ""
-        ok, value = outcome(content)
-        rendered = literal(value, f"{at}.content")
-        pending.result = (ok, value)
-        self.lines.append(f"agent.result({pending.tool!r}, {pending.key!r}, {ok}, {rendered})")
+        self.call(call, at)
+        return self.lines[-1]
 
     def program(self) -> str:
         return "\n".join(self.lines) + "\n"
-
-
-def _key(value: Any) -> Any:
-    """The identifying argument as a dictionary key: a scalar as is, anything else as its JSON text."""
-    if value is None or isinstance(value, str | int | bool) or (isinstance(value, float) and math.isfinite(value)):
-        return value
-    return json.dumps(value, sort_keys=True)
-
-
-def outcome(content: str) -> tuple[bool, Any]:
-    """(success, value): text starting with 'Error' is a failure kept as text; otherwise parsed JSON, or the text
-    when it is not JSON."""
-    if content.lstrip().lower().startswith("error"):
-        return False, content
-    try:
-        return True, parse_json(content)
-    except (ValueError, RecursionError):
-        return True, content
 
 
 def render(messages: Any, tools: Sequence[Tool], where: str) -> Renderer:
@@ -412,6 +222,6 @@ def call_lines(spec: str, calls: Sequence[str | Mapping[str, Any]], field: str =
         return [c for c in calls if isinstance(c, str)]
     try:
         renderer = Renderer(spec_tools(spec, field), field)
-        return [c if isinstance(c, str) else renderer.call(dict(c), f"{field}[{n}]") for n, c in enumerate(calls)]
+        return [c if isinstance(c, str) else renderer.line(dict(c), f"{field}[{n}]") for n, c in enumerate(calls)]
     except PlaceError as exc:
         raise _problem(exc) from None

@@ -6,9 +6,9 @@ import json
 from pathlib import Path
 from typing import Any
 
+from precond_client.openai_log import ConvertError
 
-class ConvertError(Exception):
-    """Input of the wrong shape or content: the message names the file and the key (exit 2 in the CLI)."""
+__all__ = ["ConvertError", "at", "expect", "key", "load_json"]
 
 
 def load_json(path: Path) -> Any:

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from precond.convert.openai import Call, Converted, Trajectory, convert
+from precond.convert.openai import Converted, Trajectory, convert
+from precond_client.openai_log import Call
 from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest
 
 NOW = "2024-05-15T15:00:00"

@@ -10,7 +10,7 @@ import pytest
 
 from precond.stack.keyed import KeyedStack, keyed_stack
 
-TENANTS = ("acme", "throttled", "cli", "walkthrough", "light")
+TENANTS = ("acme", "throttled", "cli", "walkthrough", "light", "guard")
 
 
 @pytest.fixture(scope="session")

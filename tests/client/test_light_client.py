@@ -1,7 +1,7 @@
-"""The light client distribution (clients/python): its wheel holds `precond_client` (its schemas
-included) only and
-depends on httpx and pydantic only; installed alone in a fresh virtual environment (no system site packages),
-it imports without torch, fastapi or redis and works against a real stack."""
+"""The light client distribution (clients/python): its wheel holds `precond_client` (its schemas and the agent
+adapters included) only and depends on httpx and pydantic only (the adapters' frameworks are extras); installed
+alone in a fresh virtual environment (no system site packages), it imports without torch, fastapi or redis and
+works against a real stack, its embedded guard included."""
 
 from __future__ import annotations
 
@@ -45,17 +45,22 @@ def test_the_wheel_holds_the_client_and_its_schemas_and_needs_httpx_and_pydantic
     packages = {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")}
     assert packages == {"precond_client"}
     expected = {f"precond_client/{p.name}" for p in (ROOT / "precond_client").glob("*.py")}
-    expected |= {f"precond_client/schemas/{p.name}" for p in (ROOT / "precond_client" / "schemas").glob("*.py")}
+    for package in ("schemas", "adapters"):
+        expected |= {f"precond_client/{package}/{p.name}" for p in (ROOT / "precond_client" / package).glob("*.py")}
     assert {n for n in names if n.endswith(".py")} == expected
     assert headers["Name"] == "precond-client"
     requires = sorted(headers.get_all("Requires-Dist") or [])
-    assert [r.split(">")[0].split("=")[0].strip() for r in requires] == ["httpx", "pydantic"], requires
+    base = [r for r in requires if "extra ==" not in r]
+    assert [r.split(">")[0].split("=")[0].strip() for r in base] == ["httpx", "pydantic"], requires
+    assert sorted(headers.get_all("Provides-Extra") or []) == ["langgraph", "openai-agents"]
 
 
 USE = """
 import json, sys
 import precond_client
 from precond_client import Client, History, rules
+from precond_client.guard import Guard
+from precond_client.openai_log import Tool, spec_program
 args = json.loads(sys.argv[1])
 with Client(args["url"], api_key=args["key"]) as client:
     made = client.create_set({"spec": args["spec"], "preconditions": {"SYSTEM.GOODBYE": ["self.user.no_more"]},
@@ -63,10 +68,28 @@ with Client(args["url"], api_key=args["key"]) as client:
     pinned = client.edit_set(made.id, [rules.require("SYSTEM.GOODBYE", "self.user.no_more")])
     history = History().user("INFORM_INTENT", "FindRestaurants").user("INFORM", "city'); import os; ('")
     verdict = client.check_with_set(pinned.reference, history, ["system.GOODBYE()"]).results[0]
-heavy = sorted(m for m in ("torch", "transformers", "fastapi", "redis", "arq", "precond")
+    # the embedded guard: a set over a spec `precond convert openai` writes, judged here and by the service
+    tools = [Tool("get_order", ("order_id",), frozenset({"order_id"})),
+             Tool("cancel_order", ("order_id",), frozenset({"order_id"}))]
+    orders = client.create_set({"spec": spec_program(tools, {"cancel_order"}),
+                                "preconditions": {"AGENT.cancel_order": ["order_id in self.results['get_order']"]}})
+    session = Guard.from_set(client.get_set(orders.reference)).session()
+    messages = [{"role": "user", "content": "cancel 7"}]
+    session.add(messages[0])
+    cancel = {"name": "cancel_order", "arguments": '{"order_id": "7"}'}
+    pairs = [(session.check(**cancel), client.check_with_set(orders.reference, messages, [cancel]).results[0])]
+    read = [{"role": "assistant", "tool_calls": [{"function": {"name": "get_order",
+                                                               "arguments": cancel["arguments"]}}]},
+            {"role": "tool", "content": '{"status": "open"}'}]
+    for message in read:
+        session.add(message)
+    messages += read
+    pairs.append((session.check(**cancel), client.check_with_set(orders.reference, messages, [cancel]).results[0]))
+heavy = sorted(m for m in ("torch", "transformers", "fastapi", "redis", "arq", "precond", "agents", "langgraph")
                if m in sys.modules)
 print(json.dumps({"version": pinned.version, "allowed": verdict.allowed, "violations": verdict.violations,
-                  "heavy": heavy, "file": precond_client.__file__}))
+                  "heavy": heavy, "file": precond_client.__file__,
+                  "guard": [[e.model_dump() for e in pair] for pair in pairs]}))
 """
 
 
@@ -90,3 +113,6 @@ def test_installed_alone_it_works_against_a_real_stack(wheel: Path, keyed: Keyed
     assert answer["version"] == 2 and answer["heavy"] == []
     assert answer["file"].startswith(str(env_dir))  # the installed copy, not the checkout
     assert answer["allowed"] is False and answer["violations"] == ["self.user.no_more"]
+    (before_embedded, before_service), (after_embedded, after_service) = answer["guard"]
+    assert before_embedded == before_service and after_embedded == after_service
+    assert before_embedded["violations"] == ["order_id in self.results['get_order']"] and after_embedded["allowed"]

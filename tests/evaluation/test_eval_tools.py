@@ -11,11 +11,11 @@ import json
 from pathlib import Path
 from typing import Any
 
-from precond.convert.openai import Call
 from precond.engine.factory import build_engine
 from precond.evaluation import tools
 from precond.evaluation.cache import JsonCache
 from precond.evaluation.tools_report import TOOLS_HEADING, write_tools_section
+from precond_client.openai_log import Call
 
 TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
 RESERVATION = {"reservation_id": "R1", "user_id": "u1", "cabin": "basic_economy", "insurance": "no",
