@@ -1,0 +1,126 @@
+"""The adapters with the real frameworks, each driven by a scripted model against a stored set on a real stack,
+judged in this process (`Guard`) and by the service (`ServiceGuard`): the model asks to cancel a reservation
+before reading it (refused: the tool never runs, and the model's next input holds why), then reads it, then
+cancels it (allowed: the tool runs).
+
+OpenAI Agents SDK: its own `agents.testing.ScriptedModel`. LangGraph: a graph of a model node (LangChain's
+`GenericFakeChatModel`, which answers a fixed list of messages) and the guarded `ToolNode`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from agents import Agent, Runner, function_tool
+from agents.testing import ScriptedModel, assistant_message, function_call
+from langchain_core.language_models.fake_chat_models import GenericFakeChatModel
+from langchain_core.messages import AIMessage, BaseMessage, HumanMessage, ToolMessage
+from langchain_core.tools import tool
+from langgraph.graph import START, MessagesState, StateGraph
+from langgraph.prebuilt import tools_condition
+
+from precond.evaluation import tools
+from precond.stack.keyed import KeyedStack
+from precond_client import AsyncClient, Client, PreconditionSet
+from precond_client.adapters.langgraph import guarded_tool_node
+from precond_client.adapters.openai_agents import protect
+from precond_client.guard import Guard, Judge, ServiceGuard
+
+TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
+READ = "reservation_id in self.results['get_reservation_details']"
+RESERVATION = {"reservation_id": "R1", "user_id": "u1", "cabin": "business", "insurance": "no"}
+
+
+@pytest.fixture(scope="module")
+def stored(keyed: KeyedStack) -> PreconditionSet:
+    with Client(keyed.url, api_key=keyed.keys["guard"]) as client:
+        return client.create_set({"spec": tools.load(TAU).spec,
+                                  "preconditions": {"AGENT.cancel_reservation": [READ]}})
+
+
+@pytest.fixture(params=["embedded", "service"])
+def judge(request: pytest.FixtureRequest, stored: PreconditionSet, keyed: KeyedStack) -> Iterator[Judge]:
+    if request.param == "embedded":
+        with Client(keyed.url, api_key=keyed.keys["guard"]) as client:
+            yield Guard.from_set(client.get_set(stored.reference))
+    else:
+        yield ServiceGuard(AsyncClient(keyed.url, api_key=keyed.keys["guard"]), stored.reference)
+
+
+def scripted_calls() -> list[tuple[str, dict[str, str]]]:
+    cancel = ("cancel_reservation", {"reservation_id": "R1"})
+    return [cancel, ("get_reservation_details", {"reservation_id": "R1"}), cancel]
+
+
+def test_the_agents_sdk_guardrail_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
+    ran: list[str] = []
+
+    @function_tool
+    def get_reservation_details(reservation_id: str) -> str:
+        """Read a reservation."""
+        ran.append(f"get {reservation_id}")
+        return json.dumps(RESERVATION)
+
+    @function_tool
+    def cancel_reservation(reservation_id: str) -> str:
+        """Cancel a reservation."""
+        ran.append(f"cancel {reservation_id}")
+        return json.dumps(RESERVATION | {"status": "cancelled"})
+
+    steps = [[function_call(name, args, call_id=f"call-{n}")] for n, (name, args) in enumerate(scripted_calls())]
+    model = ScriptedModel([*steps, [assistant_message("Cancelled.")]])
+    agent = Agent(name="airline", model=model, tools=[get_reservation_details, cancel_reservation])
+    result = asyncio.run(Runner.run(protect(agent, judge), "Please cancel R1."))
+    assert result.final_output == "Cancelled."
+    assert ran == ["get R1", "cancel R1"]  # the first cancellation never reached the tool
+    refused = next(i for i in model.calls[1].input if i.get("type") == "function_call_output")
+    assert refused["call_id"] == "call-0" and str(refused["output"]).startswith("Error: the precondition guard")
+    assert f"`{READ}` does not hold" in str(refused["output"])
+    outputs = [i for i in model.calls[3].input if i.get("type") == "function_call_output"]
+    assert "cancelled" in str(outputs[-1]["output"])  # the allowed one ran and answered
+
+
+def test_the_langgraph_tool_node_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
+    ran: list[str] = []
+
+    @tool
+    def get_reservation_details(reservation_id: str) -> str:
+        """Read a reservation."""
+        ran.append(f"get {reservation_id}")
+        return json.dumps(RESERVATION)
+
+    @tool
+    def cancel_reservation(reservation_id: str) -> str:
+        """Cancel a reservation."""
+        ran.append(f"cancel {reservation_id}")
+        return json.dumps(RESERVATION | {"status": "cancelled"})
+
+    answers = [AIMessage("", tool_calls=[{"name": name, "args": args, "id": f"call-{n}"}])
+               for n, (name, args) in enumerate(scripted_calls())]
+    model = GenericFakeChatModel(messages=iter([*answers, AIMessage("Cancelled.")]))
+    seen: list[list[BaseMessage]] = []
+
+    def call_model(state: MessagesState) -> dict[str, Any]:
+        seen.append(list(state["messages"]))
+        return {"messages": [model.invoke(state["messages"])]}
+
+    graph = StateGraph(MessagesState)
+    graph.add_node("model", call_model)
+    graph.add_node("tools", guarded_tool_node([get_reservation_details, cancel_reservation], judge))
+    graph.add_edge(START, "model")
+    graph.add_conditional_edges("model", tools_condition)
+    graph.add_edge("tools", "model")
+    app = graph.compile()
+    final = asyncio.run(app.ainvoke({"messages": [HumanMessage("Please cancel R1.")]},
+                                    {"configurable": {"thread_id": "t1"}}))
+    assert final["messages"][-1].content == "Cancelled."
+    assert ran == ["get R1", "cancel R1"]
+    refused = next(m for m in seen[1] if isinstance(m, ToolMessage))
+    assert refused.status == "error" and refused.tool_call_id == "call-0"
+    assert str(refused.content).startswith("Error: the precondition guard") and READ in str(refused.content)
+    assert "cancelled" in str(seen[3][-1].content)
