@@ -108,7 +108,7 @@ class Guard:
 
     def __init__(self, spec: str, preconditions: Mapping[str, Sequence[str]],
                  decided: Mapping[str, Mapping[str, str]] | None = None, *, name: str = "inline rules",
-                 fail_closed: bool = True) -> None:
+                 fail_closed: bool = True, warnings: Mapping[str, str] | None = None) -> None:
         try:
             tools, self.writes = converter_spec(spec)
         except ValueError as exc:
@@ -117,6 +117,9 @@ class Guard:
         self._name = name
         self.fail_closed = fail_closed
         self.decided = {action: dict(labels) for action, labels in (decided or {}).items()}
+        self.warnings = dict(warnings or {})
+        """The set's word on each action whose rule is empty or not backed by its demonstrations (a tool without
+        rules is allowed every call, as the service allows it)."""
         self.rules, problems = self._compile(preconditions)
         if problems:
             raise NotEmbeddable(problems)
@@ -127,7 +130,8 @@ class Guard:
     def from_set(cls, stored: PreconditionSet | Mapping[str, Any], *, fail_closed: bool = True) -> Guard:
         """From a stored set (`Client.get_set(reference)`), its spec, rules and how each rule was decided."""
         found = stored if isinstance(stored, PreconditionSet) else PreconditionSet.model_validate(stored)
-        return cls(found.spec, found.preconditions, found.decided, name=found.reference, fail_closed=fail_closed)
+        return cls(found.spec, found.preconditions, found.decided, name=found.reference, fail_closed=fail_closed,
+                   warnings=found.warnings)
 
     @property
     def name(self) -> str:
