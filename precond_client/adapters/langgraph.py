@@ -5,9 +5,9 @@ runs; a refused call answers the model with a `ToolMessage` (status "error") tha
 
 The judging is the ToolNode's tool-call wrapper (`wrap_tool_call` / `awrap_tool_call`), the interception point
 LangGraph provides; `GuardedToolCalls.wrap` has the signature of LangChain's `wrap_tool_call` middleware too
-(`langchain.agents.middleware.wrap_tool_call(GuardedToolCalls(judge).wrap)` for `create_agent`). The history is
-the graph state's messages, converted by LangChain's `convert_to_openai_messages` and added to the thread's guard
-session as they grow (`Conversation`); a thread is the `thread_id` of the run's config.
+(`langchain.agents.middleware.wrap_tool_call(GuardedToolCalls(judge).wrap)` for `create_agent`, untested here).
+The history is the graph state's messages, converted by LangChain's `convert_to_openai_messages` and added to the
+thread's guard session as they grow (`Conversation`); a thread is the `thread_id` of the run's config.
 """
 
 from __future__ import annotations

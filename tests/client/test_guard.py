@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import ast
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +36,8 @@ from precond_client.guard import (
 )
 from precond_client.openai_log import AGENT_STATE, USER_SPEC, converter_spec, outcome
 
-TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
+ROOT = Path(__file__).resolve().parents[2]
+TAU = ROOT / "tests" / "fixtures" / "tau_airline"
 RECORDS = json.loads((TAU / "trajectories.json").read_text())
 TOOLS = json.loads((TAU / "tools.json").read_text())
 SPEC = convert(RECORDS, TOOLS).spec
@@ -221,3 +225,45 @@ def test_the_service_guard_fails_closed_when_the_service_does_not_answer() -> No
         assert not verdict.allowed and verdict.error is not None and verdict.error.startswith("not judged: ")
         assert ServiceGuard(client, "ps_000000000000000000000000@1", fail_closed=False).session().check(
             **CANCEL).allowed
+
+
+HOSTILE_PROBE = """
+import json, sys
+from precond_client.guard import Guard, NotEmbeddable
+spec, canary = sys.argv[1], sys.argv[2]
+touch = f"__import__('os').system('touch {canary}')"
+rules = [touch, f"len({touch})", f"(lambda: {touch})()", f"[{touch} for x in (1,)]",
+         f"self.__class__.__init__.__globals__['__builtins__']['exec']('open({canary!r}, \\\\'w\\\\')')",
+         f"reservation_id.__class__.__mro__[1].__subclasses__()", f"getattr(self, 'results')"]
+refused = 0
+for rule in rules:
+    try:
+        Guard(spec, {"AGENT.cancel_reservation": [rule]})
+    except NotEmbeddable:
+        refused += 1
+read = "reservation_id in self.results['get_reservation_details']"
+session = Guard(spec, {"AGENT.cancel_reservation": [read]}).session()
+session.add({"role": "user", "content": f"x'); {touch}; ('"})
+session.add({"role": "assistant", "tool_calls": [{"function": {"name": "get_reservation_details",
+             "arguments": json.dumps({"reservation_id": f"'); {touch}; ('"})}}]})
+session.add({"role": "tool", "content": json.dumps({"__class__": touch, "cabin": f"{touch}"})})
+verdict = session.check("cancel_reservation", json.dumps({"reservation_id": f"'); {touch}; ('"}))
+print(json.dumps({"refused": refused, "of": len(rules), "allowed": verdict.allowed}))
+"""
+
+
+@pytest.mark.parametrize("user", ["root", "nobody"])
+def test_hostile_rules_and_messages_run_nothing_as_root_or_not(user: str, tmp_path: Path) -> None:
+    """Rules that reach for the interpreter's machinery are refused unrun; code in messages, arguments and results
+    is data (the call whose argument names the reservation read is allowed, nothing more happens)."""
+    if user == "nobody" and os.geteuid() != 0:
+        pytest.skip("already not root: the root case ran as this user")
+    tmp_path.chmod(0o777)
+    canary = tmp_path / "pwned"
+    prefix = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"] if user == "nobody" else []
+    done = subprocess.run([*prefix, sys.executable, "-c", HOSTILE_PROBE, SPEC, str(canary)], cwd=tmp_path,
+                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}, capture_output=True, text=True,
+                          timeout=120, check=False)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads(done.stdout) == {"refused": 7, "of": 7, "allowed": True}
+    assert not canary.exists()
