@@ -123,8 +123,8 @@ class Guard:
         self.rules, problems = self._compile(preconditions)
         if problems:
             raise NotEmbeddable(problems)
-        self._methods = {"says", "result", *self.tools}
-        """The spec's methods by name (`USER.says`, `AGENT.result`, the tools): what labels a violation."""
+        self._methods = {"USER.says", "AGENT.result", *(f"AGENT.{t}" for t in self.tools)}
+        """The spec's methods (`Class.method`): the actions whose labels may name a violation."""
 
     @classmethod
     def from_set(cls, stored: PreconditionSet | Mapping[str, Any], *, fail_closed: bool = True) -> Guard:
@@ -200,7 +200,7 @@ class Guard:
         if not violations or not self.decided:
             return {}
         labels = {rule: label for action, found in self.decided.items()
-                  if action.partition(".")[2] in self._methods and f".{action.partition('.')[2]}(" in line
+                  if action in self._methods and f".{action.partition('.')[2]}(" in line
                   for rule, label in found.items()}
         return {v: labels[v] for v in violations if v in labels}
 
