@@ -1,15 +1,23 @@
-"""Container healthcheck: `gateway` asks /health, `worker` looks for this container's heartbeat in Redis.
+"""Container healthcheck: `gateway` asks /health, `worker` looks for this container's heartbeat in Redis, and
+`worker-ready` also reads what the heartbeat says: a worker whose sandbox cannot confine untrusted code (a pod
+without what the sandbox needs) or whose model is not loaded is alive but not ready, and the check prints why
+(the orchestrator shows it in the probe's failure event).
 
 Standard library plus redis only, and no import of the service, so a wedged app cannot wedge its check.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import socket
 import sys
 import urllib.request
 from pathlib import Path
+from typing import Any
+
+MODEL_QUEUES = ("precond:queue:model", "precond:queue:train")
+"""precond.jobs.keys.MODEL_QUEUES, spelt out here (tests/deploy checks that they agree)."""
 
 
 def gateway() -> bool:
@@ -17,15 +25,42 @@ def gateway() -> bool:
         return bool(answer.status == 200)
 
 
-def worker() -> bool:
+def heartbeats() -> list[dict[str, Any]]:
+    """The heartbeats of this container's worker processes (keyed `precond:worker:<hostname>-<pid>-...`)."""
     import redis
 
     password_file = os.environ.get("PRECOND_REDIS_PASSWORD_FILE")  # used when the URL carries no password
     password = Path(password_file).read_text().strip() if password_file else None
     url = os.environ.get("REDIS_URL", "redis://127.0.0.1:6379/0")
     client = redis.Redis.from_url(url, password=password, socket_timeout=3)
-    return bool(client.keys(f"precond:worker:{socket.gethostname()}-*"))
+    keys = client.keys(f"precond:worker:{socket.gethostname()}-*")
+    return [json.loads(raw) for raw in client.mget(keys) if raw] if keys else []
+
+
+def worker() -> bool:
+    return bool(heartbeats())
+
+
+def not_ready(beat: dict[str, Any]) -> str | None:
+    """Why this worker must not count as ready, or None."""
+    if beat.get("sandbox") == "unavailable":
+        return f"the sandbox cannot confine untrusted code here, so this worker takes no job: {beat.get('sandbox_error')}"
+    if set(MODEL_QUEUES) & set(beat.get("queues", [])) and not beat.get("model_loaded"):
+        return f"the model is not loaded ({beat.get('model_error') or 'still loading'})"
+    return None
+
+
+def worker_ready() -> bool:
+    beats = heartbeats()
+    if not beats:
+        print("no heartbeat of this worker in Redis")
+        return False
+    reasons = [reason for reason in map(not_ready, beats) if reason]
+    for reason in reasons:
+        print(reason)
+    return not reasons
 
 
 if __name__ == "__main__":
-    sys.exit(0 if {"gateway": gateway, "worker": worker}[sys.argv[1]]() else 1)
+    checks = {"gateway": gateway, "worker": worker, "worker-ready": worker_ready}
+    sys.exit(0 if checks[sys.argv[1]]() else 1)

@@ -85,6 +85,16 @@ def worker(
     run(settings)
 
 
+def sandbox_check() -> None:
+    """Check that untrusted code can be confined here (as this user, with these capabilities, under this
+    seccomp profile): prints what the sandbox's probe found; exit status 1 when it cannot, and a worker here
+    would then refuse every job."""
+    from precond.sandbox.selfcheck import main
+
+    raise typer.Exit(main())
+
+
 def register(app: typer.Typer) -> None:
     app.command()(serve)
     app.command()(worker)
+    app.command("sandbox-check")(sandbox_check)

@@ -60,6 +60,13 @@ class Sandbox:
         if not self._pool.hello.get("confined"):
             self.unconfined_reason = str(self._pool.hello.get("reason"))
 
+    @property
+    def boundary(self) -> dict[str, object]:
+        """What the fork servers' probe found: `confined` (and why not), and whether the extra empty network
+        namespace could be made (`network_namespace`, `detail`)."""
+        hello = self._pool.hello
+        return {key: hello.get(key) for key in ("confined", "reason", "network_namespace", "detail")}
+
     def __enter__(self) -> Sandbox:
         return self
 

@@ -30,7 +30,8 @@ ALLOWED_SYSCALLS: tuple[str, ...] = (
 
 
 class PolicyUnavailable(RuntimeError):
-    """libseccomp cannot be loaded here: the sandbox must refuse to run untrusted code."""
+    """The filter cannot be built here (no libseccomp, a runtime that forbids seccomp, no temporary
+    directory): the sandbox must refuse to run untrusted code."""
 
 
 def build_filter() -> bytes:
@@ -39,15 +40,23 @@ def build_filter() -> bytes:
         import pyseccomp
     except (ImportError, OSError) as exc:  # pyseccomp loads libseccomp.so.2 at import time
         raise PolicyUnavailable(f"libseccomp is not available: {exc}") from exc
-    rules = pyseccomp.SyscallFilter(pyseccomp.ERRNO(errno.EPERM))
-    rules.set_attr(pyseccomp.Attr.ACT_BADARCH, pyseccomp.KILL_PROCESS)
+    try:
+        rules = pyseccomp.SyscallFilter(pyseccomp.ERRNO(errno.EPERM))
+        # libseccomp asks the kernel which actions it supports: a process whose own seccomp profile forbids
+        # seccomp() (a container runtime's custom profile) gets EINVAL here, and must refuse, not crash
+        rules.set_attr(pyseccomp.Attr.ACT_BADARCH, pyseccomp.KILL_PROCESS)
+    except OSError as exc:
+        raise PolicyUnavailable(f"the seccomp filter cannot be built here: {exc}") from exc
     for name in ALLOWED_SYSCALLS:
         try:
             rules.add_rule(pyseccomp.ALLOW, name)
         except (ValueError, OSError):
             continue  # not a syscall on this architecture (e.g. `time` on arm64)
-    with tempfile.TemporaryFile() as out:
-        rules.export_bpf(out)
-        out.flush()
-        os.lseek(out.fileno(), 0, os.SEEK_SET)
-        return out.read()
+    try:
+        with tempfile.TemporaryFile() as out:
+            rules.export_bpf(out)
+            out.flush()
+            os.lseek(out.fileno(), 0, os.SEEK_SET)
+            return out.read()
+    except OSError as exc:  # no writable temporary directory (a read-only root without a /tmp volume)
+        raise PolicyUnavailable(f"the seccomp filter cannot be exported: {exc}") from exc

@@ -8,9 +8,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import stat
 import subprocess
-import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -23,6 +21,7 @@ from precond.sandbox import LimitExceeded, Limits, Sandbox, SandboxCrashed, Sand
 from precond.sandbox import api as sandbox_api
 from precond.sandbox import pool as sandbox_pool
 from precond.sandbox.policy import PolicyUnavailable
+from precond.stack.identity import readable_sandbox_copy, runnable_python
 
 ROOT = Path(__file__).resolve().parents[2]
 SPEC = "import typing\nclass A:\n    def __init__(self):\n        self.x = 1\n    def act(self, v):\n        pass\n"
@@ -43,41 +42,17 @@ def test_attacks_with_python_guards_off_are_refused_by_the_kernel(monkeypatch: p
     assert "hunter2" not in json.dumps(results)
 
 
-SPAWNS_ITSELF = ("import subprocess, sys; "
-                 "subprocess.run([sys.executable, '-I', '-S', '-c', 'import ctypes'], check=True)")
-
-
 def _runnable_as(uid: int) -> str:
-    """An interpreter this uid may execute (the worker's may live under a private home)."""
-    for candidate in (sys.executable, shutil.which("python3"), "/usr/bin/python3"):
-        if candidate and subprocess.run(
-            ["setpriv", f"--reuid={uid}", f"--regid={uid}", "--clear-groups", candidate, "-c", SPAWNS_ITSELF],
-            capture_output=True, check=False,
-        ).returncode == 0:
-            return candidate
-    raise AssertionError(f"no Python interpreter can be run as uid {uid}: the non-root test cannot run")
+    return runnable_python([f"--reuid={uid}", f"--regid={uid}", "--clear-groups"])
 
 
 @pytest.fixture
 def readable_copy() -> Iterator[Path]:
     """The sandbox, its program reader, the policy binding, the corpus and the probe, readable by any user."""
-    import pyseccomp
-
     where = Path(tempfile.mkdtemp(prefix="sandbox-nonroot-", dir="/tmp"))
     try:
-        (where / "precond").mkdir()
-        shutil.copy(ROOT / "precond" / "__init__.py", where / "precond")
-        shutil.copytree(ROOT / "precond" / "sandbox", where / "precond" / "sandbox")
-        shutil.copytree(ROOT / "precond" / "programs", where / "precond" / "programs")
-        (where / "precond" / "stack").mkdir()
-        for name in ("__init__.py", "hostile_corpus.py"):
-            shutil.copy(ROOT / "precond" / "stack" / name, where / "precond" / "stack")
-        shutil.copy(pyseccomp.__file__, where)
-        shutil.copy(Path(__file__).with_name("attack_probe.py"), where)
-        shutil.copy(Path(__file__).with_name("warm_probe.py"), where)
-        for path in [where, *where.rglob("*")]:
-            path.chmod(path.stat().st_mode | stat.S_IROTH | (stat.S_IXOTH if path.is_dir() else 0))
-        yield where
+        here = Path(__file__).parent
+        yield readable_sandbox_copy(where, [here / "attack_probe.py", here / "warm_probe.py"])
     finally:
         shutil.rmtree(where, ignore_errors=True)
 

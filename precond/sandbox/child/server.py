@@ -372,6 +372,10 @@ class Server:
             return "unconfined development mode: no seccomp filter"
         if code == PROBE_DENIED:
             return None
+        if code == BOUNDARY_FAILED and self.was_root:
+            return ("the seccomp filter or a resource limit could not be installed, or root could not be given up "
+                    "(children of a root worker drop to nobody, which needs CAP_SETUID and CAP_SETGID; a non-root "
+                    "worker needs no capability)")
         if code == BOUNDARY_FAILED:
             return "the seccomp filter or a resource limit could not be installed"
         return "a confined child could still open files, signal or fork"
