@@ -189,10 +189,10 @@ async def measure(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
             states: list[Any] = []
 
             async def model_job() -> None:
-                states.append(await follow(http, "/infer", body, 1800))
+                states.append(await follow(http, "/infer-preconditions", body, 1800))
 
             async def model_free_jobs() -> None:
-                states.extend(await asyncio.gather(*(follow(http, "/infer", infer_body(seed), 600)
+                states.extend(await asyncio.gather(*(follow(http, "/infer-preconditions", infer_body(seed), 600)
                                                      for seed in range(4))))
 
             figures["worker_model_job"] = await peak_during(worker_pid, model_job)

@@ -265,6 +265,8 @@ def test_the_worker_never_runs_unconfined_and_writes_only_its_volumes(rendered: 
     for mount in worker["volumeMounts"]:
         if not mount.get("readOnly"):
             assert volumes[mount["name"]]["emptyDir"]["sizeLimit"], mount
+    gateway = container(rendered, "Deployment", "precond-gateway")
+    assert all(mount.get("readOnly") for mount in gateway["volumeMounts"]), "the gateway writes no file"
 
 
 def mounted_secret_keys(spec: dict[str, Any]) -> set[str]:
