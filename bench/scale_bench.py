@@ -17,10 +17,12 @@ For each number of workers:
     queue) submitted at once and followed to their end; inferences/s from the first submission to the last end;
   * per phase: CPU seconds of the gateway, the workers (with their fork servers), each Redis and this client,
     over the phase's wall time (cores used; the machine has what `os.cpu_count()` says, shared with whatever
-    else runs: `uptime` is printed); Redis commands per job from `INFO commandstats` (reset before the phase);
-  * Redis memory: `used_memory` per queued inference (submitted with no worker running) and per finished
-    one (its arq result and progress in the queue Redis, kept PRECOND_RESULT_TTL_S) and per cached result (in
-    the cache Redis, kept PRECOND_CACHE_TTL_S).
+    else runs: `uptime` is printed); Redis commands per job from `INFO commandstats` (reset before the phase;
+    it counts every command a Lua script runs, and the script call), less the idle stack's rate (heartbeats,
+    polls), measured for `--idle-seconds` before;
+  * Redis memory: `used_memory` per queued inference (submitted with no worker running), per finished
+    inference and check (its result and progress in the queue Redis, kept PRECOND_RESULT_TTL_S) and per cached
+    result (in the cache Redis, kept PRECOND_CACHE_TTL_S).
 """
 
 from __future__ import annotations
@@ -41,7 +43,6 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import redis
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -96,6 +97,7 @@ def measured(stack: Stack, figures: dict[str, Any]) -> Iterator[None]:
     started = time.monotonic()
     yield
     wall = time.monotonic() - started
+    figures["seconds"] = round(wall, 2)
     figures["cores"] = {role: round((sum(map(cpu_s, pids)) - before[role]) / wall, 2) for role, pids in who.items()}
     commands: Counter[str] = Counter()
     for client in servers:
@@ -152,8 +154,9 @@ def used_memory(server: Any) -> int:
     return int(server.client().info("memory")["used_memory"])
 
 
-async def job_memory(stack: Stack, count: int) -> dict[str, float]:
-    """Redis bytes per queued inference (no worker running yet), per finished one, per cached result."""
+async def job_memory(stack: Stack, count: int) -> dict[str, int]:
+    """Redis bytes per queued inference (no worker running yet), per finished one and per cached result; the
+    same per finished and per cached check."""
     assert stack.cache_redis is not None
     queue_before, cache_before = used_memory(stack.redis), used_memory(stack.cache_redis)
     async with httpx.AsyncClient(base_url=stack.base_url, timeout=120) as http:
@@ -161,10 +164,35 @@ async def job_memory(stack: Stack, count: int) -> dict[str, float]:
         queued = used_memory(stack.redis)
         stack.start_worker()
         await asyncio.gather(*(finish(http, job) for job in jobs))
-    await asyncio.sleep(1)
-    return {"queued_bytes_per_job": round((queued - queue_before) / count),
-            "finished_bytes_per_job": round((used_memory(stack.redis) - queue_before) / count),
-            "cached_bytes_per_result": round((used_memory(stack.cache_redis) - cache_before) / count)}
+        await asyncio.sleep(1)
+        figures = {"inference_queued_bytes": round((queued - queue_before) / count),
+                   "inference_finished_bytes": round((used_memory(stack.redis) - queue_before) / count),
+                   "inference_cached_bytes": round((used_memory(stack.cache_redis) - cache_before) / count)}
+        queue_before, cache_before = used_memory(stack.redis), used_memory(stack.cache_redis)
+        template = check_body()
+        for n in range(count):
+            answer = await http.post("/check-actions", json={**template, "calls": [f"system.REQUEST('m{n}')"]})
+            assert answer.status_code == 200, answer.text
+        await asyncio.sleep(1)
+        figures |= {"check_finished_bytes": round((used_memory(stack.redis) - queue_before) / count),
+                    "check_cached_bytes": round((used_memory(stack.cache_redis) - cache_before) / count)}
+    return figures
+
+
+async def idle_commands_per_s(stack: Stack, seconds: float) -> float:
+    """Commands the queue Redis runs per second with nothing to do: heartbeats, polls, the gateway's reads."""
+    client = stack.redis.client()
+    client.config_resetstat()
+    await asyncio.sleep(seconds)
+    calls = sum(int(stats["calls"]) for stats in client.info("commandstats").values())
+    return round(calls / seconds, 1)
+
+
+def per_job(phase: dict[str, Any], idle_per_s: float, jobs: int) -> float:
+    """Commands a job adds: those of the phase (Lua scripts count each command they run, and the script
+    call itself), less what the idle stack would have run in that time."""
+    commands: int = sum(phase["redis_commands"].values())
+    return round((commands - idle_per_s * float(phase["seconds"])) / jobs, 1)
 
 
 def start_workers(stack: Stack, count: int) -> None:
@@ -191,21 +219,22 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
         with serving(build(tmp / f"workers-{workers}", model_dir)) as stack:
             start_workers(stack, workers)
             await inferences(stack.base_url, 4, 0)  # warm every worker's fork servers
+            idle = await idle_commands_per_s(stack, args.idle_seconds)
             check_figures: dict[str, Any] = {}
             with measured(stack, check_figures):
                 started = time.monotonic()
                 count = await checks(stack.base_url, args.clients, args.seconds)
                 check_figures["per_s"] = round(count / (time.monotonic() - started), 1)
-            check_figures["redis_commands_per_job"] = round(sum(check_figures["redis_commands"].values()) / count, 1)
+            check_figures["redis_commands_per_job"] = per_job(check_figures, idle, count)
             check_figures["jobs"] = count
             infer_figures: dict[str, Any] = {}
             with measured(stack, infer_figures):
                 started = time.monotonic()
                 await inferences(stack.base_url, args.inferences, 1000)
                 infer_figures["per_s"] = round(args.inferences / (time.monotonic() - started), 2)
-            infer_figures["redis_commands_per_job"] = round(
-                sum(infer_figures["redis_commands"].values()) / args.inferences, 1)
-            figures = {"checks": check_figures, "inferences": infer_figures, "load": os.getloadavg()}
+            infer_figures["redis_commands_per_job"] = per_job(infer_figures, idle, args.inferences)
+            figures: dict[str, Any] = {"checks": check_figures, "inferences": infer_figures,
+                                       "idle_redis_commands_per_s": idle, "load": os.getloadavg()}
         results["runs"][workers] = figures
         print(f"{workers} workers: {figures['checks']['per_s']} checks/s, {figures['inferences']['per_s']} "
               f"inferences/s, cores {figures['checks']['cores']}", file=sys.stderr)
@@ -213,15 +242,18 @@ async def run(args: argparse.Namespace, tmp: Path) -> dict[str, Any]:
 
 
 def table(results: dict[str, Any]) -> str:
-    lines = ["| workers | checks/s | inferences/s | cores during checks: gateway / workers / Redis (both) / client "
-             "| Redis commands per check / per inference |", "| --- | --- | --- | --- | --- |"]
+    def cores(phase: dict[str, Any]) -> str:
+        used = phase["cores"]
+        return (f"{used['gateway']} / {used['workers']} / {used['queue redis'] + used['cache redis']:.2f} / "
+                f"{used['this client']}")
+
+    lines = ["| workers | checks/s | inferences/s | cores, checks: gateway / workers / Redis / client "
+             "| cores, inferences: the same | Redis commands per check / per inference |",
+             "| --- | --- | --- | --- | --- | --- |"]
     for workers, figures in results["runs"].items():
-        cores = figures["checks"]["cores"]
-        redis_cores = cores["queue redis"] + cores["cache redis"]
-        lines.append(f"| {workers} | {figures['checks']['per_s']} | {figures['inferences']['per_s']} | "
-                     f"{cores['gateway']} / {cores['workers']} / {redis_cores:.2f} / {cores['this client']} | "
-                     f"{figures['checks']['redis_commands_per_job']} / "
-                     f"{figures['inferences']['redis_commands_per_job']} |")
+        checks, infers = figures["checks"], figures["inferences"]
+        lines.append(f"| {workers} | {checks['per_s']} | {infers['per_s']} | {cores(checks)} | {cores(infers)} | "
+                     f"{checks['redis_commands_per_job']} / {infers['redis_commands_per_job']} |")
     return "\n".join(lines)
 
 
@@ -231,7 +263,8 @@ def main() -> None:
     parser.add_argument("--clients", type=int, default=16, help="Concurrent check clients.")
     parser.add_argument("--seconds", type=float, default=20.0, help="Length of each check phase.")
     parser.add_argument("--inferences", type=int, default=60, help="Inferences per phase.")
-    parser.add_argument("--memory-jobs", type=int, default=50, help="Inferences for the Redis memory figures.")
+    parser.add_argument("--memory-jobs", type=int, default=50, help="Jobs of each kind for the memory figures.")
+    parser.add_argument("--idle-seconds", type=float, default=10.0, help="Idle phase for the background rate.")
     parser.add_argument("--json", help="Also write the figures to this file.")
     args = parser.parse_args()
     if shutil.which("redis-server") is None:

@@ -44,7 +44,8 @@ def worker() -> bool:
 def not_ready(beat: dict[str, Any]) -> str | None:
     """Why this worker must not count as ready, or None."""
     if beat.get("sandbox") == "unavailable":
-        return f"the sandbox cannot confine untrusted code here, so this worker takes no job: {beat.get('sandbox_error')}"
+        reason = beat.get("sandbox_error")
+        return f"the sandbox cannot confine untrusted code here, so this worker takes no job: {reason}"
     if set(MODEL_QUEUES) & set(beat.get("queues", [])) and not beat.get("model_loaded"):
         return f"the model is not loaded ({beat.get('model_error') or 'still loading'})"
     return None
