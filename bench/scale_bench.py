@@ -58,6 +58,9 @@ LOAD_SETTINGS = {"PRECOND_TENANT_RATE_PER_S": "100000", "PRECOND_TENANT_BURST": 
                  "PRECOND_TENANT_MAX_JOBS": "100000", "PRECOND_QUEUE_MAX_JOBS": "100000",
                  "PRECOND_TENANT_MAX_RUNNING": "4", "PRECOND_CHECK_PROCESSES": "1"}
 TICKS = os.sysconf("SC_CLK_TCK")
+POLL_S = 0.25
+"""How often a client asks for an inference it follows (each finished one answers its whole result)."""
+CONNECTIONS = httpx.Limits(max_connections=16)
 
 
 def cpu_s(pid: int) -> float:
@@ -136,16 +139,19 @@ async def submit(http: httpx.AsyncClient, body: dict[str, Any]) -> str:
 
 async def finish(http: httpx.AsyncClient, job: str) -> None:
     while True:
-        status = (await http.get(f"/jobs/{job}")).json()["status"]
+        await asyncio.sleep(POLL_S)
+        try:
+            status = (await http.get(f"/jobs/{job}")).json()["status"]
+        except httpx.TransportError:  # a busy gateway may drop a poll: the job goes on, poll again
+            continue
         if status == "succeeded":
             return
         if status in ("failed", "cancelled"):
             raise RuntimeError(f"inference {job} {status}")
-        await asyncio.sleep(0.1)
 
 
 async def inferences(base_url: str, count: int, first_seed: int) -> None:
-    async with httpx.AsyncClient(base_url=base_url, timeout=120) as http:
+    async with httpx.AsyncClient(base_url=base_url, timeout=120, limits=CONNECTIONS) as http:
         jobs = await asyncio.gather(*(submit(http, infer_body(first_seed + n)) for n in range(count)))
         await asyncio.gather(*(finish(http, job) for job in jobs))
 
@@ -159,7 +165,7 @@ async def job_memory(stack: Stack, count: int) -> dict[str, int]:
     same per finished and per cached check."""
     assert stack.cache_redis is not None
     queue_before, cache_before = used_memory(stack.redis), used_memory(stack.cache_redis)
-    async with httpx.AsyncClient(base_url=stack.base_url, timeout=120) as http:
+    async with httpx.AsyncClient(base_url=stack.base_url, timeout=120, limits=CONNECTIONS) as http:
         jobs = [await submit(http, infer_body(10**6 + n)) for n in range(count)]
         queued = used_memory(stack.redis)
         stack.start_worker()
