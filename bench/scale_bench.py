@@ -204,7 +204,7 @@ def per_job(phase: dict[str, Any], idle_per_s: float, jobs: int) -> float:
 def start_workers(stack: Stack, count: int) -> None:
     while len(stack.worker_pids()) < count:
         stack.start_worker()
-    wait_until(lambda: sum(bool(b.get("model_loaded")) for b in stack.heartbeats()) >= count, 120, "workers")
+    wait_until(lambda: sum(bool(b.get("model_loaded")) for b in stack.heartbeats()) >= count, 600, "workers")
 
 
 def build(tmp: Path, model_dir: Path) -> Stack:
