@@ -102,10 +102,10 @@ def _never() -> bool:
     return False
 
 
-def sandbox_call(fn: Callable[..., T], *args: object) -> T:
+def sandbox_call(fn: Callable[..., T], *args: object, **kwargs: object) -> T:
     """Turn the sandbox's errors about untrusted input into the API's user-facing errors."""
     try:
-        return fn(*args)
+        return fn(*args, **kwargs)
     except ProgramError as exc:
         where = f"demonstrations[{exc.index}]" if exc.where == "demonstration" else SANDBOX_FIELDS.get(exc.where)
         raise InvalidProgram(str(exc), field=where) from exc
@@ -203,7 +203,7 @@ class Engine:
         prior = priors.collect(request.options, spec, actions, demos)
         progress("trace", 0, 1)
         with timer.phase("trace"):
-            trace = sandbox_call(self._sandbox.trace, spec.source, demos)
+            trace = sandbox_call(self._sandbox.trace, spec.source, demos, scope=scope.current())
         _refuse_no_evidence(actions, trace)
         enumerated = Proposals()
         stopped: dict[str, str] = {}
@@ -222,7 +222,7 @@ class Engine:
                 found = _proposed(settled, enumerated, prior)
                 with timer.phase("validate"):
                     first = sandbox_call(self._sandbox.evaluate, spec.source, demos,
-                                         {a: list(found.source.get(a, {})) for a in settled})
+                                         {a: list(found.source.get(a, {})) for a in settled}, scope=scope.current())
                 with timer.phase("rank"):
                     known = _known_rules(spec, prompted, select_rules(
                         settled, Inference(trace, first, found, request.options, writes, prior)))
@@ -235,7 +235,8 @@ class Engine:
         with timer.phase("validate"):
             rest = [a for a in actions if first is None or a not in first.results]
             evaluated = _merged(first, sandbox_call(self._sandbox.evaluate, spec.source, demos,
-                                                    {a: list(proposals.source.get(a, {})) for a in rest}))
+                                                    {a: list(proposals.source.get(a, {})) for a in rest},
+                                                    scope=scope.current()))
         progress("rank", 0, 1)
         with timer.phase("rank"):
             ranked = select_rules(actions, Inference(trace, evaluated, proposals, request.options, writes, prior))
@@ -380,7 +381,7 @@ class Engine:
 
     def _failure(self, spec: Spec, preconditions: dict[str, list[str]], demos: list[str]) -> ProgramError | None:
         try:
-            sandbox_call(self._sandbox.trace, render_program(spec, preconditions), demos)
+            sandbox_call(self._sandbox.trace, render_program(spec, preconditions), demos, scope=scope.current())
         except InvalidProgram as exc:
             if isinstance(exc.__cause__, ProgramError):
                 return exc.__cause__
@@ -425,7 +426,7 @@ class Engine:
         self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]
     ) -> list[CallVerdict]:
         verdicts = sandbox_call(self._sandbox.check, spec.source, preconditions, history, calls,
-                                scope.current() or None)
+                                scope.current() or None, warm=scope.warm())
         return [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
                 for v in verdicts]
 
@@ -452,8 +453,8 @@ class Engine:
         for i, demo in enumerate(demos):
             parse_source(demo, f"demonstrations[{i}]")
         rules = {action: list(dict.fromkeys(r)) for action, r in preconditions.items() if r}
-        trace = sandbox_call(self._sandbox.trace, spec.source, demos)
-        evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, rules)
+        trace = sandbox_call(self._sandbox.trace, spec.source, demos, scope=scope.current())
+        evaluated = sandbox_call(self._sandbox.evaluate, spec.source, demos, rules, scope=scope.current())
         blocked: list[Blocked] = []
         unjudged: dict[str, str] = {}
         raised: dict[str, str] = {}

@@ -125,3 +125,9 @@ def cache_id(kind: JobKind, body: dict[str, Any], model: str | None, secret: byt
     (otherwise a result is cached under its job id, each tenant's own)."""
     digest = hmac.new(secret, b"shared\0" + _canonical(kind, body, model), hashlib.sha256).hexdigest()
     return f"{kind}-{SHARED}-{digest[:ID_DIGEST_CHARS]}"
+
+
+def is_shared(cache_id: str) -> bool:
+    """Whether a result cached under `cache_id` is shared between tenants (`cache_id`, not a job id: a job id's
+    middle part is a hex tenant tag)."""
+    return f"-{SHARED}-" in cache_id

@@ -88,24 +88,26 @@ class Sandbox:
         finally:
             self._local.cancelled = previous
 
-    def trace(self, spec: str, demonstrations: Sequence[str]) -> TraceResult:
-        """Positions of every demonstration and, for every spec method, where it was called with what."""
-        _check_programs(spec, demonstrations, "demonstration")
+    def trace(self, spec: str, demonstrations: Sequence[str], scope: str | None = None) -> TraceResult:
+        """Positions of every demonstration and, for every spec method, where it was called with what. `scope`:
+        whose request (the tenant), under which what is read from its text is remembered."""
+        _check_programs(spec, demonstrations, "demonstration", scope or "")
         payload = {"spec": spec, "demonstrations": list(demonstrations)}
         return self._run("trace", payload, lambda result, _units: protocol.trace_result(result))
 
     def evaluate(self, spec: str, demonstrations: Sequence[str], candidates: Mapping[str, Sequence[str]],
-                 points: Mapping[str, Sequence[Point]] | None = None) -> EvaluateResult:
+                 points: Mapping[str, Sequence[Point]] | None = None, scope: str | None = None) -> EvaluateResult:
         """Judge assertion candidates against the demonstrations and compute where each one holds.
 
         `points` replaces the default domain (demonstration × position × seen argument tuple) for the
         actions it names. Plain candidates share one child; every other candidate is judged in a child of
-        its own (at most `MAX_ISOLATED` a call), so that none can change another's verdict.
+        its own (at most `MAX_ISOLATED` a call), so that none can change another's verdict. `scope`: as `trace`.
         """
-        _check_programs(spec, demonstrations, "demonstration")
-        problems = {a: [expression_problem(e) for e in exprs] for a, exprs in candidates.items()}
+        key = scope or ""
+        _check_programs(spec, demonstrations, "demonstration", key)
+        problems = {a: [expression_problem(e, key) for e in exprs] for a, exprs in candidates.items()}
         plain, isolated = _partition(spec, {a: [e for e, p in zip(exprs, problems[a], strict=True) if p is None]
-                                            for a, exprs in candidates.items()})
+                                            for a, exprs in candidates.items()}, key)
         base = {"spec": spec, "demonstrations": list(demonstrations), "max_points": self.limits.max_points,
                 "points": protocol.wire_points(points or {})}
         judged: dict[tuple[str, str], CandidateResult] = {}
@@ -130,25 +132,28 @@ class Sandbox:
         return _evaluate_result(judged, found, candidates, problems, points or {})
 
     def check(self, spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
-              calls: Sequence[str], scope: str | None = None) -> tuple[CallVerdict, ...]:
+              calls: Sequence[str], scope: str | None = None, warm: bool = True) -> tuple[CallVerdict, ...]:
         """Run the history under the preconditions, then judge each proposed call on its own copy.
 
         Plain preconditions are judged together; any other precondition in a child of its own, and a call
         is allowed only when every child allows it. `scope` (the caller's tenant) lets a warm child that
-        answered this scope before, and no other, answer again with what it compiled then.
+        answered this scope before, and no other, answer again with what it compiled then; `warm=False` runs
+        the call on a fresh child all the same, for an answer that must not depend on what the scope ran
+        before (one that is shared with other tenants).
         """
-        check_program(spec, "spec")
-        check_program(history, "history")
+        key = scope or ""
+        check_program(spec, "spec", scope=key)
+        check_program(history, "history", scope=key)
         for action, expressions in preconditions.items():
             for expression in expressions:
-                problem = expression_problem(expression)
+                problem = expression_problem(expression, key)
                 if problem is not None:
                     raise ProgramError("preconditions", None, None, "SyntaxError", f"{action}: {problem}")
         parsed = [parse_call(c) for c in calls]
         accepted = [p for p in parsed if isinstance(p, ProposedCall)]
         if not accepted:
             return tuple(_rejected(c, p) for c, p in zip(calls, parsed, strict=True))
-        plain, isolated = _partition(spec, preconditions, scope or "")
+        plain, isolated = _partition(spec, preconditions, key)
         groups = [plain] + [{action: [expression]} for action, expression in isolated[:MAX_ISOLATED]]
         if len(isolated) > MAX_ISOLATED:
             raise ProgramError("preconditions", None, None, "ValueError", TOO_MANY_ISOLATED)
@@ -160,7 +165,7 @@ class Sandbox:
         verdicts = [  # an isolated precondition gets a child of its own: a fresh one, never a warm one
             self._run("check", {"spec": spec, "history": history, "calls": wire_calls,
                                 "preconditions": {a: list(e) for a, e in group.items()}}, build,
-                      scope if number == 0 else None)
+                      scope if number == 0 and warm else None)
             for number, group in enumerate(groups)
         ]
         combined = iter([protocol.combine(parts) for parts in zip(*verdicts, strict=True)])
@@ -173,7 +178,8 @@ class Sandbox:
         cancelled = getattr(self._local, "cancelled", None)
         if cancelled is not None and cancelled():
             raise SandboxCancelled("cancelled")
-        header, raw = self._pool.call(message, parent_deadline_s(self.limits), cancelled, scope)
+        header, raw = self._pool.call(message, parent_deadline_s(self.limits, warm=scope is not None), cancelled,
+                                      scope)
         protocol.raise_for_header(header)
         return protocol.decode(raw, build)
 
@@ -182,17 +188,17 @@ def _rejected(call: str, problem: ProposedCall | str) -> CallVerdict:
     return CallVerdict(call=call, allowed=False, error=f"rejected: {problem}")
 
 
-def _check_programs(spec: str, programs: Sequence[str], where: str) -> None:
-    check_program(spec, "spec")
+def _check_programs(spec: str, programs: Sequence[str], where: str, scope: str) -> None:
+    check_program(spec, "spec", scope=scope)
     for index, source in enumerate(programs):
-        check_program(source, where, index)
+        check_program(source, where, index, scope)
 
 
 def _partition(spec: str, expressions: Mapping[str, Sequence[str]], scope: str = ""
                ) -> tuple[dict[str, list[str]], list[tuple[str, str]]]:
     """Plain expressions by action (every action kept, so its points are computed), and the others. What is
     read from the spec and the rules is remembered per scope (a tenant's checks repeat both)."""
-    words = vocabulary(spec)
+    words = vocabulary(spec, scope)
     params = _parameters(scope, spec)
     plain: dict[str, list[str]] = {}
     isolated: list[tuple[str, str]] = []

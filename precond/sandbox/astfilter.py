@@ -29,16 +29,18 @@ def _dunder(name: str) -> bool:
     return name.startswith("__")
 
 
-def expression_problem(text: object) -> str | None:
-    """Why an assertion expression is refused, or None when it may be evaluated."""
+def expression_problem(text: object, scope: str = "") -> str | None:
+    """Why an assertion expression is refused, or None when it may be evaluated. `scope`: whose text it is."""
     if not isinstance(text, str):
         return "not a string"
-    return _expression_problem(text)
+    return _expression_problem(scope, text)
 
 
 @lru_cache(maxsize=65536)
-def _expression_problem(text: str) -> str | None:
-    """Cached: the same assertions come back call after call (preconditions of every `check`)."""
+def _expression_problem(_scope: str, text: str) -> str | None:
+    """Remembered per scope (a tenant), never by the text alone: the same assertions come back call after call
+    (preconditions of every `check`), and an answer remembered for another tenant would tell, by its speed, that
+    someone else sent this text."""
     if len(text) > MAX_EXPRESSION_CHARS:
         return f"longer than {MAX_EXPRESSION_CHARS} characters"
     try:
@@ -93,19 +95,21 @@ def parse_call(text: object) -> ProposedCall | str:
     return ProposedCall(text, node.func.value.id, node.func.attr, args, kwargs)
 
 
-def check_program(source: object, where: str, index: int | None = None) -> None:
-    """Raise ProgramError for a program that does not parse or reaches for dunders other than __init__."""
+def check_program(source: object, where: str, index: int | None = None, scope: str = "") -> None:
+    """Raise ProgramError for a program that does not parse or reaches for dunders other than __init__. `scope`:
+    whose program it is (the tenant)."""
     if not isinstance(source, str):
         raise ProgramError(where, index, None, "TypeError", "program must be a string")
-    problem = _program_problem(source)
+    problem = _program_problem(scope, source)
     if problem is not None:
         line, exc_type, message = problem
         raise ProgramError(where, index, line, exc_type, message)
 
 
 @lru_cache(maxsize=1024)
-def _program_problem(source: str) -> tuple[int | None, str, str] | None:
-    """Cached: the same spec is checked on every call."""
+def _program_problem(_scope: str, source: str) -> tuple[int | None, str, str] | None:
+    """Remembered per scope (a tenant), as `_expression_problem`: the same spec is checked on every call, and reading
+    a large spec takes long enough to be seen from outside."""
     try:
         tree = ast.parse(source)
     except SyntaxError as exc:

@@ -34,5 +34,7 @@ def to_wire(limits: Limits) -> dict[str, float | int]:
     return asdict(limits)
 
 
-def parent_deadline_s(limits: Limits) -> float:
-    return limits.timeout_s + SERVER_GRACE_S
+def parent_deadline_s(limits: Limits, warm: bool = False) -> float:
+    """`warm`: a warm child may answer first; a failure there is run again on a fresh child with a whole wall
+    clock of its own (`sandbox.child.server`), so the server may take two."""
+    return limits.timeout_s * (2 if warm else 1) + SERVER_GRACE_S

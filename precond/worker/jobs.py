@@ -23,7 +23,7 @@ from redis.asyncio import Redis
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.jobs.cache import ResultCache
-from precond.jobs.keys import owner_of
+from precond.jobs.keys import is_shared, owner_of
 from precond.jobs.kinds import KINDS
 from precond.jobs.payloads import ReinferJob
 from precond.jobs.records import Outcome, job_counts, record_phase, write_progress
@@ -108,13 +108,16 @@ def _operate(
 def _outcome(
     engine_of: Callable[[], Engine], kind: JobKind, body: dict[str, Any], progress: ProgressFn,
     cancelled: CancelledFn, max_response_bytes: int, scope: str, memory: Callable[[], AbstractContextManager[None]],
+    warm: bool = True,
 ) -> tuple[Outcome, bool]:
     """A finished job's outcome, and whether a sandbox limit stopped it. A result larger than the bound is
     refused here, before Redis stores it twice (result and cache) and a client has to read it. The engine runs
     in the job's tenant's cache scope (precond/engine/scope.py): its model reuses only that tenant's prompt prefixes;
-    `engine_of` is the served engine, or builds the one of the tenant's trained policy the job names."""
+    `engine_of` is the served engine, or builds the one of the tenant's trained policy the job names. `warm`:
+    whether the tenant's warm sandbox children may answer (never for a result shared between tenants, which must
+    depend on its request alone)."""
     try:
-        with memory(), scoped(scope):
+        with memory(), scoped(scope, warm):
             result = _operate(engine_of(), kind, body, progress, cancelled).model_dump(mode="json")
     except PrecondError as exc:
         return Outcome.failed(exc), isinstance(exc, ResourceLimit)
@@ -141,13 +144,13 @@ async def run_operation(
 ) -> JobEnd:
     """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop.
     A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with the
-    job's end (precond/worker/queue_worker.py)."""
+    job's end (precond/worker/queue_worker.py); a shared one is computed on fresh sandbox children only."""
     redis: Redis[bytes] = ctx["redis"]
     tag = owner_of(ctx["job_id"]) or ""
     counts: JobCounts = ctx["counts"]
     try:
         engine_of, body = await _engine_for(ctx, tag, kind, body)
-        outcome, sandbox_limit = await _run(ctx, kind, body, engine_of)
+        outcome, sandbox_limit = await _run(ctx, kind, body, engine_of, warm=not is_shared(cache_key or ""))
         if KINDS[kind].stores_version and outcome.result is not None:
             outcome = await _store_version(redis, ctx["job_id"], body, outcome.result)
         if KINDS[kind].stores_adapter and outcome.result is not None:
@@ -177,8 +180,8 @@ async def _engine_for(ctx: dict[str, Any], tag: str, kind: JobKind, body: dict[s
     return partial(adapted.engine, engine, stored), policies.with_resolved_policy(body, stored)
 
 
-async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_of: Callable[[], Engine]
-               ) -> tuple[Outcome, bool]:
+async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_of: Callable[[], Engine],
+               warm: bool = True) -> tuple[Outcome, bool]:
     """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope."""
     settings: WorkerSettings = ctx["settings"]
     job_id: str = ctx["job_id"]
@@ -189,7 +192,7 @@ async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_
     allowance = settings.training_max_memory_mb * 1024 * 1024 if KINDS[kind].stores_adapter else 0
     future = loop.run_in_executor(
         None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,
-        owner_of(job_id) or job_id, partial(guard.running, job_id, allowance),
+        owner_of(job_id) or job_id, partial(guard.running, job_id, allowance), warm,
     )
     try:
         return await asyncio.shield(future)

@@ -104,18 +104,19 @@ def test_check_reports_allowed_calls_and_violated_assertions(engine: Engine, res
 def test_checks_reuse_a_warm_child_of_their_tenant_only() -> None:
     """The worker runs each job in its tenant's scope; the check passes it to the sandbox, whose warm child of
     that tenant (and of no other) answers the tenant's next check. The spec counts in a shared module how
-    often its process ran `mark`: 1 in a fresh child."""
+    often its process ran `mark`: 1 in a fresh child. A job whose result is shared between tenants runs with
+    `warm=False`: a fresh child, even where its tenant has a warm one."""
     request = CheckRequest(spec=COUNTING_SPEC, preconditions={"Room.enter": ["self.marks == 1"]},
                            history="room = Room()\nroom.mark()\n", calls=["room.enter()"])
     with Sandbox(workers=1) as sandbox:
         engine = Engine(sandbox, None)
 
-        def allowed(tenant: str) -> bool:
-            with scoped(tenant):
+        def allowed(tenant: str, warm: bool = True) -> bool:
+            with scoped(tenant, warm):
                 return engine.check(request).results[0].allowed
 
-        assert [allowed("tenant-a"), allowed("tenant-a"), allowed("tenant-b"), allowed("")] == [
-            True, False, True, True]
+        assert [allowed("tenant-a"), allowed("tenant-a"), allowed("tenant-b"), allowed(""),
+                allowed("tenant-a", warm=False), allowed("tenant-a")] == [True, False, True, True, True, False]
 
 
 class ScriptedModel:

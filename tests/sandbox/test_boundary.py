@@ -88,6 +88,8 @@ def test_warm_children_as_a_non_root_user(readable_copy: Path) -> None:
     idle = report["idle"]
     assert idle["first"] and idle["second"] and idle["idle_cpu_s"] < 0.3 and idle["second_s"] < LIMITS.timeout_s / 2
     assert report["unfit"] == [True, True, True]
+    assert report["forged"] == [True, False]
+    assert report["hanging"] == [None, None]
 
 
 # A candidate without a single dunder that rewrites the evaluator so that every later candidate is valid

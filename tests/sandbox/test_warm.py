@@ -16,6 +16,8 @@ from warm_probe import (
     HISTORY,
     LIMITS,
     UNIT_LIMITS,
+    forged_then_unwarmed,
+    hanging_child,
     idle_spin,
     scope_sequence,
     unfit_child,
@@ -61,6 +63,19 @@ def test_a_failure_on_a_warm_child_is_run_again_on_a_fresh_one() -> None:
     and the same call on a fresh child answers as a first call does."""
     with Sandbox(UNIT_LIMITS, workers=1) as sandbox:
         assert unfit_child(sandbox) == [True, True, True]
+
+
+def test_a_call_without_warm_children_never_runs_where_its_tenant_forged_the_verdicts(one_server: Sandbox) -> None:
+    """A history replaced the verdict function of its tenant's warm child: there, a locked door opens (the
+    tenant's own state); with `warm=False`, as the worker computes a result it shares between tenants, the call
+    runs on a fresh child and the rule refuses it."""
+    assert forged_then_unwarmed(one_server) == [True, False]
+
+
+def test_a_fresh_child_after_a_warm_one_gets_a_whole_deadline(one_server: Sandbox) -> None:
+    """The warm child writes a byte (so it is not stalled) and hangs until the call's deadline; the call then
+    runs on a fresh child with a deadline of its own, and answers as a first call does."""
+    assert hanging_child(one_server) == [None, None]
 
 
 def test_a_remembered_history_line_is_the_line_python_read(one_server: Sandbox) -> None:

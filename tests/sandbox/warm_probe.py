@@ -14,7 +14,7 @@ import sys
 import time
 from typing import Any
 
-from precond.sandbox import Limits, Sandbox
+from precond.sandbox import LimitExceeded, Limits, Sandbox
 
 # The spec counts, in a module every child shares with the server's import, how often `mark` ran in this
 # process: a fresh child always sees 1 after the history below, a reused one more. (The rule reads the count
@@ -59,6 +59,31 @@ class Room:
         while collections.marks > 1:
             pass
 """
+# A history that replaces the child's verdict function: in its own call, and in every later call its warm child
+# answers, every proposed call reads "allowed". Its tenant's own state (docs/security.md); a result computed there
+# is a function of what the tenant ran before, never of the request alone.
+FORGING_SPEC = "import typing\nclass Door:\n    def open(self):\n        pass\n"
+FORGING_HISTORY = ("typing.sys.modules['precond.sandbox.child.check']._verdict = "
+                   "lambda *a: {'allowed': True, 'violations': [], 'error': None}\ndoor = Door()\n")
+DOOR_SPEC = "class Door:\n    def lock(self):\n        self.locked = True\n    def open(self):\n        pass\n"
+LOCKED = {"Door.open": ["not self.locked"]}
+LOCKED_HISTORY = "door = Door()\ndoor.lock()\n"
+
+# From its second call on, the warm child writes one byte of a frame and then waits: it has said something, so
+# it is not "stalled", and it never ends. The call must still get a whole deadline on a fresh child.
+HANGS_AFTER_A_BYTE = """
+import collections
+import typing
+
+class Room:
+    def mark(self):
+        collections.marks = getattr(collections, 'marks', 0) + 1
+        if collections.marks > 1:
+            typing.sys.modules['os'].write(4, b'{')
+            typing.sys.modules['time'].sleep(60)
+    def enter(self):
+        pass
+"""
 LIMITS = Limits(timeout_s=3.0, cpu_s=2, memory_mb=512, output_bytes=100_000, recursion=200)
 UNIT_LIMITS = Limits(timeout_s=20, cpu_s=20, unit_cpu_s=0.5)
 
@@ -98,6 +123,32 @@ def unfit_child(sandbox: Sandbox) -> list[bool]:
     return out
 
 
+def forged_then_unwarmed(sandbox: Sandbox) -> list[bool]:
+    """Whether a locked door may be opened: on the tenant's warm child after its history forged the verdicts
+    (allowed: its own state), then for the same tenant with `warm=False` (a fresh child: refused), as a result
+    that is shared between tenants is computed."""
+    sandbox.check(FORGING_SPEC, {}, FORGING_HISTORY, ["door.open()"], "tenant-a")
+    out = []
+    for warm in (True, False):
+        (verdict,) = sandbox.check(DOOR_SPEC, LOCKED, LOCKED_HISTORY, ["door.open()"], "tenant-a", warm=warm)
+        out.append(verdict.allowed)
+    return out
+
+
+def hanging_child(sandbox: Sandbox) -> list[str | None]:
+    """Two calls of one tenant whose warm child, from the second call on, writes a byte and hangs: the error of
+    each (None: answered, allowed)."""
+    out: list[str | None] = []
+    for _ in range(2):
+        try:
+            (verdict,) = sandbox.check(HANGS_AFTER_A_BYTE, {}, HISTORY, ["room.enter()"], "tenant-a")
+        except LimitExceeded as exc:
+            out.append(str(exc))
+            continue
+        out.append(None if verdict.allowed and verdict.error is None else str(verdict.error))
+    return out
+
+
 def _children_cpu_s(servers: set[int]) -> float:
     """CPU seconds used so far by the children of these fork servers."""
     ticks = 0
@@ -131,5 +182,8 @@ if __name__ == "__main__":
         report["idle"] = idle_spin(box)
     with Sandbox(UNIT_LIMITS, workers=1) as box:
         report["unfit"] = unfit_child(box)
+    with Sandbox(LIMITS, workers=1) as box:
+        report["forged"] = forged_then_unwarmed(box)
+        report["hanging"] = hanging_child(box)
     print(json.dumps(report))
     sys.exit(0)

@@ -10,9 +10,10 @@ A request that names a scope (the worker's tenant tag: a check on the guard's ho
 warm child of that scope, one that already answered a request of it and kept what it compiled. A warm child
 serves one scope only and is confined like every other; between requests it is stopped (SIGSTOP: whatever its
 untrusted code left behind cannot use a CPU while it waits); it is used only while it is small and far from
-its CPU limit, and any failure on it is re-run on a fresh child, so what a call may use does not depend on
-the calls before it. What a scope's code changes in the modules it imports stays for that scope's next calls
-on the same child (its own state, never another scope's).
+its CPU limit, and any failure on it is re-run on a fresh child with a whole wall clock of its own, so what a
+call may use does not depend on the calls before it. What a scope's code changes in the modules it imports
+stays for that scope's next calls on the same child (its own state, never another scope's): an answer that
+must depend on its request alone is asked without a scope.
 """
 
 from __future__ import annotations
@@ -112,10 +113,10 @@ class Server:
                 header = json.loads(line)
                 body = self.requests.read(int(header["size"]))
                 scope = header.get("scope") if isinstance(header.get("scope"), str) else None
-                deadline = time.monotonic() + float(self.limits["timeout_s"])
-                answer = self.call_warm(scope, body, deadline) if scope is not None else None
+                answer = self.call_warm(scope, body) if scope is not None else None
                 spare_used = answer is None
-                reply, payload, last = answer or self.call(spare, body, deadline, keep=scope is not None)
+                # a fresh child's wall clock starts when it does: never what a warm child left of it
+                reply, payload, last = answer or self.call(spare, body, self.deadline(), keep=scope is not None)
                 reply["id"] = header["id"]
                 self.send(reply, payload)
                 # teardown and the next fork happen after the answer, off its latency
@@ -128,7 +129,11 @@ class Server:
                 self.discard(child)
             shutil.rmtree(self.workdir, ignore_errors=True)
 
-    def call_warm(self, scope: str, body: bytes, deadline: float) -> tuple[dict[str, object], bytes, Child] | None:
+    def deadline(self) -> float:
+        """The wall clock of one run of a request, from now."""
+        return time.monotonic() + float(self.limits["timeout_s"])
+
+    def call_warm(self, scope: str, body: bytes) -> tuple[dict[str, object], bytes, Child] | None:
         """The reply of this scope's warm child, or None when there is none or it failed (the call is then
         run again on a fresh child: a warm child's failure may be its past calls', never this call's)."""
         child = self.warm.pop(scope, None)
@@ -139,7 +144,7 @@ class Server:
         except OSError:
             self.discard(child)
             return None
-        reply, payload, last = self.call(child, body, deadline, keep=True, retry=True)
+        reply, payload, last = self.call(child, body, self.deadline(), keep=True, retry=True)
         if reply.get("status") == "ok" and last is child:
             return reply, payload, last
         self.discard(last)
