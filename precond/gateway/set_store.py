@@ -32,6 +32,7 @@ from precond.jobs.precondition_sets import (
     decided,
     index_key,
     normal,
+    over_bounds,
     set_key,
     summary,
     tenant_bytes_message,
@@ -235,7 +236,8 @@ class Report:
 
 def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str, list[str]], dict[str, list[str]],
                                                                       dict[str, list[str]]]:
-    """The rules, required and rejected rules after the edits; 422 naming `edits[i]` for one that makes no sense."""
+    """The rules, required and rejected rules after the edits; 422 naming `edits[i]` for one that makes no sense,
+    and `edits` when the version they make would be over a bound of a request's rules (`over_bounds`)."""
     rules = {a: list(r) for a, r in base.preconditions.items()}
     required = {a: list(r) for a, r in base.required.items()}
     rejected = {a: list(r) for a, r in base.rejected.items()}
@@ -273,6 +275,9 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
             drop(required, action, rule)
             if edit.op == "reject" and not has(rejected, action, rule):
                 rejected.setdefault(action, []).append(rule)
+    problem = over_bounds(rules)
+    if problem is not None:
+        raise ServiceError(422, f"edits: {problem}", "invalid_input", field="edits")
     return rules, required, rejected
 
 

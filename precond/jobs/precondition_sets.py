@@ -15,10 +15,12 @@ import json
 from collections.abc import Mapping, Sequence
 from typing import Any, Final
 
+from pydantic import TypeAdapter, ValidationError
+
 from precond.jobs.keys import PREFIX
 from precond.programs import checks
 from precond.programs.checks import normal as normal  # re-exported: the sets code compares rules by it
-from precond_client.schemas.api import CandidateReport, PreconditionSet, RuleEvidence
+from precond_client.schemas.api import CandidateReport, Preconditions, PreconditionSet, RuleEvidence
 
 _TENANT_BYTES = """
 local function over_bytes(key, record, bound)
@@ -123,6 +125,27 @@ def summary(version: PreconditionSet) -> str:
         "required": sum(len(r) for r in version.required.values()),
         "rejected": sum(len(r) for r in version.rejected.values()),
     })
+
+
+_RULES: Final = TypeAdapter(Preconditions)
+
+
+def over_bounds(rules: Mapping[str, Sequence[str]]) -> str | None:
+    """Why a version's merged rules could not be sent with a request (the bounds of `Preconditions`: rules per
+    action, actions, their lengths), or None. A version is stored only when every check naming it can use its
+    rules: edits and re-inference merge rules that were each within the bounds into ones that may not be."""
+    try:
+        _RULES.validate_python(rules)
+    except ValidationError as exc:
+        error = exc.errors()[0]
+        where, limits = error["loc"], error.get("ctx", {})
+        if error["type"] == "too_long" and len(where) == 1:
+            return (f"{where[0]} would have {limits['actual_length']} rules, over the {limits['max_length']} one "
+                    "action may have")
+        if error["type"] == "too_long" and not where:
+            return f"{limits['actual_length']} actions would have rules, over the {limits['max_length']} a set may have"
+        return f"preconditions.{'.'.join(map(str, where))}: {error['msg']}"
+    return None
 
 
 def union(stored: Sequence[str], new: Sequence[str]) -> list[str]:

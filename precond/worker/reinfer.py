@@ -17,7 +17,7 @@ from precond.engine.engine import Engine
 from precond.jobs import precondition_sets as sets
 from precond.jobs.payloads import ReinferJob
 from precond_client.schemas.api import InferRequest, PreconditionSet, ValidateResponse
-from precond_client.schemas.errors import BlocksDemonstration, Conflict, PrecondError, SetsLimited
+from precond_client.schemas.errors import BlocksDemonstration, Conflict, InvalidInput, PrecondError, SetsLimited
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
@@ -65,6 +65,10 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         inferred = engine.infer(request, progress, cancelled)
         merged = reinference.merge(base, inferred.preconditions, inferred.candidates,
                                    len(demos) - len(base.demonstrations), job.actions)
+        problem = sets.over_bounds(merged.preconditions)
+        if problem is not None:
+            raise InvalidInput(f"the re-inferred version: {problem} (its required rules and the inferred ones); "
+                               "un-require or reject some of them first", field="actions")
         judged = {a: list(dict.fromkeys([*merged.preconditions.get(a, []), *merged.unexplained.get(a, [])]))
                   for a in {*merged.preconditions, *merged.unexplained}}
         progress("validate", 0, 1)

@@ -5,15 +5,16 @@ worker's store of the version it makes (precond/worker/reinfer.py), on a stand-i
 from __future__ import annotations
 
 import asyncio
+from types import SimpleNamespace
 
 import pytest
 
 from precond.engine.reinference import explain_removed, merge
 from precond.jobs.payloads import ReinferJob
 from precond.jobs.precondition_sets import APPEND_CONFLICT, normal, union
-from precond.worker.reinfer import store
-from precond_client.schemas.api import CandidateReport, PreconditionSet
-from precond_client.schemas.errors import Conflict
+from precond.worker.reinfer import reinfer, store
+from precond_client.schemas.api import CandidateReport, PreconditionSet, ValidateResponse
+from precond_client.schemas.errors import Conflict, InvalidInput
 
 
 def _base(**changes: object) -> PreconditionSet:
@@ -106,3 +107,23 @@ def test_a_re_run_of_a_reinference_that_stored_its_version_answers_that_version(
     other = mine.model_copy(update={"preconditions": {"A.act": ["self.q"]}})
     with pytest.raises(Conflict):
         asyncio.run(store(_Stored(other), "tag", job, again))
+
+
+class InfersMore:
+    """An engine whose inference keeps 8 rules of `A.act` besides the base version's: the version would hold 40."""
+
+    def validate(self, spec: str, rules: object, demonstrations: object) -> ValidateResponse:
+        return ValidateResponse()
+
+    def infer(self, request: object, progress: object, cancelled: object) -> SimpleNamespace:
+        return SimpleNamespace(preconditions={"A.act": [f"self.n{i}" for i in range(8)]}, candidates={},
+                               evidence={}, warnings={})
+
+
+def test_a_reinferred_version_over_an_actions_rule_bound_is_refused_never_stored() -> None:
+    required = [f"self.r{i}" for i in range(32)]
+    base = _base(preconditions={"A.act": required}, required={"A.act": required}, rejected={})
+    job = ReinferJob(base=base, demonstrations=["a = A()\na.act()\n"], max_versions=50, max_bytes=10**6,
+                     max_tenant_bytes=10**7)
+    with pytest.raises(InvalidInput, match="A.act would have 40 rules, over the 32 one action may have"):
+        reinfer(InfersMore(), job, lambda *a: None, lambda: False)  # type: ignore[arg-type]

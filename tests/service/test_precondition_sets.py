@@ -30,7 +30,7 @@ EVENTS = [
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
     path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
-    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella", "stark")
+    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella", "stark", "wayne")
     return path, {tenant: make_key(path, tenant)[1] for tenant in tenants}
 
 
@@ -207,6 +207,24 @@ def test_sets_per_tenant_are_bounded(stack: Stack, keys: tuple[Path, dict[str, s
             _ok(small.post("/precondition-sets", json=body), 201)
         over = small.post("/precondition-sets", json=body)
     assert over.status_code == 422 and over.json()["error"]["type"] == "sets_limited", over.text
+
+
+@pytest.mark.parametrize("demonstrations", [DEMOS, []], ids=["with-demonstrations", "without"])
+def test_edits_past_an_actions_rule_bound_are_a_422_naming_it(stack: Stack, keys: tuple[Path, dict[str, str]],
+                                                                demonstrations: list[str]) -> None:
+    """40 `add` edits (each within the edit bound) on one action: the merged version would hold more rules than
+    one action may have (32), so it is refused, and the set stays usable at its version 1."""
+    with client_for(stack, keys[1]["wayne"]) as client:
+        made = _ok(client.post("/precondition-sets", json={"spec": SPEC, "demonstrations": demonstrations,
+                                                           "preconditions": {"SYSTEM.REQUEST": ["slot != ''"]}}), 201)
+        edits = [{"op": "add", "action": "SYSTEM.REQUEST", "rule": f"slot != 'x{i}'"} for i in range(40)]
+        over = client.post(f"/precondition-sets/{made['id']}/versions", json={"edits": edits})
+        assert over.status_code == 422, over.text[:300]
+        error = over.json()["error"]
+        assert error["field"] == "edits" and "SYSTEM.REQUEST" in error["message"] and "32" in error["message"], error
+        assert _ok(client.get(f"/precondition-sets/{made['id']}"))["latest"] == 1
+        body = {"precondition_set": made["id"], "history": check_body()["history"], "calls": check_body()["calls"]}
+        assert client.post("/check-actions", json=body, params={"wait": 30}).status_code == 200
 
 
 def test_a_structured_history_judges_like_its_program(acme: httpx.Client) -> None:
