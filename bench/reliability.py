@@ -4,6 +4,7 @@
     python bench/reliability.py crash redis              # some of them
     python bench/reliability.py --quick                  # the CI sizes
     python bench/reliability.py --json bench/reliability.json
+    python bench/reliability.py attacks --attack 8-tool-calls    # the unloaded phase and one attack
 
 Scenarios: crash (200 infer jobs, a worker SIGKILLed 6 times, then
 the same without kills), redis (SIGTERM and SIGKILL restart with the
@@ -11,8 +12,9 @@ append-only file), hostile (the hostile corpus over HTTP, production sandbox lim
 all operations), overload (48 clients on one worker, queue bound 8), shutdown (SIGTERM mid-job, drain longer
 and shorter than the job), attacks (one tenant runs each attack of issue 28 while another measures its uncached
 check-actions and enumerate-only inference latencies, /health, the gateway's resident size and worker
-deaths: precond/stack/attacks.py). Each runs on its own redis-server + gateway + workers on free loopback ports,
-with the tiny random model of precond/stack/tiny_model.py (model-free enumerate jobs do the real work).
+deaths: precond/stack/attacks.py; attack 8 is 24 concurrent tool-call checks of a 62 KB spec). Each runs on
+its own redis-server + gateway + workers on free loopback ports, with the tiny random model of
+precond/stack/tiny_model.py (model-free enumerate jobs do the real work).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ QUICK: dict[str, dict[str, Any]] = {
 }
 
 
-def run(name: str, size: dict[str, Any], tmp: Path, model: Path, quick: bool) -> Any:
+def run(name: str, size: dict[str, Any], tmp: Path, model: Path, quick: bool, chosen: list[str] | None) -> Any:
     sandbox = FAST_SANDBOX if quick else {}
     where = tmp / name
     where.mkdir()
@@ -95,7 +97,7 @@ def run(name: str, size: dict[str, Any], tmp: Path, model: Path, quick: bool) ->
         with keyed_stack(where, model, ("victim", "attacker"), workers=1, **settings) as keyed:
             with keyed.stack.http() as http:
                 wait_until(lambda: http.get("/ready").status_code == 200, 120, "the worker's model to load")
-            return attacks.tenant_attacks(keyed, **size)
+            return attacks.tenant_attacks(keyed, **size, names=chosen)
     raise SystemExit(f"unknown scenario {name}")
 
 
@@ -106,13 +108,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="the CI sizes (and CI's short sandbox limits)")
     parser.add_argument("--json", type=Path, help="write all figures here")
     parser.add_argument("--keep", action="store_true", help="keep the temp dir (logs, schemathesis reports)")
+    parser.add_argument("--attack", action="append", choices=sorted(attacks.ATTACKS),
+                        help="with `attacks`: only this one (repeatable; default: every attack)")
     args = parser.parse_args()
     sizes = QUICK if args.quick else FULL
     tmp = Path(tempfile.mkdtemp(prefix="reliability-"))
     model = build_tiny_model(tmp / "tiny-model")
     figures: dict[str, Any] = {}
     for name in args.names:
-        figures[name] = run(name, sizes.get(name, {}), tmp, model, args.quick)
+        figures[name] = run(name, sizes.get(name, {}), tmp, model, args.quick, args.attack)
         shown = figures[name]
         if name == "hostile":
             shown = {k: v for k, v in shown.items() if k != "results"}

@@ -180,19 +180,21 @@ def convert(data: Any, tools_data: Any, source: str = "trajectories", tools_sour
 
 # ---- inside the API: histories and calls of a check or next-action request ---------------------------------
 
-def spec_tools(spec: str, field: str) -> tuple[Tool, ...]:
-    """The tools of a spec `precond convert openai` wrote: AGENT's stubs, their parameters as declared."""
-    tools = _tools_of(spec)
+def spec_tools(spec: str, field: str, scope: str = "") -> tuple[Tool, ...]:
+    """The tools of a spec `precond convert openai` wrote: AGENT's stubs, their parameters as declared. `scope`:
+    whose spec (the tenant), under which its reading is remembered."""
+    tools = _tools_of(spec, scope)
     if tools is None:
         raise _fail(field, "OpenAI messages and tool calls need a spec made by `precond convert openai` (class AGENT "
                     "with result(tool, key, ok, value), class USER with says(text))")
     return tools
 
 
-def _tools_of(spec: str) -> tuple[Tool, ...] | None:
-    """Parsed per request, never cached across requests: a cache shared by the gateway's tenants would let one
-    tell, by the time its own check takes, that another sent the same spec (docs/security.md)."""
-    _, methods = checks.spec_methods(spec)
+def _tools_of(spec: str, scope: str) -> tuple[Tool, ...] | None:
+    """Read per scope (`checks.remembered_spec_methods`): a guard sends its spec with every check, and a reading
+    shared by the tenants would let one tell, by the time its own check takes, that another sent the same spec
+    (docs/security.md)."""
+    _, methods = checks.remembered_spec_methods(scope, spec)
     if not any(m.qualname == "AGENT.result" and not m.stub for m in methods.values()) or "USER.says" not in methods:
         return None
     return tuple(Tool(m.name, m.positional, frozenset(m.positional[: len(m.positional) - len(m.node.args.defaults)]))
@@ -211,17 +213,19 @@ def structured_history(spec: str, history: Sequence[Mapping[str, Any]], field: s
     if not (history and "role" in history[0]):
         return render_events(spec, history, field, scope)
     try:
-        return render(list(history), spec_tools(spec, field), field).program()
+        return render(list(history), spec_tools(spec, field, scope), field).program()
     except PlaceError as exc:
         raise _problem(exc) from None
 
 
-def call_lines(spec: str, calls: Sequence[str | Mapping[str, Any]], field: str = "calls") -> list[str]:
-    """Proposed calls as program lines: code as sent, tool calls `{name, arguments}` rendered with literals."""
+def call_lines(spec: str, calls: Sequence[str | Mapping[str, Any]], field: str = "calls",
+               scope: str = "") -> list[str]:
+    """Proposed calls as program lines: code as sent, tool calls `{name, arguments}` rendered with literals.
+    `scope`: whose calls (`spec_tools`)."""
     if all(isinstance(c, str) for c in calls):
         return [c for c in calls if isinstance(c, str)]
     try:
-        renderer = Renderer(spec_tools(spec, field), field)
+        renderer = Renderer(spec_tools(spec, field, scope), field)
         return [c if isinstance(c, str) else renderer.line(dict(c), f"{field}[{n}]") for n, c in enumerate(calls)]
     except PlaceError as exc:
         raise _problem(exc) from None

@@ -436,7 +436,8 @@ class Engine:
         check_preconditions(spec, request.preconditions, scope.current())
         history = rendered_history(spec.source, request.history)  # parsed by check_calls, once per scope and text
         try:
-            calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls])
+            calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls],
+                               scope=scope.current())
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
         check_calls(spec, request.preconditions, history, calls, scope.current())

@@ -22,7 +22,7 @@ from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
-from precond.convert.openai import structured_history
+from precond.convert.openai import call_lines, structured_history
 from precond.programs import checks
 
 log = logging.getLogger("precond.gateway")
@@ -102,6 +102,17 @@ def rendered(spec: str, history: Sequence[Mapping[str, Any]], tag: str) -> str |
         return exc.problem
     except RecursionError:
         return checks.too_deep("history").problem
+
+
+def rendered_calls(spec: str, calls: Sequence[str | Mapping[str, Any]], tag: str) -> list[str] | checks.Problem:
+    """Proposed calls as program lines (`{"name", "arguments"}` rendered over the spec's tools), or why they
+    cannot be (`tag`: the caller's, under which the spec's reading is remembered)."""
+    try:
+        return call_lines(spec, calls, scope=tag)
+    except checks.ProgramProblem as exc:
+        return exc.problem
+    except RecursionError:
+        return checks.too_deep("calls").problem
 
 
 CHECK_NICENESS = 10

@@ -18,6 +18,7 @@ from typing import Any
 
 import httpx
 
+from precond.convert.openai import Tool, spec_program
 from precond.stack import harness
 from precond.stack.keyed import KeyedStack
 from precond.stack.local import DEMOS, SPEC, check_body, infer_body
@@ -54,6 +55,17 @@ def oversized_set_body() -> dict[str, Any]:
     return {"spec": SPEC, "demonstrations": [DEMOS[0] * 25] * 180 + ["system.REQUEST(("]}
 
 
+def tool_call_check_body(seed: int = 0, tools: int = 258) -> dict[str, Any]:
+    """A check of an agent's tool calls (`{"name", "arguments"}`) over a 62 KB spec of `tools` tools, in a body
+    under the 64 KiB the gateway parses on its event loop: every such check made the gateway read the spec to
+    render the calls, on the loop, before the cache lookup."""
+    described = [Tool(f"lookup_{i}", ("reservation_id", "note"), frozenset({"reservation_id"}), "d" * 180)
+                 for i in range(tools)]
+    calls = [{"name": f"lookup_{i}", "arguments": {"reservation_id": f"R{seed}-{i}"}} for i in range(4)]
+    return {"spec": spec_program(described, ()), "preconditions": {}, "calls": calls,
+            "history": "user = USER()\nagent = AGENT(user)\n"}
+
+
 def _sleeping_check(seed: int) -> dict[str, Any]:
     body = check_body(f"system.REQUEST('slow{seed}')")
     body["history"] = SLEEPING_HISTORY
@@ -75,6 +87,7 @@ ATTACKS: dict[str, tuple[int, Attack]] = {
         **POISON_BODY, "options": {"generators": ["enumerate"], "seed": i}}, params={"wait": 30})),
     "7-rate": (4, lambda http, i: http.get(f"/jobs/check-{i}") if i % 2 else http.get(
         "/jobs/x", headers={"Authorization": f"Bearer pk_guess{i}"})),
+    "8-tool-calls": (24, lambda http, i: http.post("/check-actions", json=tool_call_check_body(i))),
 }
 
 

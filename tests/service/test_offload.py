@@ -7,8 +7,16 @@ from __future__ import annotations
 
 import asyncio
 import os
+import uuid
+from types import SimpleNamespace
+
+import pytest
 
 from precond.gateway.offload import INLINE_CHARS, CheckPool, rendering_chars
+from precond.gateway.routes.operations import _with_rules_and_program
+from precond.programs import checks
+from precond.stack.attacks import tool_call_check_body
+from precond_client.schemas.api import CheckRequest
 
 SPEC = "class AGENT:\n    def cancel_reservation(self, reservation_id): pass\n" * 40
 
@@ -29,3 +37,34 @@ def test_a_large_history_is_rendered_in_the_pool() -> None:
     chars = rendering_chars(SPEC, 400_000)
     assert chars > INLINE_CHARS
     assert where_it_runs(chars) != os.getpid()
+
+
+def test_a_tool_call_checks_spec_is_read_off_the_loop_or_once_per_tenant(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rendering `{"name", "arguments"}` calls reads the spec's tools: a 62 KB spec is read in the pool, never on
+    the loop, however many checks send it; a small one on the loop once per tenant (then remembered)."""
+    parsed: list[int] = []
+    real = checks.spec_methods
+    monkeypatch.setattr(checks, "spec_methods", lambda source: parsed.append(len(source)) or real(source))
+    large = CheckRequest.model_validate(tool_call_check_body())
+    small = CheckRequest.model_validate(tool_call_check_body(tools=4))
+    pool = CheckPool(1, 1)
+
+    async def render(tag: str, body: CheckRequest) -> list[str]:
+        prepared = await _with_rules_and_program(SimpleNamespace(checks=pool), tag, body)  # type: ignore[arg-type]
+        assert isinstance(prepared, CheckRequest), prepared
+        return [c for c in prepared.calls if isinstance(c, str)]
+
+    async def scenario() -> None:
+        for _ in range(3):
+            assert await render("tenant-a", large) == ["agent.lookup_0('R0-0', None)", "agent.lookup_1('R0-1', None)",
+                                                       "agent.lookup_2('R0-2', None)", "agent.lookup_3('R0-3', None)"]
+        assert parsed == []
+        a, b = f"tenant-a-{uuid.uuid4().hex}", f"tenant-b-{uuid.uuid4().hex}"  # new to this process's memory
+        for tag in (a, a, a, b, b):
+            await render(tag, small)
+        assert parsed == [len(small.spec_text())] * 2
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        pool.close()

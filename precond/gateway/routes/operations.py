@@ -11,7 +11,6 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
-from precond.convert.openai import call_lines
 from precond.gateway import offload
 from precond.gateway.auth import CurrentCaller
 from precond.gateway.caller import Caller
@@ -137,10 +136,11 @@ async def _with_rules_and_program(
             return program
         body = body.model_copy(update={"history": program})
     if isinstance(body, CheckRequest) and not all(isinstance(c, str) for c in body.calls):
-        try:
-            calls = call_lines(body.spec_text(), [c if isinstance(c, str) else c.model_dump() for c in body.calls])
-        except checks.ProgramProblem as exc:
-            return exc.problem
+        sent = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
+        chars = offload.rendering_chars(body.spec_text(), len(json.dumps(sent)))  # reading the spec's tools
+        calls = await services.checks.run(tag, chars, offload.rendered_calls, body.spec_text(), sent, tag)
+        if isinstance(calls, checks.Problem):
+            return calls
         body = body.model_copy(update={"calls": calls})
     return body
 
