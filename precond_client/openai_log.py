@@ -19,6 +19,7 @@ from __future__ import annotations
 import ast
 import json
 import math
+import unicodedata
 from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -238,6 +239,13 @@ def _key(value: Any) -> Any:
     return json.dumps(value, sort_keys=True)
 
 
+def python_name(name: str) -> str:
+    """The identifier Python binds for `name` (NFKC, PEP 3131: `ｌｏｏｋｕｐ` is `lookup`): a tool, its
+    parameters and a result's tool are matched in that form, as the spec's own names are read
+    (`precond.programs.names`, which this standalone module cannot import)."""
+    return unicodedata.normalize("NFKC", name)
+
+
 def call_line(call: Call, tool: Tool) -> str:
     """`agent.tool(args...)`: every parameter by position, literals only (the arguments were checked)."""
     return f"agent.{tool.name}({', '.join(repr(call.arguments.get(p)) for p in tool.params)})"
@@ -290,7 +298,7 @@ class Reader:
             raise PlaceError(at, "expected {'function': {'name', 'arguments'}}")
         at = f"{at}.function" if "function" in call else at
         name = function.get("name")
-        tool = self.tools.get(name) if isinstance(name, str) else None
+        tool = self.tools.get(python_name(name)) if isinstance(name, str) else None
         if tool is None:
             known = ", ".join(sorted(self.tools)[:20])
             raise PlaceError(f"{at}.name", f"no tool {name!r} in the tools ({known})")
@@ -319,20 +327,23 @@ class Reader:
                 raise PlaceError(at, f"not valid JSON: {exc}") from None
         if not isinstance(raw, dict):
             raise PlaceError(at, f"must be a JSON object, found {type(raw).__name__}")
-        unknown = [k for k in raw if k not in tool.params]
+        named: dict[str, Any] = {python_name(k): v for k, v in raw.items()}  # as the spec's parameters are named
+        if len(named) < len(raw):
+            raise PlaceError(at, "names one parameter twice (two spellings of one name)")
+        unknown = [k for k in named if k not in tool.params]
         if unknown:
             raise PlaceError(at, f"{tool.name} has no parameter {unknown[0]!r} ({', '.join(tool.params) or 'none'})")
-        missing = [p for p in tool.params if p in tool.required and p not in raw]
+        missing = [p for p in tool.params if p in tool.required and p not in named]
         if missing:
             raise PlaceError(at, f"missing required argument {missing[0]!r} of {tool.name}")
-        return raw
+        return named
 
     def result(self, message: dict[str, Any], at: str) -> None:
         if not self.pending:
             raise PlaceError(at, "a tool result that pairs with no call (every earlier call already has its result)")
         pending = self.pending[0]
         name = message.get("name")
-        if name is not None and name != pending.tool:
+        if name is not None and (not isinstance(name, str) or python_name(name) != pending.tool):
             raise PlaceError(f"{at}.name", f"result of {name!r} pairs by position with a call of {pending.tool!r}")
         content = _text(message.get("content"), f"{at}.content") or ""
         ok, value = outcome(content)

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from precond.programs import checks
+from precond.programs.names import python_name
 from precond.programs.history import render as render_events
 from precond_client.openai_log import (
     PREAMBLE,
@@ -59,9 +60,12 @@ def _fail(where: str, message: str) -> PlaceError:
 
 
 def _identifier(name: object, where: str, what: str) -> str:
-    if not isinstance(name, str) or not name.isidentifier() or keyword.iskeyword(name) or name.startswith("_"):
-        raise _fail(where, f"{what} {name!r} cannot be a Python name (letters, digits, _; not a keyword)")
-    return name
+    """The name as Python reads it (`python_name`), once it is one the spec may define."""
+    read = python_name(name) if isinstance(name, str) else None
+    if read is None or not read.isidentifier() or keyword.iskeyword(read) or read.startswith("_"):
+        raise _fail(where, f"{what} {read if read is not None else name!r} cannot be a Python name (letters, "
+                    "digits, _; not a keyword)")
+    return read
 
 
 def read_tools(data: Any, source: str) -> list[Tool]:
@@ -82,14 +86,18 @@ def read_tools(data: Any, source: str) -> list[Tool]:
         required = parameters.get("required", []) if isinstance(parameters, dict) else None
         if not isinstance(properties, dict) or not isinstance(required, list):
             raise _fail(f"{where}.function.parameters", "expected {'properties': {...}, 'required': [...]}")
+        params: dict[str, str] = {}
         for param in properties:
-            _identifier(param, f"{where}.function.parameters.properties", "parameter")
-            if param in RESERVED_PARAMETERS:
-                raise _fail(f"{where}.function.parameters.properties", f"parameter {param!r} is reserved")
+            read = _identifier(param, f"{where}.function.parameters.properties", "parameter")
+            if read in RESERVED_PARAMETERS or read in params.values():
+                problem = "is reserved" if read in RESERVED_PARAMETERS else "is listed twice"
+                raise _fail(f"{where}.function.parameters.properties", f"parameter {read!r} {problem}")
+            params[param] = read
         unknown = [r for r in required if r not in properties]
         if unknown:
             raise _fail(f"{where}.function.parameters.required", f"{unknown[0]!r} is not among its properties")
-        ordered = [p for p in properties if p in required] + [p for p in properties if p not in required]
+        required = [params[r] for r in required]
+        ordered = [p for p in params.values() if p in required] + [p for p in params.values() if p not in required]
         description = function.get("description")
         tools[name] = Tool(name, tuple(ordered), frozenset(required),
                            description if isinstance(description, str) else "")

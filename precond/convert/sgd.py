@@ -7,11 +7,13 @@ becomes `system.<Intent>()` followed by `system.set_query_status(True|False)` fr
 
 from __future__ import annotations
 
+import keyword
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from precond.convert.shape import ConvertError, expect, key, load_json
+from precond.programs.names import python_name
 
 USER_SPEC = '''from collections import defaultdict
 class USER:
@@ -74,12 +76,12 @@ def read_schema(path: Path, service: str | None) -> Service:
         expect(raw, dict, path, where)
         name = key(raw, "service_name", str, path, where)
         intents = key(raw, "intents", list, path, where)
-        intent_names = [key(expect(i, dict, path, f"{where}.intents[{n}]"), "name", str, path,
-                            f"{where}.intents[{n}]") for n, i in enumerate(intents)]
+        intent_names = [python_name(key(expect(i, dict, path, f"{where}.intents[{n}]"), "name", str, path,
+                                        f"{where}.intents[{n}]")) for n, i in enumerate(intents)]
         slots = [key(expect(s, dict, path, f"{where}.slots[{n}]"), "name", str, path, f"{where}.slots[{n}]")
                  for n, s in enumerate(key(raw, "slots", list, path, where))]
         for n, intent in enumerate(intent_names):
-            if not intent.isidentifier() or intent in SYSTEM_ACTS or intent == "set_query_status":
+            if not intent.isidentifier() or keyword.iskeyword(intent) or intent in (*SYSTEM_ACTS, "set_query_status"):
                 raise ConvertError(f"{path}: {where}.intents[{n}].name: {intent!r} cannot be a method of SYSTEM")
         found[name] = Service(name, intent_names, slots)
     if service is None:
@@ -132,7 +134,7 @@ def dialogue_program(dialogue: dict[str, Any], service: Service, path: Path, whe
                 continue
             if speaker == "SYSTEM" and "service_call" in frame:
                 call = key(frame, "service_call", dict, path, frame_at)
-                method = key(call, "method", str, path, f"{frame_at}.service_call")
+                method = python_name(key(call, "method", str, path, f"{frame_at}.service_call"))
                 if method not in service.intents:
                     raise ConvertError(f"{path}: {frame_at}.service_call.method: {method!r} is not an intent of "
                                        f"{service.name} ({', '.join(service.intents)})")

@@ -16,6 +16,7 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from precond.programs.checks import INVALID_INPUT, Problem, ProgramProblem, did_you_mean, remembered_spec_methods
+from precond.programs.names import python_name
 from precond.programs.spec import Method
 
 SCALARS = (str, int, float, bool, type(None))
@@ -50,7 +51,7 @@ def actors(tree: ast.Module) -> tuple[dict[str, str], list[str]]:
     made: dict[str, str] = {}
     setup: list[str] = []
     for cls, params in _constructors(tree).items():
-        variable = cls.lower()
+        variable = python_name(cls.lower())  # the name Python binds: two classes may lower to one
         if params is None or variable in made or not variable.isidentifier():
             continue
         bound = []
@@ -125,6 +126,8 @@ def _call(made: Mapping[str, str], methods: Mapping[str, Method], actor: Any, ac
           where: str) -> str:
     """`actor.method` for an event of `count` arguments (None: not checked); ProgramProblem naming `where` when
     it is not one."""
+    actor = python_name(actor) if isinstance(actor, str) else actor
+    act = python_name(act) if isinstance(act, str) else act
     if not isinstance(actor, str) or actor not in made:
         known = ", ".join(sorted(made)) or "none"
         hint = did_you_mean(str(actor), made) if isinstance(actor, str) else ""

@@ -163,3 +163,15 @@ def test_a_spec_file_and_demonstration_files_become_an_infer_request(tmp_path: P
     broken = precond("convert", "programs", "--spec", str(tmp_path / "spec.py"), *map(str, paths))
     assert broken.returncode == 2 and f"error: {paths[1]}: demonstrations[1], line " in broken.stderr
     assert "SyntaxError" in broken.stderr
+
+
+@pytest.mark.parametrize("intent", ["ＩＮＦＯＲＭ", "ｓｅｔ_ｑｕｅｒｙ_ｓｔａｔｕｓ", "ｉｆ"])
+def test_an_intent_is_checked_as_python_reads_its_name(tmp_path: Path, intent: str) -> None:
+    """`def ＩＮＦＯＲＭ(self)` defines `INFORM` (Python reads names NFKC-normalised): an intent so named would
+    replace SYSTEM's own act."""
+    schema = tmp_path / "schema.json"
+    schema.write_text(json.dumps([{"service_name": "Shop_1", "slots": [], "intents": [{"name": intent}]}]))
+    dialogues = tmp_path / "dialogues.json"
+    dialogues.write_text("[]")
+    with pytest.raises(sgd_converter.ConvertError, match=r"intents\[0\]\.name: .* cannot be a method of SYSTEM"):
+        sgd_converter.convert(schema, [dialogues], None)

@@ -32,3 +32,13 @@ def test_arguments_other_than_scalars_are_refused(restaurants: dict[str, object]
     with pytest.raises(ProgramProblem) as refused:
         render(str(restaurants["spec_program"]), [{"actor": "user", "act": "INFORM", "args": [value]}])
     assert refused.value.problem.field == "history[0].args[0]"
+
+
+def test_an_actor_and_act_are_read_as_python_reads_names(restaurants: dict[str, object]) -> None:
+    """Python reads names NFKC-normalised (`ｕｓｅｒ` is `user`): an event is checked against the spec in that
+    form, and what it renders is the spec's own name, whatever the letters it was sent in."""
+    spec = str(restaurants["spec_program"])
+    program = render(spec, [{"actor": "ｕｓｅｒ", "act": "ＩＮＦＯＲＭ", "args": ["city"]}])
+    assert program.splitlines()[-1] == "user.INFORM('city')"
+    with pytest.raises(ProgramProblem, match="unknown act"):
+        render(spec, [{"actor": "user", "act": "＿＿init＿＿", "args": []}])
