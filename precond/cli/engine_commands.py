@@ -19,6 +19,7 @@ import typer
 from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
+from precond.convert.shape import ConvertError, parse_json
 from precond_client.schemas.api import (
     MAX_SOURCE_NAME_CHARS,
     CheckRequest,
@@ -238,13 +239,13 @@ def infer(request: RequestFile, server: Server = None, api_key: ApiKey = None, s
 def _prior_source(path: Path) -> PriorSource:
     """A file of rules as one prior source: `{action: [rules]}`, or anything with `preconditions`."""
     try:
-        loaded = json.loads(path.read_text(encoding="utf-8"))
+        loaded = parse_json(path.read_text(encoding="utf-8"), f"--prior-rules {path}")
         rules = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
         return PriorSource.model_validate({"source": path.name[:MAX_SOURCE_NAME_CHARS], "rules": rules})
     except OSError as exc:
         _fail(f"cannot read {path}: {exc.strerror}", 2)
-    except json.JSONDecodeError as exc:
-        _fail(f"--prior-rules {path}: not JSON: {exc}", 2)
+    except ConvertError as exc:
+        _fail(str(exc), 2)
     except ValidationError as exc:
         _fail(f"--prior-rules {path}: not rules per action:\n" + "\n".join(_problems(exc)), 2)
     raise AssertionError("unreachable")
@@ -307,22 +308,23 @@ def _openai_check(messages: Path, spec: Path | None, rules: Path | None, precond
     """A check request from an agent's OpenAI messages (a list, or a tau-bench `{"traj": [...]}` record), the
     rules (a file of `{action: [rules]}` or an infer response, with the spec; or a stored set) and tool calls."""
     try:
-        history = json.loads(messages.read_text(encoding="utf-8"))
+        history = parse_json(messages.read_text(encoding="utf-8"), str(messages))
         if isinstance(history, dict) and "traj" in history:
             history = history["traj"]
-        fields: dict[str, Any] = {"history": history, "calls": [json.loads(c) for c in calls]}
+        fields: dict[str, Any] = {"history": history,
+                                  "calls": [parse_json(c, f"--call {n + 1}") for n, c in enumerate(calls)]}
         if precondition_set is not None:
             fields["precondition_set"] = precondition_set
         if spec is not None:
             fields["spec"] = spec.read_text(encoding="utf-8")
         if rules is not None:
-            loaded = json.loads(rules.read_text(encoding="utf-8"))
+            loaded = parse_json(rules.read_text(encoding="utf-8"), str(rules))
             fields["preconditions"] = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
         return CheckRequest.model_validate(fields)
     except OSError as exc:
         _fail(f"cannot read {exc.filename}: {exc.strerror}", 2)
-    except json.JSONDecodeError as exc:
-        _fail(f"not JSON ({exc.doc[:60]!r}...): {exc}", 2)
+    except ConvertError as exc:
+        _fail(str(exc), 2)
     except ValidationError as exc:
         _fail(f"invalid check:\n{exc}", 2)
     raise AssertionError("unreachable")

@@ -13,11 +13,23 @@ __all__ = ["ConvertError", "at", "expect", "key", "load_json"]
 
 def load_json(path: Path) -> Any:
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        text = path.read_text(encoding="utf-8")
     except OSError as exc:
         raise ConvertError(f"{path}: cannot read: {exc.strerror}") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
         raise ConvertError(f"{path}: not JSON: {exc}") from None
+    return parse_json(text, str(path))
+
+
+def parse_json(text: str, where: str) -> Any:
+    """JSON from a user's file; every way it cannot be read (syntax, an integer of more than 4,300 digits, nesting
+    deeper than the interpreter's stack) is a ConvertError naming `where`, never a traceback."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ConvertError(f"{where}: not JSON this tool reads: nested too deeply") from None
+    except ValueError as exc:
+        raise ConvertError(f"{where}: not JSON: {exc}") from None
 
 
 def at(path: Path, where: str) -> str:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import ast
 import copy
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -166,3 +167,46 @@ def test_what_a_log_carries_stays_literal_data() -> None:
         assert all(isinstance(ast.literal_eval(arg), object) for arg in statement.value.args)
     assert ast.literal_eval(tree.body[2].value.args[0]) == payload  # type: ignore[attr-defined]
     assert sum(isinstance(node, ast.Import) for node in ast.walk(tree)) == 0
+
+
+@pytest.mark.parametrize(("schema", "expected"), [
+    ({"name": "ｒｅｓｕｌｔ", "parameters": {"properties": {}}}, r"\.function\.name: 'result' is reserved"),
+    ({"name": "ｌｏｏｋｕｐ", "parameters": {"properties": {"ｓｅｌｆ": {}}}},
+     r"\.function\.parameters\.properties: parameter 'self' is reserved"),
+    ({"name": "ｉｆ", "parameters": {"properties": {}}}, r"\.function\.name: tool name 'if' cannot be a Python name"),
+])
+def test_a_name_is_checked_as_python_reads_it(schema: dict[str, Any], expected: str) -> None:
+    """Python reads identifiers NFKC-normalised: `def ｒｅｓｕｌｔ(self)` defines `result`, and a tool so named
+    replaced the AGENT.result that records every tool's result. Names are normalised before they are checked."""
+    with pytest.raises(ConvertError, match=expected):
+        openai_converter.read_tools([*tools(), schema], "tools.json")
+
+
+def test_a_tool_named_with_other_letters_is_the_same_tool() -> None:
+    spec = openai_converter.convert(records()[:1], [*tools(), {"name": "ｌｏｏｋｕｐ"}]).spec
+    methods = [n.name for n in ast.walk(ast.parse(spec)) if isinstance(n, ast.FunctionDef)]
+    assert "lookup" in methods and methods.count("result") == 1
+    renderer = openai_converter.Renderer(openai_converter.spec_tools(spec, "calls"), "calls")
+    assert renderer.call({"name": "ｌｏｏｋｕｐ", "arguments": {}}, "calls[0]") == "agent.lookup()"
+
+
+@pytest.mark.parametrize(("text", "says"), [
+    ("[" * 100_000 + "]" * 100_000, "nested too deeply"),
+    (json.dumps([{"traj": [], "reward": 10 ** 400}]), r"\[0\]\.reward: not a finite number"),
+    ("[" + "1" * 5000 + "]", "not JSON"),
+])
+def test_json_the_cli_cannot_use_exits_2_with_a_message(tmp_path: Path, text: str, says: str) -> None:
+    """Every command that reads a user's JSON file: the converter, a check's OpenAI messages, prior rules."""
+    bad = tmp_path / "bad.json"
+    bad.write_text(text)
+    (tmp_path / "spec.py").write_text(openai_converter.convert(records()[:1], tools()).spec)
+    call = '{"name": "think", "arguments": {"thought": "x"}}'
+    for args, where in (
+        (("convert", "openai", str(bad), "--tools", str(TAU / "tools.json"), "--out", str(tmp_path / "o")), f"{bad}"),
+        (("check", "--openai", str(bad), "--spec", str(tmp_path / "spec.py"), "--call", call), f"{bad}"),
+        (("infer", str(ROOT / "examples" / "infer-enumerate.json"), "--prior-rules", str(bad)), f"--prior-rules {bad}"),
+    ):
+        done = precond(*args)
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr[-2000:]
+        if "reward" not in says or args[0] == "convert":  # only the converter reads rewards
+            assert done.stderr.startswith(f"error: {where}") and re.search(says, done.stderr), done.stderr
