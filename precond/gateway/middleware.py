@@ -29,8 +29,8 @@ _CLIENT_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 
 
 class RequestContext:
-    """Gives each request an id (the client's X-Request-Id when sane), echoes it, counts and times it, and lets
-    the event loop serve the others first.
+    """Gives each request an id (the client's X-Request-Id when sane), echoes it, marks every answer
+    `X-Content-Type-Options: nosniff`, counts and times it, and lets the event loop serve the others first.
 
     A request answered from this process's memory (a result read recently, a token of the tenant's lease, a
     refusal already known) never waits on anything, and uvicorn then served some connections far less often
@@ -56,7 +56,10 @@ class RequestContext:
             nonlocal status
             if message["type"] == "http.response.start":
                 status = message["status"]
-                MutableHeaders(scope=message)["X-Request-Id"] = rid
+                headers = MutableHeaders(scope=message)
+                headers["X-Request-Id"] = rid
+                # an answer echoes caller text (results, errors quoting the input): never sniffed as HTML or script
+                headers["X-Content-Type-Options"] = "nosniff"
             await send(message)
 
         try:

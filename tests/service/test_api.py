@@ -406,6 +406,22 @@ def test_health_ready_metrics(client: httpx.Client) -> None:
         assert name in text
 
 
+def test_every_answer_says_its_content_type_is_not_to_be_sniffed(client: httpx.Client) -> None:
+    """A JSON answer echoes caller text (a job's result, an error quoting the input): a browser must never read it
+    as HTML or script, whatever it contains."""
+    html = "<script>alert(1)</script>"
+    answers = [
+        client.get("/health"), client.get("/metrics"),
+        client.post("/check-actions", json=check_body(f"system.REQUEST('{html}')")),
+        client.post("/check-actions", json={**check_body(), "spec": html}),
+        client.get(f"/jobs/{html}"),
+        client.post("/check-actions", content=b"{" * 70_000, headers={"Content-Type": "application/json"}),
+    ]
+    assert {a.status_code for a in answers} >= {200, 404, 422, 413}
+    for answer in answers:
+        assert answer.headers.get("X-Content-Type-Options") == "nosniff", (answer.status_code, answer.headers)
+
+
 def test_programs_are_checked_at_the_gateway_before_any_queueing(client: httpx.Client) -> None:
     demos = example("infer-enumerate")["demonstrations"]
     broken = [demos[0], demos[1], "user = USER()\nsystem.REQUEST('city'\n"]
