@@ -125,5 +125,5 @@ def test_a_reinferred_version_over_an_actions_rule_bound_is_refused_never_stored
     base = _base(preconditions={"A.act": required}, required={"A.act": required}, rejected={})
     job = ReinferJob(base=base, demonstrations=["a = A()\na.act()\n"], max_versions=50, max_bytes=10**6,
                      max_tenant_bytes=10**7)
-    with pytest.raises(InvalidInput, match="A.act would have 40 rules, over the 32 one action may have"):
+    with pytest.raises(InvalidInput, match=r"A\.act would have 40 rules, over the 32 one action may have"):
         reinfer(InfersMore(), job, lambda *a: None, lambda: False)  # type: ignore[arg-type]
