@@ -2,7 +2,9 @@
 that answered that scope before and kept what it compiled. The attacks (`warm_probe.py`), as root here and as
 a non-root user in `test_boundary.py`: a tenant leaves state in its warm child, and another tenant's check (or
 one with no scope) must never run there; a warm child left spinning must not use a CPU while it waits; a warm
-child made unfit by its past calls must not change what the next call may use or answers."""
+child made unfit by its past calls (or one that answers a byte and hangs) must not change what the next call may
+use or answers; a call without warm children (a result shared between tenants) never runs where its tenant's
+history forged the verdicts."""
 
 from __future__ import annotations
 
