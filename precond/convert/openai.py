@@ -13,13 +13,14 @@ library, `precond/programs/` and that module only: the gateway renders histories
 from __future__ import annotations
 
 import keyword
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from precond.programs import checks
-from precond.programs.names import python_name
 from precond.programs.history import render as render_events
+from precond.programs.names import python_name
 from precond_client.openai_log import (
     PREAMBLE,
     RESERVED,
@@ -156,12 +157,23 @@ def _runs(data: Any, source: str) -> list[tuple[str, Any, str, float | None]]:
             runs.append((str(n), item, f"{source}: [{n}]", None))
         elif isinstance(item, dict) and "traj" in item:
             name = _record_name(item, n)
-            reward = item.get("reward")
-            runs.append((name, item["traj"], f"{source}: [{n}].traj",
-                         float(reward) if isinstance(reward, int | float) else None))
+            runs.append((name, item["traj"], f"{source}: [{n}].traj", _reward(item.get("reward"), f"{source}: [{n}]")))
         else:
             raise _fail(f"{source}: [{n}]", "expected a list of messages or a {'traj': [...]} record")
     return runs
+
+
+def _reward(value: Any, where: str) -> float | None:
+    """A record's reward as a finite float (None when it has none); a number that is not one is refused."""
+    if not isinstance(value, int | float):
+        return None
+    try:
+        reward = float(value)
+    except OverflowError:
+        reward = math.inf
+    if not math.isfinite(reward):
+        raise _fail(f"{where}.reward", "not a finite number")
+    return reward
 
 
 def _record_name(record: dict[str, Any], index: int) -> str:
