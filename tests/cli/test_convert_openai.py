@@ -187,7 +187,7 @@ def test_a_tool_named_with_other_letters_is_the_same_tool() -> None:
     methods = [n.name for n in ast.walk(ast.parse(spec)) if isinstance(n, ast.FunctionDef)]
     assert "lookup" in methods and methods.count("result") == 1
     renderer = openai_converter.Renderer(openai_converter.spec_tools(spec, "calls"), "calls")
-    assert renderer.call({"name": "ｌｏｏｋｕｐ", "arguments": {}}, "calls[0]") == "agent.lookup()"
+    assert renderer.line({"name": "ｌｏｏｋｕｐ", "arguments": {}}, "calls[0]") == "agent.lookup()"
 
 
 @pytest.mark.parametrize(("text", "says"), [
