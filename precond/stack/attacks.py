@@ -18,10 +18,10 @@ from typing import Any
 
 import httpx
 
-from precond.convert.openai import Tool, spec_program
 from precond.stack import harness
 from precond.stack.keyed import KeyedStack
 from precond.stack.local import DEMOS, SPEC, check_body, infer_body
+from precond_client.openai_log import Tool, spec_program
 
 POISON_SPEC = ("class A:\n  def __init__(self):\n    self.x = 0\n  def act(self, a, b, c, d): pass\n"
                "  def q(self, " + ", ".join(f"p{i}" for i in range(14)) + "): return p0\n")
