@@ -64,19 +64,25 @@ def _data(data: list[Path] | None, *names: str) -> list[Path]:
 
 
 def _domains(data: list[Path] | None, alfworld_modes: str) -> list[Any]:
-    from precond.evaluation.domains import ARG_MODES, load_domains
+    """Every domain of the directories, or exit 2 naming the one that is missing or malformed: a table of the
+    domains that could be read is never presented as the whole."""
+    from precond.evaluation.domains import ARG_MODES, DomainDataError, load_domains
 
     data = _data(data, "sgd", "alfworld")
     modes = [m.strip() for m in alfworld_modes.split(",") if m.strip()]
     out = []
-    for path in data:
-        if (path / "demos.json").exists():
-            for mode in modes:
-                if mode not in ARG_MODES:
-                    raise typer.BadParameter(f"unknown ALFWorld argument mode {mode!r}; known: {ARG_MODES}")
-                out.extend(load_domains(path, mode))
-        else:
-            out.extend(load_domains(path))
+    try:
+        for path in data:
+            if (path / "demos.json").exists():
+                for mode in modes:
+                    if mode not in ARG_MODES:
+                        raise typer.BadParameter(f"unknown ALFWorld argument mode {mode!r}; known: {ARG_MODES}")
+                    out.extend(load_domains(path, mode))
+            else:
+                out.extend(load_domains(path))
+    except DomainDataError as exc:
+        typer.echo(f"error: {exc}", err=True)
+        raise typer.Exit(2) from None
     return out
 
 
@@ -99,8 +105,9 @@ def preconditions(
     needs_model = any(c.uses_model for c in chosen)
     from precond.evaluation.scoring import Satisfaction
 
+    domains = _domains(data, alfworld_args)
     sandbox = _sandbox()
-    result = evaluate(_domains(data, alfworld_args), chosen, store, Satisfaction(sandbox, store),
+    result = evaluate(domains, chosen, store, Satisfaction(sandbox, store),
                       lambda: _engine(needs_model).infer, force, sandbox)
     path = store_precondition_results(store, result)
     typer.echo(precondition_table(result["summary"]))
@@ -204,7 +211,7 @@ def next_action_alfworld(
     """Next action in ALFWorld: share of predictions the simulator admits, and match with the expert."""
     from precond.evaluation.alfworld_next import run, sample_episodes, summarize
     from precond.evaluation.configs import parse_config
-    from precond.evaluation.domains import ALFWORLD_TEST_SPLIT, load_alfworld
+    from precond.evaluation.domains import ALFWORLD_TEST_SPLIT
     from precond.evaluation.policy import expand_policy
     from precond.evaluation.preconditions import infer
     from precond.evaluation.report import write_next_action_section
@@ -213,7 +220,10 @@ def next_action_alfworld(
     store = JsonCache(cache_dir)
     engine, memo = _memo_engine(store)
     policies = _PolicyEngines(engine, memo, store, cache_dir)
-    domain = load_alfworld(data)
+    domain = _domains([data], "state")[0]
+    if domain.benchmark != "alfworld":
+        typer.echo(f"error: domain directory {data}: not the ALFWorld directory (no demos.json)", err=True)
+        raise typer.Exit(2)
     inferred = infer(domain, parse_config(inferred_from), store, lambda: engine.infer).preconditions
     trajectories = [t for t in json.loads((data / "test.json").read_text())["trajectories"]
                     if t["split"] == ALFWORLD_TEST_SPLIT and not t.get("same_scene_as_demo")]
@@ -342,8 +352,9 @@ def run_all(
 
     store = JsonCache(cache_dir)
     known = ",".join(r["config"] for r in (store.get("results", "preconditions") or {"rows": []})["rows"])
+    domains = _domains(data, "state,trajectory")
     sandbox = _sandbox()
-    result = evaluate(_domains(data, "state,trajectory"), expand(f"{configs},{known}"), store,
+    result = evaluate(domains, expand(f"{configs},{known}"), store,
                       Satisfaction(sandbox, store), lambda: _engine(False).infer, False, sandbox)
     store_precondition_results(store, result)
     report(cache_dir=cache_dir, out=Path("docs/results.md"), bench=Path("bench/sandbox_bench.py"), noise_only=False)

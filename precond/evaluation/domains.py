@@ -27,10 +27,10 @@ from __future__ import annotations
 import ast
 import json
 import re
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 from precond.programs import Method, main_body, read_methods
 from precond.sandbox.types import Point
@@ -41,6 +41,14 @@ SGD_SETUP_STATEMENTS = 2
 ALFWORLD_SETUP_STATEMENTS = 2
 ALFWORLD_TEST_SPLIT = "valid_unseen"
 TWO_ARGUMENT = ("take", "put", "clean", "heat", "cool")
+_T = TypeVar("_T")
+READ_FAILURES = (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError, SyntaxError, RecursionError)
+"""What reading a domain's files can raise when they are not what the data READMEs describe."""
+
+
+class DomainDataError(ValueError):
+    """A domain directory or file that cannot be read as the data READMEs describe. The message names the path:
+    an evaluation stops there rather than scoring the domains it could read as if they were all of them."""
 
 _COMMANDS: tuple[tuple[str, re.Pattern[str]], ...] = (
     ("goto", re.compile(r"^go to (?P<a>.+)$")),
@@ -239,10 +247,33 @@ def load_alfworld(data_dir: Path, mode: ArgMode = "state", limit: int | None = N
 
 
 def load_domains(data_dir: Path, alfworld_mode: ArgMode = "state") -> list[Domain]:
-    """A data directory is either the SGD one (one JSON per service) or the ALFWorld one."""
+    """A data directory is either the SGD one (one JSON per service) or the ALFWorld one; all of it or
+    `DomainDataError` naming the directory or file that is missing or malformed."""
+    if not data_dir.is_dir():
+        problem = "not a directory" if data_dir.exists() else "does not exist"
+        raise DomainDataError(f"domain directory {data_dir}: {problem}")
     if (data_dir / "demos.json").exists():
-        return [load_alfworld(data_dir, alfworld_mode)]
+        return [read_domain(data_dir, lambda path: load_alfworld(path, alfworld_mode))]
     files = sgd_domain_files(data_dir)
     if not files:
-        raise FileNotFoundError(f"{data_dir}: neither SGD domain files nor ALFWorld demos.json")
-    return [load_sgd(p) for p in files]
+        raise DomainDataError(f"domain directory {data_dir}: neither SGD domain files (*.json) nor ALFWorld's "
+                              "demos.json")
+    return [read_domain(p, load_sgd) for p in files]
+
+
+def read_domain(path: Path, loader: Callable[[Path], _T]) -> _T:
+    """`loader(path)`, or `DomainDataError` naming `path` and what was wrong with it."""
+    try:
+        return loader(path)
+    except DomainDataError:
+        raise
+    except READ_FAILURES as exc:
+        raise DomainDataError(f"malformed domain data {path}: {_failure(exc)}") from exc
+
+
+def _failure(exc: BaseException) -> str:
+    if isinstance(exc, KeyError):
+        return f"missing field {exc}"
+    if isinstance(exc, OSError) and exc.filename:
+        return f"cannot read {exc.filename}: {exc.strerror or type(exc).__name__}"
+    return f"{type(exc).__name__}: {exc}"
