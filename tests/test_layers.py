@@ -85,7 +85,7 @@ def test_package_imports_only_what_its_layer_allows(package: str) -> None:
         f"{file}: {module}" for file, module in imports(package)
         if layer_of(module) in FORBIDDEN[package]
     ]
-    assert not wrong, f"{package} must not import these (see README, How it fits together):\n" + "\n".join(wrong)
+    assert not wrong, f"{package} must not import these (see docs/architecture.md):\n" + "\n".join(wrong)
 
 
 @pytest.mark.parametrize("layer", ["precond.programs", *STANDALONE])

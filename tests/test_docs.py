@@ -1,0 +1,88 @@
+"""The documentation stays usable: a short README whose example runs, links that resolve, a glossary that
+defines the words the README uses, and reference text that describes the project rather than how it was built
+(history belongs in CHANGELOG.md)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = sorted((ROOT / "docs").glob("*.md"))
+README = ROOT / "README.md"
+GLOSSARY = ROOT / "docs" / "index.md"
+
+# The project's own vocabulary: every one of these the README uses must have a glossary entry.
+JARGON = [
+    "action", "adapter", "Algorithm 1", "API key", "assumed rule", "behaviour cloning", "cache hit",
+    "candidate", "cautious ranking", "check", "code model", "constrained mode", "demonstration", "enumerator",
+    "established rule", "evidence", "event", "fork server", "gateway", "guard", "history", "job",
+    "model-free", "next action", "observation", "policy", "precondition", "precondition set", "prior rules",
+    "program", "queue", "ranking", "review page", "rule", "sandbox", "spec", "tenant", "thin evidence",
+    "tolerance", "tool call", "validation", "verdict", "version", "warm child", "worker", "zero-shot rule",
+]
+
+
+def _links(path: Path) -> list[str]:
+    text = re.sub(r"```.*?```", "", path.read_text(encoding="utf-8"), flags=re.DOTALL)
+    return re.findall(r"\]\(([^)\s]+)\)", text)
+
+
+def _anchors(path: Path) -> set[str]:
+    """GitHub's heading anchors: lower case, punctuation dropped, spaces as hyphens."""
+    anchors = set()
+    for line in path.read_text(encoding="utf-8").splitlines():
+        if line.startswith("#"):
+            title = line.lstrip("#").strip().lower()
+            anchors.add(re.sub(r"[^\w\- ]", "", title).replace(" ", "-"))
+    return anchors
+
+
+def _glossary_terms() -> set[str]:
+    text = GLOSSARY.read_text(encoding="utf-8").split("## Glossary", 1)[1]
+    terms = set()
+    for head in re.findall(r"^\*\*(.+?)\*\*(?:\s*\(([^)]*)\))?", text, flags=re.MULTILINE):
+        for part in re.split(r",\s*|\*\*", head[0]):
+            terms.add(re.sub(r"\s*\(.*", "", part).strip().lower())
+    return {term for term in terms if term}
+
+
+def test_readme_is_at_most_200_lines() -> None:
+    assert len(README.read_text(encoding="utf-8").splitlines()) <= 200
+
+
+def test_every_relative_link_in_readme_and_docs_resolves() -> None:
+    broken = []
+    for page in [README, *DOCS]:
+        for link in _links(page):
+            if re.match(r"[a-z]+:", link):
+                continue  # http(s), mailto: not ours to check offline
+            target, _, anchor = link.partition("#")
+            path = (page.parent / target).resolve() if target else page
+            if not path.exists():
+                broken.append(f"{page.relative_to(ROOT)}: {link} (no such file)")
+            elif anchor and path.suffix == ".md" and anchor not in _anchors(path):
+                broken.append(f"{page.relative_to(ROOT)}: {link} (no such heading)")
+    assert not broken, "\n".join(broken)
+
+
+def test_the_glossary_defines_every_project_term_the_readme_uses() -> None:
+    readme = README.read_text(encoding="utf-8").lower()
+    defined = _glossary_terms()
+    missing = [term for term in JARGON
+               if re.search(r"\b" + re.escape(term.lower()) + r"s?\b", readme) and term.lower() not in defined]
+    assert not missing, f"used in README.md, not in the glossary of docs/index.md: {missing}"
+    assert len(defined) >= len(JARGON) // 2  # the parse found the entries at all
+
+
+def test_the_readme_example_runs_and_says_what_it_prints() -> None:
+    """The README's Python example, run as written from the checkout: its printed lines are its comments."""
+    blocks = re.findall(r"```python\n(.*?)```", README.read_text(encoding="utf-8"), flags=re.DOTALL)
+    example = next(block for block in blocks if "build_engine" in block)
+    expected = [re.search(r"#\s*(.+?)(?::.*)?$", line).group(1).strip()  # type: ignore[union-attr]
+                for line in example.splitlines() if line.startswith("print(")]
+    run = subprocess.run([sys.executable, "-c", example], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.splitlines() == expected
