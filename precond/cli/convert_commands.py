@@ -6,12 +6,13 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from pydantic import ValidationError
 
 from precond.convert import events as events_converter
+from precond.convert import labels as labels_reader
 from precond.convert import openai as openai_converter
 from precond.convert import sgd as sgd_converter
 from precond.convert.shape import ConvertError, load_json
@@ -27,8 +28,10 @@ def _fail(message: str) -> None:
     raise typer.Exit(2)
 
 
-def _request(spec: str, demonstrations: list[str], actions: list[str] | None = None) -> str:
-    body = InferRequest(spec=spec, demonstrations=demonstrations, actions=actions)
+def _request(spec: str, demonstrations: list[str], actions: list[str] | None = None,
+             counterexamples: list[dict[str, Any]] | None = None) -> str:
+    body = InferRequest.model_validate({"spec": spec, "demonstrations": demonstrations, "actions": actions,
+                                        "counterexamples": counterexamples or []})
     return json.dumps(body.model_dump(mode="json", exclude_defaults=True), indent=2) + "\n"
 
 
@@ -95,12 +98,17 @@ def openai(
                                                      "request.json (tau-bench: 1 = the run succeeded).",
                                                      show_default=False)] = None,
     demos: Annotated[int, typer.Option(min=1, max=200, help="How many trajectories go into request.json.")] = 200,
+    labels: Annotated[Path | None, typer.Option(help="Labelled calls ({task_id, trial, message_index, tool, allowed} "
+                                                "records): request.json's counterexamples.",
+                                                show_default=False)] = None,
 ) -> None:
     """Tool-calling agent logs → a spec from the tool schemas, one program per trajectory, an infer request."""
     chosen = None if writes is None else {w.strip() for w in writes.split(",") if w.strip()}
     try:
         converted = openai_converter.convert(load_json(trajectories), load_json(tools), str(trajectories),
                                              str(tools), chosen)
+        read = [] if labels is None else labels_reader.read_labels(load_json(labels), str(labels),
+                                                                    {t.name for t in converted.tools})
     except ConvertError as exc:
         _fail(str(exc))
     (out / "demos").mkdir(parents=True, exist_ok=True)
@@ -112,10 +120,17 @@ def openai(
             if min_reward is None or (t.reward is not None and t.reward >= min_reward)]
     chosen_programs = [t.program for t in kept][:demos]
     actions = [f"AGENT.{w}" for w in sorted(converted.writes)] or None
-    (out / "request.json").write_text(_request(converted.spec, chosen_programs, actions), encoding="utf-8")
+    try:
+        runs = labels_reader.counterexamples(converted, read, kept[:demos])
+    except ConvertError as exc:
+        _fail(str(exc))
+    (out / "request.json").write_text(_request(converted.spec, chosen_programs, actions, runs), encoding="utf-8")
+    counted = [c["verdict"] for run in runs for c in run["calls"]]
     typer.echo(f"{len(converted.trajectories)} trajectories → {out}/demos/, {len(chosen_programs)} in "
                f"{out}/request.json (actions: {', '.join(sorted(converted.writes)) or 'all'}); "
-               f"{converted.without_writes} without a state-changing call", err=True)
+               f"{converted.without_writes} without a state-changing call"
+               + (f"; labelled calls: {counted.count('refuse')} to refuse, {counted.count('allow')} to allow, "
+                  f"in {len(runs)} runs" if labels is not None else ""), err=True)
 
 
 @app.command("programs")

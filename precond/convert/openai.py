@@ -41,6 +41,8 @@ class Trajectory:
     program: str
     calls: list[Call] = field(default_factory=list)
     reward: float | None = None
+    messages: list[int] = field(default_factory=list)
+    """The index of the message that made each call (labels name calls so)."""
 
 
 @dataclass
@@ -112,6 +114,12 @@ class Renderer(Reader):
         super().__init__(tools, where)
         self.lines: list[str] = list(PREAMBLE)
         self.calls: list[Call] = []
+        self.messages: list[int] = []
+        self._at = -1
+
+    def message(self, index: int, message: Any) -> None:
+        self._at = index
+        super().message(index, message)
 
     def said(self, text: str | None) -> None:
         self.lines.append(f"user.says({text!r})")
@@ -119,6 +127,7 @@ class Renderer(Reader):
     def called(self, call: Call) -> None:
         self.lines.append(call_line(call, self.tools[call.tool]))
         self.calls.append(call)
+        self.messages.append(self._at)
 
     def answered(self, call: Call) -> None:
         ok, value = call.result or (False, None)
@@ -194,7 +203,7 @@ def convert(data: Any, tools_data: Any, source: str = "trajectories", tools_sour
     converted = Converted(spec_program(tools, chosen), tools, chosen)
     for name, messages, where, reward in _runs(data, source):
         renderer = render(messages, tools, where)
-        converted.trajectories.append(Trajectory(name, renderer.program(), renderer.calls, reward))
+        converted.trajectories.append(Trajectory(name, renderer.program(), renderer.calls, reward, renderer.messages))
     return converted
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from precond.convert.openai import call_lines, structured_history
-from precond.engine import judge, priors, prompting, scope
+from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import thin, too_few
 from precond.engine.freshness import writes_at
@@ -200,6 +200,8 @@ class Engine:
         actions = resolve_actions(spec, request.actions)
         demo_trees = [parse_source(d, f"demonstrations[{i}]") for i, d in enumerate(request.demonstrations)]
         demos = list(request.demonstrations)
+        labelled = counterexamples.read(spec, request.counterexamples, demos, actions) \
+            if request.counterexamples else None
         prior = priors.collect(request.options, spec, actions, demos)
         progress("trace", 0, 1)
         with timer.phase("trace"):
@@ -209,7 +211,8 @@ class Engine:
         stopped: dict[str, str] = {}
         if "enumerate" in request.options.generators:
             with timer.phase("enumerate"):
-                stopped = self._enumerate(spec, actions, demo_trees, trace, enumerated)
+                labelled_trees = [parse_source(p, "counterexamples") for p in labelled.programs] if labelled else []
+                stopped = self._enumerate(spec, actions, demo_trees + labelled_trees, trace, enumerated)
         writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
         prompted = _prompted(actions, trace, request.options)
         settled = [a for a in actions if a not in prompted]
@@ -243,13 +246,26 @@ class Engine:
         if request.options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
+        separated: dict[str, counterexamples.Separation] = {}
+        if labelled is not None:
+            with timer.phase("counterexamples"):
+                separated = self._separate(spec, labelled, trace, evaluated, ranked)
+            ranked = {**ranked, **{a: s.ranked for a, s in separated.items()}}
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         if request.options.unseen == "refuse":  # unless the code model's zero-shot guess is a rule for it
             chosen.update({a: [UNSEEN_RULE] for a in actions if not trace.actions[a].occurrences and not chosen[a]})
         with timer.phase("verify"):
             exempt = _exceptions_of(chosen, ranked)
+            for separation in separated.values():
+                for point in separation.exempt:
+                    exempt.setdefault(point.demo, set()).add(point.position)
             program, preconditions, dropped = self._verified_program(spec, chosen, demos, exempt)
         response = report_of(actions, proposals, ranked, preconditions, dropped, timer.seconds, trace)
+        for action, separation in separated.items():
+            for rule, kept in response.evidence[action].items():
+                response.evidence[action][rule] = kept.model_copy(update={
+                    "refuses": separation.refuses.get(rule, []),
+                    "refuses_allowed": separation.refuses_allowed.get(rule, [])})
         occurrences = {a: trace.actions[a].occurrences for a in actions}
         decided = {a: {rule: ranked[a].decided.get(rule, "unseen" if rule == UNSEEN_RULE else "established")
                        for rule in preconditions[a]} for a in actions}
@@ -265,6 +281,34 @@ class Engine:
             candidates=listed(response.candidates, request.options.candidates),
             model=model_info, warnings=warnings, evidence=response.evidence,
         )
+
+    def _separate(self, spec: Spec, labelled: counterexamples.Labelled, trace: TraceResult,
+                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked]) -> dict[str, counterexamples.Separation]:
+        """Each labelled action's rules against its labelled calls (`engine.counterexamples`): every judged
+        condition is judged again at the labelled calls of the runs given as programs."""
+        try:
+            runs = sandbox_call(self._sandbox.trace, spec.source, labelled.programs, scope=scope.current()) \
+                if labelled.programs else None
+        except InvalidProgram as exc:
+            raise InvalidProgram(str(exc).replace("demonstration", "counterexample run"),
+                                 field="counterexamples") from exc
+        where = counterexamples.points(labelled, runs) if runs is not None else {}
+        separated = {}
+        for action in sorted(labelled.actions()):
+            cases = where.get(action, [])
+            results: dict[str, Any] = {}
+            order: list[Any] = [p for _, p in cases]
+            if cases:
+                expressions = list(dict.fromkeys(r.expression for r in ranked[action].results
+                                                 if r.status != "rejected"))
+                judged = sandbox_call(self._sandbox.evaluate, spec.source, labelled.programs, {action: expressions},
+                                      {action: order}, scope=scope.current())
+                results = {r.expression: r for r in judged.results.get(action, ())}
+                order = list(judged.points.get(action, order))
+            separated[action] = counterexamples.separate(
+                action, ranked[action], evaluated.points.get(action, ()), trace.actions[action].occurrences,
+                counterexamples.demonstrated_points(labelled, trace, action), cases, results, order)
+        return separated
 
     def _generate(
         self,

@@ -331,6 +331,38 @@ class _UsesRules(StrictBody):
         return self.spec
 
 
+MAX_COUNTEREXAMPLE_RUNS = 200
+MAX_LABELLED_CALLS = 64
+CallVerdictLabel = Literal["refuse", "allow"]
+
+
+class LabelledCall(StrictBody):
+    """One call of a run that the rules must refuse (or must allow), after the lines before it."""
+
+    line: int = Field(ge=1, description="1-based line of the call in the run's program; the lines before it are its "
+                      "history.")
+    verdict: CallVerdictLabel = Field(description="'refuse': the call breaks the policy (an incident, a review, a "
+                                      "label); 'allow': it keeps it.")
+    name: str | None = Field(default=None, max_length=MAX_SOURCE_NAME_CHARS,
+                             description="Where the label comes from (`labels.json[12]`), quoted in reports.")
+
+
+class Counterexamples(StrictBody):
+    """Labelled calls of one run: a run of its own (`program`) or one of the demonstrations (`demonstration`),
+    where a call labelled 'refuse' is evidence against a rule that allows it, not for one."""
+
+    program: str | None = Field(default=None, min_length=1, max_length=MAX_SOURCE_CHARS,
+                                description="A run over the spec that is not a demonstration (a failed run).")
+    demonstration: int | None = Field(default=None, ge=0, description="Index of a demonstration instead.")
+    calls: list[LabelledCall] = Field(min_length=1, max_length=MAX_LABELLED_CALLS)
+
+    @model_validator(mode="after")
+    def _one_run(self) -> Counterexamples:
+        if (self.program is None) == (self.demonstration is None):
+            raise ValueError("give `program` or `demonstration`, one of them")
+        return self
+
+
 class InferRequest(StrictBody):
     spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
     demonstrations: list[str] = Field(
@@ -345,6 +377,12 @@ class InferRequest(StrictBody):
         description="Actions (`Class.method`) to infer rules for; default: every stub method of the spec.",
     )
     options: InferOptions = Field(default_factory=InferOptions, description="How candidates are made and ranked.")
+    counterexamples: list[Counterexamples] = Field(
+        default_factory=list, max_length=MAX_COUNTEREXAMPLE_RUNS,
+        description="Labelled calls (`precond convert openai --labels`, a review, or by hand): each rule of an "
+        "action with such calls is chosen to refuse the calls labelled 'refuse' and allow the demonstrated calls "
+        "and those labelled 'allow' (README: 'Counterexamples'). Never shown to the code model.",
+    )
 
 
 class RuleException(StrictBody):
@@ -392,6 +430,15 @@ class RuleEvidence(StrictBody):
     source: str | None = Field(
         default=None, max_length=4 * MAX_SOURCE_NAME_CHARS,
         description="For a transferred rule: the prior sources that name it (`ps_...@n`, `options.prior_rules`).",
+    )
+    refuses: list[str] = Field(
+        default_factory=list,
+        description="The labelled calls (`counterexamples`) to refuse that this rule refuses, by name.",
+    )
+    refuses_allowed: list[str] = Field(
+        default_factory=list,
+        description="The calls labelled 'allow' (or demonstrated and not labelled) that this rule refuses: where "
+        "it disagrees with the labels.",
     )
 
 

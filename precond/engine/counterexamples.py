@@ -1,0 +1,330 @@
+"""Labelled calls in an infer request: the calls the rules must refuse, and those they must allow.
+
+Demonstrations alone say where an action *was* called, never where it must not be; a successful run can even
+break the policy itself, and strict validation then refutes the right rule. A labelled call fixes both: a call
+labelled 'refuse' (an incident, a review, a label) is evidence against every rule that allows it, including a
+demonstrated call (which then stops counting for a rule); a call labelled 'allow' is one more call the rules
+must allow.
+
+For an action with labelled calls the rules are chosen by what separates the two sides: a small disjunction
+of conjunctions (`separate`) of the conditions already judged (the enumerator's, the model's), false at every
+call to refuse and true at as many calls to allow as it can be, each term with as few conditions as the
+evidence needs (one, else two). Beside it the ranking's other rules stay only where they allow every call to
+allow, and an assumed one (a possible correlate) only where it refuses a labelled call: a refusal always has a
+counterexample or an established reason behind it. Nothing here runs untrusted code: the sandbox judged every
+condition at every labelled call (`Labelled.points` are its points).
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, replace
+
+from precond.engine.evidence import OccurrenceIndex, gather
+from precond.engine.ranking import Candidate, Cluster
+from precond.engine.report import Ranked
+from precond.engine.spec import Spec
+from precond.sandbox.types import CandidateResult, Point, TraceResult
+from precond_client.schemas.api import Counterexamples, Decided
+from precond_client.schemas.errors import InvalidInput
+
+MAX_TERMS = 4
+"""Disjuncts of a separating rule: policies say "if A, or B, or C"."""
+MAX_PAIRED = 80
+"""Conditions paired into two-condition terms (the most calls to allow first): 3,160 pairs at most."""
+REFUSE, ALLOW = "refuse", "allow"
+
+
+@dataclass(frozen=True)
+class Case:
+    """One labelled call: the action, the verdict it must get, where it is (a run and a 1-based line)."""
+
+    action: str
+    verdict: str
+    name: str
+    run: int
+    """Index into `Labelled.programs` (runs given as programs), or -1 for a demonstration."""
+    demonstration: int | None
+    line: int
+
+
+@dataclass
+class Labelled:
+    programs: list[str]
+    """The runs given as programs (not demonstrations), in the sandbox's order."""
+    cases: list[Case]
+
+    def actions(self) -> set[str]:
+        return {c.action for c in self.cases}
+
+    def demonstrated(self, verdict: str) -> dict[tuple[int, int], Case]:
+        return {(c.demonstration, c.line): c for c in self.cases
+                if c.demonstration is not None and c.verdict == verdict}
+
+
+def read(spec: Spec, runs: Sequence[Counterexamples], demos: Sequence[str], actions: Sequence[str]) -> Labelled:
+    """The request's labelled calls, each checked: a line that is a call of one of the asked actions, and no
+    history and call labelled both ways (422 naming the field, or both fields)."""
+    labelled = Labelled([], [])
+    seen: dict[str, tuple[str, str]] = {}
+    for i, run in enumerate(runs):
+        if run.demonstration is not None and run.demonstration >= len(demos):
+            raise InvalidInput(f"there are {len(demos)} demonstrations", field=f"counterexamples[{i}].demonstration")
+        text = demos[run.demonstration] if run.demonstration is not None else str(run.program)
+        if run.demonstration is None:
+            labelled.programs.append(text)
+        lines = text.splitlines()
+        for j, call in enumerate(run.calls):
+            where = f"counterexamples[{i}].calls[{j}]"
+            action = _action_on(spec, lines, call.line, f"{where}.line", actions)
+            key = "\n".join(lines[: call.line])
+            other = seen.setdefault(key, (call.verdict, where))
+            if other[0] != call.verdict:
+                raise InvalidInput(f"labels the same history and call as {other[1]} the other way",
+                                   field=where)
+            labelled.cases.append(Case(action, call.verdict, call.name or where,
+                                       -1 if run.demonstration is not None else len(labelled.programs) - 1,
+                                       run.demonstration, call.line))
+    return labelled
+
+
+def _action_on(spec: Spec, lines: Sequence[str], line: int, where: str, actions: Sequence[str]) -> str:
+    if line > len(lines):
+        raise InvalidInput(f"the run has {len(lines)} lines", field=where)
+    try:
+        node = ast.parse(lines[line - 1].strip(), mode="eval").body
+    except SyntaxError:
+        node = None
+    name = node.func.attr if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) else None
+    action = next((q for q in actions if name is not None and spec.methods[q].name == name), None)
+    if action is None:
+        raise InvalidInput(f"line {line} is not a call of an action rules are inferred for "
+                           f"({', '.join(actions)[:200]})", field=where)
+    return action
+
+
+def points(labelled: Labelled, trace: TraceResult) -> dict[str, list[tuple[Case, Point]]]:
+    """Each labelled call of a run given as a program, at its point in that run's trace."""
+    found: dict[str, list[tuple[Case, Point]]] = {}
+    for case in labelled.cases:
+        if case.demonstration is not None:
+            continue
+        occurrence = _at_line(trace, case.action, case.run, case.line)
+        if occurrence is not None:
+            found.setdefault(case.action, []).append((case, occurrence))
+    return found
+
+
+def demonstrated_points(labelled: Labelled, trace: TraceResult, action: str) -> dict[Point, Case]:
+    """The demonstrated calls of `action` that a label names, by their point in the demonstrations' trace."""
+    found = {}
+    for case in labelled.cases:
+        if case.demonstration is not None and case.action == action:
+            occurrence = _at_line(trace, action, case.demonstration, case.line)
+            if occurrence is not None:
+                found[occurrence] = case
+    return found
+
+
+def _at_line(trace: TraceResult, action: str, run: int, line: int) -> Point | None:
+    info = trace.actions.get(action)
+    for occurrence in info.occurrences if info else ():
+        if occurrence.demo == run and trace.positions[run][occurrence.position].line == line:
+            return occurrence
+    return None
+
+
+@dataclass(frozen=True)
+class Example:
+    case: Case | None
+    """None: a demonstrated call no label names (to allow)."""
+    refuse: bool
+
+
+@dataclass(frozen=True)
+class Separation:
+    ranked: Ranked
+    refuses: dict[str, list[str]]
+    """Per kept rule, the names of the calls labelled 'refuse' it refuses."""
+    refuses_allowed: dict[str, list[str]]
+    """Per kept rule, the calls labelled 'allow' (or demonstrated) it refuses: where it is wrong."""
+    exempt: set[Point]
+    """Demonstrated calls labelled 'refuse': verification skips them (the kept rules refuse them by design)."""
+
+
+def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
+             labelled_demos: Mapping[Point, Case], case_points: Sequence[tuple[Case, Point]],
+             case_results: Mapping[str, CandidateResult], case_order: Sequence[Point]) -> Separation:
+    """The action's rules chosen against its labelled calls (module docstring)."""
+    examples: list[Example] = []
+    demo_bits: list[int | None] = []
+    for occurrence in dict.fromkeys(occurrences):
+        case = labelled_demos.get(occurrence)
+        examples.append(Example(case, case is not None and case.verdict == REFUSE))
+        demo_bits.append(_index(demo_points, occurrence))
+    case_bits = [_index(case_order, point) for _, point in case_points]
+    examples += [Example(case, case.verdict == REFUSE) for case, _ in case_points]
+    positive = sum(1 << k for k, e in enumerate(examples) if not e.refuse)
+    negative = sum(1 << k for k, e in enumerate(examples) if e.refuse)
+    truth: dict[str, int] = {}
+    for result in ranked.results:
+        if result.status == "rejected" or (result.expression not in case_results and case_points):
+            continue
+        elsewhere = case_results.get(result.expression)
+        bits = [_bit(result.satisfied, b) for b in demo_bits]
+        bits += [_bit(elsewhere.satisfied if elsewhere and elsewhere.status != "rejected" else 0, b)
+                 for b in case_bits]
+        truth[result.expression] = sum(1 << k for k, held in enumerate(bits) if held)
+    kept, notes = _kept(ranked, truth, positive, negative)
+    remaining = negative & ~_refused_by(kept, truth, negative)
+    required = _required(truth, positive, remaining)
+    for e in required:
+        remaining &= truth[e]
+    learned = _terms(truth, positive, remaining)
+    chosen = [c for c in ranked.chosen if c.representative.expression in kept]
+    by_text = {r.expression: r for r in ranked.results}
+    for e in required:
+        chosen.append(Cluster((Candidate(e, "enumerate", by_text[e].satisfied),)))
+        notes[e] = "kept: holds at every call to allow and refuses calls labelled 'refuse'"
+    decided_required: dict[str, Decided] = dict.fromkeys(required, "established")
+    results, evidence, verdicts = list(ranked.results), dict(ranked.evidence), dict(ranked.verdicts)
+    decided = {**{e: d for e, d in ranked.decided.items() if e in kept}, **decided_required}
+    reasons = {**ranked.reasons, **notes}
+    if learned:
+        expression = _text(learned)
+        satisfied = _held(learned, {r.expression: r.satisfied for r in ranked.results}, (1 << len(demo_points)) - 1)
+        index = OccurrenceIndex.of(demo_points, occurrences)
+        if expression not in {r.expression for r in results}:
+            results.append(CandidateResult(expression, "valid", None, satisfied))
+        evidence[expression] = gather(satisfied, index)
+        verdicts[expression] = "held" if not index.mask & ~satisfied else "tolerated"
+        chosen.append(Cluster((Candidate(expression, "enumerate", satisfied),)))
+        decided[expression] = "established"
+        truth[expression] = _held(learned, truth, (1 << len(examples)) - 1)
+        reasons[expression] = (f"kept: separates the calls labelled 'refuse' from the calls to allow "
+                               f"({len(learned)} term{'s' if len(learned) > 1 else ''})")
+    refuses, wrong = {}, {}
+    for cluster in chosen:
+        e = cluster.representative.expression
+        refuses[e] = [_name(examples[k]) for k in _bits_of(negative & ~truth.get(e, 0))]
+        wrong[e] = [_name(examples[k]) for k in _bits_of(positive & ~truth.get(e, 0))]
+    exempt = {p for p, c in labelled_demos.items() if c.verdict == REFUSE}
+    return Separation(replace(ranked, results=results, chosen=chosen, reasons=reasons, evidence=evidence,
+                              verdicts=verdicts, decided=decided), refuses, wrong, exempt)
+
+
+def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
+          ) -> tuple[set[str], dict[str, str]]:
+    """The ranking's rules that allow every call to allow; an assumed one only if it refuses a labelled call."""
+    kept, notes = set(), {}
+    for cluster in ranked.chosen:
+        e = cluster.representative.expression
+        held = truth.get(e)
+        if held is None:
+            continue
+        if positive & ~held:
+            notes[e] = f"dropped: refuses {(positive & ~held).bit_count()} call(s) labelled or demonstrated to allow"
+        elif ranked.decided.get(e) == "assumed" and not negative & ~held:
+            notes[e] = "dropped: assumed, and refuses none of the calls labelled 'refuse' (a correlate, not a reason)"
+        else:
+            kept.add(e)
+    return kept, notes
+
+
+MAX_REQUIRED = 3
+
+
+def _required(truth: Mapping[str, int], positive: int, negative: int) -> list[str]:
+    """Conditions that hold at every call to allow and refuse calls labelled 'refuse' ("nothing already flown"):
+    the one refusing the most remaining calls first, then the shorter text, at most MAX_REQUIRED."""
+    chosen: list[str] = []
+    candidates = {e: t for e, t in truth.items() if not positive & ~t and negative & ~t}
+    while negative and len(chosen) < MAX_REQUIRED and candidates:
+        best = min(candidates, key=lambda e: (-(negative & ~candidates[e]).bit_count(), len(e)))
+        if not negative & ~candidates[best]:
+            break
+        chosen.append(best)
+        negative &= candidates.pop(best)
+    return chosen
+
+
+def _refused_by(kept: set[str], truth: Mapping[str, int], negative: int) -> int:
+    refused = 0
+    for e in kept:
+        refused |= negative & ~truth[e]
+    return refused
+
+
+Term = tuple[str, ...]
+"""A conjunction of one or two judged conditions."""
+
+
+def _terms(truth: Mapping[str, int], positive: int, negative: int) -> list[Term]:
+    """A greedy cover of the calls to allow by terms false at every call to refuse: one condition where one
+    does, else two; the term that allows the most uncovered calls first (then the fewer conditions, the
+    shorter text). Empty when there is nothing to refuse or nothing separates."""
+    if not negative or not positive:
+        return []
+    useful = sorted((e for e, t in truth.items() if t & positive),
+                    key=lambda e: (-(truth[e] & positive).bit_count(), (truth[e] & negative).bit_count(), len(e)))
+    terms: dict[Term, int] = {(e,): truth[e] for e in useful if not truth[e] & negative}
+    paired = [e for e in useful if truth[e] & negative][:MAX_PAIRED]
+    for n, a in enumerate(paired):
+        for b in paired[n + 1:]:
+            both = truth[a] & truth[b]
+            if both & positive and not both & negative:
+                terms.setdefault((a, b), both)
+    chosen: list[Term] = []
+    uncovered = positive
+    while uncovered and len(chosen) < MAX_TERMS and terms:
+        best = min(terms, key=lambda t: (-(terms[t] & uncovered).bit_count(), len(t), len(_text([t]))))
+        if not terms[best] & uncovered:
+            break
+        chosen.append(best)
+        uncovered &= ~terms.pop(best)
+    return chosen
+
+
+def _text(terms: Sequence[Term]) -> str:
+    """`a and b or c`, each part in parentheses where Python would read it otherwise."""
+    def part(e: str, inside_and: bool) -> str:
+        node = ast.parse(e, mode="eval").body
+        loose = isinstance(node, ast.IfExp | ast.Lambda | ast.NamedExpr) or (
+            inside_and and isinstance(node, ast.BoolOp) and isinstance(node.op, ast.Or))
+        return f"({e})" if loose else e
+    if len(terms) == 1 and len(terms[0]) == 1:
+        return terms[0][0]
+    conjunctions = [" and ".join(part(e, len(t) > 1) for e in t) for t in terms]
+    return " or ".join(f"({c})" if len(t) > 1 and len(terms) > 1 else c
+                       for c, t in zip(conjunctions, terms, strict=True))
+
+
+def _held(terms: Sequence[Term], values: Mapping[str, int], every: int) -> int:
+    """Where a disjunction of terms holds, from where each condition holds."""
+    held = 0
+    for term in terms:
+        value = every
+        for e in term:
+            value &= values.get(e, 0)
+        held |= value
+    return held
+
+
+def _index(points: Sequence[Point], point: Point) -> int | None:
+    try:
+        return points.index(point)
+    except ValueError:
+        return None
+
+
+def _bit(satisfied: int, bit: int | None) -> bool:
+    return bit is not None and bool((satisfied >> bit) & 1)
+
+
+def _bits_of(mask: int) -> list[int]:
+    return [k for k in range(mask.bit_length()) if (mask >> k) & 1]
+
+
+def _name(example: Example) -> str:
+    return example.case.name if example.case else "a demonstrated call"

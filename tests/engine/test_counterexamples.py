@@ -1,0 +1,108 @@
+"""Labelled calls in an infer request (precond/engine/counterexamples.py): a demonstrated call labelled 'refuse'
+is evidence against a rule, a run's labelled calls join the evidence, the rules separate the two sides and say
+which labelled calls they refuse; labels that name nothing, or contradict each other, are a 422."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from precond.convert.openai import convert
+from precond.engine.counterexamples import _terms, _text
+from precond.engine.engine import Engine
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas.errors import InvalidInput
+
+TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
+    "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}
+    for name, params in [("get_reservation_details", ("reservation_id",)), ("cancel_reservation", ("reservation_id",))]]
+CANCEL = "AGENT.cancel_reservation"
+
+
+def run(rid: str, cabin: str, insured: str) -> list[dict[str, object]]:
+    result = f'{{"reservation_id": "{rid}", "cabin": "{cabin}", "insurance": "{insured}"}}'
+    return [{"role": "user", "content": "please cancel"},
+            {"role": "assistant", "tool_calls": [{"function": {"name": "get_reservation_details",
+                                                               "arguments": f'{{"reservation_id": "{rid}"}}'}}]},
+            {"role": "tool", "content": result},
+            {"role": "assistant", "tool_calls": [{"function": {"name": "cancel_reservation",
+                                                               "arguments": f'{{"reservation_id": "{rid}"}}'}}]},
+            {"role": "tool", "content": "{}"}]
+
+
+DEMOS = convert([run("A1", "business", "no"), run("B2", "economy", "yes"), run("C3", "basic_economy", "no"),
+                 run("D4", "business", "yes"), run("G7", "economy", "yes")], TOOLS)
+OTHERS = convert([run("E5", "basic_economy", "no"), run("F6", "economy", "no"), run("H8", "business", "no")], TOOLS)
+CALL_LINE = 6
+"""The cancellation's line (1-based) in each run's program."""
+
+
+@pytest.fixture(scope="module")
+def engine() -> Iterator[Engine]:
+    with Sandbox(workers=2) as sandbox:
+        yield Engine(sandbox, None)
+
+
+def request(counterexamples: list[dict[str, Any]]) -> InferRequest:
+    return InferRequest.model_validate({
+        "spec": DEMOS.spec, "demonstrations": [t.program for t in DEMOS.trajectories], "actions": [CANCEL],
+        "options": {"generators": ["enumerate"]}, "counterexamples": counterexamples})
+
+
+LABELS = [{"demonstration": 2, "calls": [{"line": CALL_LINE, "verdict": "refuse", "name": "C3 basic economy"}]},
+          {"program": OTHERS.trajectories[0].program,
+           "calls": [{"line": CALL_LINE, "verdict": "refuse", "name": "E5 basic economy"}]},
+          {"program": OTHERS.trajectories[1].program,
+           "calls": [{"line": CALL_LINE, "verdict": "refuse", "name": "F6 economy uninsured"}]},
+          {"program": OTHERS.trajectories[2].program,
+           "calls": [{"line": CALL_LINE, "verdict": "allow", "name": "H8 business"}]}]
+
+
+def allowed(engine: Engine, rules: dict[str, list[str]], program: str) -> bool:
+    lines = program.splitlines()
+    verdict = engine.check(CheckRequest(spec=DEMOS.spec, preconditions=rules,
+                                        history="\n".join(lines[: CALL_LINE - 1]) + "\n",
+                                        calls=[lines[CALL_LINE - 1]]))
+    return verdict.results[0].allowed
+
+
+def test_labelled_calls_choose_the_rule_that_separates_them(engine: Engine) -> None:
+    plain = engine.infer(request([]))
+    assert allowed(engine, plain.preconditions, OTHERS.trajectories[0].program)  # the demonstrations allow it
+    labelled = engine.infer(request(LABELS))
+    rules = labelled.preconditions
+    for refused in (DEMOS.trajectories[2], *OTHERS.trajectories[:2]):
+        assert not allowed(engine, rules, refused.program), refused.name
+    for kept in (*DEMOS.trajectories[:2], *DEMOS.trajectories[3:], OTHERS.trajectories[2]):
+        assert allowed(engine, rules, kept.program), kept.name
+    refuses = {name for rule in rules[CANCEL] for name in labelled.evidence[CANCEL][rule].refuses}
+    assert refuses == {"C3 basic economy", "E5 basic economy", "F6 economy uninsured"}
+    assert not any(labelled.evidence[CANCEL][rule].refuses_allowed for rule in rules[CANCEL])
+    assert all(len(rule) < 300 for rule in rules[CANCEL])  # a few conditions, not a list of the calls
+
+
+def test_a_label_that_names_no_call_or_contradicts_another_is_refused(engine: Engine) -> None:
+    with pytest.raises(InvalidInput) as caught:
+        engine.infer(request([{"demonstration": 0, "calls": [{"line": 3, "verdict": "refuse"}]}]))
+    assert caught.value.field == "counterexamples[0].calls[0].line"
+    with pytest.raises(InvalidInput) as caught:
+        engine.infer(request([{"demonstration": 9, "calls": [{"line": CALL_LINE, "verdict": "refuse"}]}]))
+    assert caught.value.field == "counterexamples[0].demonstration"
+    same = OTHERS.trajectories[0].program
+    with pytest.raises(InvalidInput) as caught:
+        engine.infer(request([{"program": same, "calls": [{"line": CALL_LINE, "verdict": "refuse"}]},
+                              {"program": same, "calls": [{"line": CALL_LINE, "verdict": "allow"}]}]))
+    assert caught.value.field == "counterexamples[1].calls[0]" and "counterexamples[0].calls[0]" in str(caught.value)
+
+
+def test_terms_cover_the_calls_to_allow_with_as_few_conditions_as_separate_them() -> None:
+    # examples: bits 0-2 to allow, bits 3-4 to refuse
+    truth = {"a": 0b00011, "b": 0b00100, "c": 0b11111, "d": 0b01111, "e": 0b10100}
+    assert _terms(truth, 0b00111, 0b11000) == [("a",), ("b",)]
+    assert _text([("a",), ("b",)]) == "a or b"
+    assert _terms({"d": 0b01111, "e": 0b10100}, 0b00111, 0b11000) == [("d", "e")]
+    assert _text([("x or y", "z")]) == "(x or y) and z"
+    assert _terms({"c": 0b11111}, 0b00111, 0b11000) == []  # nothing separates: no rule is made up
