@@ -5,7 +5,7 @@ Only the code model changes between rows: the engine, its prompts, the sandbox a
 llama.cpp is reached through `LlamaCppModel`, an adapter with the backend's `complete`: llama-cpp-python has no
 batched sampling, so the n samples of a prompt are decoded one after another, each reusing the prompt's
 evaluated tokens (its prefix match), which is the fair way to run it. It is a benchmark adapter, not a serving
-backend (issue 16 admits a second backend only if it wins by a wide margin).
+backend (a second backend would be worth its upkeep only if it won by a wide margin).
 
 Each configuration runs in a fresh process, one after another; take timings with nothing else running.
 

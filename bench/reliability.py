@@ -10,7 +10,7 @@ Scenarios: crash (200 infer jobs, a worker SIGKILLed 6 times, then
 the same without kills), redis (SIGTERM and SIGKILL restart with the
 append-only file), hostile (the hostile corpus over HTTP, production sandbox limits), fuzz (schemathesis,
 all operations), overload (48 clients on one worker, queue bound 8), shutdown (SIGTERM mid-job, drain longer
-and shorter than the job), attacks (one tenant runs each attack of issue 28 while another measures its uncached
+and shorter than the job), attacks (one tenant runs each attack of docs/security.md while another measures its uncached
 check-actions and enumerate-only inference latencies, /health, the gateway's resident size and worker
 deaths: precond/stack/attacks.py; attack 8 is 24 concurrent tool-call checks of a 62 KB spec). Each runs on
 its own redis-server + gateway + workers on free loopback ports, with the tiny random model of

@@ -1,6 +1,6 @@
 """Behaviour cloning's cost: `precond train-policy` with its defaults on one SGD dev domain's ten
 demonstrations, in a fresh process (so the peak resident memory is the training's), with every core
-(`MODEL_THREADS`, default: all). The issue's bound: at most 5 minutes per domain on the 2-core machine, an
+(`MODEL_THREADS`, default: all). The bound: at most 5 minutes per domain on the 2-core machine, an
 adapter of at most 20 MB.
 
     python bench/train_policy_bench.py [--domain Buses_1] [--steps 24] [--json out.json]

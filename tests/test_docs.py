@@ -4,6 +4,7 @@ defines the words the README uses, and reference text that describes the project
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -13,6 +14,10 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = sorted((ROOT / "docs").glob("*.md"))
 README = ROOT / "README.md"
 GLOSSARY = ROOT / "docs" / "index.md"
+
+# Text that narrates the project's making: the same pattern the developers' guide greps for.
+NOTEBOOK = re.compile(r"session [0-9]|issue #?[0-9]", re.IGNORECASE)
+SKIPPED_DIRS = {"node_modules", "build", "dist", "var", "__pycache__"}  # and every dot-directory (.venv, .git)
 
 # The project's own vocabulary: every one of these the README uses must have a glossary entry.
 JARGON = [
@@ -66,6 +71,24 @@ def test_every_relative_link_in_readme_and_docs_resolves() -> None:
             elif anchor and path.suffix == ".md" and anchor not in _anchors(path):
                 broken.append(f"{page.relative_to(ROOT)}: {link} (no such heading)")
     assert not broken, "\n".join(broken)
+
+
+def _project_files() -> list[Path]:
+    """The project's Markdown and Python files: what a checkout holds, not what installing or running it made."""
+    files = []
+    for folder, dirs, names in os.walk(ROOT):
+        dirs[:] = [name for name in dirs if name not in SKIPPED_DIRS and not name.startswith(".")]
+        files += [Path(folder) / name for name in names if name.endswith((".md", ".py"))]
+    return files
+
+
+def test_nothing_in_the_project_narrates_sessions_or_issues() -> None:
+    found = []
+    for path in _project_files():
+        for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+            if NOTEBOOK.search(line):
+                found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:100]}")
+    assert not found, "\n".join(found)
 
 
 def test_the_glossary_defines_every_project_term_the_readme_uses() -> None:

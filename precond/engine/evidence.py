@@ -7,7 +7,7 @@ rule and one occurrence into a confident coincidence. Here a rule is judged on i
 * n occurrences of the action, k of them where the rule holds (n - k exceptions);
 * m other points of the same demonstrations (positions x argument tuples), j of them where it holds.
 
-Three tests (README, "Evidence-weighted validation"):
+Three tests (docs/method.md, "Evidence-weighted validation"):
 
 1. *Refuted*: exceptions may be at most a share `tolerance` of the occurrences (n - k <= floor(tolerance x n)),
    unless the rule is *strongly separated* (below). Tolerance 0 refutes on the first exception: the paper's

@@ -1,7 +1,7 @@
 """The top-level warnings of an inference: every action whose rule is empty or not backed by the demonstrations.
 
 An empty rule means "every call allowed", and a rule from one or two calls is a guess; the answer's rules look the
-same either way, so each such action gets a warning saying which case it is and why (the README: nothing is
+same either way, so each such action gets a warning saying which case it is and why (docs/api.md: nothing is
 silent). One function per case, tried in order; the first that applies words the action's warning, so a new
 case (a rule that rests on assumptions) is one more function in `CASES`.
 """

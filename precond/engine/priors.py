@@ -1,4 +1,4 @@
-"""Prior rules: what a tenant learned for its other services, as candidates for a new one (issue 32).
+"""Prior rules: what a tenant learned for its other services, as candidates for a new one.
 
 The rules still wrong after inference are the ones a service's demonstrations cannot teach: an action never or
 thinly demonstrated, a correlate the calls never separate from the requirement, the polarity of a failure. A

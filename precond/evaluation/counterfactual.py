@@ -6,7 +6,7 @@ requirement too. A guard is consulted exactly where that correlation breaks (the
 identity was checked; the search runs before the intent was stated). This module builds such states from the
 test dialogs and scores the rules there.
 
-Definition (issue #26). From every test trajectory, K variants (seeded), each with ONE observation step changed:
+Definition. From every test trajectory, K variants (seeded), each with ONE observation step changed:
 
 * removed: a statement that calls a method which is not one of the inferred actions (a user act, a service
   result, an ALFWorld effect such as `add_inventory` or `set_property`); or

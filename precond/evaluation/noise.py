@@ -1,5 +1,5 @@
 """Realistic agent errors injected into SGD demonstrations, and random demonstration subsets, for the noise and
-sparsity sweep (`precond eval preconditions --configs noise`, README "Evidence-weighted validation").
+sparsity sweep (`precond eval preconditions --configs noise`, docs/method.md "Evidence-weighted validation").
 
 Human agents slip at a few percent of their steps. At a share `rate` of the system steps (system acts and
 service calls; `set_query_status` is the environment's answer, never touched) one of these errors replaces

@@ -1,4 +1,4 @@
-"""`precond eval transfer`: prior rules across services, leave one domain out (issue 32).
+"""`precond eval transfer`: prior rules across services, leave one domain out.
 
 For each SGD dev domain, the priors are the default configuration's *inferred* rules of the other domains (one
 source each; never their ground truth, never the held-out domain's test dialogs), and the held-out domain is

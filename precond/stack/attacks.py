@@ -1,4 +1,4 @@
-"""One tenant attacks the shared service while another measures what it still gets (issue 28's second round).
+"""One tenant attacks the shared service while another measures what it still gets (docs/security.md).
 
 Shared by tests/service/test_shared_service.py (the attack bodies) and `python bench/reliability.py attacks`
 (the figures: the victim's uncached check-actions and enumerate-only inference latencies and `/health`'s,

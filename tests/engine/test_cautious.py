@@ -1,5 +1,5 @@
 """The cautious criterion on small domains of its own, each built so that the paper's criteria get it wrong:
-the guard must stay closed in the state the demonstrations never show (issue #26)."""
+the guard must stay closed in the state the demonstrations never show."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The model-free generator's own work is bounded: a 449-byte spec must not make the worker build millions of
-candidates (issue 28, class 6: an action with 4 parameters and a pure query with 14 made 4^14 = 268 million
+candidates (an action with 4 parameters and a pure query with 14 made 4^14 = 268 million
 argument lists in the worker itself, outside every sandbox limit)."""
 
 from __future__ import annotations

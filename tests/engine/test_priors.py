@@ -1,4 +1,4 @@
-"""Prior rules (issue 32): rules learned for other services are candidates for a new one, judged on its own
+"""Prior rules: rules learned for other services are candidates for a new one, judged on its own
 demonstrations; they decide only what the demonstrations cannot."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""One tenant must not take the shared service from the others (issue 28, second attack round).
+"""One tenant must not take the shared service from the others (the attacks of docs/security.md).
 
 Each test is an attack of one class on a real stack (Redis, the gateway, a worker with the real engine and
 sandbox), from a tenant with a key of its own; each failed on the code before the fix. None of them depends on

@@ -1,5 +1,5 @@
 """A job that grows the worker's own memory past its bound fails alone; the worker and its other jobs go on
-(issue 28, class 6: a poison job took the worker past 1 GB in 1.1 s, then the next worker the same way)."""
+(a poison job can take a worker past 1 GB in about a second, then the next worker the same way)."""
 
 from __future__ import annotations
 
