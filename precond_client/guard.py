@@ -31,7 +31,7 @@ from precond_client.openai_log import (
     converter_spec,
 )
 from precond_client.rule_interpreter import TABLE, VALUE, Evaluate, Frame, OutsideGrammar, Scope, Shape, compile_rule
-from precond_client.schemas.api import CallVerdict, PreconditionSet
+from precond_client.schemas.api import CallVerdict, PreconditionSet, RuleStatus, rule_status
 
 AGENT_SHAPE = Shape("object", {
     "user": Shape("object", {"messages": VALUE, "last_said": VALUE}),
@@ -76,10 +76,12 @@ class _Rule:
 
 
 def _verdict(call: str, allowed: bool, violations: list[str] | None = None, decided: dict[str, str] | None = None,
-             error: str | None = None) -> CallVerdict:
+             error: str | None = None, status: tuple[str, RuleStatus] | None = None) -> CallVerdict:
+    """`status`: the action judged and what its rule rests on (`schemas.api.rule_status`), as the service says."""
     # model_construct: every field is already of its type; validation would be most of a check's time
+    action, rule_status = status if status is not None else (None, None)
     return CallVerdict.model_construct(call=call, allowed=allowed, violations=violations or [],
-                                       decided=decided or {}, error=error)
+                                       decided=decided or {}, error=error, action=action, rule_status=rule_status)
 
 
 class GuardSession(Protocol):
@@ -177,8 +179,9 @@ class Guard:
         except PlaceError as exc:
             return self._unjudged(f"agent.{tool.name}(...)", str(exc))
         line = call_line(call, tool)
+        status = self.status(tool.name)
         if len(line) > MAX_CALL_CHARS:
-            return _verdict(line, False, error=TOO_LONG)
+            return _verdict(line, False, error=TOO_LONG, status=status)
         frame = Frame(state.state, tuple(_tupled(call.arguments.get(p)) for p in tool.params))
         violations: list[str] = []
         errors: list[str] = []
@@ -190,9 +193,15 @@ class Guard:
                 errors.append(f"precondition {clean(rule.text, RULE_CHARS)!r} of AGENT.{tool.name} raised "
                               f"{clean(type(exc).__name__, 100)}: {clean(str(exc))}")
         if not violations and not errors:
-            return _verdict(line, True)
+            return _verdict(line, True, status=status)
         return _verdict(line, False, [clean(v, VIOLATION_CHARS) for v in violations],
-                        self._labels(line, violations), clean("; ".join(errors)) if errors else None)
+                        self._labels(line, violations), clean("; ".join(errors)) if errors else None, status)
+
+    def status(self, tool: str) -> tuple[str, RuleStatus]:
+        """The action of a tool and what its rule rests on, read from the set's `decided` as the service reads it:
+        a tool without rules is 'missing' (every call allowed because nothing is known)."""
+        action = f"AGENT.{tool}"
+        return action, rule_status([r.text for r in self.rules.get(tool, ())], self.decided.get(action, {}))
 
     def _labels(self, line: str, violations: list[str]) -> dict[str, str]:
         """How each violated rule was decided, read as the service reads it (`engine._labelled`): the labels of

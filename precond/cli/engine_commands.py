@@ -320,6 +320,7 @@ def _openai_check(messages: Path, spec: Path | None, rules: Path | None, precond
         if rules is not None:
             loaded = parse_json(rules.read_text(encoding="utf-8"), str(rules))
             fields["preconditions"] = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
+            fields["decided"] = _decided_of(loaded)
         return CheckRequest.model_validate(fields)
     except OSError as exc:
         _fail(f"cannot read {exc.filename}: {exc.strerror}", 2)
@@ -328,6 +329,17 @@ def _openai_check(messages: Path, spec: Path | None, rules: Path | None, precond
     except ValidationError as exc:
         _fail(f"invalid check:\n{exc}", 2)
     raise AssertionError("unreachable")
+
+
+def _decided_of(loaded: Any) -> Any:
+    """How each rule was decided, from an infer response's `evidence` (so that each verdict's `rule_status` says
+    it); a plain `{action: [rules]}` file says nothing of it (its rules are 'given')."""
+    evidence = loaded.get("evidence") if isinstance(loaded, dict) and "preconditions" in loaded else None
+    if not isinstance(evidence, dict):
+        return {}
+    return {action: {rule: found["decided"] for rule, found in rules.items()
+                     if isinstance(found, dict) and isinstance(found.get("decided"), str)}
+            for action, rules in evidence.items() if isinstance(rules, dict)}
 
 
 def check(

@@ -33,6 +33,7 @@ from precond.engine.selection import Inference, select_rules
 from precond.engine.spec import (
     Spec,
     as_error,
+    call_actions,
     check_calls,
     check_preconditions,
     parse_source,
@@ -68,6 +69,7 @@ from precond_client.schemas.api import (
     NextActionRequest,
     NextActionResponse,
     ValidateResponse,
+    rule_status,
 )
 from precond_client.schemas.errors import (
     Cancelled,
@@ -486,7 +488,9 @@ class Engine:
             raise as_error(exc) from exc
         check_calls(spec, request.preconditions, history, calls, scope.current())
         verdicts = self._verify(spec, request.preconditions, history, calls)
-        return CheckResponse(results=[_labelled(v, spec, request.decided) for v in verdicts])
+        actions = call_actions(spec, history, calls, scope.current())
+        return CheckResponse(results=[_with_status(_labelled(v, spec, request.decided), action, request)
+                                      for v, action in zip(verdicts, actions, strict=True)])
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
     def validate(self, spec_text: str, preconditions: dict[str, list[str]],
@@ -544,6 +548,15 @@ def _labelled(verdict: CallVerdict, spec: Spec, decided: Mapping[str, Mapping[st
     actions = [a for a in decided if a in spec.methods and f".{spec.methods[a].name}(" in verdict.call]
     labels = {rule: label for a in actions for rule, label in decided[a].items()}
     return verdict.model_copy(update={"decided": {v: labels[v] for v in verdict.violations if v in labels}})
+
+
+def _with_status(verdict: CallVerdict, action: str | None, request: CheckRequest) -> CallVerdict:
+    """The verdict with the action it judged and what its rule rests on (`rule_status`): allowed because the
+    evidence says so, or because nothing is known."""
+    if action is None:
+        return verdict
+    status = rule_status(request.preconditions.get(action, []), request.decided.get(action, {}))
+    return verdict.model_copy(update={"action": action, "rule_status": status})
 
 
 def _spec_of(request: CheckRequest | NextActionRequest) -> str:

@@ -43,8 +43,8 @@ def _consequence(outcome: Outcome) -> str:
         allow = " (options.unseen: 'allow')" if not outcome.occurrences else ""
         return f"no rule could be learned for it, so its rule is empty: every call of it is allowed{allow}"
     if any(outcome.decided.get(rule) == "unseen" for rule in outcome.rules):
-        return ("every call of it is refused (options.unseen: 'refuse') until a rule is written or learned from "
-                "demonstrations that show it")
+        return ("no prior rule applies and the code model kept no zero-shot guess, so every call of it is refused "
+                "(options.unseen: 'refuse') until a rule is written or learned from demonstrations that show it")
     if any(outcome.decided.get(rule) == "transferred" for rule in outcome.rules):
         return "its rule is transferred from the prior rules (learned for other services; `evidence` names them)"
     if outcome.occurrences and strict(outcome.options.tolerance):

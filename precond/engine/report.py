@@ -147,8 +147,9 @@ def _reports(
 def _unseen_report() -> CandidateReport:
     return CandidateReport(
         assertion=UNSEEN_RULE, source="enumerate", valid=True, support=0, kept=True,
-        reason="kept: no demonstration calls this action and options.unseen is 'refuse': every call is refused "
-               "until a rule is written (or learned from demonstrations that show it)",
+        reason="kept: no demonstration calls this action, no prior rule applies, the code model kept no zero-shot "
+               "guess, and options.unseen is 'refuse': every call is refused until a rule is written (or learned "
+               "from demonstrations that show it)",
         evidence=RuleEvidence(occurrences=0, holds=0, confidence=0.0, verdict="thin", decided="unseen"),
     )
 

@@ -91,6 +91,12 @@ def check_calls(spec: Spec, preconditions: dict[str, list[str]], history: str, c
         raise as_error(exc) from exc
 
 
+def call_actions(spec: Spec, history: str, calls: Sequence[str], scope: str) -> list[str | None]:
+    """The action each proposed call calls (`checks.called_action`), read as `check_calls` reads it."""
+    receivers = checks.history_receivers(scope, checks.spec_classes(spec.methods), history)
+    return [checks.called_action(spec.methods, receivers, call) for call in calls]
+
+
 def observation_source(spec: Spec, actions: Iterable[str]) -> str:
     """The spec without the action methods: the paper's observation function definitions F_O.
 

@@ -361,6 +361,25 @@ def _literal_arguments(call: ast.Call) -> bool:
     return all(k.arg is not None for k in call.keywords)
 
 
+def _received_call(receivers: Mapping[str, str], text: str) -> tuple[ast.Call, str] | None:
+    """`text` parsed as a `receiver.method(...)` whose receiver the history binds, and its `Class.method`."""
+    try:
+        node = ast.parse(text.strip(), mode="eval").body
+    except (SyntaxError, ValueError, RecursionError, MemoryError):
+        return None
+    if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and isinstance(node.func.value, ast.Name)
+            and node.func.value.id in receivers):
+        return node, f"{receivers[node.func.value.id]}.{node.func.attr}"
+    return None
+
+
+def called_action(methods: Mapping[str, Method], receivers: Mapping[str, str], text: str) -> str | None:
+    """The spec method (`Class.method`) a proposed call calls, when it is a call of one on a receiver the
+    history binds; None for any other text (the sandbox refuses it with the reason)."""
+    found = _received_call(receivers, text)
+    return found[1] if found is not None and found[1] in methods else None
+
+
 def spec_classes(methods: Mapping[str, Method]) -> frozenset[str]:
     return frozenset(m.cls for m in methods.values())
 
@@ -374,15 +393,10 @@ def check_calls(methods: Mapping[str, Method], preconditions: Mapping[str, Seque
     is left to the sandbox, which refuses it with the reason. `receivers`: the history's (`history_receivers`)."""
     actions = {name for name, method in methods.items() if method.stub} | set(preconditions)
     for index, text in enumerate(calls):
-        try:
-            node = ast.parse(text.strip(), mode="eval").body
-        except (SyntaxError, ValueError, RecursionError, MemoryError):
+        found = _received_call(receivers, text)
+        if found is None or not _literal_arguments(found[0]):
             continue
-        if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
-                and isinstance(node.func.value, ast.Name) and node.func.value.id in receivers
-                and _literal_arguments(node)):
-            continue
-        name, field = f"{receivers[node.func.value.id]}.{node.func.attr}", f"calls[{index}]"
+        name, field = found[1], f"calls[{index}]"
         if name not in methods:
             raise unknown_action(name, {a: methods[a] for a in actions if a in methods}, field, f" in {field}")
         if name not in actions:

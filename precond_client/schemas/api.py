@@ -7,7 +7,7 @@ Size bounds are part of the contract: they turn hostile inputs into 422s before 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Annotated, Any, Literal
 
 from pydantic import (
@@ -116,9 +116,12 @@ class InferOptions(StrictBody):
     )
     unseen: Unseen = Field(
         default="refuse",
-        description="What an action that no demonstration calls gets: 'refuse' (default): the rule `False`, every "
-        "call refused until a rule is written or learned; 'allow': the code model's zero-shot guess if several "
-        "samples agree, else no rule (every call allowed). Either way `warnings` names the action.",
+        description="What an action that no demonstration calls gets when nothing else decides it. Its rule is "
+        "a prior rule (`prior_rules`, `prior_sets`) where one applies, else the code model's zero-shot guess where "
+        "several samples agree (`decided: 'zero-shot'`), whichever value this has; only without either: "
+        "'refuse' (default): the rule `False`, every call refused until a rule is written or learned; 'allow': "
+        "no rule, every call allowed. Either way `warnings` names the action, and every `/check-actions` verdict "
+        "on it says so (`rule_status`: 'transferred', 'zero-shot' or 'missing').",
     )
     model_for: ModelFor = Field(
         default="thin",
@@ -668,8 +671,9 @@ class CheckRequest(_UsesRules):
     decided: Decisions = Field(
         default_factory=dict,
         description="How each rule was decided (action -> rule -> 'established' / 'assumed' / 'zero-shot' / "
-        "'unseen' / ...), named again in the verdicts of the rules that refuse a call. A stored set fills it "
-        "from its inference's report.",
+        "'unseen' / 'transferred'; an inference's `evidence[action][rule].decided`), named again in the verdicts "
+        "of the rules that refuse a call and read into every verdict's `rule_status`. A stored set fills it from "
+        "its inference's report; a rule it does not label is 'given'.",
     )
     history: History = Field(description=HISTORY_DESCRIPTION)
     calls: list[str | ToolCall] = Field(
@@ -681,8 +685,41 @@ class CheckRequest(_UsesRules):
     )
 
 
+RuleStatus = Literal["established", "assumed", "transferred", "zero-shot", "missing", "given"]
+STATUS_OF_DECIDED: dict[str, RuleStatus] = {
+    "established": "established", "assumed": "assumed", "transferred": "transferred", "zero-shot": "zero-shot",
+    "unseen": "missing",
+}
+"""An inference's `decided` label as the status of the action it belongs to; any other label ('no evidence': a
+rule written by hand, or a request that sent none) is 'given'."""
+WEAKEST_FIRST: tuple[RuleStatus, ...] = ("missing", "zero-shot", "transferred", "assumed", "given", "established")
+RULE_STATUS_DESCRIPTION = (
+    "What the verdict on this call rests on: how the rule of its action was decided (the weakest of its rules). "
+    "'established': the demonstrations show it; 'assumed': a fact every demonstrated call shared that they cannot "
+    "tell from a correlate (review it); 'transferred': a prior rule learned for other services, not refuted "
+    "here; 'zero-shot': the code model's guess from the spec, the action never or too thinly demonstrated; "
+    "'missing': no rule learned (an action never or too thinly demonstrated and no guess kept): every call "
+    "allowed when the action has no rule at all, every call refused when its rule is the placeholder `False` "
+    "(`options.unseen: 'refuse'`); 'given': the request's (or a reviewer's) own rules, with no inference's word "
+    "on how they were decided. Absent when the call is not a call of one of the spec's actions."
+)
+
+
+def rule_status(rules: Sequence[str], decided: Mapping[str, str]) -> RuleStatus:
+    """The status of an action whose rules are `rules`, from `decided` (rule -> label): the weakest, since a
+    verdict is only as good as the least backed rule that made it; no rule at all is 'missing'. One function for
+    the service's verdicts and the embedded guard's, so that both say the same."""
+    if not rules:
+        return "missing"
+    statuses = {STATUS_OF_DECIDED.get(decided.get(rule, ""), "given") for rule in rules}
+    return min(statuses, key=WEAKEST_FIRST.index)
+
+
 class CallVerdict(StrictBody):
     call: str
+    action: str | None = Field(
+        default=None, description="The action (`Class.method`) the call is a call of; absent when it is not one.")
+    rule_status: RuleStatus | None = Field(default=None, description=RULE_STATUS_DESCRIPTION)
     allowed: bool = Field(
         description="true only when the call ran with every rule holding; a rule or call that raises gives "
         "false with `error` set (naming the rule and the exception), never a silent refusal or approval."

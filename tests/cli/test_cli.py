@@ -92,6 +92,8 @@ def test_check_reads_standard_input() -> None:
     verdicts = json.loads(result.stdout)["results"]
     assert [v["call"] for v in verdicts] == request["calls"]
     assert verdicts[-1]["allowed"] and not verdicts[0]["allowed"] and verdicts[0]["violations"]
+    # rules sent without how they were decided are "given"; GOODBYE has none: allowed, and nothing is known
+    assert verdicts[0]["rule_status"] == "given" and verdicts[-1]["rule_status"] == "missing"
 
 
 def test_bad_request_exits_2_naming_the_field() -> None:

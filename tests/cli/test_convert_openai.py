@@ -133,7 +133,9 @@ def test_precond_check_openai_judges_a_tool_call_after_the_messages(tmp_path: Pa
     converted = openai_converter.convert(records(), tools())
     (tmp_path / "spec.py").write_text(converted.spec)
     read = "reservation_id in self.results['get_reservation_details']"
-    (tmp_path / "rules.json").write_text(json.dumps({"preconditions": {"AGENT.cancel_reservation": [read]}}))
+    evidence = {"occurrences": 2, "holds": 2, "confidence": 0.34, "verdict": "thin", "decided": "assumed"}
+    (tmp_path / "rules.json").write_text(json.dumps({"preconditions": {"AGENT.cancel_reservation": [read]},
+                                                     "evidence": {"AGENT.cancel_reservation": {read: evidence}}}))
     (tmp_path / "history.json").write_text(json.dumps(records()[3]))  # a record: its messages are the history
     args = ["check", "--openai", str(tmp_path / "history.json"), "--spec", str(tmp_path / "spec.py"),
             "--rules", str(tmp_path / "rules.json")]
@@ -143,6 +145,8 @@ def test_precond_check_openai_judges_a_tool_call_after_the_messages(tmp_path: Pa
     read_one, unread = json.loads(done.stdout)["results"]
     assert read_one["allowed"] is True and read_one["call"] == "agent.cancel_reservation('H8Q05L')"
     assert unread["allowed"] is False and unread["violations"] == [read]
+    # an infer response's evidence says how each rule was decided: every verdict says what it rests on
+    assert read_one["rule_status"] == unread["rule_status"] == "assumed" and unread["decided"] == {read: "assumed"}
     bad = precond(*args, "--call", '{"name": "cancel_reservation", "arguments": {"id": 1}}')
     assert bad.returncode == 2 and "calls[0].arguments" in bad.stderr and "has no parameter 'id'" in bad.stderr
 

@@ -150,6 +150,19 @@ def test_a_call_it_cannot_judge_is_refused_with_the_reason_or_allowed_when_faili
     assert opened.check(**CANCEL).allowed and not opened.check("cancel_reservation", '{"reservation_id": "X"}').allowed
 
 
+def test_each_verdict_says_what_its_tools_rule_rests_on() -> None:
+    """Allowed because the evidence says so, or because nothing is known: `rule_status`, as the service says it."""
+    labelled = Guard(SPEC, {"AGENT.cancel_reservation": [READ]}, {"AGENT.cancel_reservation": {READ: "zero-shot"}})
+    session = labelled.session(history_until_the_cancellation())
+    cancel, read = session.check(**CANCEL), session.check("get_reservation_details", '{"reservation_id": "X"}')
+    assert (cancel.action, cancel.rule_status) == ("AGENT.cancel_reservation", "zero-shot")
+    assert read.allowed and (read.action, read.rule_status) == ("AGENT.get_reservation_details", "missing")
+    unlabelled = Guard(SPEC, {"AGENT.cancel_reservation": [READ]}).session().check(**CANCEL)
+    assert not unlabelled.allowed and unlabelled.rule_status == "given"
+    unknown = labelled.session().check("drop_database", "{}")
+    assert unknown.action is None and unknown.rule_status is None
+
+
 def test_a_refusal_tells_the_model_why_and_reads_later_as_a_failed_call() -> None:
     session = Guard(SPEC, {"AGENT.cancel_reservation": [READ]}, {"AGENT.cancel_reservation": {READ: "assumed"}},
                     name="ps_x@2").session([{"role": "user", "content": "cancel FDZ0T5"}])

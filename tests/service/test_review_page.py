@@ -17,6 +17,7 @@ from precond.jobs.keys import tenant_tag
 from precond.jobs.precondition_sets import set_key
 from precond.stack import browser
 from precond.stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
+from precond_client.schemas.api import rule_status
 from tests.service import test_precondition_sets as sets_tests
 from tests.service.test_tenants import SECRET, client_for
 
@@ -61,6 +62,9 @@ def test_check_actions_with_a_set_names_how_each_refusing_rule_was_decided(
         action = "SYSTEM." + verdict["call"].split(".")[1].split("(")[0]
         assert verdict["decided"] == {rule: made["decided"][action][rule] for rule in verdict["violations"]}
     assert refused["results"][1]["decided"] == {"False": "unseen"}  # never demonstrated: refused, and says why
+    assert [v["rule_status"] for v in refused["results"]] == [
+        rule_status(made["preconditions"]["SYSTEM.FindRestaurants"], made["decided"]["SYSTEM.FindRestaurants"]),
+        "missing"]  # allowed or refused because nothing is known says so
 
 
 def test_a_set_keeps_its_inference_report_and_says_how_each_rule_was_decided(
@@ -245,6 +249,9 @@ def test_the_try_it_panel_refuses_a_call_the_rules_refuse(
     refused = page.locator("#try-results .verdict[data-call=\"system.INFORM('phone_number')\"]")
     expect(refused).to_have_class("verdict refused")
     expect(refused).to_contain_text("self.user.requested_slot[slot]")
+    status = rule_status(made["preconditions"]["SYSTEM.INFORM"], made["decided"]["SYSTEM.INFORM"])
+    expect(refused).to_have_attribute("data-status", status)  # what the verdict rests on, on the page too
+    expect(refused.locator(f".badge.d-{status}")).to_have_text(status)
     # the user asks for it: now allowed
     page.locator("#try-add-event").click()
     second = page.locator("#try-events .event").nth(1)

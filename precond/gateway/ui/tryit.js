@@ -65,10 +65,24 @@ function parseArgs(text) {
   return text.split(",").map((part) => part.trim());
 }
 
+/** What a verdict rests on (`rule_status`), in words: "allowed" means little when nothing is known. */
+const STATUS_WORDS = {
+  established: "the demonstrations show its rule",
+  assumed: "its rule is assumed: review it",
+  transferred: "its rule is transferred from other services",
+  "zero-shot": "its rule is the code model's guess: review it",
+  missing: "no rule learned: nothing is known about this action",
+  given: "its rule was given, not learned",
+};
+
 function verdict(result) {
   const allowed = result.allowed;
-  return h("div", { class: `verdict ${allowed ? "allowed" : "refused"}`, dataset: { call: result.call } },
+  const status = result.rule_status;
+  return h("div", { class: `verdict ${allowed ? "allowed" : "refused"}`,
+    dataset: { call: result.call, status: status || "" } },
     h("strong", {}, allowed ? "allowed" : "refused"), " ", h("code", {}, result.call),
+    status ? [" ", h("span", { class: `badge d-${status}`, title: STATUS_WORDS[status] || status }, status),
+      h("div", { class: "status" }, STATUS_WORDS[status] || status)] : null,
     result.violations.length ? h("div", {}, "violates: ", result.violations.map((v, i) => [i ? ", " : "",
       h("code", {}, v)])) : null,
     result.error ? h("div", {}, result.error) : null);
