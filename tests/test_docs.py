@@ -109,3 +109,13 @@ def test_the_readme_example_runs_and_says_what_it_prints() -> None:
     run = subprocess.run([sys.executable, "-c", example], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stdout.splitlines() == expected
+
+
+def test_the_readme_set_up_commands_exist_and_do_what_it_says() -> None:
+    """`serve.sh` starts the service, `test.sh` installs and runs the tests: the README's two commands."""
+    readme = README.read_text(encoding="utf-8")
+    for script, does in (("serve.sh", "precond serve"), ("test.sh", "pytest")):
+        path = ROOT / "scripts" / script
+        assert f"./scripts/{script}" in readme
+        assert os.access(path, os.X_OK), f"scripts/{script} is not executable"
+        assert does in path.read_text(encoding="utf-8") and "./scripts/install.sh" in path.read_text(encoding="utf-8")
