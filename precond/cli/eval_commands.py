@@ -383,6 +383,17 @@ def counterfactual(
     write_section(rows, out, chosen[0].name)
     typer.echo(table(rows))
     typer.echo(f"\nwrote the counterfactual section of {out}")
+    _fail_on_errors(rows)
+
+
+def _fail_on_errors(rows: list[dict[str, Any]]) -> None:
+    """Exit 1 naming every (config, domain) whose inference failed: its table says "error" there, and a
+    benchmark's mean over the rest says "incomplete", so a run that lost a domain never reads as whole."""
+    failed = [f"{r['domain']} ({r['config']}): {r['error']}" for r in rows if r.get("error") is not None]
+    if failed:
+        typer.echo(f"error: {len(failed)} run(s) failed, the table above is incomplete:\n  " + "\n  ".join(failed),
+                   err=True)
+        raise typer.Exit(1)
 
 
 def transfer(

@@ -80,9 +80,13 @@ def table(rows: Sequence[dict[str, Any]]) -> str:
              "|---|" + "---|" * (len(domains) + (1 if sgd else 0))]
     for config in dict.fromkeys(r["config"] for r in rows):
         mine = {r["domain"]: r for r in rows if r["config"] == config and r.get("error") is None}
+        failed = {r["domain"] for r in rows if r["config"] == config and r.get("error") is not None}
         cells = [" / ".join(_fmt(mine[d].get(k)) for k in ("f1", "unsafe_allow", "over_refuse")) if d in mine
-                 else "-" for d in domains]
-        if sgd:
+                 else "error" if d in failed else "-" for d in domains]
+        missing = [d for d in sgd if d not in mine and d in failed]
+        if sgd and missing:  # a mean over the domains that ran is not the benchmark's mean
+            cells.append(f"incomplete: {len(missing)} of {len(sgd)} domains failed")
+        elif sgd:
             cells.append(" / ".join(_fmt(_mean([mine[d].get(k) for d in sgd if d in mine]))
                                     for k in ("f1", "unsafe_allow", "over_refuse")))
         lines.append(f"| `{config}` | " + " | ".join(cells) + " |")

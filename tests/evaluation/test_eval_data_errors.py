@@ -80,3 +80,30 @@ def test_the_cli_exits_2_naming_the_file_and_prints_no_table(tmp_path: Path, com
     assert result.exit_code == 2, result.output
     assert f"error: malformed domain data {folder / 'Zebra_1.json'}" in result.output
     assert "|" not in result.output and not (tmp_path / "cache").exists()  # nothing scored, nothing stored
+
+
+def test_a_mean_over_the_domains_that_ran_is_marked_incomplete() -> None:
+    """A domain whose inference failed (a domain file the engine refuses) is `error` in its cell, and the SGD
+    mean over the others says it is incomplete instead of reading as the benchmark's."""
+    from precond.evaluation.safety import table
+
+    ran = {"f1": 0.9, "unsafe_allow": 0.1, "over_refuse": 0.05, "error": None}
+    rows = [{"config": "c", "domain": "A_1", "benchmark": "sgd", **ran},
+            {"config": "c", "domain": "B_1", "benchmark": "sgd", "error": "invalid_input: demonstrations: none"},
+            {"config": "d", "domain": "A_1", "benchmark": "sgd", **ran},
+            {"config": "d", "domain": "B_1", "benchmark": "sgd", **ran}]
+    lines = table(rows).splitlines()
+    assert lines[2] == "| `c` | 0.900 / 0.100 / 0.050 | error | incomplete: 1 of 2 domains failed |"
+    assert lines[3].endswith("| 0.900 / 0.100 / 0.050 |")
+
+
+def test_a_run_that_lost_a_domain_exits_1_naming_it(capsys: pytest.CaptureFixture[str]) -> None:
+    import typer
+
+    from precond.cli.eval_commands import _fail_on_errors
+
+    _fail_on_errors([{"config": "c", "domain": "A_1", "error": None}])
+    with pytest.raises(typer.Exit) as stopped:
+        _fail_on_errors([{"config": "c", "domain": "B_1", "error": "invalid_input: no demonstration calls"}])
+    assert stopped.value.exit_code == 1
+    assert "B_1 (c): invalid_input: no demonstration calls" in capsys.readouterr().err
