@@ -897,7 +897,7 @@ class PreconditionSet(StrictBody):
         default_factory=dict, description="How each rule of this version was decided: 'established' (the "
         "demonstrations back it), 'assumed' (held at fewer than 3 demonstrated calls, or judged a requirement by "
         "the code model where the evidence left it open), 'zero-shot' (never demonstrated: the code model's "
-        "guess), 'transferred', or "
+        "guess), 'unseen' (never demonstrated and no guess: the placeholder `False`), 'transferred', or "
         "'no evidence' (written by hand, or stored without an inference's report). The ones that need a human "
         "are the assumed and zero-shot rules.")
 
