@@ -1,7 +1,7 @@
 """Python client of the precondition service: `Client` (blocking) and `AsyncClient` (asyncio), both over httpx.
 
 Light on purpose: it needs httpx and pydantic and its own `precond_client.schemas` (the request and response
-models, pydantic only), never torch, transformers or fastapi. Install it alone: README.md, "Python client".
+models, pydantic only), never torch, transformers or fastapi. Install it alone: docs/api.md, "Python client".
 
 The names below are loaded when first used (PEP 562), so that the service, which shares
 `precond_client.schemas` as its wire contract, imports those models without the client's transport.

@@ -119,3 +119,19 @@ def test_the_readme_set_up_commands_exist_and_do_what_it_says() -> None:
         assert f"./scripts/{script}" in readme
         assert os.access(path, os.X_OK), f"scripts/{script} is not executable"
         assert does in path.read_text(encoding="utf-8") and "./scripts/install.sh" in path.read_text(encoding="utf-8")
+
+
+def test_every_section_the_project_cites_by_name_exists() -> None:
+    """`docs/method.md: 'Prior rules'` in a docstring or an API description names a heading (or a paragraph's bold
+    title) of that page."""
+    cited = re.compile(r"((?:README|docs/[\w-]+)\.md|README)[:,] ['\"]([^'\"]+)['\"]")
+    stale = []
+    for path in _project_files():
+        for page, section in cited.findall(path.read_text(encoding="utf-8", errors="replace")):
+            target = ROOT / (page if page.endswith(".md") else "README.md")
+            text = target.read_text(encoding="utf-8")
+            headings = [line.lstrip("#").strip().lower() for line in text.splitlines() if line.startswith("#")]
+            headings += [title.lower() for title in re.findall(r"^\*\*(.+?)\*\*", text, flags=re.MULTILINE)]
+            if not any(section.lower() in heading for heading in headings):
+                stale.append(f"{path.relative_to(ROOT)}: {page} '{section}'")
+    assert not stale, "\n".join(stale)

@@ -158,7 +158,7 @@ class InferOptions(StrictBody):
         "demonstrations like any candidate and is refuted when they contradict it; where they do not decide (an "
         "action never or thinly demonstrated, a correlate, an alternative reading of the same state) a prior "
         "that holds at every demonstrated call is preferred, and its rule says `decided: transferred`. A rule "
-        "naming what this spec does not define is dropped (`warnings` says why). README: 'Prior rules'.",
+        "naming what this spec does not define is dropped (`warnings` says why). docs/method.md: 'Prior rules'.",
     )
     prior_sets: list[Annotated[str, StringConstraints(pattern=SET_REFERENCE)]] = Field(
         default_factory=list, max_length=MAX_PRIOR_SOURCES,
@@ -193,7 +193,8 @@ class InferOptions(StrictBody):
         "0 is the paper's strict validation (a rule must hold at every occurrence; nothing else changes). Above "
         "0, a rule is kept when its exceptions are no more than slips at this rate explain, it holds at the "
         "occurrences clearly more often than at the other points of the same demonstrations, and the action "
-        "occurs at least 3 times (fewer: treated as never demonstrated). README: 'Evidence-weighted validation'.",
+        "occurs at least 3 times (fewer: treated as never demonstrated). "
+        "docs/method.md: 'Evidence-weighted validation'.",
     )
 
     def priors(self) -> list[tuple[str, str, dict[str, list[str]]]]:
@@ -384,7 +385,7 @@ class InferRequest(StrictBody):
         default_factory=list, max_length=MAX_COUNTEREXAMPLE_RUNS,
         description="Labelled calls (`precond convert openai --labels`, a review, or by hand): each rule of an "
         "action with such calls is chosen to refuse the calls labelled 'refuse' and allow the demonstrated calls "
-        "and those labelled 'allow' (README: 'Counterexamples'). Never shown to the code model.",
+        "and those labelled 'allow' (docs/api.md: 'Counterexamples'). Never shown to the code model.",
     )
 
 
@@ -401,7 +402,7 @@ Verdict = Literal["held", "tolerated", "refuted", "chance", "thin"]
 
 
 class RuleEvidence(StrictBody):
-    """What the demonstrations say about one rule (README: 'Evidence-weighted validation')."""
+    """What the demonstrations say about one rule (docs/method.md: 'Evidence-weighted validation')."""
 
     occurrences: int = Field(description="Demonstrated calls of the action.")
     holds: int = Field(description="How many of them the rule allows.")

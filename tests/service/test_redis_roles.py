@@ -46,7 +46,7 @@ BOUNDED_KEYS = {
     keys.UNCLAIMED_KEY: "jobs started but not yet claimed: one field per queued job at most, dropped by the next "
     "beat once the job is claimed, handed back or gone",
 }
-"""The only keys without a TTL, and why each stays small (docs/service.md, "Redis memory")."""
+"""The only keys without a TTL, and why each stays small (docs/service.md, "Redis: two roles, bounded and closed")."""
 
 
 @pytest.fixture(scope="module")
