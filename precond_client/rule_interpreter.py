@@ -11,7 +11,9 @@ is refused when the rule is compiled (`OutsideGrammar`, with the node and why), 
 The grammar, one entry of `FORMS` per node type: constants (None, booleans, numbers, strings); the names `self`
 and the parameters; attributes the state's `Shape` declares; subscripts (a table of the state, or a value);
 comparisons (`is`/`is not` only against None, True or False, whose identity is the language's); `and`, `or`,
-`not`, unary minus and plus; calls of the functions in `FUNCTIONS`. A new form of the learner is one entry.
+`not`, unary minus and plus; calls of the functions in `FUNCTIONS`; tuples; list, set and generator
+comprehensions with one `for` over a value (`{(f['flight_number'], f['date']) for f in flights}`,
+`all(f['date'] >= '2024-05-15' for f in ...)`). A new form of the learner is one entry.
 
 A table (`Shape.kind == "table"`) is a `defaultdict(dict)` in the spec: reading a key it lacks inserts an
 empty dictionary, which a later rule of the same call sees (`key in table`). Here the table is never changed:
@@ -50,12 +52,14 @@ class OutsideGrammar(ValueError):
 class Frame:
     """One call's evaluation: the state, the arguments by position, and the keys its rules inserted into tables."""
 
-    __slots__ = ("args", "inserted", "state")
+    __slots__ = ("args", "bound", "inserted", "state")
 
     def __init__(self, state: object, args: Sequence[Any]) -> None:
         self.state = state
         self.args = args
         self.inserted: set[tuple[str, Any]] | None = None
+        self.bound: dict[str, Any] = {}
+        """The comprehensions' variables, while one runs."""
 
 
 Evaluate = Callable[[Frame], Any]
@@ -68,9 +72,11 @@ class Scope:
 
     self_shape: Shape
     params: tuple[str, ...]
+    bound: tuple[str, ...] = ()
+    """Variables of the comprehensions around the node (`x` in `all(x['date'] >= ... for x in flights)`)."""
 
 
-FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len}
+FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any}
 """Builtins a rule may call; each gets values only."""
 COMPARE: dict[type[ast.cmpop], Callable[[Any, Any], Any]] = {
     ast.Eq: operator.eq, ast.NotEq: operator.ne, ast.Lt: operator.lt, ast.LtE: operator.le, ast.Gt: operator.gt,
@@ -130,6 +136,9 @@ def _constant(node: ast.expr, scope: Scope) -> Compiled:
 
 def _name(node: ast.expr, scope: Scope) -> Compiled:
     assert isinstance(node, ast.Name)
+    if node.id in scope.bound:
+        name = node.id
+        return VALUE, lambda frame: frame.bound[name]
     if node.id == "self":
         return scope.self_shape, lambda frame: frame.state
     if node.id in scope.params:
@@ -264,7 +273,56 @@ def _call(node: ast.expr, scope: Scope) -> Compiled:
     return VALUE, lambda frame: function(*(a(frame) for a in args))
 
 
+def _tuple(node: ast.expr, scope: Scope) -> Compiled:
+    assert isinstance(node, ast.Tuple)
+    parts = [_value(e, scope) for e in node.elts]
+    return VALUE, lambda frame: tuple(part(frame) for part in parts)
+
+
+def _comprehension(node: ast.expr, scope: Scope) -> Compiled:
+    """`[e for x in xs if c]`, `{...}`, `(... for ...)`: one `for` over a value, a plain variable, any `if`s.
+    A generator is lazy, as Python's is: `all(...)` stops at the first false item, raising only where it would."""
+    assert isinstance(node, ast.ListComp | ast.SetComp | ast.GeneratorExp)
+    if len(node.generators) != 1:
+        raise OutsideGrammar(f"{_text(node)}: one `for` only")
+    generator = node.generators[0]
+    target = generator.target
+    if not isinstance(target, ast.Name) or generator.is_async or target.id == "self":
+        raise OutsideGrammar(f"{_text(node)}: the variable must be a plain name")
+    iterate = _value(generator.iter, scope)
+    inner = Scope(scope.self_shape, scope.params, (*scope.bound, target.id))
+    element = _value(node.elt, inner)
+    tests = [_value(test, inner) for test in generator.ifs]
+    name = target.id
+
+    def items(frame: Frame) -> Any:
+        before = frame.bound.get(name, _UNBOUND)
+        try:
+            for item in iterate(frame):
+                frame.bound[name] = item
+                if all(test(frame) for test in tests):
+                    yield element(frame)
+        finally:
+            if before is _UNBOUND:
+                frame.bound.pop(name, None)
+            else:
+                frame.bound[name] = before
+
+    if isinstance(node, ast.ListComp):
+        return VALUE, lambda frame: list(items(frame))
+    if isinstance(node, ast.SetComp):
+        return VALUE, lambda frame: set(items(frame))
+    return VALUE, items
+
+
+_UNBOUND = object()
+
+
 FORMS: dict[type[ast.expr], Callable[[ast.expr, Scope], Compiled]] = {
+    ast.Tuple: _tuple,
+    ast.ListComp: _comprehension,
+    ast.SetComp: _comprehension,
+    ast.GeneratorExp: _comprehension,
     ast.Constant: _constant,
     ast.Name: _name,
     ast.Attribute: _attribute,

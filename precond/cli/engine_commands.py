@@ -357,10 +357,16 @@ def check(
                                                "response.", show_default=False)] = None,
     precondition_set: Annotated[str | None, typer.Option(help="With --openai and --server: a stored set instead "
                                                          "of --spec and --rules.", show_default=False)] = None,
+    batch: Annotated[Path | None, typer.Option(help="Many checks in one command: a JSON list of {\"history\": "
+                                               "OpenAI messages (or a program), \"call\": {\"name\", "
+                                               "\"arguments\"} (or a program line)}, with --spec and --rules; one "
+                                               "verdict a line (JSON).", show_default=False)] = None,
     server: Server = None,
     api_key: ApiKey = None,
 ) -> None:
     """Say for each proposed call whether the preconditions allow it after the history (no model)."""
+    if batch is not None:
+        return _batch(batch, spec, rules)
     if (openai is None) == (request is None):
         _fail("give a request file, or --openai MESSAGES.json with --call (not both)", 2)
     if openai is not None and not call:
@@ -374,6 +380,39 @@ def check(
     from precond.engine.factory import build_engine
 
     _run(build_engine(with_model=False).check, body, with_progress=False)
+
+
+def _batch(pairs_file: Path, spec: Path | None, rules: Path | None) -> None:
+    """Every (history, call) pair of the file judged in this process, by one engine: the start-up is paid once.
+    A pair the service would refuse exits 2 naming it (`PAIRS.json: [3]: history[2].content: ...`)."""
+    if spec is None or rules is None:
+        _fail("--batch needs --spec and --rules", 2)
+        return
+    try:
+        pairs = parse_json(pairs_file.read_text(encoding="utf-8"), str(pairs_file))
+        spec_text = spec.read_text(encoding="utf-8")
+        loaded = parse_json(rules.read_text(encoding="utf-8"), str(rules))
+    except OSError as exc:
+        _fail(f"cannot read {exc.filename}: {exc.strerror}", 2)
+    except ConvertError as exc:
+        _fail(str(exc), 2)
+    if not isinstance(pairs, list) or not all(isinstance(p, dict) and {"history", "call"} <= set(p) for p in pairs):
+        _fail(f"{pairs_file}: expected a list of {{\"history\": ..., \"call\": ...}}", 2)
+    preconditions = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
+    from precond.engine.factory import build_engine
+
+    engine = build_engine(with_model=False)
+    for index, pair in enumerate(pairs):
+        where = f"{pairs_file}: [{index}]"
+        try:
+            body = CheckRequest.model_validate({"spec": spec_text, "preconditions": preconditions,
+                                                "history": pair["history"], "calls": [pair["call"]]})
+            verdict = engine.check(body).results[0]
+        except ValidationError as exc:
+            _fail(f"{where}:\n" + "\n".join(_problems(exc)), 2)
+        except PrecondError as exc:
+            _fail(f"{where}: {exc.kind}{f' ({exc.field})' if exc.field else ''}: {exc.message}", 2)
+        typer.echo(json.dumps(verdict.model_dump(mode="json")))
 
 
 def register(app: typer.Typer) -> None:

@@ -246,12 +246,25 @@ def tools(
     configs: Annotated[str, typer.Option(help="ranking/tolerance pairs, comma-separated (e.g. marginal/0); "
                                          "empty: the grid of precond/evaluation/tools.py.")] = "",
     cache_dir: CacheOption = DEFAULT_CACHE,
+    labels: Annotated[bool, typer.Option("--labels", help="Score on labels.json instead, trained on half the tasks "
+                                         "and judged on the other half, both ways, with and without the labels "
+                                         "as counterexamples (precond/evaluation/tools_labels.py).")] = False,
 ) -> None:
     """Guard tool calls: rules from the successful airline runs, judged on every state-changing call."""
     from precond.evaluation.tools import CONFIGS, GuardConfig, run
     from precond.evaluation.tools_report import write_tools_section
 
     (data,) = _data([data] if data else None, "tau-airline")
+    if labels:
+        from precond.evaluation import tools_labels
+
+        if not (data / "labels.json").is_file():
+            typer.echo(f"error: {data / 'labels.json'}: no labels there", err=True)
+            raise typer.Exit(2)
+        scored = tools_labels.run(_engine(False), data, typer.echo)
+        path = JsonCache(cache_dir).put(scored, "results", "tools-labels")
+        typer.echo(tools_labels.table(scored) + f"\nresults: {path}")
+        return
     chosen = list(CONFIGS)
     if configs.strip():
         try:

@@ -155,8 +155,10 @@ class Separation:
 
 def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
              labelled_demos: Mapping[Point, Case], case_points: Sequence[tuple[Case, Point]],
-             case_results: Mapping[str, CandidateResult], case_order: Sequence[Point]) -> Separation:
-    """The action's rules chosen against its labelled calls (module docstring)."""
+             case_results: Mapping[str, CandidateResult], case_order: Sequence[Point],
+             policy: set[str] | None = None) -> Separation:
+    """The action's rules chosen against its labelled calls (module docstring). `policy`: the conditions
+    the separating rules are made of when given (a tool spec's conditions over results and arguments)."""
     examples: list[Example] = []
     demo_bits: list[int | None] = []
     for occurrence in dict.fromkeys(occurrences):
@@ -178,10 +180,8 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         truth[result.expression] = sum(1 << k for k, held in enumerate(bits) if held)
     kept, notes = _kept(ranked, truth, positive, negative)
     remaining = negative & ~_refused_by(kept, truth, negative)
-    required = _required(truth, positive, remaining)
-    for e in required:
-        remaining &= truth[e]
-    learned = _terms(truth, positive, remaining)
+    pool = {e: t for e, t in truth.items() if e in policy} if policy else truth
+    required, learned = _smallest(pool, positive, remaining)
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
     for e in required:
@@ -233,20 +233,52 @@ def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
 
 
 MAX_REQUIRED = 3
+CONDITION_COST = 0.5
+"""A condition costs half a call to allow left refused: a rule as long as the calls it lists fits only them."""
 
 
 def _required(truth: Mapping[str, int], positive: int, negative: int) -> list[str]:
     """Conditions that hold at every call to allow and refuse calls labelled 'refuse' ("nothing already flown"):
     the one refusing the most remaining calls first, then the shorter text, at most MAX_REQUIRED."""
     chosen: list[str] = []
-    candidates = {e: t for e, t in truth.items() if not positive & ~t and negative & ~t}
+    candidates = {e: t for e, t in truth.items() if not positive & ~t and negative & ~t and not _has_or(e)}
     while negative and len(chosen) < MAX_REQUIRED and candidates:
-        best = min(candidates, key=lambda e: (-(negative & ~candidates[e]).bit_count(), len(e)))
+        best = min(candidates, key=lambda e: (-(negative & ~candidates[e]).bit_count(), _conditions(e), len(e)))
         if not negative & ~candidates[best]:
             break
         chosen.append(best)
         negative &= candidates.pop(best)
     return chosen
+
+
+def _smallest(truth: Mapping[str, int], positive: int, negative: int) -> tuple[list[str], list[Term]]:
+    """Required conditions (the first k of `_required`'s order) and the terms that separate what they leave:
+    the k whose calls to allow left refused, plus CONDITION_COST per condition, are fewest."""
+    order = _required(truth, positive, negative)
+    best: tuple[tuple[float, int], list[str], list[Term]] | None = None
+    for k in range(len(order) + 1):
+        remaining = negative
+        for e in order[:k]:
+            remaining &= truth[e]
+        terms = _terms(truth, positive, remaining)
+        allowed = _held(terms, truth, -1) if remaining else positive
+        if remaining and not terms:
+            allowed = positive  # nothing separates what is left: those calls stay allowed, and say so
+        size = sum(_conditions(e) for e in order[:k]) + sum(_conditions(e) for t in terms for e in t)
+        cost = ((positive & ~allowed).bit_count() + CONDITION_COST * size, size)
+        if best is None or cost < best[0]:
+            best = (cost, order[:k], terms)
+    return (best[1], best[2]) if best else ([], [])
+
+
+def _has_or(expression: str) -> bool:
+    """A condition with a disjunction inside: a conjunct of the rule only if nothing simpler separates."""
+    return any(isinstance(n, ast.BoolOp) and isinstance(n.op, ast.Or) for n in ast.walk(ast.parse(expression)))
+
+
+def _conditions(expression: str) -> int:
+    """How many comparisons (and bare truth tests) a condition makes: what 'as few conditions' counts."""
+    return sum(isinstance(n, ast.Compare) for n in ast.walk(ast.parse(expression))) or 1
 
 
 def _refused_by(kept: set[str], truth: Mapping[str, int], negative: int) -> int:
@@ -278,7 +310,8 @@ def _terms(truth: Mapping[str, int], positive: int, negative: int) -> list[Term]
     chosen: list[Term] = []
     uncovered = positive
     while uncovered and len(chosen) < MAX_TERMS and terms:
-        best = min(terms, key=lambda t: (-(terms[t] & uncovered).bit_count(), len(t), len(_text([t]))))
+        best = min(terms, key=lambda t: (-(terms[t] & uncovered).bit_count(), sum(_conditions(e) for e in t),
+                                         len(_text([t]))))
         if not terms[best] & uncovered:
             break
         chosen.append(best)

@@ -43,6 +43,7 @@ from precond.engine.spec import (
     resolve_actions,
     skip_statements,
 )
+from precond.engine.tool_conditions import tool_atoms
 from precond.engine.work import WorkBudget, points_of
 from precond.programs import checks
 from precond.sandbox.types import (
@@ -211,10 +212,12 @@ class Engine:
         _refuse_no_evidence(actions, trace)
         enumerated = Proposals()
         stopped: dict[str, str] = {}
+        policy: dict[str, set[str]] = {}
         if "enumerate" in request.options.generators:
             with timer.phase("enumerate"):
                 labelled_trees = [parse_source(p, "counterexamples") for p in labelled.programs] if labelled else []
-                stopped = self._enumerate(spec, actions, demo_trees + labelled_trees, trace, enumerated)
+                stopped = self._enumerate(spec, actions, demo_trees + labelled_trees, trace, enumerated,
+                                          request.options.now, policy)
         writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
         prompted = _prompted(actions, trace, request.options)
         settled = [a for a in actions if a not in prompted]
@@ -251,11 +254,14 @@ class Engine:
         separated: dict[str, counterexamples.Separation] = {}
         if labelled is not None:
             with timer.phase("counterexamples"):
-                separated = self._separate(spec, labelled, trace, evaluated, ranked)
+                separated = self._separate(spec, labelled, trace, evaluated, ranked, policy)
             ranked = {**ranked, **{a: s.ranked for a, s in separated.items()}}
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
-        if request.options.unseen == "refuse":  # unless the code model's zero-shot guess is a rule for it
-            chosen.update({a: [UNSEEN_RULE] for a in actions if not trace.actions[a].occurrences and not chosen[a]})
+        if request.options.unseen == "refuse":  # unless the code model's zero-shot guess, or a call labelled
+            shown = {c.action for c in labelled.cases if c.verdict == "allow"} - {  # 'allow' and none 'refuse'
+                c.action for c in labelled.cases if c.verdict == "refuse"} if labelled else set()
+            chosen.update({a: [UNSEEN_RULE] for a in actions
+                           if not trace.actions[a].occurrences and not chosen[a] and a not in shown})
         with timer.phase("verify"):
             exempt = _exceptions_of(chosen, ranked)
             for separation in separated.values():
@@ -285,7 +291,8 @@ class Engine:
         )
 
     def _separate(self, spec: Spec, labelled: counterexamples.Labelled, trace: TraceResult,
-                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked]) -> dict[str, counterexamples.Separation]:
+                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked], policy: Mapping[str, set[str]]
+                  ) -> dict[str, counterexamples.Separation]:
         """Each labelled action's rules against its labelled calls (`engine.counterexamples`): every judged
         condition is judged again at the labelled calls of the runs given as programs."""
         try:
@@ -309,7 +316,8 @@ class Engine:
                 order = list(judged.points.get(action, order))
             separated[action] = counterexamples.separate(
                 action, ranked[action], evaluated.points.get(action, ()), trace.actions[action].occurrences,
-                counterexamples.demonstrated_points(labelled, trace, action), cases, results, order)
+                counterexamples.demonstrated_points(labelled, trace, action), cases, results, order,
+                policy.get(action))
         return separated
 
     def _generate(
@@ -347,17 +355,23 @@ class Engine:
         return model.info
 
     def _enumerate(
-        self, spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals
+        self, spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals,
+        now: str | None = None, policy: dict[str, set[str]] | None = None,
     ) -> dict[str, str]:
-        """Adds the enumerator's atoms, each action's cut to the work budget; the report line of each cut one."""
+        """Adds the enumerator's atoms, each action's cut to the work budget; the report line of each cut one.
+        `policy` gets, for a tool spec's actions, the conditions over results and arguments (`tool_conditions`):
+        the ones labelled calls are separated by."""
         budget = WorkBudget(self._sandbox.limits.max_points)
         state = StateModel(spec, demo_trees)
+        state.tool_facts.now = now
         stopped: dict[str, str] = {}
         for action in actions:
             info = trace.actions[action]
             n_points = points_of(trace, info)
             found = enumerate_atoms(state, info, spec.methods[action].cls, budget.enumerated(n_points))
             proposals.add(action, found.atoms, "enumerate", len(found.atoms))
+            if policy is not None and spec.methods[action].cls == state.tool_class:
+                policy[action] = set(tool_atoms(state.tool_facts, spec.methods[action].name, info.params))
             if found.cut:
                 stopped[action] = budget.stopped(len(found.atoms), n_points)
         return stopped

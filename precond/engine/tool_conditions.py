@@ -12,7 +12,13 @@ so this module adds, for an action whose parameter names the key of an earlier t
   (`... and self.results['get_reservation_details'][reservation_id]['cabin'] != 'basic_economy'`), and
   disjunctions of a few of them that together cover every demonstrated call (policies say "if A, or B, or C");
 - the call's arguments against the result's field of the same name (`total_baggages >= ...['total_baggages']`,
-  `len(passengers) == len(...['passengers'])`).
+  `len(passengers) == len(...['passengers'])`); a list argument's items as a set of pairs against the result's
+  (`{(x['flight_number'], x['date']) for x in flights} == {... for x in ...['flights']}`), or their ids among the
+  result's object of that name (`all(x['payment_id'] in ...['payment_methods'] for x in payment_methods)`);
+- with `options.now`, dates of the result against it (`...['created_at'] >= '2024-05-14T15:00:00'`, a day before;
+  `all(x['date'] >= '2024-05-15' for x in ...['flights'])`);
+- how many items of a list argument are of a kind read off their ids (`len([x for x in payment_methods if
+  'certificate_' in x['payment_id']]) <= 1`).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
 which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
@@ -27,6 +33,7 @@ import re
 from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 
 from precond.engine.spec import Spec
 
@@ -37,6 +44,7 @@ MAX_DISJUNCTS = 3
 MAX_DISJUNCTIONS = 24
 MIN_COVER = 0.75
 MAX_ATOMS = 400
+MAX_PAIR_FIELDS = 2
 ISO_DATE = re.compile(r"^\d{4}-\d{2}-\d{2}")
 Scalar = str | int | float | bool | None
 
@@ -59,6 +67,12 @@ class ToolFacts:
     """tool → fields whose value is a list."""
     seen: dict[str, list[Seen]] = field(default_factory=dict)
     """action name → its demonstrated calls."""
+    mappings: dict[str, set[str]] = field(default_factory=dict)
+    """tool → fields whose value is an object (a profile's payment methods by id)."""
+    item_fields: dict[tuple[str, str], dict[str, Counter[Scalar]]] = field(default_factory=dict)
+    """(tool, list field) → the scalar fields of its items (dicts) and their values."""
+    now: str | None = None
+    """The conversations' time (`options.now`): dates are compared with it."""
 
 
 def tool_class(spec: Spec) -> str | None:
@@ -125,13 +139,25 @@ class _Replay:
     def _note_fields(self, tool: str, value: dict[object, object]) -> None:
         counts = self.facts.values.setdefault(tool, {})
         lists = self.facts.lists.setdefault(tool, set())
+        mappings = self.facts.mappings.setdefault(tool, set())
         for name, item in value.items():
             if not isinstance(name, str):
                 continue
+            if isinstance(item, dict):
+                mappings.add(name)
             if isinstance(item, list):
                 lists.add(name)
+                _note_items(self.facts.item_fields.setdefault((tool, name), {}), item)
             elif item is None or isinstance(item, str | int | float | bool):
                 counts.setdefault(name, Counter())[item] += 1
+
+
+def _note_items(fields: dict[str, Counter[Scalar]], items: list[object]) -> None:
+    for item in items:
+        if isinstance(item, dict):
+            for name, value in item.items():
+                if isinstance(name, str) and (value is None or isinstance(value, str | int | float | bool)):
+                    fields.setdefault(name, Counter())[value] += 1
 
 
 def read_facts(spec: Spec, cls: str, demos: Iterable[ast.Module]) -> ToolFacts:
@@ -163,7 +189,7 @@ class _Test:
 
 class _Builder:
     def __init__(self, facts: ToolFacts, action: str, params: Sequence[str], key: str, tool: str) -> None:
-        self.facts, self.params, self.key, self.tool = facts, params, key, tool
+        self.facts, self.params, self.key, self.tool, self.action = facts, params, key, tool, action
         self.table = f"{RESULTS}[{tool!r}]"
         self.has = f"{key} in {self.table}"
         self.got = f"{self.table}[{key}]"
@@ -216,6 +242,60 @@ class _Builder:
                 atoms += [f"{self.has} and len({param}) == len({ref})", f"{self.has} and len({param}) != len({ref})"]
         return atoms
 
+    def collections(self) -> list[str]:
+        """A list argument against the result's list of the same name: the same set of (a, b) of its items
+        (the flights' (flight_number, date)); and each item's id among the result's object of that name (every
+        payment method on the profile)."""
+        atoms: list[str] = []
+        for param in self.params:
+            items = self._argument_items(param)
+            if param == self.key or not items:
+                continue
+            ref = f"{self.got}[{param!r}]"
+            shared = sorted(set(items) & set(self.facts.item_fields.get((self.tool, param), {})))[:MAX_PAIR_FIELDS]
+            if shared and param in self.facts.lists.get(self.tool, set()):
+                pair = "(" + ", ".join(f"x[{k!r}]" for k in shared) + ("," if len(shared) == 1 else "") + ")"
+                mine, theirs = f"{{{pair} for x in {param}}}", f"{{{pair} for x in {ref}}}"
+                atoms += [f"{self.has} and {mine} == {theirs}", f"{self.has} and {mine} != {theirs}"]
+            if param in self.facts.mappings.get(self.tool, set()):
+                for name in sorted(k for k in items if k.endswith("id"))[:1]:
+                    atoms.append(f"{self.has} and all(x[{name!r}] in {ref} for x in {param})")
+        return atoms
+
+    def _argument_items(self, param: str) -> dict[str, int]:
+        """The scalar fields of the dict items of a list argument at the demonstrated calls, by how often."""
+        counts: Counter[str] = Counter()
+        for seen in self.facts.seen.get(self.action, []):
+            value = seen.args.get(param)
+            if isinstance(value, list):
+                for item in value:
+                    if isinstance(item, dict):
+                        counts.update(k for k, v in item.items() if isinstance(k, str) and isinstance(v, str | int))
+        return dict(counts)
+
+    def moments(self) -> list[str]:
+        """With `options.now`: a date-time field within the day before now, and no item of a list dated before
+        today (a reservation booked in the last 24 hours; no segment already flown)."""
+        now = _moment(self.facts.now)
+        if now is None:
+            return []
+        atoms: list[str] = []
+        for name, counts in sorted(self.facts.values.get(self.tool, {}).items()):
+            sample = next((v for v in counts if isinstance(v, str) and ISO_DATE.match(v)), None)
+            if sample is not None and len(sample) > len("2024-05-15"):
+                ref = f"{self.got}[{name!r}]"
+                before = (now - timedelta(days=1)).isoformat(timespec="seconds")
+                atoms += [f"{self.has} and {ref} >= {before!r}", f"{self.has} and {ref} < {before!r}"]
+        for (tool, name), fields in sorted(self.facts.item_fields.items()):
+            if tool != self.tool:
+                continue
+            for key, counts in sorted(fields.items()):
+                if _ordered(counts) and all(isinstance(v, str) for v in counts):
+                    ref, today = f"{self.got}[{name!r}]", now.date().isoformat()
+                    atoms += [f"{self.has} and all(x[{key!r}] >= {today!r} for x in {ref})",
+                              f"{self.has} and any(x[{key!r}] < {today!r} for x in {ref})"]
+        return atoms
+
     def disjunctions(self, tests: list[_Test]) -> list[str]:
         """Two or three tests on different fields that together hold at MIN_COVER of the demonstrated calls,
         none of which alone does (policies say "if A, or B, or C"; logs hold a few slips, which evidence-weighted
@@ -252,5 +332,38 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
                 continue
             builder = _Builder(facts, action, params, key, tool)
             fields, tests = builder.fields()
-            atoms += builder.read() + builder.arguments() + builder.disjunctions(tests) + fields
+            atoms += (builder.read() + builder.arguments() + builder.collections() + builder.moments()
+                      + builder.disjunctions(tests) + fields)
+    atoms += kinds(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
+
+
+KIND = re.compile(r"^([a-z]+(?:_[a-z]+)*)_\d+$")
+MAX_KINDS = 4
+KIND_COUNTS = (1, 2, 3)
+
+
+def kinds(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """How many items of a list argument are of one kind, the kind read off their ids (`certificate_7504069`):
+    at most 1, 2 or 3 of each kind the demonstrated calls show ("at most one certificate")."""
+    atoms: list[str] = []
+    for param in params:
+        found: Counter[tuple[str, str]] = Counter()
+        for seen in facts.seen.get(action, []):
+            value = seen.args.get(param)
+            for item in value if isinstance(value, list) else []:
+                for name, text in item.items() if isinstance(item, dict) else []:
+                    match = KIND.match(text) if isinstance(name, str) and isinstance(text, str) else None
+                    if match:
+                        found[(name, match.group(1))] += 1
+        for name, kind in sorted(k for k, _ in found.most_common(MAX_KINDS)):
+            counted = f"len([x for x in {param} if {kind + '_'!r} in x[{name!r}]])"
+            atoms += [f"{counted} <= {n}" for n in KIND_COUNTS]
+    return atoms
+
+
+def _moment(text: str | None) -> datetime | None:
+    try:
+        return datetime.fromisoformat(text) if text else None
+    except ValueError:
+        return None

@@ -123,6 +123,12 @@ class InferOptions(StrictBody):
         "no rule, every call allowed. Either way `warnings` names the action, and every `/check-actions` verdict "
         "on it says so (`rule_status`: 'transferred', 'zero-shot' or 'missing').",
     )
+    now: str | None = Field(
+        default=None, pattern=r"^\d{4}-\d{2}-\d{2}(T\d{2}:\d{2}(:\d{2})?)?$",
+        description="The conversations' date and time (ISO, as the results write theirs), e.g. "
+        "'2024-05-15T15:00:00': the enumerator then compares the results' dates with it (within a day before it; "
+        "every segment's date not before its day). None: no condition on time.",
+    )
     model_for: ModelFor = Field(
         default="thin",
         description="Which actions the code model proposes rules for: 'thin' (default): those demonstrated fewer "

@@ -4,9 +4,10 @@ real stack (Redis, gateway, a worker with the real sandbox). Verdicts must be eq
 the rules that refuse, the error texts of rules that raise, the `decided` labels and the rendered call.
 
 The sets: the rules learned from the fixture's successful runs under each configuration of `precond eval tools`;
-every condition the enumerator proposes for the fixture's actions (kept or not, stored with `force`, 32 an
-action a set), which includes rules that raise (`KeyError`) and reads of tables a call's rules fill; and the
-hand-written cancellation clause. With the development data (`../shared/data/tau-airline`, or
+every condition the enumerator proposes for the fixture's actions with `options.now` (kept or not, stored with
+`force`, 32 an action a set), which includes rules that raise (`KeyError`), reads of tables a call's rules fill
+and comprehensions over the results; and the hand-written cancellation clause and collection conditions.
+With the development data (`../shared/data/tau-airline`, or
 PRECOND_DATA_DIR), also all 133 state-changing calls of its 120 runs under the rules learned from them.
 """
 
@@ -35,6 +36,12 @@ RESERVATION = "self.results['get_reservation_details'][reservation_id]"
 CLAUSE = {"AGENT.cancel_reservation": [READ, f"{READ} and ({RESERVATION}['cabin'] == 'business' or "
                                              f"{RESERVATION}['insurance'] == 'yes')",
                                        f"{RESERVATION}['created_at'] >= '2024-05-14T15:00:00'"],
+          "AGENT.update_reservation_flights": [
+              f"{READ} and {{(x['flight_number'], x['date']) for x in flights}} == "
+              f"{{(x['flight_number'], x['date']) for x in {RESERVATION}['flights']}}",
+              f"{READ} and all(x['date'] >= '2024-05-15' for x in {RESERVATION}['flights'])",
+              f"all(x['origin'] >= '2024-05-15' for x in {RESERVATION}['flights'])",  # raises KeyError
+              "len([x for x in flights if 'HAT0' in x['flight_number']]) <= 1"],
           "AGENT.send_certificate": ["user_id in self.results['get_user_details']",
                                      "self.results['get_user_details'][user_id]['membership'] != 'regular'"]}
 MAX_CALLS = 64
@@ -83,7 +90,8 @@ def learned_sets(client: Client, converted: Converted) -> list[PreconditionSet]:
 def every_condition(client: Client, converted: Converted) -> list[PreconditionSet]:
     """Every condition the enumerator proposes on the fixture (kept or dropped), 32 an action a set."""
     request = InferRequest(spec=converted.spec, demonstrations=[t.program for t in converted.trajectories],
-                           options=InferOptions(generators=["enumerate"], candidates="all", tolerance=0))
+                           options=InferOptions(generators=["enumerate"], candidates="all", tolerance=0,
+                                                now=tools.NOW))
     candidates = client.infer_preconditions(request, timeout=600).candidates
     atoms = {action: list(dict.fromkeys(c.assertion for c in reports)) for action, reports in candidates.items()}
     assert sum(len(a) for a in atoms.values()) > 500, {a: len(r) for a, r in atoms.items()}

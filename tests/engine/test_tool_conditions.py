@@ -5,12 +5,16 @@ values, arguments against the result, disjunctions, and the bound on how many.""
 from __future__ import annotations
 
 import ast
+import json
 
 from precond.convert.openai import convert
 from precond.engine import tool_conditions
+from precond.engine.engine import Engine
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.spec import parse_spec
+from precond.sandbox import Sandbox
 from precond.sandbox.types import ActionInfo
+from precond_client.schemas.api import InferOptions, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}
@@ -76,3 +80,51 @@ def test_the_number_of_conditions_is_bounded() -> None:
 def test_a_spec_without_the_result_observation_gets_none() -> None:
     spec = parse_spec("class SYSTEM:\n  def result(self, x): self.x = x\n  def act(self): pass\n")
     assert tool_conditions.tool_class(spec) is None
+
+
+FLIGHT_TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
+    "properties": {p: {"type": "string" if p == "reservation_id" else "array"} for p in params},
+    "required": list(params)}}}
+    for name, params in [("get_reservation_details", ("reservation_id",)),
+                         ("update_reservation_flights", ("reservation_id", "flights", "payment_methods"))]]
+
+
+def flights_run(rid: str, created: str, dates: list[str], paid: list[str]) -> list[dict[str, object]]:
+    flights = [{"flight_number": f"HAT{n}", "date": d} for n, d in enumerate(dates)]
+    result = json.dumps({"reservation_id": rid, "created_at": created, "flights": flights,
+                         "payment_methods": {p: {} for p in paid}})
+    arguments = json.dumps({"reservation_id": rid, "flights": flights,
+                            "payment_methods": [{"payment_id": p} for p in paid]})
+    return [{"role": "assistant", "tool_calls": [{"function": {"name": "get_reservation_details",
+                                                               "arguments": json.dumps({"reservation_id": rid})}}]},
+            {"role": "tool", "content": result},
+            {"role": "assistant", "tool_calls": [{"function": {"name": "update_reservation_flights",
+                                                               "arguments": arguments}}]},
+            {"role": "tool", "content": "{}"}]
+
+
+def test_collections_dates_and_kinds_are_proposed_and_judged() -> None:
+    runs = [flights_run("A1", "2024-05-14T20:00:00", ["2024-05-20"], ["certificate_1", "credit_card_2"]),
+            flights_run("B2", "2024-05-01T10:00:00", ["2024-05-10", "2024-05-20"], ["gift_card_3"])]
+    converted = convert(runs, FLIGHT_TOOLS)
+    spec = parse_spec(converted.spec)
+    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    params = ("reservation_id", "flights", "payment_methods")
+    without_now = tool_conditions.tool_atoms(facts, "update_reservation_flights", params)
+    pairs = "{(x['date'], x['flight_number']) for x in flights}"
+    assert f"{READ} and {pairs} == {{(x['date'], x['flight_number']) for x in {GOT}['flights']}}" in without_now
+    assert f"{READ} and all(x['payment_id'] in {GOT}['payment_methods'] for x in payment_methods)" in without_now
+    assert "len([x for x in payment_methods if 'certificate_' in x['payment_id']]) <= 1" in without_now
+    assert "len([x for x in payment_methods if 'gift_card_' in x['payment_id']]) <= 3" in without_now
+    assert not any("2024-05-15" in a or "2024-05-14T15" in a for a in without_now)  # no `now`: none on it
+    facts.now = "2024-05-15T15:00:00"
+    with_now = tool_conditions.tool_atoms(facts, "update_reservation_flights", params)
+    assert f"{READ} and {GOT}['created_at'] >= '2024-05-14T15:00:00'" in with_now
+    assert f"{READ} and all(x['date'] >= '2024-05-15' for x in {GOT}['flights'])" in with_now
+    with Sandbox(workers=1) as sandbox:  # the sandbox runs every one of these forms
+        judged = Engine(sandbox, None).infer(InferRequest(
+            spec=converted.spec, demonstrations=[t.program for t in converted.trajectories],
+            options=InferOptions(generators=["enumerate"], now="2024-05-15T15:00:00")))
+    reports = {c.assertion: c for c in judged.candidates["AGENT.update_reservation_flights"]}
+    for atom in with_now:
+        assert atom in reports and not reports[atom].reason.startswith("rejected"), (atom, reports.get(atom))

@@ -1,0 +1,151 @@
+"""`precond eval tools --labels`: the tool-call guard scored on labelled calls, trained on half the tasks.
+
+The tasks of `tau-airline/` are split in two halves (sorted task ids, alternately); rules are inferred model-free
+from one half's successful runs (the demonstrations), with or without that half's labelled calls as the request's
+`counterexamples` (`precond convert openai --labels`), and every labelled state-changing call of the other half is
+judged on the history before it. Then the halves swap: every call is judged once, by rules that never saw its
+task (split by task, never by call). Per tool and per policy rule (T1-T8 of LABELS.md, a call counted under each
+rule its label says it breaks): unsafe_allow (calls labelled refused that the guard allows, over those calls)
+and over_refuse (calls labelled allowed that it refuses, over those calls). Labels reach the request as
+counterexamples only, never a demonstration or a prompt.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from precond.convert.labels import counterexamples, read_labels
+from precond.convert.openai import Converted, Trajectory
+from precond.evaluation.tools import NOW, WRITES, load
+from precond_client.schemas.api import CheckRequest, InferRequest
+
+RULE_NAMES = ("T1", "T2", "T3", "T4", "T5", "T6", "T7", "T8")
+
+
+@dataclass(frozen=True)
+class Judged:
+    task: str
+    tool: str
+    allowed: bool
+    """The label."""
+    broken: tuple[str, ...]
+    """The rules the label says the call breaks."""
+    refused: bool
+    """The guard's verdict."""
+
+
+def halves(converted: Converted) -> tuple[set[str], set[str]]:
+    tasks = sorted({_task(t) for t in converted.trajectories}, key=lambda t: (len(t), t))
+    return set(tasks[0::2]), set(tasks[1::2])
+
+
+def _task(trajectory: Trajectory | str) -> str:
+    name = trajectory if isinstance(trajectory, str) else trajectory.name
+    return name.split("-trial", 1)[0]
+
+
+def infer_request(converted: Converted, records: list[dict[str, Any]], train: set[str], labelled: bool,
+                  source: str) -> InferRequest:
+    demos = [t for t in converted.trajectories if _task(t) in train and t.reward == 1.0]
+    runs: list[dict[str, Any]] = []
+    if labelled:
+        mine = [r for r in records if f"task{r.get('task_id')}" in train]
+        runs = counterexamples(converted, read_labels(mine, source, {t.name for t in converted.tools}), demos)
+    return InferRequest.model_validate({
+        "spec": converted.spec, "demonstrations": [t.program for t in demos],
+        "actions": [f"AGENT.{w}" for w in WRITES], "counterexamples": runs,
+        "options": {"generators": ["enumerate"], "candidates": "none", "now": NOW}})
+
+
+def judge(engine: Any, converted: Converted, records: list[dict[str, Any]], test: set[str],
+          rules: dict[str, list[str]]) -> list[Judged]:
+    """Every labelled call of the test tasks, on the history before it."""
+    runs = {t.name: t for t in converted.trajectories}
+    judged = []
+    for record in records:
+        name = f"task{record['task_id']}-trial{record['trial']}"
+        if _task(name) not in test:
+            continue
+        trajectory = runs[name]
+        call = next(c for c, m in zip(trajectory.calls, trajectory.messages, strict=True)
+                    if m == record["message_index"])
+        lines = trajectory.program.splitlines()
+        verdict = engine.check(CheckRequest(spec=converted.spec, preconditions=rules,
+                                            history="\n".join(lines[: call.line]) + "\n",
+                                            calls=[lines[call.line]])).results[0]
+        broken = tuple(r for r in RULE_NAMES if (record.get("rules") or {}).get(r) is False)
+        judged.append(Judged(_task(name), record["tool"], bool(record["allowed"]), broken, not verdict.allowed))
+    return judged
+
+
+def scores(judged: Sequence[Judged]) -> dict[str, Any]:
+    refused = [j for j in judged if not j.allowed]
+    allowed = [j for j in judged if j.allowed]
+    unsafe, over = sum(not j.refused for j in refused), sum(j.refused for j in allowed)
+    return {"calls": len(judged), "labelled_refused": len(refused), "unsafe_allowed": unsafe,
+            "labelled_allowed": len(allowed), "over_refused": over,
+            "unsafe_allow": _share(unsafe, len(refused)), "over_refuse": _share(over, len(allowed))}
+
+
+def _share(part: int, whole: int) -> float | None:
+    return round(part / whole, 3) if whole else None
+
+
+def run(engine: Any, data: Path, progress: Callable[[str], None]) -> dict[str, Any]:
+    converted = load(data)
+    source = str(data / "labels.json")
+    records = json.loads((data / "labels.json").read_text(encoding="utf-8"))
+    first, second = halves(converted)
+    out: dict[str, Any] = {"halves": [sorted(first), sorted(second)]}
+    for labelled in (False, True):
+        judged: list[Judged] = []
+        rules_of: list[dict[str, list[str]]] = []
+        infer_s = judge_s = 0.0
+        for train, test in ((first, second), (second, first)):
+            started = time.perf_counter()
+            inferred = engine.infer(infer_request(converted, records, train, labelled, source))
+            infer_s += time.perf_counter() - started
+            started = time.perf_counter()
+            judged += judge(engine, converted, records, test, inferred.preconditions)
+            judge_s += time.perf_counter() - started
+            rules_of.append(inferred.preconditions)
+        mode = "with labels" if labelled else "without labels"
+        out[mode] = {
+            "total": scores(judged), "rules": rules_of, "infer_s": round(infer_s, 2), "judge_s": round(judge_s, 2),
+            "per_tool": {tool: scores([j for j in judged if j.tool == tool]) for tool in WRITES},
+            "per_rule": {rule: {"unsafe_allowed": sum(not j.refused for j in judged if rule in j.broken),
+                                "breaking": sum(rule in j.broken for j in judged)} for rule in RULE_NAMES},
+        }
+        total = out[mode]["total"]
+        progress(f"{mode}: unsafe_allow {total['unsafe_allowed']}/{total['labelled_refused']} "
+                 f"({total['unsafe_allow']}), over_refuse {total['over_refused']}/{total['labelled_allowed']} "
+                 f"({total['over_refuse']}); infer {infer_s:.1f} s, judge {judge_s:.1f} s")
+    return out
+
+
+def table(result: dict[str, Any]) -> str:
+    """Per tool and per rule, without and with labels side by side (markdown)."""
+    plain, labelled = result["without labels"], result["with labels"]
+
+    def cell(s: dict[str, Any], part: str, whole: str) -> str:
+        return f"{s[part]}/{s[whole]}" if s[whole] else "-"
+
+    lines = ["| tool | unsafe_allow without labels | with labels | over_refuse without labels | with labels |",
+             "|---|---|---|---|---|"]
+    for tool in [*WRITES, "total"]:
+        a = plain["total"] if tool == "total" else plain["per_tool"][tool]
+        b = labelled["total"] if tool == "total" else labelled["per_tool"][tool]
+        lines.append(f"| {tool} | {cell(a, 'unsafe_allowed', 'labelled_refused')} | "
+                     f"{cell(b, 'unsafe_allowed', 'labelled_refused')} | {cell(a, 'over_refused', 'labelled_allowed')}"
+                     f" | {cell(b, 'over_refused', 'labelled_allowed')} |")
+    lines += ["", "| policy rule | breaking calls allowed, without labels | with labels |", "|---|---|---|"]
+    for rule in RULE_NAMES:
+        a, b = plain["per_rule"][rule], labelled["per_rule"][rule]
+        if a["breaking"]:
+            lines.append(f"| {rule} | {a['unsafe_allowed']}/{a['breaking']} | {b['unsafe_allowed']}/{b['breaking']} |")
+    return "\n".join(lines) + "\n"
