@@ -31,12 +31,17 @@ def serve(
     redis_url: Annotated[
         str | None,
         typer.Option(help="Use this Redis (sets REDIS_URL for every process), even one without a password; "
-                     "default: REDIS_URL, else two private ones started here. A Redis already answering on 6379 "
-                     "without a password is refused unless named here.", show_default=False),
+                     "default: REDIS_URL, else two private ones started here.", show_default=False),
+    ] = None,
+    redis_port: Annotated[
+        int | None,
+        typer.Option(min=1, max=65534, help="Port of the private queue Redis (the cache Redis takes the next one); "
+                     "default: two free ports. A port something else holds is refused.", show_default=False),
     ] = None,
 ) -> None:
-    """Run gateway, workers and, when REDIS_URL is unset, two private redis-servers (queue on 6379, cache on
-    6380; 127.0.0.1 only, with a random password per start); says at start which Redis it uses.
+    """Run gateway, workers and, when REDIS_URL is unset, two private redis-servers (on two free ports, or
+    --redis-port and the next; 127.0.0.1 only, with a random password per start, whatever else runs on the
+    machine); says at start which Redis it uses, and again in the ready line.
 
     Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
     other unless --no-auth says so.
@@ -55,10 +60,18 @@ def serve(
     worker_settings = get_worker_settings()
     if redis_url is not None:
         worker_settings = worker_settings.model_copy(update={"redis_url": redis_url})
-    supervisor = Supervisor(
-        worker_settings, host, port, workers, data_dir, gateway_processes=settings.processes,
-        redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory,
-    )
+    if worker_settings.redis_url is not None and redis_port is not None:
+        typer.echo("error: --redis-port is the port of the private Redis precond serve starts; with --redis-url "
+                   "or REDIS_URL none is started", err=True)
+        raise typer.Exit(2)
+    try:
+        supervisor = Supervisor(
+            worker_settings, host, port, workers, data_dir, gateway_processes=settings.processes,
+            redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory, redis_port=redis_port,
+        )
+    except SystemExit as refused:  # what the user asked for cannot be served: said, not a traceback
+        typer.echo(f"error: {refused.code}", err=True)
+        raise typer.Exit(2) from None
     raise typer.Exit(supervisor.run())
 
 

@@ -26,8 +26,7 @@ from precond.gateway.server import gateway_args
 from precond.worker.settings import WorkerSettings
 
 log = logging.getLogger("precond.serve")
-LOCAL_REDIS = ("127.0.0.1", 6379)
-LOCAL_CACHE_PORT = 6380
+LOCAL_HOST = "127.0.0.1"
 
 
 @dataclass
@@ -54,16 +53,12 @@ class Child:
         return None if self.process is None else self.process.poll()
 
 
-def answers(host: str, port: int, password: str | None = None) -> bool:
-    """A Redis answers PING at host:port (after AUTH when a password is given).
-
-    A Redis that wants a password we do not have is an error, not "nothing there": starting our own on its
-    port would fail, and using it without the password would fail on every request.
-    """
-    auth = b"" if password is None else b"AUTH " + password.encode() + b"\r\n"
+def answers(host: str, port: int, password: str) -> bool:
+    """Our Redis answers PING at host:port after AUTH with its password (a passwordless one that took the port
+    first refuses the AUTH, and so is never taken for ours)."""
     try:
         with socket.create_connection((host, port), timeout=0.5) as conn:
-            conn.sendall(auth + b"PING\r\n")
+            conn.sendall(b"AUTH " + password.encode() + b"\r\nPING\r\n")
             reply = b""
             while b"PONG" not in reply and not reply.startswith(b"-") and len(reply) < 256:
                 chunk = conn.recv(64)
@@ -72,11 +67,44 @@ def answers(host: str, port: int, password: str | None = None) -> bool:
                 reply += chunk
     except OSError:
         return False
-    if reply.startswith(b"-NOAUTH") and password is None:
-        raise SystemExit(
-            f"a password-protected Redis answers at {host}:{port}: set REDIS_URL (and its password) to use it"
-        )
-    return b"+PONG" in reply
+    return reply.startswith(b"+OK") and b"+PONG" in reply
+
+
+def listening(host: str, port: int) -> bool:
+    """Something accepts connections at host:port (a Redis of the machine's, or anything else)."""
+    try:
+        with socket.create_connection((host, port), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
+def free_ports(count: int) -> tuple[int, ...]:
+    """Ports the OS has just handed out as free on 127.0.0.1: the private Redis need none in particular, and a
+    fixed one (6379) is where a distribution's own redis-server usually already runs."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for sock in sockets:
+            sock.bind((LOCAL_HOST, 0))
+        return tuple(sock.getsockname()[1] for sock in sockets)
+    finally:
+        for sock in sockets:
+            sock.close()
+
+
+def private_ports(queue_port: int | None) -> tuple[int, int]:
+    """The private queue and cache Redis ports: `--redis-port` and the next one, else two free ones. A named port
+    that something already holds is refused with what to do (never "use that one": it is not ours)."""
+    if queue_port is None:
+        queue, cache = free_ports(2)
+        return queue, cache
+    for port, role in ((queue_port, "queue"), (queue_port + 1, "cache")):
+        if listening(LOCAL_HOST, port):
+            raise SystemExit(
+                f"--redis-port {queue_port}: port {port} of {LOCAL_HOST} (for the private {role} Redis) is taken "
+                "by a process precond serve did not start; name another port with --redis-port (the cache Redis "
+                "takes the next one), or leave --redis-port out and two free ports are chosen")
+    return queue_port, queue_port + 1
 
 
 def is_ready(url: str) -> bool:
@@ -86,13 +114,6 @@ def is_ready(url: str) -> bool:
             return bool(answer.status == 200)
     except (OSError, ValueError):
         return False
-
-
-def unowned_redis_refusal(port: int) -> str:
-    return (f"a Redis without a password answers at {LOCAL_REDIS[0]}:{port}, and precond serve did not start it: "
-            "the queue and the precondition sets (kept without expiry) would go there, readable and writable by "
-            "anyone who can reach it. To use it anyway, say so: --redis-url redis://127.0.0.1:6379/0 (or set "
-            "REDIS_URL); or stop it, and precond serve starts its own password-protected pair on 127.0.0.1")
 
 
 def _shown(url: str) -> str:
@@ -114,9 +135,18 @@ def redis_description(settings: WorkerSettings, private: tuple[PrivateRedis, ...
     return f"precond: Redis: queue {_shown(settings.redis_dsn)} from REDIS_URL{own_cache}"
 
 
+def redis_in_short(settings: WorkerSettings, private: tuple[PrivateRedis, ...]) -> str:
+    """Which Redis, for the ready line (the one line a user greps for)."""
+    if private:
+        queue, cache = private
+        return f"its own password-protected Redis on {LOCAL_HOST}:{queue.port} (queue) and :{cache.port} (cache)"
+    return f"Redis {_shown(settings.redis_dsn)} from REDIS_URL"
+
+
 @dataclass(frozen=True)
 class PrivateRedis:
-    """One of the two redis-servers `precond serve` starts when REDIS_URL is unset and nothing answers:
+    """One of the two redis-servers `precond serve` starts when REDIS_URL is unset (on free ports, or
+    `--redis-port` and the next one):
 
     * the queue Redis (jobs, results, progress, heartbeats): append-only file in `data_dir`, and
       `maxmemory` with `noeviction`, so a full Redis refuses new work (503) instead of dropping accepted work;
@@ -136,15 +166,16 @@ class PrivateRedis:
 
     @property
     def url(self) -> str:
-        return f"redis://:{self.password}@{LOCAL_REDIS[0]}:{self.port}/0"
+        return f"redis://:{self.password}@{LOCAL_HOST}:{self.port}/0"
 
     def child(self) -> Child:
         binary = shutil.which("redis-server")
         if binary is None:
             raise SystemExit(
-                "REDIS_URL is unset, nothing answers at 127.0.0.1:6379, and redis-server is not installed"
+                "REDIS_URL is unset and redis-server is not installed: install it (apt-get install redis-server), "
+                "or name a Redis with --redis-url"
             )
-        argv = [binary, "-", "--bind", LOCAL_REDIS[0], "--port", str(self.port), "--protected-mode", "yes",
+        argv = [binary, "-", "--bind", LOCAL_HOST, "--port", str(self.port), "--protected-mode", "yes",
                 "--maxmemory", self.maxmemory, "--maxmemory-policy", self.policy]
         if self.data_dir is None:
             argv += ["--save", "", "--appendonly", "no"]
@@ -175,16 +206,14 @@ class Supervisor:
         gateway_processes: int = 1,
         redis_maxmemory: str = "512mb",
         cache_maxmemory: str = "256mb",
-        redis_ports: tuple[int, int] = (LOCAL_REDIS[1], LOCAL_CACHE_PORT),
+        redis_port: int | None = None,
     ) -> None:
         self.settings = settings
         self.env = dict(os.environ)
         self.children: list[Child] = []
         self.redis: tuple[PrivateRedis, ...] = ()
-        if settings.redis_url is None and answers(LOCAL_REDIS[0], redis_ports[0]):
-            raise SystemExit(unowned_redis_refusal(redis_ports[0]))
         if settings.redis_url is None:
-            self.redis = private_redis(data_dir, redis_ports, redis_maxmemory, cache_maxmemory)
+            self.redis = private_redis(data_dir, private_ports(redis_port), redis_maxmemory, cache_maxmemory)
             queue, cache = self.redis
             self.children += [queue.child(), cache.child()]
             self.env["REDIS_URL"] = queue.url
@@ -195,6 +224,7 @@ class Supervisor:
             self.env["REDIS_URL"] = settings.redis_url
             self.env.pop("PRECOND_REDIS_URL", None)
         self.redis_used = redis_description(settings, self.redis, data_dir)
+        self.redis_short = redis_in_short(settings, self.redis)
         if settings.secret is None and settings.secret_file is None:  # one secret for the processes started here
             self.env["PRECOND_SECRET"] = secrets.token_urlsafe(32)
         gateway = [sys.executable, "-m", "uvicorn", *gateway_args(gateway_processes)]
@@ -222,14 +252,15 @@ class Supervisor:
                 self._restart_if_dead(child)
             if not self.announced and is_ready(self.ready_url):
                 self.announced = True
-                print(f"precond: ready at {self.ready_url.removesuffix('/ready')} (GET /ready answers 200)", flush=True)
+                print(f"precond: ready at {self.ready_url.removesuffix('/ready')} (GET /ready answers 200), "
+                      f"using {self.redis_short}", flush=True)
             time.sleep(0.5)
         return self._shutdown()
 
     @staticmethod
     def wait_for_redis(server: PrivateRedis, timeout_s: float = 10) -> None:
         deadline = time.monotonic() + timeout_s
-        while not answers(LOCAL_REDIS[0], server.port, server.password):
+        while not answers(LOCAL_HOST, server.port, server.password):
             if time.monotonic() > deadline:
                 raise SystemExit(f"the private {server.name}-server did not come up")
             time.sleep(0.1)

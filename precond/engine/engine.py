@@ -114,7 +114,7 @@ def sandbox_call(fn: Callable[..., T], *args: object, **kwargs: object) -> T:
         raise InvalidProgram(str(exc), field=where) from exc
     except LimitExceeded as exc:
         field = "demonstrations" if exc.limit == "work" else None  # points grow with demonstrations × arguments
-        raise ResourceLimit(f"untrusted code exceeded the sandbox's {exc}", field=field) from exc
+        raise ResourceLimit(f"untrusted code hit the sandbox's {exc.limit} limit: {exc.message}", field=field) from exc
     except SandboxCancelled as exc:
         raise Cancelled("job cancelled") from exc
     except (SandboxCrashed, SandboxUnavailable) as exc:

@@ -93,15 +93,23 @@ def rendering_chars(spec: str, history_json_chars: int) -> int:
     return len(spec) + history_json_chars // RENDER_SPEEDUP
 
 
-def rendered(spec: str, history: Sequence[Mapping[str, Any]], tag: str) -> str | checks.Problem:
+def rendered(spec: str, history: Sequence[Mapping[str, Any]], tag: str, max_chars: int) -> str | checks.Problem:
     """A structured history's program (events or OpenAI messages), or why it cannot be one (`tag`: the caller's,
-    under which the spec's reading is remembered)."""
+    under which the spec's reading is remembered). The program is bounded here, where the body is accepted, by
+    the bound of a history sent as code (`max_chars`): a worker re-reads the job under that bound, so a longer
+    one would be accepted here and fail there."""
     try:
-        return structured_history(spec, history, scope=tag)
+        program = structured_history(spec, history, scope=tag)
     except checks.ProgramProblem as exc:
         return exc.problem
     except RecursionError:
         return checks.too_deep("history").problem
+    if len(program) > max_chars:
+        longest = max(range(len(history)), key=lambda n: len(json.dumps(history[n], default=str)))
+        return checks.Problem("invalid_input", "history", (
+            f"the history renders to a program of {len(program):,} characters, over the {max_chars:,} a history "
+            f"may have (as code or as events): send fewer or shorter events (the longest is history[{longest}])"))
+    return program
 
 
 def rendered_calls(spec: str, calls: Sequence[str | Mapping[str, Any]], tag: str) -> list[str] | checks.Problem:

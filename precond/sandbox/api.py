@@ -21,6 +21,7 @@ from precond.sandbox.types import (
     CallVerdict,
     CandidateResult,
     EvaluateResult,
+    LimitExceeded,
     Limits,
     Point,
     ProgramError,
@@ -32,6 +33,8 @@ from precond.sandbox.types import (
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 MAX_ISOLATED = 8
+MAX_TIMED_OUT = 4
+"""Candidates a call may lose to its time limit (each retried alone) before the call itself has failed."""
 TOO_MANY_ISOLATED = (f"not a plain assertion, and more than {MAX_ISOLATED} such assertions in one request: "
                      "each is judged in a process of its own")
 
@@ -122,14 +125,43 @@ class Sandbox:
                     judged[(action, expression)] = protocol.candidate_result(expression, units[k])
             return build
 
-        self._run("evaluate", dict(base, candidates=plain), collect(plain))
-        for number, (action, expression) in enumerate(isolated):
-            if number >= MAX_ISOLATED:
+        alone = self._run_plain(base, plain, collect)
+        for number, (action, expression) in enumerate([*alone, *isolated]):
+            if number >= MAX_ISOLATED + len(alone):
                 judged[(action, expression)] = CandidateResult(expression, "rejected", reason=TOO_MANY_ISOLATED)
                 continue
             one = {action: [expression]}
-            self._run("evaluate", dict(base, candidates=one), collect(one))
+            try:
+                self._run("evaluate", dict(base, candidates=one), collect(one))
+            except LimitExceeded as exc:
+                if exc.limit != "timeout" or exc.unit is None:
+                    raise  # the demonstrations themselves ran out of time: the request's failure
+                retried = " (also when judged alone)" if (action, expression) in alone else ""
+                judged[(action, expression)] = CandidateResult(expression, "rejected", reason=(
+                    f"dropped: ran out of time{retried}: {exc.message}"))
         return _evaluate_result(judged, found, candidates, problems, points or {})
+
+    def _run_plain(self, base: dict[str, Any], plain: dict[str, list[str]],
+                   collect: Callable[[Mapping[str, Sequence[str]]], Callable[[dict[str, Any], Mapping[int, Any]],
+                                                                           None]]) -> list[tuple[str, str]]:
+        """Judge the plain candidates in one child. One that is running when the call's time runs out is that
+        candidate's failure, not the call's: it is returned to be retried once alone (a loaded machine may have
+        slowed the whole call, not this candidate), and the others are judged again in two calls, each with
+        the whole time: those done before it, and those not started."""
+        alone: list[tuple[str, str]] = []
+        groups = [[(a, e) for a, exprs in plain.items() for e in exprs]]
+        while groups:
+            flat = groups.pop()
+            sent = {action: [e for a, e in flat if a == action] for action in plain}  # every action: its points
+            try:
+                self._run("evaluate", dict(base, candidates=sent), collect(sent))
+            except LimitExceeded as exc:
+                if exc.limit != "timeout" or exc.unit is None or not 0 <= exc.unit < len(flat) \
+                        or len(alone) >= MAX_TIMED_OUT:
+                    raise
+                alone.append(flat[exc.unit])
+                groups += [part for part in (flat[exc.unit + 1:], flat[:exc.unit]) if part]
+        return alone
 
     def check(self, spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
               calls: Sequence[str], scope: str | None = None, warm: bool = True) -> tuple[CallVerdict, ...]:

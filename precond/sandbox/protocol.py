@@ -69,7 +69,9 @@ def raise_for_header(header: Mapping[str, Any]) -> None:
     status = header.get("status")
     message = clean(str(header.get("message", "")))
     if status == "limit":
-        raise LimitExceeded(_limit_name(header.get("limit")), message)
+        unit = header.get("unit")
+        raise LimitExceeded(_limit_name(header.get("limit")), message,
+                            unit if isinstance(unit, int) and not isinstance(unit, bool) else None)
     if status == "unconfined":
         raise SandboxUnavailable(message)
     if status != "ok":

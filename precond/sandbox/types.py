@@ -172,6 +172,8 @@ class LimitExceeded(SandboxError):
 
     limit: str  # "timeout" | "cpu" | "memory" | "output" | "recursion" | "result" | "work"
     message: str
+    unit: int | None = None
+    """The part of the call (a candidate's index in the call) that was running when the limit hit, if one was."""
 
     def __str__(self) -> str:
         return f"{self.limit} limit exceeded: {self.message}"

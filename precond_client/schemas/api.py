@@ -811,7 +811,9 @@ class PreconditionSetCreate(StrictBody):
     spec: str = Field(min_length=1, max_length=MAX_SOURCE_CHARS, description=SPEC_DESCRIPTION)
     preconditions: Preconditions = Field(
         default_factory=dict,
-        description=PRECONDITIONS_DESCRIPTION + " From an inference: its `preconditions` as returned.",
+        description=PRECONDITIONS_DESCRIPTION + " From an inference: its `preconditions` as returned. At least "
+        "one rule: a set without any would allow every call, so it is refused (422; to learn rules from "
+        "demonstrations, `POST /infer-preconditions` first).",
     )
     demonstrations: list[str] = Field(
         default_factory=list, max_length=MAX_DEMONSTRATIONS,

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
+import signal
 import subprocess
 import sys
 import threading
 from pathlib import Path
+
+import httpx
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
@@ -131,21 +135,93 @@ def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> Non
     assert "Traceback" not in result.stderr
 
 
-def test_serve_prints_one_line_when_ready(tmp_path: Path, tiny_model_dir: Path) -> None:
-    from precond.stack.local import free_port, make_stack
+def test_serve_starts_its_own_redis_beside_an_open_one_and_prints_one_line_when_ready(
+    tmp_path: Path, tiny_model_dir: Path
+) -> None:
+    """Beside a passwordless Redis on 6379 (Debian's redis-server: on this machine the system's own, else one
+    started here), `precond serve` starts its own pair on free ports, names them in its ready line, and
+    answers."""
+    from precond.cli.supervisor import listening
+    from precond.stack.local import RedisServer, free_port, make_stack
 
+    squatter = None if listening("127.0.0.1", 6379) else RedisServer(tmp_path / "open", port=6379)
+    if squatter is not None:
+        (tmp_path / "open").mkdir()
+        squatter.start()
     stack = make_stack(tmp_path, tiny_model_dir)
+    stack.redis.stop()  # only its settings: no REDIS_URL, the private pair
+    env = {k: v for k, v in stack.env.items() if k not in ("REDIS_URL", "PRECOND_REDIS_PASSWORD_FILE")}
     port = free_port()
-    process = subprocess.Popen([sys.executable, "-m", "precond.cli", "serve", "--port", str(port)], env=stack.env,
-                               cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    process = subprocess.Popen([sys.executable, "-m", "precond.cli", "serve", "--port", str(port), "--data-dir",
+                                str(tmp_path / "redis")], env=env, cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True)
     guard = threading.Timer(240, process.terminate)  # a supervisor that never says so fails, not hangs
     guard.start()
     try:
         assert process.stdout is not None
-        line = next((out for out in process.stdout if not out.startswith("INFO:")), "")  # uvicorn's access log
-        assert line == f"precond: ready at http://127.0.0.1:{port} (GET /ready answers 200)\n"
+        line = next((out for out in process.stdout if out.startswith("precond:")), "")  # not redis' or uvicorn's log
+        ready = re.fullmatch(rf"precond: ready at http://127\.0\.0\.1:{port} \(GET /ready answers 200\), using its "
+                             r"own password-protected Redis on 127\.0\.0\.1:(\d+) \(queue\) and :(\d+) \(cache\)\n",
+                             line)
+        assert ready, line
+        assert "6379" not in ready.groups()
+        answer = httpx.post(f"http://127.0.0.1:{port}/check-actions", params={"wait": 30}, timeout=60,
+                            json=json.loads((EXAMPLES / "check-actions.json").read_text()))
+        assert answer.status_code == 200, answer.text
+        tree = _descendants(process.pid)
+        print(tree)
+        assert len(tree) >= 5, tree  # two redis-servers, the gateway (and its check pool), a worker
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(60) == 0
+        left = [(pid, what) for pid, what in tree.items() if _alive(pid)]
+        assert not left, f"left behind after SIGTERM: {left}"
     finally:
         guard.cancel()
         process.terminate()
         process.wait(60)
-        stack.redis.stop()
+        if squatter is not None:
+            squatter.stop()
+
+
+def _descendants(root: int) -> dict[int, str]:
+    """Every process below `root`, with its command line."""
+    parents: dict[int, int] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        parents[int(stat.parent.name)] = int(fields[1])
+    found: dict[int, str] = {}
+    frontier = [root]
+    while frontier:
+        parent = frontier.pop()
+        for pid, ppid in parents.items():
+            if ppid == parent and pid not in found:
+                try:
+                    found[pid] = (Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()[:200])
+                except OSError:
+                    continue
+                frontier.append(pid)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    """Running, or stopped: not gone and not a zombie waiting for its parent."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+def test_serve_refuses_a_named_redis_port_that_is_taken(redis_server: object) -> None:
+    from precond.stack.local import RedisServer
+
+    assert isinstance(redis_server, RedisServer)
+    env = {k: v for k, v in os.environ.items() if k not in ("REDIS_URL", "PRECOND_REDIS_URL")}
+    result = subprocess.run([sys.executable, "-m", "precond.cli", "serve", "--redis-port", str(redis_server.port)],
+                            capture_output=True, text=True, timeout=120, cwd=ROOT, env=env)
+    assert result.returncode == 2, result.stderr
+    assert f"--redis-port {redis_server.port}: port {redis_server.port} of 127.0.0.1" in result.stderr
+    assert "Traceback" not in result.stderr and "--redis-url" not in result.stderr

@@ -133,6 +133,31 @@ def test_runaway_candidates_fail_alone_and_the_rest_still_answers() -> None:
     assert kept.status == "valid" and last.status == "valid"
 
 
+def test_a_candidate_running_when_the_call_runs_out_of_time_fails_alone() -> None:
+    """On a loaded machine the call's time (SANDBOX_TIMEOUT_S) can run out while one candidate runs, before its
+    own CPU limit does: that candidate is dropped (after a retry alone) and says why; the others are judged."""
+    limits = Limits(timeout_s=2, cpu_s=30, unit_cpu_s=30)
+    with Sandbox(limits, workers=1) as box:
+        result = box.evaluate(SPEC, ["a = A()\na.act(1)"],
+                              {"A.act": ["self.x == 1", "sum(range(10 ** 12)) > 0", "v == 1", "v == 2"]})
+    kept, slow, last, refuted = result.results["A.act"]
+    assert slow.status == "rejected", slow
+    assert "ran out of time (also when judged alone)" in (slow.reason or "") and "SANDBOX_TIMEOUT_S" in (
+        slow.reason or ""), slow
+    assert kept.status == "valid" and last.status == "valid" and refuted.status == "invalid"
+
+
+def test_a_limit_hit_in_the_specs_top_level_is_named_the_specs() -> None:
+    """The spec's top level runs anew for each demonstration: a loop there is the spec's, not the program's."""
+    looping = SPEC + "while True:\n    pass\n"
+    with Sandbox(Limits(timeout_s=1.5, cpu_s=30, unit_cpu_s=30), workers=1) as box, \
+            pytest.raises(LimitExceeded) as caught:
+        box.trace(looping, ["a = A()\na.act(1)"])
+    assert caught.value.limit == "timeout"
+    assert "(SANDBOX_TIMEOUT_S) while running the spec's top level (run anew for demonstrations[0])" in str(
+        caught.value), caught.value
+
+
 def test_a_runaway_rule_fails_only_its_call() -> None:
     limits = Limits(timeout_s=30, cpu_s=20, unit_cpu_s=0.5)
     with Sandbox(limits, workers=1) as box:

@@ -13,10 +13,11 @@ from arq.jobs import deserialize_result
 
 from precond.stack.local import Stack, check_body, heavy_infer_body, make_stack, serving, wait_until
 
-HANDBACK_BOUND_S = 15
-"""A SIGKILLed worker's job must be done by another worker this soon after the kill. The job timeout is the
-default 900 s: arq's own in-progress key would hold the job for 910 s; the survivors' heartbeats hand it
-back once the dead worker's heartbeat expires (3 × 0.5 s here), then it runs again (~2 s)."""
+HANG_GUARD_S = 300
+"""How long the test waits for the re-run before failing instead of hanging: a guard, not a timing (how soon
+the job comes back is measured by bench/reliability.py's crash scenario). The job timeout is the default 900 s,
+so arq's own in-progress key would hold the job for 910 s: a re-run that this test sees at all came from the
+survivors' heartbeats, which hand the job back once the dead worker's heartbeat expires (3 × 0.5 s here)."""
 
 
 @pytest.fixture()
@@ -49,14 +50,11 @@ def test_job_of_a_killed_worker_completes_on_another(own_stack: Stack) -> None:
             time.sleep(0.05)
         assert redis.get(f"arq:retry:{job_id}") == b"1"  # started once: nobody took it from a live worker
         os.kill(doomed, signal.SIGKILL)
-        killed_at = time.monotonic()
         wait_until(
             lambda: client.get(location).json()["status"] == "succeeded",
-            HANDBACK_BOUND_S,
+            HANG_GUARD_S,
             "re-run on the surviving worker",
         )
-        took = time.monotonic() - killed_at
-        assert took < HANDBACK_BOUND_S, took
         result = client.get(location).json()["result"]
         assert result["stats"]["total"]["valid"] > 0 and "SYSTEM.GOODBYE" in result["preconditions"]
         assert deserialize_result(redis.get(f"arq:result:{job_id}")).job_try == 2  # type: ignore[arg-type]

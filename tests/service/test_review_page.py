@@ -88,6 +88,16 @@ def test_a_set_keeps_its_inference_report_and_says_how_each_rule_was_decided(
     assert edited["decided"]["SYSTEM.GOODBYE"]["self.user is not None"] == "no evidence"
 
 
+def test_a_set_without_rules_is_refused_saying_how_to_learn_them(acme: httpx.Client) -> None:
+    """Sent with demonstrations but no rules, a set would allow every call of every action: refused, not stored."""
+    for body in ({"spec": SPEC, "demonstrations": DEMOS}, {"spec": SPEC, "demonstrations": DEMOS,
+                                                           "preconditions": {"SYSTEM.INFORM": []}}):
+        answer = acme.post("/precondition-sets", json=body)
+        assert answer.status_code == 422, answer.text
+        error = answer.json()["error"]
+        assert error["field"] == "preconditions" and "/infer-preconditions" in error["message"], error
+
+
 def test_the_list_is_the_tenants_own_newest_first_and_paged(
     stack: Stack, keys: tuple[Path, dict[str, str]], inferred: dict[str, Any], globex: httpx.Client
 ) -> None:
@@ -230,6 +240,19 @@ def test_rejecting_a_rule_by_a_click_makes_version_2(
     page.locator("#history-details summary").click()
     expect(page.locator("#versions")).to_contain_text(f"reject SYSTEM.OFFER: {rule}")
     expect(page.locator("#diff .removed")).to_contain_text(rule)
+
+
+@needs_browser
+def test_actions_without_a_rule_are_a_warning_in_the_header_never_an_all_clear(
+    page: Page, stack: Stack, acme: httpx.Client, keys: tuple[Path, dict[str, str]]
+) -> None:
+    made = _ok(acme.post("/precondition-sets", json={
+        "spec": SPEC, "preconditions": {"SYSTEM.GOODBYE": ["self.user.no_more"]}}), 201)
+    without = len(made["warnings"])
+    assert without > 1 and "SYSTEM.GOODBYE" not in made["warnings"]
+    _open(page, stack, f"/ui/sets/{made['id']}", keys[1]["acme"])
+    expect(page.locator("#no-rule-count")).to_have_text(f"{without} actions without a rule: every call allowed")
+    expect(page.locator("#review-count")).not_to_have_class("badge d-established")
 
 
 def _event(row: Any, actor: str, act: str, args: str) -> None:

@@ -23,6 +23,7 @@ from precond.jobs import keys, policy_adapters
 from precond.jobs.payloads import ReinferJob, TrainPolicyJob
 from precond.programs import checks
 from precond_client.schemas.api import (
+    MAX_SOURCE_CHARS,
     CheckRequest,
     CheckResponse,
     ErrorInfo,
@@ -131,7 +132,8 @@ async def _with_rules_and_program(
     if not isinstance(body.history, str):
         history = body.model_dump(include={"history"})["history"]  # events and messages as plain data, at once
         chars = offload.rendering_chars(body.spec_text(), len(json.dumps(history, default=str)))
-        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history, tag)
+        program = await services.checks.run(tag, chars, offload.rendered, body.spec_text(), history, tag,
+                                            MAX_SOURCE_CHARS)
         if isinstance(program, checks.Problem):
             return program
         body = body.model_copy(update={"history": program})

@@ -50,13 +50,22 @@ RESPONSES: dict[int | str, dict[str, Any]] = {
 SetReference = Annotated[str, Path(max_length=100, description="`id`, or `id@version`.")]
 SetId = Annotated[str, Path(max_length=100)]
 MAX_LISTED_SETS = 100
+NO_RULES = (
+    "no rules: a set is made of rules, and one without any would allow every call of every action. To learn them "
+    "from these demonstrations, POST this `spec` and `demonstrations` to /infer-preconditions (or `precond infer`), "
+    "then create the set from its answer's `preconditions`, `evidence`, `candidates` and `warnings` (the review "
+    "page's \"New set from request.json\" does both); or write rules by hand: {\"SYSTEM.INFORM\": "
+    "[\"self.user.requested_slot[slot]\"]}")
 
 
 @router.post("", response_model=PreconditionSet, status_code=201, responses=RESPONSES)
 async def create_set(body: PreconditionSetCreate, services: ServicesDep, caller: CurrentCaller) -> JSONResponse:
     """Store rules as version 1 of a new set, by hand or from an inference (its `preconditions`, with the `spec`
     and `demonstrations` it was inferred from). Rules that would block a demonstrated call are refused (422,
-    naming the rule and the demonstration) unless `force`; the report is kept in `validation`."""
+    naming the rule and the demonstration) unless `force`; the report is kept in `validation`. A body without
+    any rule is refused (422 saying how to learn them): such a set would allow every call of every action."""
+    if not any(body.preconditions.values()):
+        raise ServiceError(422, NO_RULES, "invalid_input", field="preconditions")
     rules = await _static_check(services, caller, body.spec, body.preconditions, body.demonstrations)
     validation = await _validate(services, caller, body.spec, rules, body.demonstrations)
     _refuse_blocking(validation, {(a, r) for a, rs in rules.items() for r in rs}, body.force, "preconditions")

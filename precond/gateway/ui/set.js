@@ -72,8 +72,10 @@ function render(set, navigate) {
         h("span", { class: "muted" }, when(set.created)),
         versionPicker(set, navigate),
         h("span", {}, `${labels.length} rules`),
-        h("span", { class: review ? "badge d-zero-shot" : "badge d-established", id: "review-count" },
-          `${review} need${review === 1 ? "s" : ""} a human`)),
+        h("span", { class: review || without.length ? "badge d-zero-shot" : "badge d-established",
+          id: "review-count" }, `${review} need${review === 1 ? "s" : ""} a human`),
+        without.length ? h("a", { class: "badge d-no-evidence", id: "no-rule-count", href: "#no-rule" },
+          `${without.length} action${without.length === 1 ? "" : "s"} without a rule: every call allowed`) : null),
       editable ? null : h("p", { class: "banner" }, `This is version ${set.version}; edits make a new version from `
         + "the latest. ", h("a", { href: `/ui/sets/${set.id}`, onclick: linkTo(navigate, `/ui/sets/${set.id}`) },
         `Open version ${set.latest}`)),

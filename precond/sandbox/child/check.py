@@ -22,7 +22,7 @@ def job_check(payload: dict[str, typing.Any], ctx: Context) -> dict[str, object]
     if not isinstance(preconditions, dict) or not isinstance(calls, list):
         raise Failure({"kind": "bad_request", "message": "preconditions must be an object, calls a list"})
     codes = _precondition_codes(spec, preconditions)
-    program = Program(spec, payload.get("history"), "history", None)
+    program = Program(spec, payload.get("history"), "history", None, ctx.report)
     guards: dict[str, list[tuple[str, typing.Any]]] = {
         q: [(text, eval(code, program.globals)) for text, code in items] for q, items in codes.items()
     }

@@ -13,6 +13,7 @@ import typing
 
 from precond.programs import Method
 
+from .framing import Reporter
 from .runtime import UNDO_LOG, UNDO_ON, Context, Occurrence, Program, Spec, compiled, load, recorder, rollback
 from .values import FATAL, Failure, clean, describe, jsonable, tupled
 
@@ -100,7 +101,7 @@ def job_evaluate(payload: dict[str, typing.Any], ctx: Context) -> dict[str, obje
     programs = []
     for index, source in enumerate(demos):
         ctx.report.phase(f"demonstrations[{index}]")
-        programs.append(_observe(spec, index, source, wanted, occurrences))
+        programs.append(_observe(spec, index, source, wanted, occurrences, ctx.report))
     points_out: dict[str, object] = {}
     budget = int(payload.get("max_points") or 0)
     unit = 0
@@ -136,8 +137,8 @@ def _within_budget(qname: str, size: int, budget: int) -> None:
 
 
 def _observe(spec: Spec, index: int, source: object, wanted: set[str],
-             occurrences: dict[str, list[Occurrence]]) -> Observed:
-    program = Program(spec, source, "demonstration", index)
+             occurrences: dict[str, list[Occurrence]], report: Reporter) -> Observed:
+    program = Program(spec, source, "demonstration", index, report)
 
     def on_call(method: Method, receiver: object, args: tuple[object, ...]) -> None:
         if method.qualname in wanted:

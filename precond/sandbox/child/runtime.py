@@ -244,7 +244,8 @@ class Program:
 
     FILE = "<program>"
 
-    def __init__(self, spec: Spec, source: object, where: str, index: int | None) -> None:
+    def __init__(self, spec: Spec, source: object, where: str, index: int | None,
+                 report: Reporter | None = None) -> None:
         self.spec, self.where, self.index = spec, where, index
         self.lines = LINE_BREAKS.split(source) if isinstance(source, str) else []  # what `lineno` counts
         # a history is read line by line, each line once per warm child (a dialog's grows by a line a turn)
@@ -252,7 +253,12 @@ class Program:
         tree = parse(source, self.FILE, where, index) if read is None else ast.Module(body=read, type_ignores=[])
         self.source = typing.cast(str, source)
         self.body = main_body(tree)
+        label = where if index is None else f"{where}s[{index}]"
+        if report is not None:  # a limit hit while the spec's own top level runs is the spec's, not the program's
+            report.phase(f"the spec's top level (run anew for {label})")
         self.globals = spec.instantiate()
+        if report is not None:
+            report.phase(label)
         self.base = dict(self.globals)
         self.position = -1
         self.calls_in_statement = 0

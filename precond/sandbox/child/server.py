@@ -338,9 +338,9 @@ class Server:
 
     def failure(self, outcome: Outcome, child: Child) -> dict[str, object]:
         where = f" while running {outcome.phase}"
-        if outcome.kind == "timeout":
-            return {"status": "limit", "limit": "timeout",
-                    "message": f"no result within {self.limits['timeout_s']} s{where}"}
+        if outcome.kind == "timeout":  # `unit`: which part was running, so the caller can tell it from the rest
+            return {"status": "limit", "limit": "timeout", "unit": outcome.unit,
+                    "message": f"no result within {self.limits['timeout_s']} s (SANDBOX_TIMEOUT_S){where}"}
         if outcome.kind == "result":
             return {"status": "limit", "limit": "result", "message": "result too large"}
         status = child.status

@@ -18,7 +18,7 @@ def job_trace(payload: dict[str, typing.Any], ctx: Context) -> dict[str, object]
     positions = []
     for index, source in enumerate(demos):
         ctx.report.phase(f"demonstrations[{index}]")
-        program = Program(spec, source, "demonstration", index)
+        program = Program(spec, source, "demonstration", index, ctx.report)
 
         def on_call(method: Method, receiver: object, args: tuple[object, ...], p: Program = program) -> None:
             values = jsonable(args)
