@@ -47,6 +47,7 @@ from precond.engine.tool_conditions import tool_atoms
 from precond.engine.work import WorkBudget, points_of
 from precond.programs import checks
 from precond.sandbox.types import (
+    BrokenRule,
     EvaluateResult,
     LimitExceeded,
     ProgramError,
@@ -95,6 +96,17 @@ T = TypeVar("T")
 SANDBOX_FIELDS = {"spec": "spec", "history": "history", "preconditions": "preconditions"}
 MODEL_WAIT_POLL_S = 0.1
 """How often a job waiting for the model's load checks whether it was cancelled."""
+
+
+def broken_text(history: str, broken: BrokenRule | None) -> str | None:
+    """Where a history broke a rule, in words: the line, its call, the action and the rules that did not hold."""
+    if broken is None:
+        return None
+    lines = history.splitlines()
+    call = lines[broken.line - 1].strip() if 0 < broken.line <= len(lines) else "?"
+    rules = ", ".join(f"`{rule}`" for rule in broken.rules)
+    return (f"history, line {broken.line}: {call}: {broken.action}'s rule{'s' if len(broken.rules) > 1 else ''} "
+            f"{rules} did not hold")
 
 
 def _no_progress(phase: str, done: int, total: int) -> None:
@@ -471,16 +483,12 @@ class Engine:
                                   model=self.model().info)
 
     def _history_violation(self, spec: Spec, preconditions: dict[str, list[str]], history: str) -> str | None:
-        """Where the history breaks the preconditions, if it does: the history run with the rules written in."""
+        """Where the history breaks the preconditions, if it does: its line and the rules that did not hold."""
         if not any(preconditions.values()):
             return None
-        failure = self._failure(spec, preconditions, [history])
-        if failure is None:
-            return None
-        lines = history.splitlines()
-        call = lines[failure.line - 1].strip() if failure.line and 0 < failure.line <= len(lines) else "?"
-        return f"history, line {failure.line}: {call}: {failure.exc_type}{': ' if failure.message else ''}" \
-            f"{failure.message}"
+        judged = sandbox_call(self._sandbox.judge, spec.source, preconditions, history, [],
+                              scope.current() or None, warm=scope.warm())
+        return broken_text(history, judged.history)
 
     def _verify(
         self, spec: Spec, preconditions: dict[str, list[str]], history: str, calls: list[str]
@@ -501,10 +509,14 @@ class Engine:
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
         check_calls(spec, request.preconditions, history, calls, scope.current())
-        verdicts = self._verify(spec, request.preconditions, history, calls)
+        judged = sandbox_call(self._sandbox.judge, spec.source, request.preconditions, history, calls,
+                              scope.current() or None, warm=scope.warm())
+        verdicts = [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
+                    for v in judged.verdicts]
         actions = call_actions(spec, history, calls, scope.current())
         return CheckResponse(results=[_with_status(_labelled(v, spec, request.decided), action, request)
-                                      for v, action in zip(verdicts, actions, strict=True)])
+                                      for v, action in zip(verdicts, actions, strict=True)],
+                             history_violation=broken_text(history, judged.history))
 
     # ---- validate (a precondition set's rules against its demonstrations) ----------------------------
     def validate(self, spec_text: str, preconditions: dict[str, list[str]],

@@ -9,9 +9,11 @@ from precond.sandbox.api import Sandbox
 from precond.sandbox.limits import DEFAULT_ALLOWED_IMPORTS
 from precond.sandbox.types import (
     ActionInfo,
+    BrokenRule,
     CallVerdict,
     CandidateResult,
     EvaluateResult,
+    Judged,
     LimitExceeded,
     Limits,
     Point,
@@ -28,9 +30,11 @@ from precond.sandbox.types import (
 __all__ = [
     "DEFAULT_ALLOWED_IMPORTS",
     "ActionInfo",
+    "BrokenRule",
     "CallVerdict",
     "CandidateResult",
     "EvaluateResult",
+    "Judged",
     "LimitExceeded",
     "Limits",
     "Point",

@@ -18,9 +18,11 @@ from precond.sandbox.plain import SpecVocabulary, is_plain, vocabulary
 from precond.sandbox.policy import PolicyUnavailable, build_filter
 from precond.sandbox.pool import ServerPool
 from precond.sandbox.types import (
+    BrokenRule,
     CallVerdict,
     CandidateResult,
     EvaluateResult,
+    Judged,
     LimitExceeded,
     Limits,
     Point,
@@ -165,7 +167,13 @@ class Sandbox:
 
     def check(self, spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
               calls: Sequence[str], scope: str | None = None, warm: bool = True) -> tuple[CallVerdict, ...]:
-        """Run the history under the preconditions, then judge each proposed call on its own copy.
+        """`judge`'s verdicts on the calls."""
+        return self.judge(spec, preconditions, history, calls, scope, warm).verdicts
+
+    def judge(self, spec: str, preconditions: Mapping[str, Sequence[str]], history: str,
+              calls: Sequence[str], scope: str | None = None, warm: bool = True) -> Judged:
+        """Run the history under the preconditions, then judge each proposed call on its own copy, and say
+        where the history itself first broke a rule (it is what happened: that never refuses a call).
 
         Plain preconditions are judged together; any other precondition in a child of its own, and a call
         is allowed only when every child allows it. `scope` (the caller's tenant) lets a warm child that
@@ -183,26 +191,28 @@ class Sandbox:
                     raise ProgramError("preconditions", None, None, "SyntaxError", f"{action}: {problem}")
         parsed = [parse_call(c) for c in calls]
         accepted = [p for p in parsed if isinstance(p, ProposedCall)]
-        if not accepted:
-            return tuple(_rejected(c, p) for c, p in zip(calls, parsed, strict=True))
+        if parsed and not accepted:  # no call to judge (none sent: the history alone is)
+            return Judged(tuple(_rejected(c, p) for c, p in zip(calls, parsed, strict=True)), None)
         plain, isolated = _partition(spec, preconditions, key)
         groups = [plain] + [{action: [expression]} for action, expression in isolated[:MAX_ISOLATED]]
         if len(isolated) > MAX_ISOLATED:
             raise ProgramError("preconditions", None, None, "ValueError", TOO_MANY_ISOLATED)
         wire_calls = [protocol.wire_call(p) for p in accepted]
 
-        def build(_result: dict[str, Any], units: Mapping[int, Any]) -> list[CallVerdict]:
-            return [protocol.verdict(p.text, units[k]) for k, p in enumerate(accepted)]
+        def build(_result: dict[str, Any], units: Mapping[int, Any]) -> tuple[list[CallVerdict], BrokenRule | None]:
+            return ([protocol.verdict(p.text, units[k]) for k, p in enumerate(accepted)],
+                    protocol.broken_rule(units.get(len(accepted))))
 
-        verdicts = [  # an isolated precondition gets a child of its own: a fresh one, never a warm one
+        parts = [  # an isolated precondition gets a child of its own: a fresh one, never a warm one
             self._run("check", {"spec": spec, "history": history, "calls": wire_calls,
                                 "preconditions": {a: list(e) for a, e in group.items()}}, build,
                       scope if number == 0 and warm else None)
             for number, group in enumerate(groups)
         ]
-        combined = iter([protocol.combine(parts) for parts in zip(*verdicts, strict=True)])
-        return tuple(next(combined) if isinstance(p, ProposedCall) else _rejected(c, p)
-                     for c, p in zip(calls, parsed, strict=True))
+        combined = iter([protocol.combine(verdicts) for verdicts in zip(*(v for v, _ in parts), strict=True)])
+        verdicts = tuple(next(combined) if isinstance(p, ProposedCall) else _rejected(c, p)
+                         for c, p in zip(calls, parsed, strict=True))
+        return Judged(verdicts, protocol.first_broken([broken for _, broken in parts]))
 
     def _run(self, op: str, payload: dict[str, Any], build: Callable[[dict[str, Any], Mapping[int, Any]], T],
              scope: str | None = None) -> T:

@@ -15,6 +15,7 @@ from precond.sandbox.child.values import clean
 from precond.sandbox.types import (
     ActionInfo,
     Args,
+    BrokenRule,
     CallVerdict,
     CandidateResult,
     LimitExceeded,
@@ -171,6 +172,28 @@ def verdict(call: str, info: Mapping[str, Any]) -> CallVerdict:
         violations=tuple(clean(str(v), 4000) for v in violations),
         error=None if error is None else clean(str(error)),
     )
+
+
+def broken_rule(info: Any) -> BrokenRule | None:
+    """The history's own part of a check (`{"line", "action", "rules"}`); None when it broke no rule, or when that
+    part failed (a runaway rule: the calls' verdicts name it)."""
+    if not isinstance(info, Mapping) or "failed" in info or not isinstance(info.get("line"), int):
+        return None
+    rules = info.get("rules") or []
+    if not isinstance(rules, list) or not rules:
+        return None
+    return BrokenRule(int(info["line"]), clean(str(info.get("action")), 200), tuple(clean(str(r), 4000) for r in rules))
+
+
+def first_broken(parts: Sequence[BrokenRule | None]) -> BrokenRule | None:
+    """The children's findings (plain rules, each other rule alone) as one: the first line, with every rule of
+    that line's action that broke."""
+    found = [p for p in parts if p is not None]
+    if not found:
+        return None
+    line = min(p.line for p in found)
+    at = [p for p in found if p.line == line]
+    return BrokenRule(line, at[0].action, tuple(dict.fromkeys(r for p in at for r in p.rules)))
 
 
 def combine(parts: Sequence[CallVerdict]) -> CallVerdict:

@@ -145,6 +145,23 @@ class CallVerdict:
     error: str | None = None
 
 
+@dataclass(frozen=True)
+class BrokenRule:
+    """Where a history first called an action whose rules did not hold: the line, the action, those rules."""
+
+    line: int
+    action: str
+    rules: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Judged:
+    """Proposed calls judged after a history, and where the history itself first broke a rule (None: never)."""
+
+    verdicts: tuple[CallVerdict, ...]
+    history: BrokenRule | None
+
+
 class SandboxError(Exception):
     """Base of everything the sandbox raises; the caller's process is never harmed by untrusted code."""
 

@@ -657,8 +657,9 @@ class NextActionResponse(StrictBody):
     history_violation: str | None = Field(
         default=None,
         description="Set when the history itself breaks the preconditions: the first call that does, by line, "
-        "and the rule. The history is taken as what happened and the answer is still given (a flagged answer, "
-        "not a 422): rules inferred from a few demonstrations can be stricter than the dialogs that occur.",
+        "and the rules that did not hold. The history is taken as what happened and the answer is still given "
+        "(a flagged answer, not a 422): rules inferred from a few demonstrations can be stricter than the dialogs "
+        "that occur.",
     )
     model: ModelInfo | None = None
 
@@ -746,6 +747,12 @@ class CallVerdict(StrictBody):
 
 class CheckResponse(StrictBody):
     results: list[CallVerdict]
+    history_violation: str | None = Field(
+        default=None,
+        description="Set when the history itself broke the preconditions: the first line whose call an action's "
+        "rules did not allow, the call, and those rules. The history is taken as what happened: the calls are "
+        "still judged after it.",
+    )
 
 
 class Blocked(StrictBody):

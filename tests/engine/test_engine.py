@@ -336,6 +336,23 @@ def test_a_call_of_something_not_an_action_is_refused_never_approved(
     assert err.value.field == "calls[1]" and words in err.value.message
 
 
+def test_check_names_the_line_and_rule_a_history_already_broke(engine: Engine, restaurants: dict[str, Any]) -> None:
+    """The history is what happened (the calls are still judged after it), but a history that broke a rule says
+    where and which: looked up before it was verified, the call that followed is not silently fine."""
+    rules = {"SYSTEM.OFFER": ["self.query_success", "slot != ''"], "SYSTEM.GOODBYE": ["self.user.no_more"]}
+    broken = ("user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')\n"
+              "system.OFFER('restaurant_name')\nsystem.GOODBYE()\n")
+    request = CheckRequest(spec=restaurants["spec_program"], preconditions=rules, history=broken,
+                           calls=["system.REQUEST('city')"])
+    answer = engine.check(request)
+    assert answer.results[0].allowed
+    assert answer.history_violation == ("history, line 4: system.OFFER('restaurant_name'): SYSTEM.OFFER's rule "
+                                        "`self.query_success` did not hold")
+    fine = request.model_copy(update={"history": "user = USER()\nsystem = SYSTEM(user)\nuser.GOODBYE()\n"
+                                                 "system.GOODBYE()\n"})
+    assert engine.check(fine).history_violation is None
+
+
 def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: dict[str, Any]) -> None:
     history = "user = USER()\nsystem = SYSTEM(user)\n"
 

@@ -114,7 +114,10 @@ def test_a_history_that_violates_the_preconditions_is_answered_and_flagged_with_
     history = HISTORY + "system.REQUEST('city')\n"
     response = engine.next_action(_request(restaurants, history=history))
     assert response.history_violation is not None
-    assert response.history_violation.startswith("history, line 5: system.REQUEST('city'): AssertionError")
+    rules = _request(restaurants).preconditions["SYSTEM.REQUEST"]
+    assert response.history_violation.startswith("history, line 5: system.REQUEST('city'): SYSTEM.REQUEST's rule")
+    assert response.history_violation.endswith("did not hold"), response.history_violation
+    assert any(f"`{rule}`" in response.history_violation for rule in rules), response.history_violation
     assert response.actions[0].verified
     assert engine.next_action(_request(restaurants)).history_violation is None
 

@@ -49,7 +49,58 @@ def job_check(payload: dict[str, typing.Any], ctx: Context) -> dict[str, object]
         if unit not in ctx.skip:
             ctx.report.begin(unit, f"proposed call {unit}")
             ctx.report.unit(unit, _verdict(spec, program, guards, signatures, call))
+    last = len(calls)  # the history judged as a part of its own: a runaway rule fails that part only
+    if last not in ctx.skip and any(codes.values()):
+        ctx.report.begin(last, "the history, judged against the preconditions")
+        ctx.report.unit(last, _first_broken(spec, payload.get("history"), codes))
     return {}
+
+
+def _first_broken(spec: Spec, source: object, codes: dict[str, list[tuple[str, types.CodeType]]]
+                  ) -> dict[str, object]:
+    """Where the history, run again on a fresh instance of the spec, first called an action whose rules did not
+    hold (`line`, `action`, `rules`: those that did not, or raised); `{"line": None}` when it never did. Only
+    the history's own calls are judged, not the calls a spec method makes."""
+    program = Program(spec, source, "history", None)
+    guards = {q: [(text, eval(code, program.globals)) for text, code in items] for q, items in codes.items()}
+    found: dict[str, object] = {"line": None}
+    depth = [0]
+
+    def wrap(method: Method, fn: typing.Any, signature: inspect.Signature) -> typing.Any:
+        checks = guards.get(method.qualname, [])
+
+        def observed(self: object, *args: object, **kwargs: object) -> object:
+            bound = bind(signature, self, args, kwargs)
+            if found["line"] is None and depth[0] == 0 and bound is not None and checks:
+                broken = [text for text, check in checks if not _holds(check, self, bound)]
+                if broken:
+                    found.update(line=program.body[program.position].lineno, action=method.qualname, rules=broken)
+            depth[0] += 1
+            try:
+                return fn(self, *args, **kwargs)
+            finally:
+                depth[0] -= 1
+
+        return observed
+
+    program.instrument(wrap)
+    try:
+        program.run()
+    except FATAL:
+        raise
+    except BaseException:  # it ran once already; what it may do differently now is not the history's verdict
+        pass
+    return found
+
+
+def _holds(check: typing.Any, receiver: object, values: tuple[object, ...]) -> bool:
+    """A rule that raises does not hold (the call's verdict says how it raised)."""
+    try:
+        return bool(check(receiver, *values))
+    except FATAL:
+        raise
+    except BaseException:
+        return False
 
 
 def _precondition_codes(spec: Spec, preconditions: dict[str, typing.Any]
