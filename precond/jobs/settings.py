@@ -29,8 +29,9 @@ class QueueSettings(BaseSettings):
         validation_alias=AliasChoices("REDIS_URL", "PRECOND_REDIS_URL"),
         description="The queue Redis: jobs, results, progress, heartbeats, claims and stats; everything a "
         "client is still owed, so run it with `maxmemory-policy noeviction` (full: the gateway answers 503, "
-        "nothing accepted is lost). Unset: 127.0.0.1:6379, and `precond serve` starts private redis-servers "
-        "(queue and cache) if nothing answers there.",
+        "nothing accepted is lost). Unset: a gateway or worker started alone uses 127.0.0.1:6379; `precond "
+        "serve` starts its own password-protected pair (queue and cache) on free ports and hands them to its "
+        "processes.",
     )
     cache_redis_url: str | None = Field(
         default=None,
