@@ -29,6 +29,7 @@ from precond.engine.ranking import (
     informative,
 )
 from precond.engine.report import UNSEEN_RULE, Proposals, Ranked, listed, report_of
+from precond.engine.runnable import drop_unrunnable
 from precond.engine.selection import Inference, select_rules
 from precond.engine.spec import (
     Spec,
@@ -257,6 +258,10 @@ class Engine:
             evaluated = _merged(first, sandbox_call(self._sandbox.evaluate, spec.source, demos,
                                                     {a: list(proposals.source.get(a, {})) for a in rest},
                                                     scope=scope.current()))
+        unseen = {a: not trace.actions[a].occurrences for a in actions}
+        unrunnable: dict[str, dict[str, str]] = {}
+        if any(unseen.values()):
+            evaluated, unrunnable = drop_unrunnable(spec, StateModel(spec, demo_trees), actions, evaluated, unseen)
         progress("rank", 0, 1)
         with timer.phase("rank"):
             ranked = select_rules(actions, Inference(trace, evaluated, proposals, request.options, writes, prior))
@@ -291,6 +296,10 @@ class Engine:
                        for rule in preconditions[a]} for a in actions}
         warnings = rule_warnings(actions, occurrences, preconditions, decided, model_info is not None,
                                  request.options, prior.dropped)
+        for action, dropped_here in unrunnable.items():
+            listed_here = "; ".join(f"`{e}` ({why})" for e, why in list(dropped_here.items())[:3])
+            warnings[action] = "; ".join(w for w in (warnings.get(action), (
+                f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
         for action in actions:  # a search cut at its bound says so, whatever was kept
             cuts = (warnings.get(action), stopped.get(action), ranked[action].search)
             if any(cuts[1:]):

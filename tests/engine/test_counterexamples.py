@@ -4,7 +4,7 @@ which labelled calls they refuse; labels that name nothing, or contradict each o
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import pytest
@@ -13,7 +13,7 @@ from precond.convert.openai import convert
 from precond.engine.counterexamples import _terms, _text
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas.api import CheckRequest, InferRequest, ModelInfo
 from precond_client.schemas.errors import InvalidInput
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
@@ -106,3 +106,39 @@ def test_terms_cover_the_calls_to_allow_with_as_few_conditions_as_separate_them(
     assert _terms({"d": 0b01111, "e": 0b10100}, 0b00111, 0b11000) == [("d", "e")]
     assert _text([("x or y", "z")]) == "(x or y) and z"
     assert _terms({"c": 0b11111}, 0b00111, 0b11000) == []  # nothing separates: no rule is made up
+
+
+class GuessingModel:
+    """The code model, answering every prompt with `assert <guess>` (several samples agree: a zero-shot rule)."""
+
+    info = ModelInfo(name="guessing", device="cpu", dtype="none")
+    known_calls: tuple[str, ...] = ()
+
+    def __init__(self, guess: str) -> None:
+        self.guess = guess
+
+    def complete(self, prefix: str, suffixes: Sequence[str], n: int, sampling: Any, stop: str,
+                 should_stop: Callable[[], bool] | None = None) -> list[list[str]]:
+        return [[f" {self.guess}"] * n for _ in suffixes]
+
+
+@pytest.mark.parametrize(("guess", "kept"), [("self.reservation.cabin == 'business'", False),
+                                             ("self.user.messages > 0", True)])
+def test_a_zero_shot_guess_that_raises_on_the_state_is_dropped_and_reported(guess: str, kept: bool) -> None:
+    """`send_certificate` is never called: a guess over an attribute AGENT lacks would refuse every call with an
+    error; it is rejected with the reason, the warning names it, and the action keeps `options.unseen`."""
+    tools = [*TOOLS, {"type": "function", "function": {"name": "send_certificate", "parameters": {
+        "properties": {"user_id": {"type": "string"}}, "required": ["user_id"]}}}]
+    converted = convert([run("A1", "business", "no"), run("B2", "economy", "yes"), run("D4", "business", "yes")],
+                        tools)
+    model: Any = GuessingModel(guess)
+    with Sandbox(workers=1) as sandbox:
+        response = Engine(sandbox, lambda: model).infer(InferRequest.model_validate({
+            "spec": converted.spec, "demonstrations": [t.program for t in converted.trajectories],
+            "actions": ["AGENT.send_certificate", CANCEL], "options": {"judge": False}}))
+    rules = response.preconditions["AGENT.send_certificate"]
+    assert rules == ([guess] if kept else ["False"])
+    if not kept:
+        report = next(c for c in response.candidates["AGENT.send_certificate"] if c.assertion == guess)
+        assert not report.kept and "raises on the spec's state (AGENT has no attribute 'reservation')" in report.reason
+        assert "AGENT has no attribute 'reservation'" in response.warnings["AGENT.send_certificate"]
