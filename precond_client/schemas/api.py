@@ -972,4 +972,9 @@ class JobStatus(StrictBody):
     progress: JobProgress = Field(default_factory=JobProgress)
     result: dict[str, Any] | None = None
     error: ErrorInfo | None = None
+    wait_max_s: float | None = Field(
+        default=None,
+        description="In a POST's 202 only: the longest the server waits for a job before answering 202 "
+        "(`PRECOND_WAIT_MAX_S`); a `?wait=` above it was cut to it. The job runs on: poll `Location`.",
+    )
 

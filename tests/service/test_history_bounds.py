@@ -1,5 +1,6 @@
-"""A history sent as events is bounded where the body is accepted, by the bound of a history sent as code: one
-that renders to more is a 422 naming `history`, never a job that a worker then refuses with a 500."""
+"""Bounds a user meets at the gateway: a history sent as events is bounded where the body is accepted, by the
+bound of a history sent as code (one that renders to more is a 422 naming `history`, never a job that a worker
+then refuses with a 500); a `?wait=` over the server's cap is cut to it, and the 202 says so."""
 
 from __future__ import annotations
 
@@ -9,14 +10,15 @@ from typing import Any
 
 import pytest
 
-from precond.stack.local import Stack, example, make_stack, serving
+from precond.stack.local import Stack, example, heavy_infer_body, make_stack, serving
+from precond_client import Client
 from precond_client.schemas.api import MAX_SOURCE_CHARS
 
 
 @pytest.fixture(scope="module")
 def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Iterator[Stack]:
     stack = make_stack(tmp_path_factory.mktemp("bounds"), tiny_model_dir,
-                       PRECOND_MAX_BODY_BYTES=str(2 * 1024 * 1024))
+                       PRECOND_MAX_BODY_BYTES=str(2 * 1024 * 1024), PRECOND_WAIT_MAX_S="0.5")
     with serving(stack, workers=1):
         yield stack
 
@@ -54,3 +56,14 @@ def test_a_code_history_over_the_bound_is_the_same_field(stack: Stack) -> None:
     with stack.http() as client:
         answer = client.post("/check-actions", json=body, params={"wait": 30})
     assert answer.status_code == 422 and answer.json()["error"]["field"] == "history", answer.text
+
+
+def test_a_202_states_the_wait_cap_and_the_client_follows_the_job(stack: Stack) -> None:
+    body = heavy_infer_body(seed=46, millions=20)
+    with stack.http() as client:
+        accepted = client.post("/infer-preconditions", json=body, params={"wait": 300})
+    assert accepted.status_code == 202, accepted.text
+    assert accepted.headers["X-Wait-Max-S"] == "0.5" and accepted.json()["wait_max_s"] == 0.5
+    with Client(stack.base_url) as following:  # the same request: the client polls the job to its end
+        answer = following.infer_preconditions(body, wait=300)
+    assert "SYSTEM.GOODBYE" in answer.preconditions

@@ -47,11 +47,13 @@ RulesRequest = TypeVar("RulesRequest", CheckRequest, NextActionRequest)
 Wait = Annotated[
     float | None,
     Query(
-        ge=0, description="Seconds to wait for the result before answering 202; capped by the server's bound."
+        ge=0, description="Seconds to wait for the result before answering 202; capped by the server's bound "
+        "(`PRECOND_WAIT_MAX_S`, 30 s unless set), which a 202 states (`wait_max_s`, header `X-Wait-Max-S`)."
     ),
 ]
 ERRORS: dict[int | str, dict[str, Any]] = {
-    202: {"model": JobStatus, "description": "Not done within the wait bound; poll the Location."},
+    202: {"model": JobStatus, "description": "Not done within the wait (`?wait=`, at most `wait_max_s`, also in "
+          "the `X-Wait-Max-S` header): the job runs on; poll the Location (the clients and the CLI do)."},
     400: {"model": ErrorResponse, "description": "Body is not JSON (or not UTF-8)."},
     404: {"model": ErrorResponse, "description": "`precondition_set` names no set (or version) of yours; another "
           "tenant's set is not found either."},
@@ -283,15 +285,16 @@ async def answer(
 
     payload = body.model_dump(mode="json")
     status = await submit_job(services, caller, kind, payload, operation.model(body), wait, screen)
-    return respond(request, status)
+    return respond(request, status, services.settings.wait_max_s)
 
 
 def _unusable(problem: checks.Problem) -> ServiceError:
     return ServiceError(422, problem.message, problem.type, field=problem.field)
 
 
-def respond(request: Request, status: JobStatus) -> Response:
-    """200 with the result, the job's error with its status, or 202 pointing at the job while it runs."""
+def respond(request: Request, status: JobStatus, wait_max_s: float) -> Response:
+    """200 with the result, the job's error with its status, or 202 pointing at the job while it runs, saying
+    the longest the server waits (a `?wait=` above it was cut to it)."""
     headers = {"X-Job-Id": status.id}
     if status.status == "succeeded":
         return JSONResponse(status.result, headers=headers)
@@ -300,4 +303,6 @@ def respond(request: Request, status: JobStatus) -> Response:
         code = 409 if status.status == "cancelled" else status_for(error)
         return error_response(request, code, error, headers=headers)
     headers["Location"] = f"/jobs/{status.id}"
-    return JSONResponse(status.model_dump(mode="json"), status_code=202, headers=headers)
+    headers["X-Wait-Max-S"] = f"{wait_max_s:g}"
+    body = status.model_copy(update={"wait_max_s": wait_max_s}).model_dump(mode="json")
+    return JSONResponse(body, status_code=202, headers=headers)
