@@ -13,7 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from precond.convert.shape import ConvertError, expect, key, load_json
-from precond.programs.checks import instance_classes
+from precond.programs.checks import ProgramProblem, instance_classes
+from precond.programs.history import event_call
 from precond.programs.spec import read_methods
 
 LITERALS = (str, int, float, bool, type(None))
@@ -80,14 +81,12 @@ def program(events: list[Any], setup: str, classes: dict[str, str], methods: dic
         actor = key(event, "actor", str, path, at)
         act = key(event, "act", str, path, at)
         args = expect(event.get("args", []), list, path, f"{at}.args")
-        if actor not in classes:
-            raise ConvertError(f"{path}: {at}.actor: {actor!r} is not an object of the setup "
-                               f"({', '.join(sorted(classes))})")
-        if f"{classes[actor]}.{act}" not in methods:
-            known = sorted(name.split(".", 1)[1] for name in methods if name.startswith(classes[actor] + "."))
-            raise ConvertError(f"{path}: {at}.act: {classes[actor]} has no method {act!r} ({', '.join(known)})")
+        try:  # the service's own check of an event: the same words, "did you mean" and argument count
+            call = event_call(classes, methods, actor, act, len(args), at or "event")
+        except ProgramProblem as exc:
+            raise ConvertError(f"{path}: {exc.problem.message}") from None
         rendered = ", ".join(literal(arg, path, f"{at}.args[{n}]") for n, arg in enumerate(args))
-        lines.append(f"{actor}.{act}({rendered})")
+        lines.append(f"{call}({rendered})")
     return "\n".join(lines) + "\n"
 
 

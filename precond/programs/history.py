@@ -112,17 +112,17 @@ def render(spec: str, events: Sequence[Mapping[str, Any]], field: str = "history
     for index, event in enumerate(events):
         actor, act, args = event.get("actor"), event.get("act"), event.get("args", [])
         if not isinstance(args, list):
-            _call(made, methods, actor, act, None, f"{field}[{index}]")  # an unknown actor or act is said first
+            event_call(made, methods, actor, act, None, f"{field}[{index}]")  # an unknown actor or act is said first
             raise _problem(f"{field}[{index}].args", "must be a list")
         key = (actor, act, len(args))
         call = calls.get(key) if isinstance(actor, str) and isinstance(act, str) else None
         if call is None:
-            call = calls[key] = _call(made, methods, actor, act, len(args), f"{field}[{index}]")
+            call = calls[key] = event_call(made, methods, actor, act, len(args), f"{field}[{index}]")
         lines.append(f"{call}({_literals(args, field, index)})")
     return "\n".join(lines) + "\n"
 
 
-def _call(made: Mapping[str, str], methods: Mapping[str, Method], actor: Any, act: Any, count: int | None,
+def event_call(made: Mapping[str, str], methods: Mapping[str, Method], actor: Any, act: Any, count: int | None,
           where: str) -> str:
     """`actor.method` for an event of `count` arguments (None: not checked); ProgramProblem naming `where` when
     it is not one."""

@@ -126,8 +126,10 @@ def test_events_become_a_program_with_safe_literals(tmp_path: Path) -> None:
 @pytest.mark.parametrize(("event", "says"), [
     ({"actor": "user", "act": "INFORM", "args": [{"__class__": "x"}]}, "[1].args[0]: dict"),
     ({"actor": "user", "act": "INFORM", "args": ["x'); import os; os.system('id'); ('"]}, None),
-    ({"actor": "user", "act": "DANCE"}, "[1].act: USER has no method 'DANCE'"),
-    ({"actor": "os", "act": "system", "args": ["id"]}, "[1].actor: 'os' is not an object"),
+    ({"actor": "user", "act": "DANCE"}, "[1]: unknown act 'DANCE' of user (USER)"),
+    ({"actor": "user", "act": "INFROM", "args": ["city"]}, "(did you mean 'INFORM'?)"),
+    ({"actor": "user", "act": "INFORM", "args": ["city", "Paris"]}, "[1]: USER.INFORM takes 1 argument(s) (slot), got 2"),
+    ({"actor": "os", "act": "system", "args": ["id"]}, "[1]: unknown actor 'os'"),
     ({"actor": "user", "act": "INFORM", "arg": "city"}, "[1]: unknown key 'arg'"),
 ])
 def test_events_refuse_what_is_not_a_call_of_the_spec(tmp_path: Path, event: dict[str, Any], says: str | None
