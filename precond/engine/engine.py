@@ -542,6 +542,7 @@ class Engine:
         blocked: list[Blocked] = []
         unjudged: dict[str, str] = {}
         raised: dict[str, str] = {}
+        occurrences: dict[str, int] = {}
         for action, expressions in rules.items():
             points = evaluated.points.get(action, ())
             results = {r.expression: r for r in evaluated.results.get(action, ())}
@@ -552,6 +553,7 @@ class Engine:
                     continue
                 if result.status == "invalid" and _raised(result.reason):
                     raised[f"{action}: {rule}"] = str(result.reason)
+                occurrences[f"{action}: {rule}"] = len(trace.actions[action].occurrences)
                 for occ in trace.actions[action].occurrences:
                     try:
                         holds = (result.satisfied >> points.index(occ)) & 1
@@ -561,7 +563,7 @@ class Engine:
                         step = trace.positions[occ.demo][occ.position]
                         blocked.append(Blocked(action=action, rule=rule, demonstration=occ.demo, line=step.line,
                                                call=step.source.strip()[:MAX_CALL_CHARS]))
-        return ValidateResponse(blocked=blocked, unjudged=unjudged, raised=raised)
+        return ValidateResponse(blocked=blocked, unjudged=unjudged, raised=raised, occurrences=occurrences)
 
     @staticmethod
     def _check_cancel(cancelled: Callable[[], bool]) -> None:

@@ -217,8 +217,22 @@ def version_of(
         id=set_id, version=number, latest=number, reference=f"{set_id}@{number}", created=now(), spec=spec,
         preconditions=preconditions, demonstrations=demonstrations, required=required, rejected=rejected,
         edits=edits, validation=validation, warnings=warnings, evidence=report.evidence,
-        candidates=report.candidates, decided=decided(preconditions, report.evidence, report.candidates),
+        candidates=report.candidates,
+        decided=_validated(decided(preconditions, report.evidence, report.candidates), validation),
     )
+
+
+def _validated(labels: dict[str, dict[str, str]], validation: ValidateResponse | None) -> dict[str, dict[str, str]]:
+    """A rule without an inference's evidence (written by hand) that the demonstrated calls of its action were
+    judged against, none refused, is `validated`: its check is evidence too (`validation.occurrences` says how
+    many calls)."""
+    if validation is None:
+        return labels
+    refused = {f"{b.action}: {b.rule}" for b in validation.blocked} | set(validation.raised)
+    return {action: {rule: "validated" if label == "no evidence" and f"{action}: {rule}" not in refused
+                     and validation.occurrences.get(f"{action}: {rule}", 0) > 0 else label
+                     for rule, label in rules.items()}
+            for action, rules in labels.items()}
 
 
 @dataclass(frozen=True)

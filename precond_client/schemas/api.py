@@ -698,8 +698,8 @@ STATUS_OF_DECIDED: dict[str, RuleStatus] = {
     "established": "established", "assumed": "assumed", "transferred": "transferred", "zero-shot": "zero-shot",
     "unseen": "missing",
 }
-"""An inference's `decided` label as the status of the action it belongs to; any other label ('no evidence': a
-rule written by hand, or a request that sent none) is 'given'."""
+"""An inference's `decided` label as the status of the action it belongs to; any other label ('no evidence' or
+'validated': a rule written by hand, or a request that sent none) is 'given'."""
 WEAKEST_FIRST: tuple[RuleStatus, ...] = ("missing", "zero-shot", "transferred", "assumed", "given", "established")
 RULE_STATUS_DESCRIPTION = (
     "What the verdict on this call rests on: how the rule of its action was decided (the weakest of its rules). "
@@ -775,6 +775,11 @@ class ValidateResponse(StrictBody):
         description="Rules that raise instead of answering true or false (`action: rule` → where, and the "
         "exception: e.g. `AttributeError: 'USER' object has no attribute 'afirmed'` for a misspelt name); a call "
         "at which a rule raises is refused, so they are in `blocked` too.",
+    )
+    occurrences: dict[str, int] = Field(
+        default_factory=dict,
+        description="Per rule judged (`action: rule`), the demonstrated calls of its action it was judged at: a "
+        "rule written by hand that none of them refused is `validated` in the set's `decided`.",
     )
 
 
@@ -914,7 +919,9 @@ class PreconditionSet(StrictBody):
         "demonstrations back it), 'assumed' (held at fewer than 3 demonstrated calls, or judged a requirement by "
         "the code model where the evidence left it open), 'zero-shot' (never demonstrated: the code model's "
         "guess), 'unseen' (never demonstrated and no guess: the placeholder `False`), 'transferred', or "
-        "'no evidence' (written by hand, or stored without an inference's report). The ones that need a human "
+        "'validated' (written by hand, and no demonstrated call of its action refused by it: `validation."
+        "occurrences` says how many), 'no evidence' (written by hand, its action never demonstrated or a call "
+        "refused, or stored without an inference's report). The ones that need a human "
         "are the assumed and zero-shot rules.")
 
 

@@ -128,7 +128,8 @@ def test_events_become_a_program_with_safe_literals(tmp_path: Path) -> None:
     ({"actor": "user", "act": "INFORM", "args": ["x'); import os; os.system('id'); ('"]}, None),
     ({"actor": "user", "act": "DANCE"}, "[1]: unknown act 'DANCE' of user (USER)"),
     ({"actor": "user", "act": "INFROM", "args": ["city"]}, "(did you mean 'INFORM'?)"),
-    ({"actor": "user", "act": "INFORM", "args": ["city", "Paris"]}, "[1]: USER.INFORM takes 1 argument(s) (slot), got 2"),
+    ({"actor": "user", "act": "INFORM", "args": ["city", "Paris"]},
+     "[1]: USER.INFORM takes 1 argument(s) (slot), got 2"),
     ({"actor": "os", "act": "system", "args": ["id"]}, "[1]: unknown actor 'os'"),
     ({"actor": "user", "act": "INFORM", "arg": "city"}, "[1]: unknown key 'arg'"),
 ])

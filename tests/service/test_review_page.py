@@ -81,11 +81,13 @@ def test_a_set_keeps_its_inference_report_and_says_how_each_rule_was_decided(
             assert decided[action][rule] == evidence["decided"], (action, rule)  # the engine's word, kept
             # two demonstrations: no rule rests on calls in 3 of them, so none is established
             assert decided[action][rule] != "established", (action, rule)
-    # an edit carries the report on; a rule added by hand has no evidence
+    # an edit carries the report on; a rule added by hand has no inference's evidence, but the check against the
+    # demonstrations that let it in is evidence too: validated at every demonstrated call of its action
     edited = _ok(acme.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
         {"op": "add", "action": "SYSTEM.GOODBYE", "rule": "self.user is not None"}]}), 201)
     assert edited["evidence"] == made["evidence"]
-    assert edited["decided"]["SYSTEM.GOODBYE"]["self.user is not None"] == "no evidence"
+    assert edited["decided"]["SYSTEM.GOODBYE"]["self.user is not None"] == "validated"
+    assert edited["validation"]["occurrences"]["SYSTEM.GOODBYE: self.user is not None"] == len(DEMOS)
 
 
 def test_a_set_without_rules_is_refused_saying_how_to_learn_them(acme: httpx.Client) -> None:

@@ -8,7 +8,7 @@ import { historyPanel } from "./history.js";
 import { tryPanel } from "./tryit.js";
 
 const NEEDS_HUMAN = ["assumed", "zero-shot"];
-const ORDER = ["assumed", "zero-shot", "no evidence", "transferred", "established"];
+const ORDER = ["assumed", "zero-shot", "no evidence", "transferred", "validated", "established"];
 
 /** `answer`: the API's answer for the set, requested before this module was loaded. */
 export async function setPage(main, answer, navigate, notFound) {
