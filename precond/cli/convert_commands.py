@@ -130,7 +130,9 @@ def openai(
                f"{out}/request.json (actions: {', '.join(sorted(converted.writes)) or 'all'}); "
                f"{converted.without_writes} without a state-changing call"
                + (f"; labelled calls: {counted.count('refuse')} to refuse, {counted.count('allow')} to allow, "
-                  f"in {len(runs)} runs" if labels is not None else ""), err=True)
+                  f"in {len(runs)} runs" if labels is not None else "")
+               + (f"; {left} labels of tools that are not actions left out"
+                  if (left := labels_reader.skipped(converted, read)) else ""), err=True)
 
 
 @app.command("programs")

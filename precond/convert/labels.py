@@ -59,7 +59,9 @@ def read_labels(data: Any, source: str, tools: set[str]) -> list[Label]:
 
 def counterexamples(converted: Converted, labels: Sequence[Label],
                     demonstrations: Sequence[Trajectory]) -> list[dict[str, Any]]:
-    """The request's `counterexamples`: per labelled run, its labelled calls (demonstrations by index)."""
+    """The request's `counterexamples`: per labelled run, its labelled calls (demonstrations by index). A label
+    of a tool that is not one of the request's actions (not state-changing, or left out by `--writes`) is
+    checked like the others but not written: the request infers no rule it could bear on (`skipped` counts)."""
     runs = {t.name: t for t in converted.trajectories}
     index = {t.name: i for i, t in enumerate(demonstrations)}
     seen: dict[str, Label] = {}
@@ -74,7 +76,7 @@ def counterexamples(converted: Converted, labels: Sequence[Label],
         if other.allowed != label.allowed:
             raise PlaceError(label.where, f"labels the same history and call as {other.where} the other way "
                              f"({call.tool} at message {label.message} of {label.run})")
-        if other is label:
+        if other is label and label.tool in converted.writes:
             calls.setdefault(label.run, []).append(
                 {"line": line + 1, "verdict": "allow" if label.allowed else "refuse", "name": label.where})
     out: list[dict[str, Any]] = []
@@ -83,6 +85,11 @@ def counterexamples(converted: Converted, labels: Sequence[Label],
                                else {"program": runs[name].program})
         out.append({**run, "calls": labelled})
     return out
+
+
+def skipped(converted: Converted, labels: Sequence[Label]) -> int:
+    """Labels of tools that are not the request's actions (`counterexamples` leaves them out)."""
+    return sum(label.tool not in converted.writes for label in labels)
 
 
 def _call_at(trajectory: Trajectory, label: Label) -> tuple[Any, int]:

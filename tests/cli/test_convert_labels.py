@@ -56,3 +56,16 @@ def test_the_same_call_labelled_both_ways_names_both_records(tmp_path: Path) -> 
     done = convert(tmp_path, [*LABELS, {**LABELS[0], "allowed": False}])
     assert done.returncode == 2
     assert "[3]: labels the same history and call as" in done.stderr and "[0] the other way" in done.stderr
+
+
+def test_labels_of_tools_that_are_not_actions_are_left_out_and_counted(tmp_path: Path) -> None:
+    (tmp_path / "labels.json").write_text(json.dumps(LABELS))
+    done = precond("convert", "openai", str(TAU / "trajectories.json"), "--tools", str(TAU / "tools.json"),
+                   "--out", str(tmp_path / "out"), "--writes", "cancel_reservation",
+                   "--labels", str(tmp_path / "labels.json"))
+    assert done.returncode == 0, done.stderr
+    assert "labelled calls: 1 to refuse, 1 to allow" in done.stderr and "1 labels of tools that are not actions" \
+        in done.stderr
+    request = InferRequest.model_validate_json((tmp_path / "out" / "request.json").read_text())
+    assert request.actions == ["AGENT.cancel_reservation"]
+    assert sum(len(run.calls) for run in request.counterexamples) == 2
