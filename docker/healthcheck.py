@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 MODEL_QUEUES = ("precond:queue:model", "precond:queue:train")
-"""precond.jobs.keys.MODEL_QUEUES, spelt out here (tests/deploy checks that they agree)."""
+"""precond.jobs.queue.keys.MODEL_QUEUES, spelt out here (tests/deploy checks that they agree)."""
 
 
 def gateway() -> bool:

@@ -100,7 +100,7 @@ def test_shared_readers_are_stdlib_only(layer: str) -> None:
 
 def test_the_checker_sees_imports() -> None:
     # a guard against a walker that finds nothing and so passes everything
-    assert ("precond/worker/runner.py", "precond.jobs.heartbeats") in imports("precond.worker")
+    assert ("precond/worker/runner.py", "precond.jobs.queue.heartbeats") in imports("precond.worker")
     assert any(module.startswith("precond.engine.") for _, module in imports("precond.worker"))
     assert layer_of("precond_client.schemas.api") == SCHEMAS and layer_of("precond_client.aio") == CLIENT
     assert ("precond/convert/openai.py", OPENAI_LOG) in imports("precond.convert")
@@ -138,7 +138,7 @@ def loaded_by(statement: str) -> set[str]:
 @pytest.mark.parametrize(("statement", "never"), [
     ("from precond.gateway.app import create_app; create_app",
      {*p("sandbox", "engine", "worker"), "torch", "transformers"}),
-    ("import precond.jobs.keys, precond.jobs.records, precond.jobs.heartbeats, precond.jobs.cache",
+    ("import precond.jobs.queue.keys, precond.jobs.records, precond.jobs.queue.heartbeats, precond.jobs.cache",
      {*p("sandbox", "engine", "gateway", "worker"), "torch"}),
     ("import precond.worker.runner", {*p("gateway", "cli"), "torch", "transformers"}),
     ("import precond_client.schemas.api", {*LAYERS, "precond_client.aio", "precond_client.sync", "httpx"}),

@@ -4,7 +4,7 @@ sandbox (`SANDBOX_*`).
 Everything a deployment changes without a code change lives here: which weights (the embedded 0.5B model on
 a laptop, a mounted 7B model on a GPU host), where they run, how many CPU threads they may take, and the
 limits on untrusted code. The `MODEL_*` variables are also part of every job id: the gateway reads them
-from the environment itself (`jobs.keys.model_identity`), so that it never loads this module, the engine
+from the environment itself (`jobs.queue.keys.model_identity`), so that it never loads this module, the engine
 or the sandbox.
 """
 

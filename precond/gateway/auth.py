@@ -15,7 +15,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from precond.gateway.api_keys import KeyStore, unauthorized
 from precond.gateway.caller import Caller
 from precond.gateway.errors import ServiceError
-from precond.jobs.keys import tenant_tag
+from precond.jobs.queue.keys import tenant_tag
 from precond_client.schemas.api import ErrorResponse
 
 if TYPE_CHECKING:

@@ -10,7 +10,7 @@ class Caller:
     """The tenant behind a request.
 
     `name` appears only in messages to that tenant itself (its own limits); `tag`, the HMAC of the name under
-    the deployment secret (`jobs.keys.tenant_tag`), is what job ids, Redis keys and `/metrics` carry, so that
+    the deployment secret (`jobs.queue.keys.tenant_tag`), is what job ids, Redis keys and `/metrics` carry, so that
     none of them says who the tenants are.
     """
 

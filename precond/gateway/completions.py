@@ -1,6 +1,6 @@
 """Job-completion notices: waiting requests wake when their job's end is stored, not on a timer.
 
-Each gateway process subscribes to a channel of its own (`jobs.notices.notice_channel`), and every request
+Each gateway process subscribes to a channel of its own (`jobs.queue.notices.notice_channel`), and every request
 that waits on a job names that channel among the job's waiters when it submits the job (precond/gateway/queue.py). The
 worker's script that stores the job's end publishes on those channels only, with the end as stored (its
 result and progress, when small), so the one process that waits wakes and answers without reading it back.
@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from redis.asyncio import ConnectionPool, Redis
 from redis.exceptions import RedisError
 
-from precond.jobs.notices import notice_channel, read_notice
+from precond.jobs.queue.notices import notice_channel, read_notice
 
 log = logging.getLogger("precond.gateway")
 

@@ -9,11 +9,19 @@ taken more than `MAX_REQUEST_HEAD_BYTES` (one read more at most) or `MAX_REQUEST
 complete, its URL and headers pass `MAX_REQUEST_HEAD_BYTES`: the same bound whatever the segmentation (h11
 checked only a head that arrived over several reads). Within the bound every head reaches the app, which
 answers with its own JSON error.
+
+The subclass overrides and reads uvicorn's protocol internals; where this uvicorn lacks one of them, the gateway
+speaks h11 instead (`GatewayHttpProtocol`, with a log line): slower, with h11's own bound on an incomplete head.
 """
 
 from __future__ import annotations
 
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+
+from precond.jobs import patches
 
 MAX_REQUEST_HEAD_BYTES = 128 * 1024
 """URL and headers of one request; the longest head a legitimate client of this API sends is a few KiB."""
@@ -56,3 +64,22 @@ class BoundedHttpToolsProtocol(HttpToolsProtocol):
         if self._head_bytes > MAX_REQUEST_HEAD_BYTES or self._head_reads > MAX_REQUEST_HEAD_READS:
             self.logger.warning(HEAD_TOO_LARGE)
             self.send_400_response(HEAD_TOO_LARGE)
+
+
+def _needs() -> list[str]:
+    """What the subclass overrides and reads of uvicorn's httptools protocol."""
+    protocol = ("uvicorn.protocols.http.httptools_impl", "HttpToolsProtocol")
+    return (patches.missing(*protocol, "on_message_begin", "on_headers_complete", "data_received",
+                            "send_400_response", "connection_made")
+            + patches.unassigned(*protocol, "on_message_begin", "url", "headers")
+            + patches.unassigned(*protocol, "connection_made", "transport", "logger"))
+
+
+def _chosen() -> type[Any]:
+    if patches.apply("request heads bounded in httptools' protocol", _needs(), lambda: None, instead="h11"):
+        return BoundedHttpToolsProtocol
+    return H11Protocol
+
+
+GatewayHttpProtocol = _chosen()
+"""The protocol uvicorn runs (`--http precond.gateway.http_protocol:GatewayHttpProtocol`)."""

@@ -8,6 +8,7 @@ before it is buffered, which is the point of a 413.
 from __future__ import annotations
 
 import asyncio
+import functools
 import re
 import time
 import uuid
@@ -23,6 +24,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from precond.gateway import offload
 from precond.gateway.errors import ServiceError, error_response
 from precond.gateway.prometheus import Metrics
+from precond.jobs import patches
 from precond_client.schemas.api import ErrorInfo
 
 _CLIENT_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
@@ -129,6 +131,15 @@ class BodyLimit:
         await self.app(scope, bounded_receive, send)
 
 
+@functools.cache
+def _hand_over_parsed() -> bool:
+    """Whether Starlette's `Request.json()` returns what its `_json` holds, so that a body parsed off the loop
+    is handed to FastAPI parsed; where it does not, FastAPI parses the body again itself (on the loop)."""
+    return patches.apply("large bodies handed to FastAPI parsed",
+                         patches.unassigned("starlette.requests", "Request", "json", "_json"), lambda: None,
+                         instead="FastAPI's own parse of the body, on the event loop,")
+
+
 class OffloadedBodyRoute(APIRoute):
     """A route whose JSON body, when larger than `offload.INLINE_BODY_BYTES`, is parsed (and its values counted)
     in the gateway's check pool, in the line of its source address (no tenant is known before the key is read),
@@ -138,6 +149,7 @@ class OffloadedBodyRoute(APIRoute):
         handler = super().get_route_handler()
         if self.body_field is None:
             return handler
+        hand_over = _hand_over_parsed()
 
         async def parse_first(request: Request) -> Response:
             body = await request.body()
@@ -151,7 +163,8 @@ class OffloadedBodyRoute(APIRoute):
                 if isinstance(parsed, tuple):
                     raise RequestValidationError([{"type": "json_invalid", "loc": ("body", parsed[1]),
                                                    "msg": "JSON decode error", "ctx": {"error": parsed[0]}}])
-                request._json = parsed[0]  # what Request.json() returns from now on: FastAPI parses no more
+                if hand_over:
+                    request._json = parsed[0]  # what Request.json() returns from now on: FastAPI parses no more
             return await handler(request)
 
         return parse_first

@@ -1,10 +1,9 @@
-"""Submitting, watching and cancelling jobs on arq queues, and reading their state back as `JobStatus`.
+"""Submitting, watching and cancelling jobs, and reading their state back as `JobStatus`.
 
-arq does the queueing (at-least-once delivery, job-id de-duplication, abort); this module adds what arq
-leaves to its user: a bound on queue length, progress next to the job, and re-running an id whose last run
-was cancelled or crashed (arq would otherwise keep answering with that old result, see arq#485). A job is
-written exactly as arq's `enqueue_job` writes it, but in one script with its bound, its tenant's fair place and
-the worker's wake-up (`_SUBMIT`): one round trip instead of eight on the check's hot path.
+Each write is a step of the queue's contract (`precond.jobs.queue.steps`): submit (bound, fair place, enqueue,
+waiter and wake-up in one round trip), cancel a queued job, mark a running one for abort. What this module adds is
+the waiting: a job's completion notice (`Completions`), a fallback read, and re-running an id whose last run was
+cancelled or crashed (its stored end would otherwise keep answering, arq#485).
 """
 
 from __future__ import annotations
@@ -15,104 +14,21 @@ import time
 from typing import Any
 
 from arq.connections import ArqRedis
-from arq.constants import (
-    abort_jobs_ss,
-    in_progress_key_prefix,
-    job_key_prefix,
-    result_key_prefix,
-    retry_key_prefix,
-)
-from arq.jobs import Job, JobResult, deserialize_result, serialize_job, serialize_result
-from arq.utils import timestamp_ms, to_ms
+from arq.jobs import Job, JobResult
 from arq.worker import JobExecutionFailed
 
 from precond.gateway.completions import Completions, Watch
 from precond.gateway.errors import bounded
-from precond.gateway.quotas import (
-    FAIR_EPOCH_MS,
-    FAIR_SCORE_FUNCTION,
-    JOB_EXPIRY,
-    STATE_TTL_S,
-    TENANT_JOBS_FUNCTION,
-    fair_key,
-    tenant_jobs_key,
-)
 from precond.jobs.cache import ResultCache
-from precond.jobs.keys import JOB_FUNCTION, kind_of, progress_key, wake_channel
-from precond.jobs.kinds import KINDS, queue_for, queues_of
-from precond.jobs.notices import NOTIFY_FUNCTION, WAITERS_TTL_S, waiters_key
+from precond.jobs.queue import steps
+from precond.jobs.queue.keys import IN_PROGRESS_PREFIX, RESULT_PREFIX, kind_of, progress_key
+from precond.jobs.queue.kinds import KINDS, queue_for, queues_of
+from precond.jobs.queue.payloads import cancelled_end, decode_end, encode_job
 from precond.jobs.records import Outcome, parse_progress
-from precond.jobs.scripts import LuaScript
 from precond_client.schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
-
-
-_SUBMIT = LuaScript("#!lua\n" + FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
-local full = tenant_full(KEYS[6], ARGV[1], ARGV[9], ARGV[10])
-if full >= 0 then return -2 - full end
-if redis.call('exists', KEYS[4]) == 1 then return 0 end
-if redis.call('exists', KEYS[3]) == 1 then
-  redis.call('sadd', KEYS[7], ARGV[12])
-  redis.call('expire', KEYS[7], ARGV[13])
-  return 0
-end
-if redis.call('zcard', KEYS[1]) >= tonumber(ARGV[2]) then return -1 end
-redis.call('zrem', KEYS[5], ARGV[1])
-local score = fair_score(KEYS[1], KEYS[2], ARGV[3], ARGV[4], ARGV[5])
-redis.call('psetex', KEYS[3], ARGV[7], ARGV[6])
-redis.call('zadd', KEYS[1], score, ARGV[1])
-redis.call('zadd', KEYS[6], ARGV[11], ARGV[1])
-redis.call('expire', KEYS[6], ARGV[5])
-redis.call('sadd', KEYS[7], ARGV[12])
-redis.call('expire', KEYS[7], ARGV[13])
-redis.call('publish', ARGV[8], '1')
-return 1
-""")
-"""Enqueue a job as arq's `enqueue_job` would (its job key, its place in the queue), in one step with everything
-around it: `-2 - n` when its tenant has `n` jobs queued or running, its cap (service.quotas); 0 when the same job
-exists (queued, running or with a result: identical requests share it); -1 when the queue holds `max_jobs`
-already; else 1. The step counts the job as its tenant's, clears a stale abort mark of the id (arq#485), gives
-the job its tenant's fair place (service.quotas), names this gateway process among the job's waiters (unless
-its end is stored already: precond/jobs/notices.py) and wakes an idle worker (advisory: workers still poll).
-Atomic, so concurrent submissions, from any number of gateway processes, never push a queue or a tenant past
-its bound. Declared (`#!lua`, Redis 7), so a Redis at its `maxmemory` refuses the whole step before it starts
-(503); undeclared, Redis refuses only a script whose first write needs memory, and a first write that frees
-some (a stale abort mark, a finished job's place in its tenant's set) let the rest enqueue past the limit."""
-
-_CANCEL_QUEUED = NOTIFY_FUNCTION + """
-if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[5]) == 1 then return 0 end
-if redis.call('zrem', KEYS[1], ARGV[1]) == 0 then return 0 end
-redis.call('del', KEYS[2], KEYS[4])
-redis.call('zrem', KEYS[6], ARGV[1])
-redis.call('set', KEYS[3], ARGV[4], 'PX', ARGV[5])
-redis.call('set', KEYS[5], ARGV[2], 'PX', ARGV[3])
-notify(KEYS[7], ARGV[1])
-return 1
-"""
-"""Cancel a job no worker has started, at once: out of its queue, its result `cancelled`, its waiters told. The
-in-progress key is set briefly to a guard value, so that a worker's take (precond/worker/queue_worker.py), which starts
-only jobs without one, cannot start it."""
-
-_DROP_GUARD = """
-if redis.call('get', KEYS[1]) == ARGV[1] then return redis.call('del', KEYS[1]) end
-return 0
-"""
-CANCEL_GUARD = b"cancelled"
-CANCEL_GUARD_MS = 2000
-
-
-class QueueFull(Exception):
-    """The job's queue holds `max_jobs` already; the client should come back later (429)."""
-
-
-class TenantFull(Exception):
-    """The tenant has its cap of jobs queued or running (`count` of them); it should come back later (429)."""
-
-    def __init__(self, count: int) -> None:
-        super().__init__(count)
-        self.count = count
 
 
 class JobQueue:
@@ -156,28 +72,18 @@ class JobQueue:
         with self.completions.watch(job_id) as watch:  # before the enqueue: its notice cannot come first
             enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
             if not enqueued and await self._last_run_unusable(self._job(job_id, queue)):
-                await self.redis.delete(result_key_prefix + job_id)
-                await self.redis.eval(_DROP_GUARD, 1, in_progress_key_prefix + job_id, CANCEL_GUARD)  # type: ignore[no-untyped-call]
+                await steps.reopen(self.redis, job_id)
                 enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
             return await self._wait(job_id, timeout_s, poll_s, watch, read_first=not enqueued)
 
     async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
                        queue: str) -> bool:
-        """One round trip (`_SUBMIT`): True when enqueued, False when the same job exists; TenantFull, QueueFull."""
-        now = timestamp_ms()
-        job = serialize_job(JOB_FUNCTION, (kind, body, cache_key), {}, None, now, serializer=self.redis.job_serializer)
-        enqueued = int(await _SUBMIT(
-            self.redis,
-            [queue, fair_key(queue), job_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss,
-             tenant_jobs_key(tenant_tag), waiters_key(job_id)],
-            [job_id, self.max_jobs, tenant_tag, FAIR_EPOCH_MS, STATE_TTL_S, job, to_ms(JOB_EXPIRY), wake_channel(queue),
-             self.tenant_max_jobs, job_key_prefix, now / 1000, self.completions.channel, WAITERS_TTL_S],
-        ))
-        if enqueued <= -2:
-            raise TenantFull(-2 - enqueued)
-        if enqueued < 0:
-            raise QueueFull(queue)
-        return enqueued == 1
+        """One round trip (`steps.submit`): True when enqueued, False when the same job exists; TenantFull,
+        QueueFull."""
+        now = int(time.time() * 1000)
+        job = steps.Submission(queue, job_id, tenant_tag, encode_job(kind, body, cache_key, now), now,
+                               self.completions.channel)
+        return await steps.submit(self.redis, job, self.max_jobs, self.tenant_max_jobs)
 
     async def _last_run_unusable(self, job: Job) -> bool:
         info = await job.result_info()
@@ -191,9 +97,9 @@ class JobQueue:
             return None
         queue = await self._queue_of(job_id, kind)
         async with self.redis.pipeline(transaction=False) as pipe:
-            pipe.get(result_key_prefix + job_id)
+            pipe.get(RESULT_PREFIX + job_id)
             pipe.get(progress_key(job_id))
-            pipe.exists(in_progress_key_prefix + job_id)
+            pipe.exists(IN_PROGRESS_PREFIX + job_id)
             pipe.zscore(queue, job_id)
             raw_result, raw_progress, in_progress, score = await pipe.execute()
         if raw_result:
@@ -252,33 +158,22 @@ class JobQueue:
         queue = await self._queue_of(job_id, status.kind)
         if status.status == "queued" and await self._cancel_queued(job_id, status.kind, queue):
             return await self.status(job_id)
-        async with self.redis.pipeline(transaction=False) as pipe:  # the mark, and its worker woken to read it
-            pipe.zadd(abort_jobs_ss, {job_id: timestamp_ms()})
-            pipe.publish(wake_channel(queue), b"1")
-            await pipe.execute()
+        await steps.mark_abort(self.redis, queue, job_id, int(time.time() * 1000))
         job = self._job(job_id, queue)
         with contextlib.suppress(TimeoutError):
             await job.abort(timeout=confirm_s, poll_delay=min(0.1, confirm_s / 4))
         return await self.status(job_id)
 
     async def _cancel_queued(self, job_id: str, kind: JobKind, queue: str) -> bool:
-        now = int(time.time() * 1000)
-        result = serialize_result(
-            JOB_FUNCTION, (kind,), {}, 0, now, False, asyncio.CancelledError(), now, now,
-            f"{job_id}:{JOB_FUNCTION}", queue, job_id,
-        )
-        done = await self.redis.eval(  # type: ignore[no-untyped-call]
-            _CANCEL_QUEUED, 7, queue, job_key_prefix + job_id, in_progress_key_prefix + job_id,
-            retry_key_prefix + job_id, result_key_prefix + job_id, abort_jobs_ss, waiters_key(job_id),
-            job_id, result, self.result_ttl_s * 1000, CANCEL_GUARD, CANCEL_GUARD_MS,
-        )
-        return bool(done)
+        cancelled = cancelled_end(job_id, queue, kind, int(time.time() * 1000))
+        assert cancelled is not None  # a CancelledError always serialises
+        return await steps.cancel_queued(self.redis, queue, job_id, cancelled, self.result_ttl_s * 1000)
 
 
 def _ended(job_id: str, kind: JobKind, raw_result: bytes, raw_progress: bytes | None) -> JobStatus:
     """A job's state from its stored end (arq's result) and progress, as read back or as its notice carried it."""
     progress = parse_progress(raw_progress or None)
-    state, result, error = _state(deserialize_result(raw_result))
+    state, result, error = _state(decode_end(raw_result))
     done = _done(progress) if state == "succeeded" else progress
     return JobStatus(id=job_id, kind=kind, status=state, progress=done, result=result, error=error)
 

@@ -13,78 +13,46 @@
   so every job is due at once (arq treats a score as the time a job may start).
 
 Each rule is Lua run by Redis atomically, so concurrent requests cannot both take the last slot; the job cap
-and the fair place are functions of the queue's one submission script (service.queue), which admits, places
-and enqueues a job in one step.
+and the fair place are functions of the queue's one submission script (`precond.jobs.queue.steps`), which admits,
+places and enqueues a job in one step.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
 from typing import Final
 
 from arq.connections import ArqRedis
 from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from precond.gateway.caller import Caller
-from precond.jobs.keys import PREFIX
+from precond.jobs.queue.keys import PREFIX
 from precond.jobs.scripts import LuaScript
 
-FAIR_EPOCH_MS: Final = 946_684_800_000  # 2000-01-01: every fair score is in the past, so due at once
-STATE_TTL_S: Final = 7 * 24 * 3600
-
 _TAKE_TOKENS = LuaScript("""
-local rate, burst, now, want = tonumber(ARGV[1]), tonumber(ARGV[2]), tonumber(ARGV[3]), tonumber(ARGV[4])
+local rate, burst, want = tonumber(ARGV[1]), tonumber(ARGV[2]), tonumber(ARGV[3])
+local clock = redis.call('TIME')
+local now = tonumber(clock[1]) + tonumber(clock[2]) / 1e6
 local state = redis.call('HMGET', KEYS[1], 'tokens', 'at')
 local tokens, at = tonumber(state[1]) or burst, tonumber(state[2]) or now
-tokens = math.min(burst, tokens + math.max(0, now - at) * rate)
+now = math.max(now, at)
+tokens = math.min(burst, tokens + (now - at) * rate)
 local granted = math.min(want, math.floor(tokens))
 tokens = tokens - granted
-redis.call('HSET', KEYS[1], 'tokens', tokens, 'at', now)
+redis.call('HSET', KEYS[1], 'tokens', tostring(tokens), 'at', tostring(now))
 redis.call('EXPIRE', KEYS[1], math.ceil(burst / rate) + 60)
 return {granted, tostring(tokens)}
 """)
-"""Up to `want` whole tokens from a bucket: how many it gave, and what is left (a fraction below one when none)."""
+"""Up to `want` whole tokens from a bucket: how many it gave, and what is left (a fraction below one when none).
+The bucket's clock is Redis's own (`TIME`), and never goes back: every gateway process shares one bucket, and a
+clock read by each process before its round trip let a slow or skewed one stamp the bucket with an earlier time,
+so that the next refill counted the same seconds twice (bursts past `burst + rate × time`)."""
 
 LEASE_S: Final = 0.25
 """How long a gateway process may spend the tokens it took ahead of its requests (`Lease`)."""
 MAX_LEASE: Final = 64
-
-# A tenant's unfinished jobs, for the queue's submission script (service.queue), which admits a job and
-# enqueues it in the same step: the count of the tenant's live jobs when it has `limit` already, else -1 (a job
-# the tenant already has, an identical request, is free). Ids whose job key is gone (done, failed, cancelled)
-# leave the set on the way.
-TENANT_JOBS_FUNCTION = """
-local function tenant_full(jobs, id, limit, job_prefix)
-  if redis.call('ZSCORE', jobs, id) then return -1 end
-  for _, other in ipairs(redis.call('ZRANGE', jobs, 0, -1)) do
-    if redis.call('EXISTS', job_prefix .. other) == 0 then redis.call('ZREM', jobs, other) end
-  end
-  local count = redis.call('ZCARD', jobs)
-  if count >= tonumber(limit) then return count end
-  return -1
-end
-"""
-
-# Virtual time is the queue's head score; with nothing queued, the highest score handed out so far (all
-# of those jobs are done, so a tenant's old backlog gives it no head start and no debt). A Lua function, for
-# the queue's submission script (service.queue), which enqueues a job at this score in the same step.
-FAIR_SCORE_FUNCTION = """
-local function fair_score(queue, fair, tag, epoch, ttl)
-  local head = redis.call('ZRANGE', queue, 0, 0, 'WITHSCORES')
-  local highest = tonumber(redis.call('HGET', fair, '~max') or epoch)
-  local clock = highest
-  if head[2] then
-    clock = tonumber(head[2])
-  end
-  local score = math.max(clock, tonumber(redis.call('HGET', fair, tag) or 0)) + 1
-  redis.call('HSET', fair, tag, score, '~max', math.max(highest, score))
-  redis.call('EXPIRE', fair, ttl)
-  return score
-end
-"""
-
 
 @dataclass(frozen=True)
 class Refusal:
@@ -101,14 +69,6 @@ def _rate_key(tag: str) -> str:
 
 def _auth_key(source: str) -> str:
     return f"{PREFIX}:source:{source}:auth-failures"
-
-
-def tenant_jobs_key(tag: str) -> str:
-    return f"{PREFIX}:tenant:{tag}:jobs"
-
-
-def fair_key(queue: str) -> str:
-    return f"{PREFIX}:fair:{queue}"
 
 
 @dataclass(frozen=True)
@@ -189,9 +149,8 @@ class Quotas:
         While the queue Redis is full (noeviction refuses the bucket's write) the request goes on uncounted:
         reading a job's state must keep working then, and every request that would write is refused by that
         Redis anyway."""
-        now = datetime.now(UTC).timestamp()
         try:
-            granted, tokens = await _TAKE_TOKENS(self.redis, [key], [rate, burst, now, want])
+            granted, tokens = await _TAKE_TOKENS(self.redis, [key], [rate, burst, want])
         except OutOfMemoryError:
             return 1, 0.0
         return int(granted), max(0.0, (1 - float(tokens)) / rate)
@@ -268,8 +227,3 @@ class Quotas:
         """The 429 of a tenant at its cap of queued and running jobs (`PRECOND_TENANT_MAX_JOBS`)."""
         return Refusal("jobs", f"job limit: tenant {caller.name!r} has {count} jobs queued or running "
                                f"(at most {self.max_jobs})", retry_after_s)
-
-
-JOB_EXPIRY: Final = timedelta(days=1)
-"""How long a queued job may wait before arq drops it (arq's own default; passed explicitly because a past
-`_defer_until` would otherwise give it a negative lifetime)."""

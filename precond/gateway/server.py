@@ -18,7 +18,7 @@ GATEWAY_ARGS = (
     "--loop",
     "uvloop",
     "--http",
-    "precond.gateway.http_protocol:BoundedHttpToolsProtocol",
+    "precond.gateway.http_protocol:GatewayHttpProtocol",
 )
 
 

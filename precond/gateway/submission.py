@@ -12,9 +12,9 @@ from precond.gateway.auth import refusal_error
 from precond.gateway.caller import Caller
 from precond.gateway.deps import Services
 from precond.gateway.errors import ServiceError
-from precond.gateway.queue import QueueFull, TenantFull
-from precond.jobs import keys
-from precond.jobs.kinds import tenant_private
+from precond.jobs.queue import keys
+from precond.jobs.queue.kinds import tenant_private
+from precond.jobs.queue.steps import QueueFull, TenantFull
 from precond_client.schemas.api import JobKind, JobProgress, JobStatus
 
 Screen = Callable[[], Awaitable[None]]

@@ -15,7 +15,7 @@ from typing import Final
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
-from precond.jobs.heartbeats import live_workers
+from precond.jobs.queue.heartbeats import live_workers
 
 UNKNOWN: Final = "unknown"
 

@@ -29,7 +29,7 @@ from typing import Any, Final
 from cachetools import TTLCache
 from redis.asyncio import Redis
 
-from precond.jobs.keys import cache_key
+from precond.jobs.queue.keys import cache_key
 
 log = logging.getLogger("precond.cache")
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 import re
 from typing import Any, Final
 
-from precond.jobs.keys import PREFIX
+from precond.jobs.queue.keys import PREFIX
 from precond_client.schemas.api import ADAPTER_REFERENCE
 from precond_client.schemas.training import PolicyAdapter
 

@@ -17,7 +17,7 @@ from typing import Any, Final
 
 from pydantic import TypeAdapter, ValidationError
 
-from precond.jobs.keys import PREFIX
+from precond.jobs.queue.keys import PREFIX
 from precond.programs import checks
 from precond.programs.checks import normal as normal  # re-exported: the sets code compares rules by it
 from precond_client.schemas.api import CandidateReport, Preconditions, PreconditionSet, RuleEvidence

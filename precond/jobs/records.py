@@ -15,7 +15,7 @@ from typing import Any, Literal
 from pydantic import BaseModel
 from redis.asyncio import Redis
 
-from precond.jobs.keys import STATS_KEY, kind_of, owner_of, progress_key
+from precond.jobs.queue.keys import STATS_KEY, kind_of, owner_of, progress_key
 from precond_client.schemas.api import ErrorInfo, JobKind, JobProgress
 from precond_client.schemas.errors import PrecondError
 

@@ -16,11 +16,13 @@ from __future__ import annotations
 
 from typing import Any
 
-from redis._parsers.hiredis import _AsyncHiredisParser
 from redis.asyncio.connection import AbstractConnection, ConnectionPool
 
+from precond.jobs import patches
+
 _POOL: Any = ConnectionPool  # types-redis predates `ensure_connection`
-_checked_by_redis_py = _POOL.ensure_connection
+_checked_by_redis_py: Any = getattr(_POOL, "ensure_connection", None)
+_HIREDIS_PARSER = ("redis._parsers.hiredis", "_AsyncHiredisParser")
 
 
 def nothing_unread(connection: AbstractConnection) -> bool:
@@ -28,7 +30,7 @@ def nothing_unread(connection: AbstractConnection) -> bool:
     parser: Any = getattr(connection, "_parser", None)
     stream: Any = getattr(connection, "_reader", None)
     return (
-        isinstance(parser, _AsyncHiredisParser)
+        type(parser).__name__ == _HIREDIS_PARSER[1]
         and connection.is_connected
         and parser._connected
         and parser._reader is not None
@@ -44,6 +46,25 @@ async def _ensure_connection(self: Any, connection: AbstractConnection) -> None:
         await _checked_by_redis_py(self, connection)
 
 
-def check_out_without_read() -> None:
-    """From now on in this process, pools hand out connections with nothing unread at once (idempotent)."""
-    _POOL.ensure_connection = _ensure_connection
+def _needs() -> list[str]:
+    """What the patch replaces (the pool's check-out check) and reads: the connection's parser and stream, the
+    hiredis parser's reader and state, the stream's buffer and EOF."""
+    connection = ("redis.asyncio.connection", "AbstractConnection")
+    return (patches.missing("redis.asyncio.connection", "ConnectionPool", "ensure_connection")
+            + patches.missing(*connection, "_parser", "is_connected")
+            + patches.unassigned(*connection, "__init__", "_reader")
+            + patches.unassigned(*_HIREDIS_PARSER, "__init__", "_reader")
+            + patches.unassigned(*_HIREDIS_PARSER, "on_connect", "_connected")
+            + patches.missing("hiredis", "Reader", "has_data")
+            + patches.unassigned("asyncio", "StreamReader", "__init__", "_buffer", "_eof")
+            + patches.missing("asyncio", "StreamReader", "exception"))
+
+
+def check_out_without_read() -> bool:
+    """From now on in this process, pools hand out connections with nothing unread at once (idempotent); False,
+    and a log line, where this redis-py lacks what the patch replaces."""
+
+    def install() -> None:
+        _POOL.ensure_connection = _ensure_connection
+
+    return patches.apply("connections checked out without a read", _needs(), install)

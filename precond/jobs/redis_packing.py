@@ -9,18 +9,33 @@ UTF-8 text) and refuses the same values (a `bool`, an object) with `DataError` (
 
 from __future__ import annotations
 
-from redis.asyncio.connection import AbstractConnection
-from redis.connection import HiredisRespSerializer  # type: ignore[attr-defined]  # types-redis predates it
+import importlib
+from typing import Any
+
 from redis.typing import EncodableT
 
-_SERIALIZER = HiredisRespSerializer()
+from precond.jobs import patches
 
 
-def _pack_command(self: AbstractConnection, *args: EncodableT) -> list[bytes]:
-    packed: list[bytes] = _SERIALIZER.pack(*args)
-    return packed
+def _needs() -> list[str]:
+    """What the patch replaces (the connection's `pack_command`) and uses (hiredis, redis-py's hiredis packer)."""
+    absent = patches.missing("redis.asyncio.connection", "AbstractConnection", "pack_command")
+    absent += patches.missing("redis.connection", "HiredisRespSerializer", "pack")
+    return absent + patches.missing("hiredis", "pack_command")
 
 
-def pack_with_hiredis() -> None:
-    """From now on in this process, asyncio connections pack their commands with hiredis (idempotent)."""
-    AbstractConnection.pack_command = _pack_command  # type: ignore[method-assign]
+def _install() -> None:
+    serializer = importlib.import_module("redis.connection").HiredisRespSerializer()
+    connection: Any = importlib.import_module("redis.asyncio.connection").AbstractConnection
+
+    def pack_command(self: Any, *args: EncodableT) -> list[bytes]:
+        packed: list[bytes] = serializer.pack(*args)
+        return packed
+
+    connection.pack_command = pack_command
+
+
+def pack_with_hiredis() -> bool:
+    """From now on in this process, asyncio connections pack their commands with hiredis (idempotent); False, and
+    a log line, where this redis-py lacks what the patch replaces."""
+    return patches.apply("commands packed by hiredis", _needs(), _install)

@@ -21,8 +21,10 @@ from typing import Any
 from redis import exceptions
 from redis.asyncio.connection import AbstractConnection
 
+from precond.jobs import patches
+
 _CONNECTION: Any = AbstractConnection  # the method is replaced on the class, as redis-py defines it
-_sent_by_redis_py = _CONNECTION.send_packed_command
+_sent_by_redis_py: Any = getattr(_CONNECTION, "send_packed_command", None)
 
 
 async def _send_packed_command(
@@ -50,6 +52,18 @@ def _unsent(writer: Any) -> bool:
     return bool(writer.transport.get_write_buffer_size()) or writer.transport.is_closing()
 
 
-def send_without_task() -> None:
-    """From now on in this process, a command the socket takes whole is sent without a task (idempotent)."""
-    _CONNECTION.send_packed_command = _send_packed_command
+def _needs() -> list[str]:
+    """What the patch replaces and reads: the connection's send, writer, health-check interval, disconnect."""
+    connection = ("redis.asyncio.connection", "AbstractConnection")
+    return (patches.missing(*connection, "send_packed_command", "is_connected", "disconnect")
+            + patches.unassigned(*connection, "__init__", "_writer", "health_check_interval"))
+
+
+def send_without_task() -> bool:
+    """From now on in this process, a command the socket takes whole is sent without a task (idempotent); False,
+    and a log line, where this redis-py lacks what the patch replaces."""
+
+    def install() -> None:
+        _CONNECTION.send_packed_command = _send_packed_command
+
+    return patches.apply("commands sent without a task", _needs(), install)

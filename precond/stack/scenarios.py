@@ -21,7 +21,7 @@ from typing import Any
 
 import httpx
 
-from precond.jobs.keys import MODEL_FREE_QUEUE
+from precond.jobs.queue.keys import MODEL_FREE_QUEUE
 from precond.stack import harness
 from precond.stack.hostile import hostile_requests
 from precond.stack.local import ROOT, Stack, check_body, heavy_infer_body, infer_body, wait_until

@@ -23,9 +23,9 @@ from redis.asyncio import Redis
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.jobs.cache import ResultCache
-from precond.jobs.keys import is_shared, owner_of
-from precond.jobs.kinds import KINDS
-from precond.jobs.payloads import ReinferJob
+from precond.jobs.queue.keys import is_shared, owner_of
+from precond.jobs.queue.kinds import KINDS
+from precond.jobs.queue.payloads import ReinferJob
 from precond.jobs.records import Outcome, job_counts, record_phase, write_progress
 from precond.worker import policies
 from precond.worker.memory import MemoryGuard
@@ -94,7 +94,7 @@ RUNNERS: Final[dict[JobKind, Runner]] = {
     "reinfer": reinfer,
     "train-policy": policies.train,
 }
-"""What the engine does with each kind's payload (`jobs.kinds.KINDS` says which payload that is)."""
+"""What the engine does with each kind's payload (`jobs.queue.kinds.KINDS` says which payload that is)."""
 
 
 def _operate(

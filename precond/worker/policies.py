@@ -27,7 +27,7 @@ from pydantic import ValidationError
 
 from precond.engine.engine import Engine
 from precond.jobs import policy_adapters
-from precond.jobs.payloads import TrainPolicyJob
+from precond.jobs.queue.payloads import TrainPolicyJob
 from precond.jobs.records import Outcome
 from precond.worker.memory import give_back_freed
 from precond_client.schemas.errors import Conflict, InvalidInput, NotFound

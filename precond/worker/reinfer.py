@@ -15,7 +15,7 @@ from typing import Any
 from precond.engine import reinference
 from precond.engine.engine import Engine
 from precond.jobs import precondition_sets as sets
-from precond.jobs.payloads import ReinferJob
+from precond.jobs.queue.payloads import ReinferJob
 from precond_client.schemas.api import InferRequest, PreconditionSet, ValidateResponse
 from precond_client.schemas.errors import BlocksDemonstration, Conflict, InvalidInput, PrecondError, SetsLimited
 

@@ -1,15 +1,15 @@
-"""One worker process: arq workers for the model, model-free and check queues, model preload, heartbeats,
-draining.
+"""One worker process: a queue worker each for the model, model-free, check and training queues, model preload,
+heartbeats, draining.
 
 All queues run in one process so a single `precond worker` serves everything, yet check jobs and model-free
-inferences never wait behind model jobs: each queue has its own arq worker with its own concurrency. A worker
+inferences never wait behind model jobs: each queue has its own worker with its own concurrency. A worker
 survives Redis outages (it reconnects), and on SIGTERM stops taking jobs, lets running ones finish for `drain_s`, then
-hands the rest back to the queue (arq re-queues a job cancelled by shutdown).
+hands the rest back to the queue (a run cancelled by a shutdown leaves its job queued).
 
 A SIGKILLed worker's jobs are handed back by the others: each job's claim in `precond:running` names the
 worker running it, and every heartbeat tick of every live worker re-queues the jobs of workers whose
-heartbeat has expired (precond/jobs/heartbeats.py). A job this worker dropped itself (Redis went away while it
-ran, so arq could not record its end) is handed back on the first beat after Redis returns.
+heartbeat has expired (precond/jobs/queue/heartbeats.py). A job this worker dropped itself (Redis went away while it
+ran, so its end could not be recorded) is handed back on the first beat after Redis returns.
 """
 
 from __future__ import annotations
@@ -26,17 +26,14 @@ from collections.abc import Callable
 from typing import Any
 
 import uvloop
-from arq import func
-from arq.connections import RedisSettings
-from arq.worker import Worker
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
 from precond.engine.engine import Engine
 from precond.engine.factory import build_engine
 from precond.jobs.cache import ResultCache
-from precond.jobs.heartbeats import Heartbeat, beat, new_claim
-from precond.jobs.keys import (
+from precond.jobs.queue.heartbeats import Heartbeat, beat, new_claim
+from precond.jobs.queue.keys import (
     CHECK_QUEUE,
     JOB_FUNCTION,
     MODEL_QUEUE,
@@ -46,6 +43,7 @@ from precond.jobs.keys import (
     wake_channel,
     worker_key,
 )
+from precond.jobs.queue.steps import Claim
 from precond.jobs.redis_checkout import check_out_without_read
 from precond.jobs.redis_packing import pack_with_hiredis
 from precond.jobs.redis_sending import send_without_task
@@ -54,7 +52,7 @@ from precond.worker import logs
 from precond.worker.jobs import JobCounts, run_operation
 from precond.worker.memory import MemoryGuard
 from precond.worker.policies import AdaptedEngines
-from precond.worker.queue_worker import Claim, TenantShareWorker
+from precond.worker.queue_worker import QueueWorker, RunSettings
 from precond.worker.settings import WorkerSettings, get_worker_settings
 
 log = logging.getLogger("precond.worker")
@@ -115,8 +113,8 @@ class WorkerProcess:
         else:
             self.sandbox_error = self.engine.sandbox.unconfined_reason
             self.sandbox = "confined" if self.sandbox_error is None else "unconfined"
-        self.workers: dict[str, Worker] = {}
-        self.retired: list[Worker] = []  # arq workers ended by a Redis outage whose jobs may still be ending
+        self.workers: dict[str, QueueWorker] = {}
+        self.retired: list[QueueWorker] = []  # workers ended by a Redis outage whose jobs may still be ending
         self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
         self.claims = RunClaims(self.id, self._heartbeat_body, settings.heartbeat_lease_s, self.counts)
         self.stopping = asyncio.Event()
@@ -150,6 +148,7 @@ class WorkerProcess:
             else [asyncio.create_task(self._serve(queue, self.engine)) for queue in self.queues]
         )
         heartbeat = asyncio.create_task(self._heartbeat(redis))
+        log.info("worker %s started: queues %s, sandbox %s", self.id, ", ".join(self.queues), self.sandbox)
         self.memory.start()
         gc.freeze()  # what start-up built lives as long as the process: the collector need not walk it again
         if self.engine is not None and self.settings.preload_model and MODEL_QUEUE in self.queues:
@@ -165,43 +164,31 @@ class WorkerProcess:
         log.info("%s: draining for up to %ss", sig.name, self.settings.drain_s)
         self.stopping.set()
         for worker in self.workers.values():
-            worker.handle_sig_wait_for_completion(sig)
+            worker.drain()
 
-    def _arq_worker(self, queue: str, engine: Engine) -> Worker:
+    def _queue_worker(self, queue: str, engine: Engine) -> QueueWorker:
         s = self.settings
-        model = queue in MODEL_QUEUES
-        timeout = s.check_timeout_s if queue == CHECK_QUEUE else s.job_timeout_s
         max_jobs = self._concurrency(queue)
-        return TenantShareWorker(
-            functions=[func(run_operation, name=JOB_FUNCTION, timeout=timeout)],
-            queue_name=queue,
-            redis_settings=RedisSettings.from_dsn(s.redis_dsn),
+        settings = RunSettings(
+            queue=queue,
             max_jobs=max_jobs,
-            # Read twice the slots, so that a newcomer's job is seen behind a tenant at its share; only as many
-            # as can start are started (TenantShareWorker), the rest stay queued in their fair order.
-            queue_read_limit=2 * max_jobs,
             tenant_slots=s.tenant_slots(max_jobs),
-            job_timeout=timeout,
-            keep_result=s.result_ttl_s,
+            timeout_s=s.check_timeout_s if queue == CHECK_QUEUE else s.job_timeout_s,
+            keep_result_s=s.result_ttl_s,
             max_tries=s.job_max_tries,
-            idle_poll_s=s.worker_poll_s if model else s.check_poll_s,
-            allow_abort_jobs=True,
-            handle_signals=False,
-            job_completion_wait=s.drain_s,
-            health_check_interval=60,
-            ctx={"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory,
-                 "policies": self.policies},
-            claims=self.claims,
+            idle_poll_s=s.worker_poll_s if queue in MODEL_QUEUES else s.check_poll_s,
+            drain_s=s.drain_s,
         )
+        ctx = {"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory,
+               "policies": self.policies}
+        return QueueWorker({JOB_FUNCTION: run_operation}, settings, s.redis_dsn, self.claims, ctx)
 
     async def _serve(self, queue: str, engine: Engine) -> None:
-        """Run an arq worker on `queue` until drained, starting a new one after each Redis outage."""
+        """Run a queue worker on `queue` until drained, starting a new one after each Redis outage."""
         while not self.stopping.is_set():
-            worker = self.workers[queue] = self._arq_worker(queue, engine)
+            worker = self.workers[queue] = self._queue_worker(queue, engine)
             try:
-                await worker.async_run()
-            except asyncio.CancelledError:
-                pass  # arq cancels its main task when a drain completes
+                await worker.run()
             except (RedisError, OSError) as exc:
                 log.warning("queue %s: redis unavailable (%s); reconnecting", queue, exc)
                 self.retired.append(worker)  # its running jobs are cancelled by close(), unrecorded

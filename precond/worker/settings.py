@@ -10,7 +10,7 @@ from precond.jobs.settings import QueueSettings
 
 
 class WorkerSettings(QueueSettings):
-    """The queue worker (`precond/worker/`): arq workers on both queues, heartbeats, draining."""
+    """The queue worker (`precond/worker/`): a worker loop per queue, heartbeats, draining."""
 
     job_timeout_s: float = Field(
         default=900.0,

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from precond.jobs.keys import tenant_tag
+from precond.jobs.queue.keys import tenant_tag
 from precond.stack.keyed import KeyedStack
 from precond.stack.local import ROOT, check_body, heavy_infer_body, infer_body, slow_model_body
 from precond_client import (

@@ -24,7 +24,7 @@ from network_policy import Pod, can_connect
 from precond.cli.main import app as cli_app
 from precond.gateway.routes import health
 from precond.gateway.server import gateway_args
-from precond.jobs.keys import MODEL_QUEUES, QUEUES
+from precond.jobs.queue.keys import MODEL_QUEUES, QUEUES
 
 KUBERNETES_VERSION = "1.32.0"
 """The oldest Kubernetes these manifests are checked against (autoscaling/v2, policy/v1 and

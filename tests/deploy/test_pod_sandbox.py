@@ -149,7 +149,7 @@ def password_redis(tmp_path: Path) -> Iterator[RedisServer]:
 def test_the_worker_probes_read_its_heartbeat(password_redis: RedisServer, beat: dict[str, Any] | None,
                                                alive: bool, ready: bool, says: str) -> None:
     if beat is not None:
-        from precond.jobs.keys import QUEUES
+        from precond.jobs.queue.keys import QUEUES
 
         body = {"id": "x", "host": os.uname().nodename, "pid": 1, "queues": list(QUEUES), **beat}
         password_redis.client().set(f"precond:worker:{os.uname().nodename}-1-abcdef", json.dumps(body))

@@ -1,5 +1,5 @@
-"""Crash recovery's one Lua script (`precond.jobs.heartbeats._BEAT`) against a real redis-server: whose jobs a beat
-hands back to the queue, and whose it never touches."""
+"""Crash recovery's one Lua script (`precond.jobs.queue.heartbeats._BEAT`) against a real redis-server: whose jobs
+a beat hands back to the queue, and whose it never touches."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ from collections.abc import Awaitable, Callable
 from arq.constants import in_progress_key_prefix, result_key_prefix
 from redis.asyncio import Redis
 
-from precond.jobs.heartbeats import Heartbeat, beat, live_workers, new_claim
-from precond.jobs.keys import CHECK_QUEUE, RUNNING_KEY, UNCLAIMED_KEY, worker_key
+from precond.jobs.queue.heartbeats import Heartbeat, beat, live_workers, new_claim
+from precond.jobs.queue.keys import CHECK_QUEUE, RUNNING_KEY, UNCLAIMED_KEY, worker_key
 from precond.stack.local import RedisServer
 
 TTL_S = 0.5

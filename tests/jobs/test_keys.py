@@ -8,7 +8,7 @@ import os
 import pytest
 
 from precond.engine.settings import ModelSettings
-from precond.jobs import keys
+from precond.jobs.queue import keys
 
 
 def test_the_gateway_reads_the_variables_the_model_settings_read() -> None:

@@ -11,7 +11,7 @@ from typing import Any
 from redis.asyncio import Redis
 
 from precond.jobs.cache import RECENT_ENTRY_BYTES, RECENT_ENTRY_OVERHEAD, ResultCache
-from precond.jobs.keys import cache_key
+from precond.jobs.queue.keys import cache_key
 from precond.stack.local import RedisServer
 
 SECRET = b"s" * 32

@@ -10,8 +10,8 @@ from types import SimpleNamespace
 import pytest
 
 from precond.engine.reinference import explain_removed, merge
-from precond.jobs.payloads import ReinferJob
 from precond.jobs.precondition_sets import APPEND_CONFLICT, normal, union
+from precond.jobs.queue.payloads import ReinferJob
 from precond.worker.reinfer import reinfer, store
 from precond_client.schemas.api import CandidateReport, PreconditionSet, ValidateResponse
 from precond_client.schemas.errors import Conflict, InvalidInput

@@ -13,7 +13,8 @@ import pytest
 import redis
 
 from precond.gateway.http_protocol import MAX_REQUEST_HEAD_BYTES, MAX_URL_BYTES
-from precond.jobs import cache, keys
+from precond.jobs import cache
+from precond.jobs.queue import keys
 from precond.stack.local import (
     Stack,
     check_body,

@@ -17,8 +17,8 @@ import httpx
 import pytest
 from arq.connections import RedisSettings, create_pool
 
-from precond.jobs import keys as job_keys
-from precond.jobs.keys import JOB_FUNCTION, MODEL_QUEUE, tenant_tag
+from precond.jobs.queue import keys as job_keys
+from precond.jobs.queue.keys import JOB_FUNCTION, MODEL_QUEUE, tenant_tag
 from precond.stack.local import DEMOS, SPEC, Stack, example, make_stack, serving
 from tests.service.test_tenants import SECRET, make_key
 

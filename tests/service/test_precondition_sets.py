@@ -13,7 +13,7 @@ import httpx
 import pytest
 
 from precond.gateway.set_store import index_key, set_key
-from precond.jobs.keys import tenant_tag
+from precond.jobs.queue.keys import tenant_tag
 from precond.stack.local import DEMOS, SPEC, Stack, check_body, example, infer_body, make_stack, serving
 from tests.service.test_tenants import SECRET, client_for, make_key
 

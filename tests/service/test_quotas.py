@@ -5,10 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import time
+from datetime import datetime, tzinfo
 
+import pytest
 from arq.connections import ArqRedis
 from redis.asyncio import ConnectionPool
 
+from precond.gateway import quotas as quotas_module
 from precond.gateway.caller import Caller
 from precond.gateway.quotas import LEASE_S, MAX_BLOCKED_SOURCES, AuthLimit, Lease, Quotas, _remember
 from precond.stack.local import RedisServer
@@ -55,6 +58,37 @@ def test_busy_processes_take_tokens_in_leases_and_never_more_than_the_bucket_giv
     assert allowed <= burst + rate * (elapsed + 0.05), f"{allowed} let through in {elapsed:.2f} s"
     assert allowed >= 0.5 * (burst + rate * elapsed), f"only {allowed} let through in {elapsed:.2f} s"
     assert evals <= allowed / 4, f"{evals} Lua calls for {allowed} requests let through"
+
+
+class SkewedClock:
+    """The clock each gateway process reads: `offset` seconds off the real one (set before each call)."""
+
+    offset = 0.0
+
+    @classmethod
+    def now(cls, tz: tzinfo | None = None) -> datetime:
+        return datetime.fromtimestamp(time.time() + cls.offset, tz)
+
+
+def test_gateway_processes_with_skewed_clocks_get_no_more_than_the_bucket_gives(
+    redis_server: RedisServer, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Two gateway processes whose clocks are 30 s apart (or one that read its clock long before its round trip
+    to Redis) take tokens from one bucket in turn: a bucket stamped with each process's own time went back and
+    forth, and each step forward refilled it again. Together they still get at most burst + rate × time."""
+    rate, burst = 1.0, 5
+    monkeypatch.setattr(quotas_module, "datetime", SkewedClock)
+
+    async def alternate() -> tuple[int, float]:
+        processes = [_quotas(redis_server, rate=rate, burst=burst) for _ in range(2)]
+        granted, started = 0, time.monotonic()
+        for turn in range(40):
+            SkewedClock.offset = -30.0 * (turn % 2)
+            granted += (await processes[turn % 2]._take("precond:tenant:skew:rate", rate, burst))[0]
+        return granted, time.monotonic() - started
+
+    granted, elapsed = asyncio.run(alternate())
+    assert granted <= burst + rate * elapsed + 1, f"{granted} tokens given in {elapsed:.2f} s"
 
 
 def test_concurrent_requests_of_a_tenant_lose_no_token_they_took(redis_server: RedisServer) -> None:

@@ -26,8 +26,9 @@ import redis
 from redis.asyncio import Redis as AsyncRedis
 
 from precond.gateway.settings import GatewaySettings
-from precond.jobs import cache, keys
+from precond.jobs import cache
 from precond.jobs.cache import ResultCache
+from precond.jobs.queue import keys
 from precond.jobs.settings import QueueSettings
 from precond.stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 from precond_client.schemas.api import CheckRequest, CheckResponse

@@ -13,8 +13,8 @@ from typing import Any
 import httpx
 import pytest
 
-from precond.jobs.keys import tenant_tag
 from precond.jobs.precondition_sets import set_key
+from precond.jobs.queue.keys import tenant_tag
 from precond.stack import browser
 from precond.stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
 from precond_client.schemas.api import rule_status

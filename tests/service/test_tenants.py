@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from precond.gateway.api_keys import KeyRecord, digest, new_key, read_records, write_records
-from precond.jobs.keys import CHECK_QUEUE, MODEL_QUEUE, owner_of, tenant_tag
+from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_QUEUE, owner_of, tenant_tag
 from precond.stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
 
 SECRET = b"stack-secret-for-tests"

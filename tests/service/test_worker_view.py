@@ -8,7 +8,7 @@ import asyncio
 from redis.asyncio import Redis
 
 from precond.gateway.worker_view import UNKNOWN, WorkerView
-from precond.jobs.keys import worker_key
+from precond.jobs.queue.keys import worker_key
 from precond.stack.local import RedisServer
 
 

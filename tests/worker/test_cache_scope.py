@@ -6,7 +6,7 @@ from functools import partial
 from typing import Any
 
 from precond.engine.scope import current
-from precond.jobs.keys import job_id, owner_of, tenant_tag
+from precond.jobs.queue.keys import job_id, owner_of, tenant_tag
 from precond.worker.jobs import _outcome
 from precond.worker.memory import MemoryGuard
 from precond_client.schemas.api import CheckRequest, CheckResponse

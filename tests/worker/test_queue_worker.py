@@ -1,32 +1,30 @@
-"""The queue worker's take and finish scripts (precond/worker/queue_worker.py) against a real redis-server: a job is
-claimed with its in-progress key in one step, ends with arq's result, the counts, the claim's release and the
-notice in one step, and every way arq ends a run (expired, aborted before it started, out of tries, timed out,
-cancelled by a shutdown) still ends the same way."""
+"""The queue worker's loop (precond/worker/queue_worker.py) against a real redis-server: a job is claimed with its
+in-progress key in one step, ends with its stored end, the counts, the claim's release and the notice in one step,
+and every way a run ends (expired, aborted before it started, out of tries, timed out, cancelled by a shutdown)
+ends as arq's records say it."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import signal
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 import pytest
-from arq import func
-from arq.connections import ArqRedis, RedisSettings
+from arq.connections import ArqRedis
 from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, retry_key_prefix
 from arq.jobs import Job, JobStatus, deserialize_result
 from arq.worker import JobExecutionFailed
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
-from precond.jobs import keys
-from precond.jobs.heartbeats import Heartbeat, beat
-from precond.jobs.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
-from precond.jobs.notices import notice_channel, read_notice, waiters_key
+from precond.jobs.queue import keys, steps
+from precond.jobs.queue.heartbeats import Heartbeat, beat
+from precond.jobs.queue.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
+from precond.jobs.queue.notices import notice_channel, read_notice, waiters_key
 from precond.stack.local import RedisServer
 from precond.worker import queue_worker
-from precond.worker.queue_worker import JobEnd, TenantShareWorker
+from precond.worker.queue_worker import JobEnd, QueueWorker, RunSettings
 from precond.worker.runner import RunClaims
 
 QUEUE = "test:queue"
@@ -76,18 +74,16 @@ def run(redis_server: RedisServer, scenario: Callable[[ArqRedis, Redis[bytes]], 
 async def worker(redis_server: RedisServer, operation: Operation = answer, timeout_s: float = 30,
                  max_tries: int = 3, claims: RunClaims | None = None, idle_poll_s: float = 0.05) -> Any:
     claims = claims or RunClaims("w1", heartbeat, 5.0)
-    queue_worker = TenantShareWorker(
-        functions=[func(operation, name=FUNCTION, timeout=timeout_s)], queue_name=QUEUE,
-        redis_settings=RedisSettings.from_dsn(redis_server.url), max_jobs=2, tenant_slots=2, idle_poll_s=idle_poll_s,
-        claims=claims, allow_abort_jobs=True, handle_signals=False, max_tries=max_tries, keep_result=60,
-    )
-    task = asyncio.create_task(queue_worker.async_run())
+    settings = RunSettings(QUEUE, max_jobs=2, tenant_slots=2, timeout_s=timeout_s, keep_result_s=60,
+                           max_tries=max_tries, idle_poll_s=idle_poll_s)
+    queue_worker = QueueWorker({FUNCTION: operation}, settings, redis_server.url, claims)
+    task = asyncio.create_task(queue_worker.run())
     try:
         yield queue_worker
     finally:
-        queue_worker.handle_sig(signal.SIGUSR1)
-        # a Redis error ends arq's run, and its close (the worker process starts another: precond/worker/runner.py)
-        with contextlib.suppress(asyncio.CancelledError, RedisError):
+        queue_worker.stop()
+        # a Redis error ends the run, and its close (the worker process starts another: precond/worker/runner.py)
+        with contextlib.suppress(RedisError):
             await task
         with contextlib.suppress(RedisError):
             await queue_worker.close()
@@ -250,9 +246,11 @@ def test_a_run_whose_end_redis_refused_is_handed_back_by_the_next_beat(redis_ser
     run(redis_server, scenario)
 
 
-def unstarted_worker(redis: ArqRedis, claims: RunClaims) -> TenantShareWorker:
-    return TenantShareWorker(functions=[func(answer, name=FUNCTION)], queue_name=QUEUE, redis_pool=redis,
-                             max_jobs=2, tenant_slots=1, idle_poll_s=0.05, claims=claims, handle_signals=False)
+TAKE = steps.Take(QUEUE, "w1", read_limit=4, in_progress_ms=300_000)
+
+
+async def take(redis: ArqRedis, claim: steps.Claim | None, skip: list[str]) -> Any:
+    return await steps.take(redis, TAKE, 2**45, claim, skip)
 
 
 def test_a_take_whose_answer_was_lost_is_handed_back_by_the_next_beat(redis_server: RedisServer) -> None:
@@ -264,7 +262,7 @@ def test_a_take_whose_answer_was_lost_is_handed_back_by_the_next_beat(redis_serv
         job = job_id(8)
         await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
         claim = claims.open()
-        assert (await unstarted_worker(redis, claims)._poll_script(claim, []))[1] is not None  # answer "lost"
+        assert (await take(redis, claim, []))[1] is not None  # answer "lost"
         claims.lost(claim.token)
         assert await plain.exists(in_progress_key_prefix + job)
         released = await beat(plain, heartbeat(), 5.0, dropped=set(claims.dropped))
@@ -285,16 +283,15 @@ def test_the_next_job_taken_skips_tenants_at_their_share_and_jobs_already_starte
         for score, job in enumerate((first, second, third), start=1):  # fair scores, ascending
             await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
             await plain.zadd(QUEUE, {job: score})
-        queue_worker = unstarted_worker(redis, claims)
-        _, taken, more = await queue_worker._poll_script(claims.open(), [])
+        _, taken, more = await take(redis, claims.open(), [])
         assert taken is not None and taken.id == first and more
-        _, taken, _ = await queue_worker._poll_script(claims.open(), [busy])  # `busy` at its share: `other` next
+        _, taken, _ = await take(redis, claims.open(), [busy])  # `busy` at its share: `other` next
         assert taken is not None and taken.id == third
-        _, taken, _ = await queue_worker._poll_script(claims.open(), [])  # the started ones stay queued, untaken
+        _, taken, _ = await take(redis, claims.open(), [])  # the started ones stay queued, untaken
         assert taken is not None and taken.id == second
-        assert (await queue_worker._poll_script(claims.open(), []))[1] is None
+        assert (await take(redis, claims.open(), []))[1] is None
         await plain.zadd(abort_jobs_ss, {second: 1})
-        assert (await queue_worker._poll_script(None, [])) == ([second.encode()], None, False)  # marks, no take
+        assert (await take(redis, None, [])) == ([second.encode()], None, False)  # marks, no take
 
     run(redis_server, scenario)
 

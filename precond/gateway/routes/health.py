@@ -12,8 +12,8 @@ from redis.exceptions import RedisError
 from precond.gateway.auth import refuse
 from precond.gateway.deps import Services, ServicesDep
 from precond.gateway.errors import ServiceError
-from precond.jobs.heartbeats import live_workers
-from precond.jobs.keys import QUEUES
+from precond.jobs.queue.heartbeats import live_workers
+from precond.jobs.queue.keys import QUEUES
 from precond.jobs.records import read_stats
 
 

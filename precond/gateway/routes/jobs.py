@@ -10,7 +10,7 @@ from precond.gateway.auth import RATE_LIMITED, CurrentCaller
 from precond.gateway.caller import Caller
 from precond.gateway.deps import ServicesDep
 from precond.gateway.errors import ServiceError
-from precond.jobs.keys import owner_of
+from precond.jobs.queue.keys import owner_of
 from precond_client.schemas.api import ErrorResponse, JobStatus
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])

@@ -16,7 +16,7 @@ from precond.gateway.errors import ServiceError
 from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.routes.operations import ERRORS, Wait, answer
 from precond.jobs import policy_adapters
-from precond.jobs.payloads import TrainPolicyJob
+from precond.jobs.queue.payloads import TrainPolicyJob
 from precond_client.schemas.api import ErrorResponse
 from precond_client.schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
 

@@ -17,8 +17,8 @@ from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.routes.operations import ERRORS, Wait, answer, with_prior_sets
 from precond.gateway.set_store import Report, apply_edits, blocking_message, new_id, not_found, version_of
 from precond.gateway.submission import submit_job
-from precond.jobs.payloads import ReinferJob, ValidateRequest
 from precond.jobs.precondition_sets import normal, set_warnings, union
+from precond.jobs.queue.payloads import ReinferJob, ValidateRequest
 from precond.programs import checks
 from precond_client.schemas.api import (
     MAX_DEMONSTRATIONS,

@@ -20,7 +20,7 @@ from precond.gateway.caller import Caller
 from precond.gateway.deps import ServicesDep
 from precond.gateway.errors import ServiceError
 from precond.gateway.set_store import parse_reference
-from precond.jobs import keys
+from precond.jobs.queue import keys
 
 PAGE_DIR: Final = Path(__file__).resolve().parents[1] / "ui"
 ASSET: Final = re.compile(r"^[a-z]+\.(js|css)$")

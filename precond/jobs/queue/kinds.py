@@ -8,8 +8,8 @@ from typing import Any, Final, get_args
 
 from pydantic import BaseModel
 
-from precond.jobs.keys import CHECK_QUEUE, MODEL_FREE_QUEUE, MODEL_QUEUE, TRAIN_QUEUE
-from precond.jobs.payloads import ReinferJob, TrainPolicyJob, ValidateRequest
+from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_FREE_QUEUE, MODEL_QUEUE, TRAIN_QUEUE
+from precond.jobs.queue.payloads import ReinferJob, TrainPolicyJob, ValidateRequest
 from precond_client.schemas.api import CheckRequest, InferRequest, JobKind, NextActionRequest
 
 

@@ -1,4 +1,4 @@
-"""Names the gateway and the workers must agree on: queues, job ids and the Redis keys beside arq's own.
+"""Names the gateway and the workers must agree on: queues, job ids and every Redis key of a job's life.
 
 A job id is `<kind>-<tenant tag>-<digest>`: the kind names its queue (GET /jobs/{id} needs no lookup), the
 tenant tag names its owner (another tenant's GET or DELETE is a 404 without any lookup), and the digest is an
@@ -16,6 +16,8 @@ import re
 from functools import lru_cache
 from importlib import metadata
 from typing import Any, Final, get_args
+
+from arq import constants as arq_layout
 
 from precond_client.schemas.api import JobKind
 
@@ -36,19 +38,27 @@ STATS_KEY: Final = f"{PREFIX}:stats"
 WORKER_PREFIX: Final = f"{PREFIX}:worker:"
 WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
 RUNNING_KEY: Final = f"{PREFIX}:running"
-"""Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.heartbeats."""
+"""Hash job id → claim (`<worker id>|<run nonce>`) of the worker running it; see jobs.queue.heartbeats."""
 UNCLAIMED_KEY: Final = f"{PREFIX}:unclaimed"
 """Hash job id → Redis time (ms) a heartbeat first saw it started (arq's in-progress key) with no claim."""
 WAKE_PREFIX: Final = f"{PREFIX}:wake:"
+STATE_TTL_S: Final = 7 * 24 * 3600
+"""Lifetime of a tenant's job set and of a queue's fair scores once untouched."""
+
+# A job's own keys keep arq's layout (`arq.constants`, its public names), so that results stored before this
+# layout was the project's own stay readable and `arq.jobs.Job` reads them: the job's bytes, its in-progress
+# mark (a worker runs it, or a cancellation guards it), its stored end, its try count, and the abort marks.
+JOB_PREFIX: Final[str] = arq_layout.job_key_prefix
+IN_PROGRESS_PREFIX: Final[str] = arq_layout.in_progress_key_prefix
+RESULT_PREFIX: Final[str] = arq_layout.result_key_prefix
+RETRY_PREFIX: Final[str] = arq_layout.retry_key_prefix
+ABORTS_KEY: Final[str] = arq_layout.abort_jobs_ss
 
 TAG_CHARS: Final = 16
 ID_DIGEST_CHARS: Final = 48
 _JOB_ID = re.compile(
     rf"^({'|'.join(map(re.escape, get_args(JobKind)))})-([0-9a-f]{{{TAG_CHARS}}})-[0-9a-f]{{{ID_DIGEST_CHARS}}}$"
 )
-OWNER_SPAN_FROM_END: Final = (-(ID_DIGEST_CHARS + 1 + TAG_CHARS), -(ID_DIGEST_CHARS + 2))
-"""Where a job id carries its tenant's tag, counted from its end (Lua's `string.sub(id, first, last)`): a
-script that reads the owner without parsing the id."""
 SHARED: Final = "shared"
 
 
@@ -58,6 +68,16 @@ def cache_key(job_id: str) -> str:
 
 def progress_key(job_id: str) -> str:
     return f"{PREFIX}:progress:{job_id}"
+
+
+def tenant_jobs_key(tag: str) -> str:
+    """Sorted set of a tenant's unfinished jobs (its cap, `PRECOND_TENANT_MAX_JOBS`)."""
+    return f"{PREFIX}:tenant:{tag}:jobs"
+
+
+def fair_key(queue: str) -> str:
+    """Hash tenant tag → last fair score handed out on `queue` (and `~max`, the highest)."""
+    return f"{PREFIX}:fair:{queue}"
 
 
 def wake_channel(queue: str) -> str:

@@ -4,12 +4,12 @@ Expiring keys rather than a registry that workers join and leave: a SIGKILLed wo
 its key (`precond:worker:<id>`) simply lapses `PRECOND_HEARTBEAT_TTL_S` after its last beat (3 beats by
 default). Readiness and metrics read these keys.
 
-Liveness-based recovery. arq marks a started job with `arq:in-progress:<job id>`, which expires only job
+Liveness-based recovery. The take marks a started job with `arq:in-progress:<job id>`, which expires only job
 timeout + 10 s after the start (15 minutes by default); until then no worker runs the job again, even if
 the worker running it was SIGKILLed a second after starting it. So every worker also records what it runs in
 one hash, `precond:running`: job id → claim `<worker id>|<nonce>` (a nonce per run, so an old run's claim
 is never mistaken for a new one's). The claim is written, together with a fresh heartbeat, by the script that
-takes the job (precond/worker/queue_worker.py: in one step with arq's in-progress key), and removed by the one that
+takes the job (`steps.take`: in one step with the job's in-progress key), and removed by the one that
 records its end. On each beat a worker runs `_BEAT`, one Lua script (Redis runs it atomically, so two
 workers never both act on one claim):
 
@@ -20,11 +20,11 @@ workers never both act on one claim):
    recorded (Redis went away mid-job), and takes whose answer was lost (the script may have run: the claim
    then names a job this worker never learned);
 4. for every other claim whose worker's heartbeat key has expired, and whose job is still in progress with
-   no result, it deletes arq's in-progress key: the job is still in arq's queue, so the next poll of any
-   live worker runs it again (arq counts the try). Claims of finished jobs are dropped on the way;
-5. it hands back jobs that were started but never claimed. When arq set the in-progress key and the claim
+   no result, it deletes its in-progress key: the job is still in its queue, so the next take of any
+   live worker runs it again (the try counted). Claims of finished jobs are dropped on the way;
+5. it hands back jobs that were started but never claimed. When the in-progress key was set and the claim
    followed a few round trips later, a worker SIGKILLed in between left a started job that no claim named,
-   which steps 1-4 never see, so it waited for arq's in-progress expiry (job timeout + 10 s): that is how
+   which steps 1-4 never see, so it waited for the in-progress key's expiry (job timeout + 10 s): that is how
    `test_sigkilled_workers_lose_no_job` once lost a job. The take now writes both at once; this step stays
    for any in-progress key without a claim (one a Redis restart kept while losing the claims hash, or one
    written by a worker of an older version during an upgrade). Such a job is noted (`precond:unclaimed`,
@@ -42,11 +42,19 @@ import uuid
 from collections.abc import Collection
 from typing import Any
 
-from arq.constants import in_progress_key_prefix, result_key_prefix
 from pydantic import BaseModel
 from redis.asyncio import Redis
 
-from precond.jobs.keys import QUEUES, RUNNING_KEY, UNCLAIMED_KEY, WORKER_PREFIX, WORKERS_PATTERN, worker_key
+from precond.jobs.queue.keys import (
+    IN_PROGRESS_PREFIX,
+    QUEUES,
+    RESULT_PREFIX,
+    RUNNING_KEY,
+    UNCLAIMED_KEY,
+    WORKER_PREFIX,
+    WORKERS_PATTERN,
+    worker_key,
+)
 
 
 class Heartbeat(BaseModel):
@@ -150,8 +158,8 @@ async def beat(
         heartbeat.model_dump_json(),
         int(ttl_s * 1000),
         WORKER_PREFIX,
-        in_progress_key_prefix,
-        result_key_prefix,
+        IN_PROGRESS_PREFIX,
+        RESULT_PREFIX,
         len(running),
         len(QUEUES),
         *QUEUES,

@@ -1,11 +1,21 @@
-"""The payloads of the jobs the gateway makes for itself: never sent by a client, so they are not part of the
-public API (`precond_client.schemas.api`, which ships in the client wheel) but of the wire contract between gateway and
-worker."""
+"""What a queued job and a stored end are, as bytes: and the payloads of the jobs the gateway makes for itself
+(never sent by a client, so they are not part of the public API, `precond_client.schemas.api`, which ships in the
+client wheel, but of the wire contract between gateway and worker).
+
+A job is stored as arq's job record (`arq.jobs.serialize_job`: function name, arguments, enqueue time) with one
+function, `run_operation(kind, body, cache_key)`; an end as arq's result record (`arq.jobs.serialize_result`). Both
+through arq's public serialisation functions, so that `arq.jobs.Job` reads them.
+"""
 
 from __future__ import annotations
 
+import asyncio
+from typing import Any
+
+from arq.jobs import JobResult, deserialize_result, serialize_job, serialize_result
 from pydantic import Field
 
+from precond.jobs.queue.keys import JOB_FUNCTION
 from precond_client.schemas.api import (
     ADAPTER_ID_PATTERN,
     MAX_DEMONSTRATIONS,
@@ -13,6 +23,7 @@ from precond_client.schemas.api import (
     PRECONDITIONS_DESCRIPTION,
     SPEC_DESCRIPTION,
     InferOptions,
+    JobKind,
     Preconditions,
     PreconditionSet,
     StrictBody,
@@ -56,3 +67,27 @@ class TrainPolicyJob(StrictBody):
     max_adapters: int = Field(ge=1)
     max_versions: int = Field(ge=1)
     max_tenant_bytes: int = Field(ge=1)
+
+
+def encode_job(kind: JobKind, body: dict[str, Any], cache_key: str, enqueued_ms: int) -> bytes:
+    """A job's bytes: the operation of `kind` on `body`, its result cached under `cache_key`."""
+    return serialize_job(JOB_FUNCTION, (kind, body, cache_key), {}, None, enqueued_ms)
+
+
+def encode_end(job_id: str, queue: str, job: tuple[str, tuple[Any, ...], int], job_try: int, success: bool,
+               result: Any, start_ms: int, finish_ms: int) -> bytes | None:
+    """A run's stored end: `job` is the run's (function name, arguments, enqueue time); `result` the outcome, or
+    the exception that ended it. None when it cannot be serialised (arq logs why)."""
+    function, args, enqueued_ms = job
+    return serialize_result(function, args, {}, job_try, enqueued_ms, success, result, start_ms, finish_ms,
+                            f"{job_id}:{function}", queue, job_id)
+
+
+def cancelled_end(job_id: str, queue: str, kind: JobKind, now_ms: int) -> bytes | None:
+    """The stored end of a job cancelled before any worker started it."""
+    return encode_end(job_id, queue, (JOB_FUNCTION, (kind,), now_ms), 0, False, asyncio.CancelledError(), now_ms,
+                      now_ms)
+
+
+def decode_end(raw: bytes) -> JobResult:
+    return deserialize_result(raw)

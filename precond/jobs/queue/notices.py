@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Final
 
-from precond.jobs.keys import PREFIX
+from precond.jobs.queue.keys import PREFIX
 
 WAITERS_PREFIX: Final = f"{PREFIX}:waiters:"
 NOTICE_PREFIX: Final = f"{PREFIX}:notice:"
