@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import re
 import sys
+from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
@@ -138,10 +139,15 @@ def exception_lines(response: InferResponse) -> list[str]:
 
 def summary_lines(response: InferResponse) -> list[str]:
     """What a person reads: per action its rules, how each was decided (its evidence and the kept candidate's
-    reason), the demonstrated calls it refuses, and the action's warning (an empty or thin rule)."""
-    lines: list[str] = []
+    reason), the demonstrated calls it refuses, and the action's warning (an empty or thin rule). A reason that
+    several rules share (the ~60 words of why an assumed rule was kept) is said once, first, and named by its
+    number at each rule."""
+    decided = {(action, rule): _decided(response, action, rule)
+               for action, rules in response.preconditions.items() for rule in rules}
+    counts = Counter(reason for _, reason in decided.values() if reason)
+    shared = {reason: n for n, reason in enumerate((r for r, c in counts.items() if c > 1), start=1)}
+    lines = [f"[{n}] {reason}" for reason, n in shared.items()]
     for action, rules in response.preconditions.items():
-        reasons = {c.assertion: c.reason for c in response.candidates.get(action, []) if c.kept}
         lines.append(f"{action}: " + (f"{len(rules)} rule(s), all must hold" if rules
                                       else "no rule: every call of it is allowed"))
         for rule in rules:
@@ -151,19 +157,29 @@ def summary_lines(response: InferResponse) -> list[str]:
                 lines.append(f"    evidence: {evidence.verdict}, holds at {evidence.holds} of "
                              f"{evidence.occurrences} demonstrated calls (confidence {evidence.confidence:.2f})")
                 lines += _exceptions(evidence, "    refuses ")
-            label: str = evidence.decided if evidence is not None and evidence.decided else ""
-            if evidence is not None and evidence.source:
-                label = f"{evidence.decided} (from {evidence.source})"
-            reason = str(reasons.get(rule) or "").split("; held at ")[0]  # its counts are the evidence line's
-            if evidence is not None and evidence.decided and reason.startswith(f"{evidence.decided}:"):
-                reason = reason[len(evidence.decided) + 1:].strip()
-            if reason or label:
-                lines.append(f"    decided: {label}{': ' if label and reason else ''}{reason}")
+            label, reason = decided[(action, rule)]
+            said = f"[{shared[reason]}]" if reason in shared else reason
+            if said or label:
+                lines.append(f"    decided: {label}{': ' if label and said else ''}{said}")
         if action in response.warnings:
             lines.append(f"  WARNING {response.warnings[action]}")
     kept = sum(len(r) for r in response.preconditions.values())
     lines.append(f"{kept} rule(s) for {len(response.preconditions)} action(s); {len(response.warnings)} warning(s)")
     return lines
+
+
+def _decided(response: InferResponse, action: str, rule: str) -> tuple[str, str]:
+    """How a kept rule was decided (its label, with where a transferred one came from) and the kept candidate's
+    reason without what the evidence line already says."""
+    evidence = response.evidence.get(action, {}).get(rule)
+    reasons = {c.assertion: c.reason for c in response.candidates.get(action, []) if c.kept}
+    label: str = evidence.decided if evidence is not None and evidence.decided else ""
+    if evidence is not None and evidence.source:
+        label = f"{evidence.decided} (from {evidence.source})"
+    reason = str(reasons.get(rule) or "").split("; held at ")[0]  # its counts are the evidence line's
+    if evidence is not None and evidence.decided and reason.startswith(f"{evidence.decided}:"):
+        reason = reason[len(evidence.decided) + 1:].strip()
+    return label, reason
 
 
 def _remote(server: str, api_key: str | None, body: BaseModel, with_progress: bool = True,

@@ -214,11 +214,11 @@ def _schedule(found: Sequence[Example], steps: int, seed: int) -> list[Example]:
 def _loss(model: Any, prefix_ids: torch.Tensor, example: Example, device: torch.device) -> torch.Tensor:
     """Mean cross-entropy over the example's action tokens, the spec's cache computed without gradients."""
     with torch.no_grad():
-        cache = model(input_ids=prefix_ids, use_cache=True).past_key_values
+        cache = model(input_ids=prefix_ids, use_cache=True).cache
     ids = torch.tensor([example.ids], device=device)
     # the logit at position k predicts token k+1; the first dialog token is predicted from the prefix's last
     positions = [t - 1 for t in example.targets]
-    output = model(input_ids=ids, past_key_values=cache, use_cache=False,
+    output = model(input_ids=ids, cache=cache, use_cache=False,
                    logits_to_keep=torch.tensor(positions, device=device))
     logits = output.logits[0].float()
     targets = ids[0, torch.tensor(positions, device=device) + 1]

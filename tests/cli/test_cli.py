@@ -64,8 +64,15 @@ def test_infer_can_leave_candidates_out_and_print_a_summary_to_read() -> None:
     at = lines.index("SYSTEM.REQUEST: 1 rule(s), all must hold")
     assert lines[at + 1] == "  not self.user.informed_slot[slot]"
     assert lines[at + 2] == "    evidence: held, holds at 5 of 5 demonstrated calls (confidence 0.65)"
-    # 5 calls in 2 demonstrations: too few dialogs to establish it
-    assert lines[at + 3].startswith("    decided: assumed: kept: held at every occurrence")
+    # 5 calls in 2 demonstrations: too few dialogs to establish it; the reason it shares with other rules is
+    # said once, first, and named by its number at each of them
+    shared = {line.split("] ", 1)[0] + "]": line.split("] ", 1)[1] for line in lines if line.startswith("[")}
+    assert lines[at + 3].startswith("    decided: assumed: [") and lines[at + 3].endswith("]")
+    reason = shared[lines[at + 3].rsplit(" ", 1)[1]]
+    assert reason.startswith("kept: held at every occurrence")
+    assert sum(reason in line for line in lines) == 1
+    assert len(shared) == len(set(shared.values())) and all(
+        sum(line.endswith(f" {n}") for line in lines) > 1 for n in shared)
     assert lines[at + 4].startswith("  WARNING thin evidence: SYSTEM.REQUEST is called 5 time(s)")
     at = lines.index("SYSTEM.NOTIFY_FAILURE: 1 rule(s), all must hold")  # never demonstrated: refused
     assert lines[at + 1] == "  False" and lines[at + 3].startswith("    decided: unseen: ")

@@ -333,3 +333,15 @@ def test_kept_prefixes_are_bounded_in_tokens_least_recently_used_first() -> None
     assert store.scopes() == {"a", "c"}
     assert store.closest("b", (1, 2, 3, 5)) == (None, 0)
     assert store.closest("c", (1, 2, 3, 4)) == (None, 0)  # never another scope's entry
+
+
+def test_decoding_and_scoring_warn_of_nothing(tiny: CodeModel) -> None:
+    """Every `precond infer` printed transformers' FutureWarning about `past_key_values`: the cache is passed
+    the way the installed transformers wants it (prefill, decode and the scoring tree)."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        with scoped("warnings"):
+            tiny.complete(PREFIX, SUFFIXES[:1], 2, Sampling(max_new_tokens=4), "line")
+            tiny.score(PREFIX, ["a", "b c"])

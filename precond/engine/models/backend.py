@@ -306,7 +306,7 @@ class CodeModel:
             input_ids=torch.tensor([tree.tokens], device=self.device),
             attention_mask=mask,
             position_ids=torch.tensor([[shared + d for d in tree.depths]], device=self.device),
-            past_key_values=copy.deepcopy(prefix.cache),
+            cache=copy.deepcopy(prefix.cache),
             use_cache=True,
             logits_to_keep=torch.tensor(inner, device=self.device),
         ).logits[0].float()
@@ -324,7 +324,7 @@ class CodeModel:
             input_ids=input_ids,
             attention_mask=attention_mask,
             position_ids=position_ids,
-            past_key_values=cache,
+            cache=cache,
             use_cache=True,
             logits_to_keep=1,
         )
@@ -354,7 +354,7 @@ class CodeModel:
                 input_ids=chunk,
                 attention_mask=torch.ones(1, end, dtype=torch.long, device=self.device),
                 position_ids=torch.arange(start, end, device=self.device)[None],
-                past_key_values=cache,
+                cache=cache,
                 use_cache=True,
                 logits_to_keep=1,
             )
