@@ -8,7 +8,8 @@ every condition the enumerator proposes for the fixture's actions with `options.
 `force`, 32 an action a set), which includes rules that raise (`KeyError`), reads of tables a call's rules fill
 and comprehensions over the results; and the hand-written cancellation clause and collection conditions.
 With the development data (`../shared/data/tau-airline`, or
-PRECOND_DATA_DIR), also all 133 state-changing calls of its 120 runs under the rules learned from them.
+PRECOND_DATA_DIR), also all 133 state-changing calls of its 120 runs under the rules learned from them, without
+and with its labelled calls.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import Converted
-from precond.evaluation import tools
+from precond.evaluation import tools, tools_labels
 from precond.evaluation.settings import DataSettings
 from precond.stack.local import Stack, make_stack, serving
 from precond_client import Client, PreconditionSet
@@ -165,7 +166,21 @@ def test_all_state_changing_airline_calls_under_the_learned_rules(client: Client
     assert sum(len(state_changing_calls(run, i)) for run in runs for i in range(len(run))) == 133
     seen: Counter[str] = Counter()
     compared = []
-    for stored in learned_sets(client, converted):
+    for stored in [*learned_sets(client, converted), *labelled_sets(client, converted, data)]:
         calls_at = partial(state_changing_calls, actions=frozenset(stored.preconditions))
         compared.append(compare(client, stored, runs, calls_at, seen))
     assert compared[0] == 133 and seen["allowed"] and seen["refused"], (compared, seen)
+
+
+def labelled_sets(client: Client, converted: Converted, data: Path) -> list[PreconditionSet]:
+    """The rules learned with each half of the tasks' labelled calls as counterexamples (`precond eval tools
+    --labels`), with `options.now`: separating rules over dates and collections."""
+    records = json.loads((data / "labels.json").read_text())
+    sets = []
+    for half in tools_labels.halves(converted):
+        inferred = client.infer_preconditions(
+            tools_labels.infer_request(converted, records, half, True, "labels.json"), timeout=600)
+        evidence = {a: {r: e.model_dump() for r, e in rules.items()} for a, rules in inferred.evidence.items()}
+        sets.append(client.create_set({"spec": converted.spec, "preconditions": inferred.preconditions,
+                                       "evidence": evidence}))
+    return sets
