@@ -290,6 +290,34 @@ def test_the_try_it_panel_refuses_a_call_the_rules_refuse(
 
 
 @needs_browser
+def test_the_try_it_panel_takes_a_pasted_json_history(page: Page, opened: dict[str, Any]) -> None:
+    """A history of 13 events is one paste, not 13 rows: events, or an agent's OpenAI messages, as JSON."""
+    made = opened
+    assert "self.user.requested_slot[slot]" in made["preconditions"]["SYSTEM.INFORM"]
+    pasted = [{"actor": "user", "act": "INFORM_INTENT", "args": ["FindRestaurants"]},
+              {"actor": "user", "act": "REQUEST", "args": ["phone_number"]}]
+    page.locator("#try-json").fill(json.dumps(pasted, indent=2))
+    page.locator("#try-calls").fill("system.INFORM('phone_number')\nsystem.INFORM('address')")
+    page.locator("#try-check").click()
+    expect(page.locator("#try-results .verdict[data-call=\"system.INFORM('phone_number')\"]")).to_have_class(
+        "verdict allowed")
+    expect(page.locator("#try-results .verdict[data-call=\"system.INFORM('address')\"]")).to_have_class(
+        "verdict refused")
+    # a history that already broke a rule says where and which
+    page.locator("#try-json").fill(json.dumps([pasted[0], {"actor": "system", "act": "INFORM", "args": ["city"]}]))
+    page.locator("#try-check").click()
+    expect(page.locator("#try-history-violation")).to_contain_text("line 4")
+    expect(page.locator("#try-history-violation")).to_contain_text("self.user.requested_slot[slot]")
+    # what is not a JSON list, and an event the API refuses, are said, naming the place
+    page.locator("#try-json").fill("{not json")
+    page.locator("#try-check").click()
+    expect(page.locator("#try-error")).to_contain_text("pasted history: not JSON")
+    page.locator("#try-json").fill(json.dumps([{"actor": "user", "act": "SHOUT"}]))
+    page.locator("#try-check").click()
+    expect(page.locator("#try-error")).to_contain_text("SHOUT")
+
+
+@needs_browser
 def test_an_added_rule_that_blocks_a_demonstration_shows_the_apis_refusal_at_its_action(
     page: Page, acme: httpx.Client, opened: dict[str, Any]
 ) -> None:

@@ -1,5 +1,6 @@
-// Try a version: an event history (actor, act, args) and a few calls, judged by /check-actions with this
-// version's rules. Arguments stay literals: a word is a string, JSON scalars (2, true, null, "a, b") are values.
+// Try a version: an event history (actor, act, args; typed row by row, or pasted as JSON: events or an agent's
+// OpenAI messages) and a few calls, judged by /check-actions with this version's rules. Arguments stay literals:
+// a word is a string, JSON scalars (2, true, null, "a, b") are values.
 
 import { api, follow } from "./api.js";
 import { clear, errorBox, h } from "./dom.js";
@@ -7,6 +8,8 @@ import { clear, errorBox, h } from "./dom.js";
 export function tryPanel(set) {
   const { actors, acts } = vocabulary(set.spec);
   const events = h("div", { class: "events", id: "try-events" });
+  const pasted = h("textarea", { id: "try-json", "aria-label": "history as JSON",
+    placeholder: '[{"actor": "user", "act": "INFORM", "args": ["city"]}, ...] or [{"role": "user", ...}, ...]' });
   const calls = h("textarea", { id: "try-calls", placeholder: "system.REQUEST('city')\none call per line" });
   const results = h("div", { id: "try-results" });
   const error = h("div", { class: "error", role: "alert", hidden: true, id: "try-error" });
@@ -18,11 +21,14 @@ export function tryPanel(set) {
     clear(results);
     let body;
     try {
-      body = { precondition_set: set.reference, history: [...events.children].map(readEvent),
+      const history = pasted.value.trim() ? readPasted(pasted.value) : [...events.children].map(readEvent);
+      body = { precondition_set: set.reference, history,
         calls: calls.value.split("\n").map((c) => c.trim()).filter(Boolean) };
       if (!body.calls.length) throw new Error("write at least one call");
       const verdicts = await follow(await api("POST", "/check-actions?wait=10", body));
-      clear(results, verdicts.results.map(verdict));
+      clear(results, [verdicts.history_violation
+        ? h("p", { class: "banner bad", id: "try-history-violation" }, `The history already broke a rule: `
+          + verdicts.history_violation) : null, ...verdicts.results.map(verdict)]);
     } catch (problem) {
       errorBox(error, problem);
     }
@@ -36,6 +42,8 @@ export function tryPanel(set) {
     h("datalist", { id: "try-acts" }, acts.map((a) => h("option", { value: a }))),
     h("form", { onsubmit: check }, events,
       h("div", { class: "row" }, h("button", { type: "button", id: "try-add-event", onclick: addEvent }, "+ event")),
+      h("label", { class: "block", for: "try-json" }, "or paste the history as JSON (events or OpenAI messages; "
+        + "used instead of the rows)"), pasted,
       h("label", { class: "block", for: "try-calls" }, "Calls"), calls,
       h("div", { class: "row" }, h("button", { class: "primary", type: "submit", id: "try-check" }, "Check"))),
     error, results);
@@ -54,6 +62,19 @@ function readEvent(row, index) {
   const value = (name) => row.querySelector(`[name=${name}]`).value.trim();
   if (!value("actor") || !value("act")) throw new Error(`event ${index + 1}: give its actor and act`);
   return { actor: value("actor"), act: value("act"), args: parseArgs(value("args")) };
+}
+
+/** A pasted history: a JSON list of events or of OpenAI messages, sent as it is (the API checks each item). */
+function readPasted(text) {
+  let value;
+  try {
+    value = JSON.parse(text);
+  } catch (problem) {
+    throw new Error(`pasted history: not JSON (${problem.message})`);
+  }
+  if (value && !Array.isArray(value) && Array.isArray(value.messages)) value = value.messages;  // a logged run
+  if (!Array.isArray(value)) throw new Error("pasted history: give a JSON list of events or of OpenAI messages");
+  return value;
 }
 
 function parseArgs(text) {
