@@ -7,6 +7,7 @@ standard library is used (and the gateway's command line), so starting the tree 
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import secrets
@@ -41,8 +42,8 @@ class Child:
 
     def start(self, env: dict[str, str]) -> None:
         log.info("starting %s: %s", self.name, " ".join(self.argv))
-        self.process = subprocess.Popen(
-            self.argv, env=env, stdin=None if self.stdin is None else subprocess.PIPE
+        self.process = subprocess.Popen(  # its own process group: what it starts is stopped with it
+            self.argv, env=env, stdin=None if self.stdin is None else subprocess.PIPE, start_new_session=True
         )
         if self.stdin is not None and self.process.stdin is not None:
             self.process.stdin.write(self.stdin)
@@ -51,6 +52,13 @@ class Child:
 
     def exited(self) -> int | None:
         return None if self.process is None else self.process.poll()
+
+    def kill_leftovers(self) -> None:
+        """SIGKILL what is left of the child's process group once it is gone: a gateway killed before it could
+        stop its check pool leaves that pool's processes and their resource tracker behind, orphaned."""
+        if self.process is not None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.process.pid, signal.SIGKILL)
 
 
 def answers(host: str, port: int, password: str) -> bool:
@@ -271,6 +279,7 @@ class Supervisor:
             return
         backoff = min(30.0, 2.0**child.restarts) if time.monotonic() - child.started < 60 else 1.0
         log.warning("%s exited with %s; restarting in %.0fs", child.name, code, backoff)
+        child.kill_leftovers()
         time.sleep(backoff)
         child.restarts += 1
         child.start(self.env)
@@ -293,4 +302,6 @@ class Supervisor:
                         child.process.wait(timeout=self.settings.drain_s + 5)
                     except subprocess.TimeoutExpired:
                         child.process.kill()
+                        child.process.wait()
+                    child.kill_leftovers()
         return 0

@@ -10,6 +10,7 @@ Request bodies are the ones in examples/ (SGD Restaurants_1: its spec program an
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import json
 import os
@@ -156,7 +157,8 @@ class Stack:
 
     def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
         log = (self.logs / f"{name}-{len(self.processes)}.log").open("wb")
-        process = subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                   start_new_session=True)  # its own process group: stopped with what it started
         self.processes.append(process)
         return process
 
@@ -188,6 +190,9 @@ class Stack:
                 process.wait(10)
             except subprocess.TimeoutExpired:
                 process.kill()
+                process.wait()
+            with contextlib.suppress(ProcessLookupError, PermissionError):  # a killed gateway's check pool
+                os.killpg(process.pid, signal.SIGKILL)
 
 
 def make_stack(

@@ -172,12 +172,17 @@ def test_serve_starts_its_own_redis_beside_an_open_one_and_prints_one_line_when_
                              line)
         assert ready, line
         assert "6379" not in ready.groups()
-        answer = httpx.post(f"http://127.0.0.1:{port}/check-actions", params={"wait": 30}, timeout=60,
-                            json=json.loads((EXAMPLES / "check-actions.json").read_text()))
+        body = json.loads((EXAMPLES / "check-actions.json").read_text())
+        answer = httpx.post(f"http://127.0.0.1:{port}/check-actions", params={"wait": 30}, timeout=60, json=body)
         assert answer.status_code == 200, answer.text
+        body["history"] += "# " + "x" * 20_000 + "\n"  # large: read in the gateway's pool of processes
+        assert httpx.post(f"http://127.0.0.1:{port}/check-actions", timeout=60, json=body).status_code == 200
         tree = _descendants(process.pid)
-        print(tree)
-        assert len(tree) >= 5, tree  # two redis-servers, the gateway (and its check pool), a worker
+        assert any("spawn_main" in what for what in tree.values()), tree  # the gateway's check pool
+        assert any("resource_tracker" in what for what in tree.values()), tree
+        # a gateway that does not stop within the drain period is killed: what it started must go with it
+        gateway = next(pid for pid, what in tree.items() if "uvicorn" in what)
+        os.kill(gateway, signal.SIGSTOP)
         process.send_signal(signal.SIGTERM)
         assert process.wait(60) == 0
         left = [(pid, what) for pid, what in tree.items() if _alive(pid)]
