@@ -19,13 +19,14 @@ from precond.evaluation.cache import DEFAULT_CACHE, JsonCache
 
 DataOption = Annotated[
     list[Path] | None,
-    typer.Option("--data", help="Data directories (default: sgd/ and alfworld/ of PRECOND_DATA_DIR, else "
+    typer.Option("--data", help="Data directories (default: sgd/, star/ and alfworld/ of PRECOND_DATA_DIR, else "
                  "../shared/data); repeatable."),
 ]
 CacheOption = Annotated[Path, typer.Option("--cache", help="Directory of cached runs.")]
 VariantsOption = Annotated[int, typer.Option(min=1, max=32, help="Changed copies of each test trajectory.")]
 SeedOption = Annotated[int, typer.Option(min=0, help="Seed of the changes.")]
 REPORT = Path("docs/results.md")
+BENCHMARK_DIRS = ("sgd", "star", "alfworld")
 
 
 @cache
@@ -68,7 +69,7 @@ def _domains(data: list[Path] | None, alfworld_modes: str) -> list[Any]:
     domains that could be read is never presented as the whole."""
     from precond.evaluation.domains import ARG_MODES, DomainDataError, load_domains
 
-    data = _data(data, "sgd", "alfworld")
+    data = _data(data, *BENCHMARK_DIRS)
     modes = [m.strip() for m in alfworld_modes.split(",") if m.strip()]
     out = []
     try:
@@ -409,6 +410,55 @@ def _fail_on_errors(rows: list[dict[str, Any]]) -> None:
         raise typer.Exit(1)
 
 
+def domains(
+    data: DataOption = None,
+    configs: Annotated[str, typer.Option(help="Config names or grids (see precond/evaluation/configs.py).")]
+    = "",
+    variants: VariantsOption = 4,
+    seed: SeedOption = 0,
+    cache_dir: CacheOption = DEFAULT_CACHE,
+    out: Annotated[Path, typer.Option(help="Report whose twenty-domain section is (re)written.")] = REPORT,
+) -> None:
+    """Every development domain (SGD, STAR, ALFWorld): per benchmark the mean, the worst domain and the domains at
+    or below `always`, for the paper's F1 and the counterfactual metric (precond/evaluation/generalisation.py)."""
+    from precond.evaluation.configs import expand
+    from precond.evaluation.generalisation import DEFAULT_CONFIGS, summarize, summary_table, write_section
+    from precond.evaluation.safety import evaluate
+    from precond.evaluation.scoring import Satisfaction
+
+    store = JsonCache(cache_dir)
+    chosen = expand(configs or DEFAULT_CONFIGS)
+    if not any(c.name == "always" for c in chosen):
+        chosen = [*chosen, *expand("always")]  # the `<=always` column needs it
+    engine = _memo_engine(store)[0]  # completions remembered: a config that asks the same question pays once
+    rows = evaluate(_domains(data, "state"), chosen, store, Satisfaction(_sandbox(), store),
+                    lambda: engine.infer, variants, seed)
+    store.put(rows, "results", "domains")
+    write_section(rows, out)
+    typer.echo(summary_table(summarize(rows)))
+    typer.echo(f"\nwrote the twenty-domain section of {out}")
+
+
+def library(
+    config: Annotated[str, typer.Option(help="The configuration whose rules (without a library) are shipped.")]
+    = "model+enumerate/cautious",
+    cache_dir: CacheOption = DEFAULT_CACHE,
+) -> None:
+    """Build the rule library shipped with the service (precond/engine/data/rule_library.json) from every
+    development domain's inferred rules (never their ground truth)."""
+    from precond.evaluation.configs import parse_config
+    from precond.evaluation.library import build, development_domains, write_shipped
+    from precond.evaluation.preconditions import infer
+
+    _data(None, *BENCHMARK_DIRS)
+    store = JsonCache(cache_dir)
+    chosen = parse_config(config)
+    built = build(development_domains(), chosen, store,
+                  lambda d, c: infer(d, c, store, lambda: _engine(c.uses_model).infer))
+    path = write_shipped(built)
+    typer.echo(f"wrote {path}: {len(built.sources)} sources ({', '.join(s.source for s in built.sources)})")
+
+
 def transfer(
     config: Annotated[str, typer.Option(help="The configuration inferred with and without priors.")]
     = "model+enumerate/cautious",
@@ -445,6 +495,8 @@ def register(app: typer.Typer) -> None:
     group.command("next-action-alfworld")(next_action_alfworld)
     group.command("counterfactual")(counterfactual)
     group.command("transfer")(transfer)
+    group.command("domains")(domains)
+    group.command("library")(library)
     group.command("tools")(tools)
     group.command("report")(report)
     group.command("all")(run_all)

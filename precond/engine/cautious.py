@@ -65,6 +65,7 @@ class Choice:
     decided: dict[str, Decided] = field(default_factory=dict)
     notes: dict[str, str] = field(default_factory=dict)  # expression -> why it was kept, in words
     search: str = ""  # the disjunction search stopped at its bound: what it looked at, in words
+    unguarded: list[str] = field(default_factory=list)  # assumed rules a conversational act does not keep
 
 
 def polarity(expression: str) -> str:
@@ -108,10 +109,13 @@ def _presence(expression: str) -> bool:
 
 
 def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequence[Cluster],
-           evidence: ActionEvidence, tool_call: bool) -> Choice:
+           evidence: ActionEvidence, tool_call: bool, conversational: bool = False) -> Choice:
     """`clusters`: the candidates that passed validation (triggers come from these); `common`: those plus the
     ones true almost everywhere (not separated from chance), which a tool call may still require; `atoms`:
-    every judged candidate, for the disjunction's terms (each alone is refuted by the calls the others cover)."""
+    every judged candidate, for the disjunction's terms (each alone is refuted by the calls the others cover).
+    A `conversational` act (not among `options.guarded`: a goodbye, "anything else?") keeps only what its
+    calls establish: refusing it where a correlate fails costs the user a dead end, allowing it costs little,
+    so the assumed rules are named (`Choice.unguarded`), not kept."""
     chosen = triggers(clusters, evidence)
     decided: dict[str, Decided] = {c.representative.expression: "established" for c in chosen}
     notes: dict[str, str] = {}
@@ -128,7 +132,10 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
         if cut:
             search = f"disjunction search bounded: {note}"
     kept = {c.satisfied for c in chosen}
-    for c in assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept):
+    extra = assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept)
+    if conversational:
+        return Choice(chosen, decided, notes, search, [c.representative.expression for c in extra])
+    for c in extra:
         chosen.append(c)
         decided[c.representative.expression] = "assumed"
     return Choice(chosen, decided, notes, search)

@@ -17,9 +17,11 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from precond.convert.openai import call_lines, structured_history
 from precond.engine import counterexamples, judge, priors, prompting, scope
+from precond.engine import guarded as guarding
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import thin, too_few
 from precond.engine.freshness import writes_at
+from precond.engine.library import Library, shipped
 from precond.engine.next_action import NextActionPlanner
 from precond.engine.notices import rule_warnings
 from precond.engine.parsing import parse_samples
@@ -158,6 +160,9 @@ class Engine:
         self._policy = policy
         self._model: CodeModel | None = None
         self._lock = threading.Lock()
+        self.library: Library = shipped()
+        """The rule library priors come from (engine.library); the evaluation swaps in one built without the
+        domain it scores."""
 
     @property
     def sandbox(self) -> Sandbox:
@@ -218,7 +223,8 @@ class Engine:
         demos = list(request.demonstrations)
         labelled = counterexamples.read(spec, request.counterexamples, demos, actions) \
             if request.counterexamples else None
-        prior = priors.collect(request.options, spec, actions, demos)
+        prior = priors.collect(request.options, spec, actions, demos, self.library)
+        guarded = _guarded(spec, actions, request.options)
         progress("trace", 0, 1)
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos, scope=scope.current())
@@ -246,7 +252,7 @@ class Engine:
                                          {a: list(found.source.get(a, {})) for a in settled}, scope=scope.current())
                 with timer.phase("rank"):
                     known = _known_rules(spec, prompted, select_rules(
-                        settled, Inference(trace, first, found, request.options, writes, prior)))
+                        settled, Inference(trace, first, found, request.options, writes, prior), guarded))
                 self._check_cancel(cancelled)
             with timer.phase("generate"):
                 model_info = self._generate(spec, actions, prompted, request, proposals, progress, cancelled, known)
@@ -264,7 +270,8 @@ class Engine:
             evaluated, unrunnable = drop_unrunnable(spec, StateModel(spec, demo_trees), actions, evaluated, unseen)
         progress("rank", 0, 1)
         with timer.phase("rank"):
-            ranked = select_rules(actions, Inference(trace, evaluated, proposals, request.options, writes, prior))
+            ranked = select_rules(actions, Inference(trace, evaluated, proposals, request.options, writes, prior),
+                                  guarded)
         if request.options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(spec, actions, demos, trace, evaluated, ranked, request.options)
@@ -300,8 +307,10 @@ class Engine:
             listed_here = "; ".join(f"`{e}` ({why})" for e, why in list(dropped_here.items())[:3])
             warnings[action] = "; ".join(w for w in (warnings.get(action), (
                 f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
-        for action in actions:  # a search cut at its bound says so, whatever was kept
-            cuts = (warnings.get(action), stopped.get(action), ranked[action].search)
+        default = "" if request.options.guarded is not None else guarding.note(guarded)
+        for action in actions:  # a search cut at its bound, or a conversational act's unkept rules, say so
+            unguarded = "; ".join(w for w in (ranked[action].unguarded, default) if ranked[action].unguarded and w)
+            cuts = (warnings.get(action), stopped.get(action), ranked[action].search, unguarded)
             if any(cuts[1:]):
                 warnings[action] = "; ".join(w for w in cuts if w)
         progress("done", 1, 1)
@@ -594,6 +603,13 @@ def _with_status(verdict: CallVerdict, action: str | None, request: CheckRequest
         return verdict
     status = rule_status(request.preconditions.get(action, []), request.decided.get(action, {}))
     return verdict.model_copy(update={"action": action, "rule_status": status})
+
+
+def _guarded(spec: Spec, actions: Sequence[str], options: InferOptions) -> list[str]:
+    try:
+        return guarding.resolve(options.guarded, actions, spec.methods)
+    except checks.ProgramProblem as exc:
+        raise as_error(exc) from exc
 
 
 def _spec_of(request: CheckRequest | NextActionRequest) -> str:

@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from precond.engine.cautious import Choice
+from precond.engine.library import Library
 from precond.engine.ranking import ActionEvidence, Candidate, Cluster
 from precond.engine.spec import Spec, as_error
 from precond.programs import checks
@@ -57,10 +58,13 @@ class Priors:
         return ", ".join(prior.sources) if prior else None
 
 
-def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstrations: Sequence[str]) -> Priors:
+def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstrations: Sequence[str],
+            library: Library | None = None) -> Priors:
     """The priors of a request that apply to its actions. A rule that is not one expression, or that calls
     something, is bad input (422 naming it); one that names what this spec does not define, or an action this
-    request does not infer, does not apply and is dropped with a reason."""
+    request does not infer, does not apply and is dropped with a reason. The shipped library's sources
+    (`engine.library`) join for the actions the request's own priors leave alone; a library rule this spec
+    cannot read is left out without a warning (the tenant sent nothing wrong)."""
     if options.prior_sets:
         raise InvalidInput("prior_sets are resolved by the service: send their rules in options.prior_sources here",
                            field="options.prior_sets")
@@ -72,14 +76,20 @@ def collect(options: InferOptions, spec: Spec, actions: Sequence[str], demonstra
     literals = _literals([spec.source, *demonstrations])
     attributes = _attributes(spec.tree)
     found = Priors()
-    for source, _, table in sources:
+    own: dict[str, list[str]] = {}
+    for _, _, table in sources:
+        for action, rules in table.items():
+            own.setdefault(action, []).extend(rules)
+    shipped = (library or Library()).for_spec(actions, own) if options.library else []
+    for source, where, table in [*sources, *((name, "", rules) for name, rules in shipped)]:
         for action, rules in table.items():
             if action not in actions:  # another service's action, or one this request does not infer
                 continue
             for rule in rules:
                 why = _undefined(rule, _parameters(spec, action), attributes, literals)
                 if why is not None:
-                    found.dropped.setdefault(action, []).append(f"{rule!r} from {source}: {why}")
+                    if where:
+                        found.dropped.setdefault(action, []).append(f"{rule!r} from {source}: {why}")
                     continue
                 prior = found.rules.setdefault(action, {}).setdefault(normal(rule), Prior(rule.strip()))
                 if source not in prior.sources:

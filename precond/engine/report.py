@@ -65,6 +65,8 @@ class Ranked:
     """The sources of each chosen rule transferred from the priors (`engine.priors`), by its expression."""
     search: str = ""
     """Where the disjunction search stopped at its bound (`engine.cautious.MAX_DISJUNCTION_ATOMS`), in words."""
+    unguarded: str = ""
+    """The assumed rules a conversational act (not in `options.guarded`) did not keep, in words."""
 
 
 @dataclass(frozen=True)

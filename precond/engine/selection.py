@@ -45,10 +45,15 @@ class Inference:
     prior: priors.Priors | None = None
 
 
-def select_rules(actions: Sequence[str], inference: Inference) -> dict[str, Ranked]:
+def select_rules(actions: Sequence[str], inference: Inference, guarded: Sequence[str] | None = None
+                 ) -> dict[str, Ranked]:
+    """`guarded`: the actions whose refusal protects something (engine.guarded); None: every action (the
+    cautious criterion alike for all)."""
     turns = previous_turns(inference.trace)
     tool_calls = _tool_calls(inference.trace) if inference.options.ranking == "cautious" else set()
-    return {action: _select(action, inference, turns, action in tool_calls) for action in actions}
+    shielded = set(actions if guarded is None else guarded)
+    return {action: _select(action, inference, turns, action in tool_calls, action not in shielded)
+            for action in actions}
 
 
 @dataclass(frozen=True)
@@ -84,7 +89,8 @@ class _Chosen:
     """What the criterion chose and the tolerance's budget left out."""
 
 
-def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], int], tool_call: bool) -> Ranked:
+def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], int], tool_call: bool,
+            conversational: bool) -> Ranked:
     options, info = inference.options, inference.trace.actions[action]
     points = inference.evaluated.points.get(action, ())
     seen = _judged(action, info, inference)
@@ -92,7 +98,7 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
                               not info.occurrences or thin(seen.index.occurrences, options.tolerance),
                               options.tolerance, inference.writes if options.ranking == "cautious" else {})
     votes = inference.proposals.votes.get(action, {})
-    chosen = _choose(seen, evidence, options, votes, info, tool_call)
+    chosen = _choose(seen, evidence, options, votes, info, tool_call, conversational)
     choice = chosen.choice
     if not evidence.thin and too_few(info.occurrences):  # strict validation on one or two calls: not established
         choice = replace(choice, decided={e: "assumed" if d == "established" else d for e, d in choice.decided.items()})
@@ -106,11 +112,18 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
                **explain(options.ranking, chosen.valid, chosen.clusters, choice.chosen, evidence, votes, chosen.cut)}
     reasons |= _decided_reasons(choice, reasons)
     return Ranked(reported, chosen.valid, chosen.clusters, choice.chosen, reasons, judged, verdicts, choice.decided,
-                  transferred, choice.search)
+                  transferred, choice.search, unguarded_note(choice.unguarded))
+
+
+def unguarded_note(rules: Sequence[str]) -> str:
+    if not rules:
+        return ""
+    return (f"conversational act (not in options.guarded): not kept, as its calls do not establish them: "
+            f"{'; '.join(rules)}")
 
 
 def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, votes: Mapping[str, int],
-            info: ActionInfo, tool_call: bool) -> _Chosen:
+            info: ActionInfo, tool_call: bool, conversational: bool) -> _Chosen:
     """The criterion's rules, within the tolerance's budget; an action too thinly demonstrated ranks like an
     unseen one (the hook for the spec's zero-shot judgment)."""
     n_points = len(evidence.points)
@@ -119,16 +132,17 @@ def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, vote
         choice = _zero_shot(valid, votes, info.params)
         if options.ranking == "cautious" and info.occurrences:
             choice = _with_thin(choice, seen.candidates("held", "tolerated", "thin", "chance", "refuted"),
-                                evidence, n_points, tool_call)
+                                evidence, n_points, tool_call, conversational)
         return _Chosen(choice, valid, [], [])
     valid = seen.candidates("held", "tolerated")
     clusters = informative(cluster(valid), n_points)
     if options.ranking == "cautious":
         common = informative(cluster(seen.candidates("held", "tolerated", "chance")), n_points)
         atoms = informative(cluster(seen.candidates("held", "tolerated", "chance", "refuted")), n_points)
-        found = cautious.choose(clusters, common, atoms, evidence, tool_call)
+        found = cautious.choose(clusters, common, atoms, evidence, tool_call, conversational)
         kept = within_budget(found.chosen, evidence)
-        return _Chosen(cautious.Choice(kept, found.decided, found.notes, found.search), valid, clusters,
+        return _Chosen(cautious.Choice(kept, found.decided, found.notes, found.search, found.unguarded), valid,
+                       clusters,
                        [c for c in found.chosen if c not in kept])
     picked = by_criterion(options.ranking, clusters, evidence)
     kept = within_budget(picked, evidence)
@@ -165,12 +179,14 @@ def _zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Seq
 
 
 def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: ActionEvidence, n_points: int,
-               tool_call: bool) -> cautious.Choice:
+               tool_call: bool, conversational: bool) -> cautious.Choice:
     """A thinly demonstrated action keeps, besides the model's zero-shot rule, what the cautious criterion would
     keep from its few calls: assumed, not established (one or two calls cannot tell a requirement from a
-    coincidence)."""
+    coincidence). A conversational act names them instead (`cautious.choose`)."""
     kept = {c.satisfied for c in choice.chosen}
     extra = [c for c in cautious.thin_rules(judged, evidence, n_points, tool_call) if c.satisfied not in kept]
+    if conversational:
+        return replace(choice, unguarded=[c.representative.expression for c in extra])
     return replace(choice, chosen=[*choice.chosen, *extra],
                    decided={**choice.decided, **{c.representative.expression: "assumed" for c in extra}})
 

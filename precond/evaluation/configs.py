@@ -4,7 +4,11 @@
 
     enumerate/subsumption            model+enumerate/recency/spp=4/dpp=2      model/recency/demos=4
 
-keys: `mnt` max new tokens per sample, `for` = the request's `options.model_for` (`thin`: the model proposes
+keys: `guard` = `options.guarded` (`guard=spec`: its default from the spec; a config without `guard` guards
+every action, the criterion before guarded actions existed), `lib` = the rule library (`lib=0`: none;
+`lib=lodo`: built from the other development domains' `lib=0` inferences, precond/evaluation/library.py; a
+config without `lib` has none, so that cached rows keep their meaning), `mnt` max new tokens per sample, `for` =
+the request's `options.model_for` (`thin`: the model proposes
 only for actions demonstrated fewer than 3 times), `spp` samples per prompt, `ppa` prompts per action, `dpp`
 demonstrations per prompt, `seed`, `judge=1`, `rules=0` (the model asked about a thin action without
 the rules the evidence settled for the others: the paper's prompt)
@@ -21,6 +25,7 @@ and `gt` (the ground truth; must score 1.0, a check of the scoring pipeline).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, get_args
 
@@ -87,8 +92,18 @@ class InferConfig:
     def uses_model(self) -> bool:
         return "model" in self.generators or bool(self.options.get("judge"))
 
-    def infer_options(self) -> InferOptions:
-        return InferOptions(generators=list(self.generators), ranking=self.ranking, **self.options)  # type: ignore[arg-type]
+    @property
+    def library(self) -> bool:
+        return bool(self.options.get("library"))
+
+    def infer_options(self, actions: Sequence[str] = ()) -> InferOptions:
+        """`guard=spec` is the request's default (`options.guarded` null); without `guard`, every action is guarded
+        (the criterion before guarded actions existed), so cached rows keep their meaning."""
+        options: dict[str, Any] = {"library": False, **self.options}
+        guard = options.pop("guarded", "all")
+        if guard == "all":
+            options["guarded"] = list(actions)
+        return InferOptions(generators=list(self.generators), ranking=self.ranking, **options)  # type: ignore[arg-type]
 
 
 def parse_config(name: str) -> InferConfig:
@@ -122,12 +137,21 @@ def parse_config(name: str) -> InferConfig:
             options["model_for"] = value
         elif key == "unseen":
             options["unseen"] = value
+        elif key == "guard":
+            if value not in ("all", "spec"):
+                raise ValueError(f"config {name!r}: guard={value!r}: expected all or spec")
+            options["guarded"] = value
+        elif key == "lib":
+            if value not in ("0", "lodo"):
+                raise ValueError(f"config {name!r}: lib={value!r}: expected 0 (no rule library) or lodo")
+            options["library"] = value == "lodo"
         elif key == "demos":
             demos = None if value == "all" else int(value)
         elif key in _KEYS:
             options[_KEYS[key]] = int(value)
         else:
-            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", "for", "unseen", *_KEYS])
+            known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", "for", "unseen", "lib", "guard",
+                               *_KEYS])
             raise ValueError(f"config {name!r}: unknown key {key!r} (known: {known})")
     config = InferConfig(name, None, generators, parts[1], demos, options, max_rate, sample, noise)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs

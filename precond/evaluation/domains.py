@@ -66,7 +66,7 @@ _COMMANDS: tuple[tuple[str, re.Pattern[str]], ...] = (
 @dataclass(frozen=True)
 class Domain:
     name: str
-    benchmark: str  # "sgd" | "alfworld"
+    benchmark: str  # "sgd" | "star" | "alfworld"
     spec: str
     demonstrations: tuple[str, ...]
     actions: tuple[str, ...]  # qualified names, as the engine reports them ("SYSTEM.INFORM")
@@ -132,6 +132,11 @@ def _sgd_points(data: dict[str, Any], params: dict[str, tuple[str, ...]]) -> dic
     return points
 
 
+def dialog_benchmark(data: dict[str, Any]) -> str:
+    """`star` for the STAR tasks, `sgd` for every other file of the SGD format."""
+    return "star" if str(data.get("dataset", "")).startswith("STAR") else "sgd"
+
+
 def _check_sgd_dialog(dialog: dict[str, Any]) -> None:
     """Positions are computed from `steps`; make sure the program has exactly one statement per step."""
     body = main_body(ast.parse(dialog["program"]))
@@ -141,13 +146,15 @@ def _check_sgd_dialog(dialog: dict[str, Any]) -> None:
 
 
 def load_sgd(path: Path) -> Domain:
+    """One SGD service, or one STAR task (the same file format; its `dataset` names STAR, its benchmark is
+    `star`, so the tables keep human-agent logs apart from SGD's simulated ones)."""
     data = _read_json(path)
     for dialog in data["test"]:
         _check_sgd_dialog(dialog)
     params = _method_params(data["spec_program"], "SYSTEM")
     return Domain(
         name=data["service"],
-        benchmark="sgd",
+        benchmark=dialog_benchmark(data),
         spec=data["spec_program"],
         demonstrations=tuple(d["program"] for d in data["demos"]),
         actions=tuple(f"SYSTEM.{a}" for a in data["system_actions"]),
@@ -247,8 +254,8 @@ def load_alfworld(data_dir: Path, mode: ArgMode = "state", limit: int | None = N
 
 
 def load_domains(data_dir: Path, alfworld_mode: ArgMode = "state") -> list[Domain]:
-    """A data directory is either the SGD one (one JSON per service) or the ALFWorld one; all of it or
-    `DomainDataError` naming the directory or file that is missing or malformed."""
+    """A data directory is either one of the SGD format (one JSON per service or STAR task) or the ALFWorld
+    one; all of it or `DomainDataError` naming the directory or file that is missing or malformed."""
     if not data_dir.is_dir():
         problem = "not a directory" if data_dir.exists() else "does not exist"
         raise DomainDataError(f"domain directory {data_dir}: {problem}")

@@ -55,7 +55,7 @@ def demonstrations(domain: Domain, config: InferConfig) -> list[str]:
 
 def build_request(domain: Domain, config: InferConfig) -> InferRequest:
     return InferRequest(spec=domain.spec, demonstrations=demonstrations(domain, config),
-                        actions=list(domain.actions), options=config.infer_options())
+                        actions=list(domain.actions), options=config.infer_options(domain.actions))
 
 
 def _run_engine(infer: InferFn, domain: Domain, config: InferConfig) -> Inference:
@@ -84,12 +84,32 @@ def infer(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callabl
         return Inference(dict(domain.gt), {}, 0.0, None)
     if config.max_rate is not None:
         return _probe(domain, config, cache, engine, sandbox)
+    if config.library:
+        return _held_out_library(domain, config, cache, engine, force)
     stored = None if force else cache.get("infer", domain.infer_as, config.name)
     if stored is not None:
         return Inference(**stored)
     result = _run_engine(engine(), domain, config)
     if result.error is None:  # errors (e.g. no model) are retried on the next run, not cached
         cache.put(result.__dict__, "infer", domain.infer_as, config.name)
+    return result
+
+
+def _held_out_library(domain: Domain, config: InferConfig, cache: JsonCache, engine: Callable[[], InferFn],
+                      force: bool) -> Inference:
+    """`lib=lodo`: inferred with the rule library of the other development domains (precond/evaluation/library.py),
+    cached under a digest of that library."""
+    from precond.evaluation import library
+
+    pool = [d for d in library.development_domains() if d.infer_as != domain.infer_as]
+    held = library.build(pool, config, cache, lambda d, c: infer(d, c, cache, engine))
+    name = f"{config.name}+{library.digest(held)}"
+    stored = None if force else cache.get("infer", domain.infer_as, name)
+    if stored is not None:
+        return Inference(**stored)
+    result = run_request(library.with_library(engine(), held), build_request(domain, config))
+    if result.error is None:
+        cache.put(result.__dict__, "infer", domain.infer_as, name)
     return result
 
 

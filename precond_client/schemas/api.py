@@ -166,6 +166,23 @@ class InferOptions(StrictBody):
         "that holds at every demonstrated call is preferred, and its rule says `decided: transferred`. A rule "
         "naming what this spec does not define is dropped (`warnings` says why). docs/method.md: 'Prior rules'.",
     )
+    guarded: list[Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)]] | None = Field(
+        default=None, max_length=MAX_ACTIONS,
+        description="The actions whose refusal protects something (`SYSTEM.BookFlight`, a state-changing tool, a "
+        "confirmation): the cautious criterion keeps for them what it cannot rule out (assumed rules). The others "
+        "are conversational acts (a goodbye, 'anything else?') and keep only what their calls establish; the "
+        "assumed rules they did not keep are named in their warning. Default (null): from the spec, every action "
+        "but those whose name says it opens, closes or keeps the conversation going (GOODBYE, HELLO, REQ_MORE, "
+        "ANYTHING_ELSE, OUT_OF_SCOPE, THANK...); the warning says so. An action "
+        "the spec does not define is a 422 naming it.",
+    )
+    library: bool = Field(
+        default=True,
+        description="Use the rule library shipped with the service as priors: the rules inferred on the "
+        "development domains (20 dialog services and tasks), one source per domain, for a spec sharing at least "
+        "three action names with one (`library:<domain>` names it in a transferred rule's `source`). Your own "
+        "priors come on top: for an action they speak of, the library is silent. False: no library.",
+    )
     prior_sets: list[Annotated[str, StringConstraints(pattern=SET_REFERENCE)]] = Field(
         default_factory=list, max_length=MAX_PRIOR_SOURCES,
         description="Your own stored precondition sets (`ps_...@n`, or `ps_...` for the latest) whose rules are "

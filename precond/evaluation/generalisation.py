@@ -1,0 +1,139 @@
+"""`precond eval domains`: every development domain, each benchmark summed up so that a mean cannot hide a domain.
+
+A mean over domains flatters a learner that is excellent on most services and useless on one: the one is what a
+tenant with that kind of service gets. So each (config, benchmark) line gives, beside the mean, the worst domain
+and how many domains score at or below `always` (no rule at all) on the paper's F1; the counterfactual metric
+(precond/evaluation/counterfactual.py) likewise with its worst domain. Rows come from
+`precond.evaluation.safety.evaluate`, so a config's inference is the cached one every other table reads.
+
+Every config row says how it was chosen (`HOW_CHOSEN`): a shipped default fixed before these domains existed, a
+baseline, or leave-one-domain-out (anything chosen from data is chosen without the domain it is scored on).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+HEADING = "## Twenty development domains: mean, worst domain, domains at or below `always`"
+BENCHMARKS = ("sgd", "star", "alfworld")
+DEFAULT_CONFIGS = "model+enumerate/cautious,enumerate/cautious,always,gt"
+HOW_CHOSEN: dict[str, str] = {
+    "always": "baseline: no rule",
+    "gt": "baseline: the ground truth (checks the scoring)",
+    "model+enumerate/cautious": "the shipped default, fixed on 4 SGD services before the other 16 domains existed",
+    "enumerate/cautious": "the shipped default without the model",
+}
+TEXT = """Per benchmark (SGD: 14 services; STAR: 6 tasks of human agents; ALFWorld valid_unseen): the mean over its
+domains, the worst domain, and `<=always` = how many domains score at or below `always` (no rule) on the paper's
+F1. `unsafe` / `over`: the counterfactual metric ({variants} variants per test dialog, seed {seed}), mean and worst
+domain. "how chosen" says where a row's settings come from; nothing in a row was chosen on the domain it is
+scored on. Regenerate: `precond eval domains` (cached inferences are reused; the model is the embedded CPU model).
+"""
+
+
+@dataclass(frozen=True)
+class Summary:
+    """One config on one benchmark."""
+
+    config: str
+    benchmark: str
+    domains: int
+    f1_mean: float
+    f1_worst: tuple[str, float]
+    at_or_below_always: list[str]
+    unsafe_mean: float | None
+    unsafe_worst: tuple[str, float] | None
+    over_mean: float | None
+    over_worst: tuple[str, float] | None
+
+
+def _mean(values: Sequence[float]) -> float | None:
+    return sum(values) / len(values) if values else None
+
+
+def _worst(rows: Sequence[Mapping[str, Any]], key: str, highest: bool) -> tuple[str, float] | None:
+    known = [(r["domain"], r[key]) for r in rows if r.get(key) is not None]
+    if not known:
+        return None
+    return max(known, key=lambda x: x[1]) if highest else min(known, key=lambda x: x[1])
+
+
+def summarize(rows: Sequence[Mapping[str, Any]]) -> list[Summary]:
+    """Per (config, benchmark); a domain's `always` F1 comes from the `always` rows of the same run, and a config
+    measured without them has no `<=always` count (an empty list would read as "none")."""
+    scored = [r for r in rows if r.get("error") is None and r.get("f1") is not None]
+    always = {r["domain"]: r["f1"] for r in scored if r["config"] == "always"}
+    out = []
+    for config in dict.fromkeys(r["config"] for r in scored):
+        for benchmark in dict.fromkeys(r["benchmark"] for r in scored):
+            mine = [r for r in scored if r["config"] == config and r["benchmark"] == benchmark]
+            if not mine:
+                continue
+            worst = _worst(mine, "f1", highest=False)
+            assert worst is not None
+            below = [r["domain"] for r in mine if r["domain"] in always and r["f1"] <= always[r["domain"]] + 1e-9]
+            unsafe = [r["unsafe_allow"] for r in mine if r.get("unsafe_allow") is not None]
+            over = [r["over_refuse"] for r in mine if r.get("over_refuse") is not None]
+            out.append(Summary(config, benchmark, len(mine), sum(r["f1"] for r in mine) / len(mine), worst, below,
+                               _mean(unsafe), _worst(mine, "unsafe_allow", True), _mean(over),
+                               _worst(mine, "over_refuse", True)))
+    return out
+
+
+def _fmt(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+def _fmt_worst(worst: tuple[str, float] | None) -> str:
+    return "-" if worst is None else f"{worst[1]:.3f} ({worst[0]})"
+
+
+def how_chosen(config: str, notes: Mapping[str, str] | None = None) -> str:
+    return (notes or {}).get(config) or HOW_CHOSEN.get(config) or "a setting of the learner, not chosen from data"
+
+
+def summary_table(summaries: Sequence[Summary], notes: Mapping[str, str] | None = None) -> str:
+    lines = ["| benchmark | config | domains | F1 mean | F1 worst | <=always | unsafe mean | unsafe worst | over mean "
+             "| over worst | how chosen |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    order = {b: i for i, b in enumerate(BENCHMARKS)}
+    for s in sorted(summaries, key=lambda s: order.get(s.benchmark, len(order))):
+        below = f"{len(s.at_or_below_always)}" + (f" ({', '.join(s.at_or_below_always)})"
+                                                   if s.at_or_below_always else "")
+        lines.append(f"| {s.benchmark} | `{s.config}` | {s.domains} | {s.f1_mean:.3f} | {_fmt_worst(s.f1_worst)} | "
+                     f"{below} | {_fmt(s.unsafe_mean)} | {_fmt_worst(s.unsafe_worst)} | {_fmt(s.over_mean)} | "
+                     f"{_fmt_worst(s.over_worst)} | {how_chosen(s.config, notes)} |")
+    return "\n".join(lines)
+
+
+def domain_table(rows: Sequence[Mapping[str, Any]]) -> str:
+    """A row per domain, a column per config: F1 / unsafe / over."""
+    configs = list(dict.fromkeys(r["config"] for r in rows))
+    index = {(r["config"], r["domain"]): r for r in rows}
+    lines = ["| benchmark | domain | " + " | ".join(f"`{c}` F1 / unsafe / over" for c in configs) + " |",
+             "|---|---|" + "---|" * len(configs)]
+    for domain, benchmark in dict.fromkeys((r["domain"], r["benchmark"]) for r in rows):
+        cells = []
+        for config in configs:
+            row = index.get((config, domain))
+            if row is None or row.get("error") is not None:
+                cells.append(row.get("error", "-") if row else "-")
+            else:
+                cells.append(" / ".join(_fmt(row.get(k)) for k in ("f1", "unsafe_allow", "over_refuse")))
+        lines.append(f"| {benchmark} | {domain} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def section(rows: Sequence[Mapping[str, Any]], notes: Mapping[str, str] | None = None) -> str:
+    first = rows[0] if rows else {"variants": "-", "seed": "-"}
+    return "\n".join([HEADING, "", TEXT.format(variants=first["variants"], seed=first["seed"]),
+                      summary_table(summarize(rows), notes), "", "### Per domain", "", domain_table(rows), ""])
+
+
+def write_section(rows: Sequence[Mapping[str, Any]], out: Path, notes: Mapping[str, str] | None = None) -> None:
+    """This section first in the report, before the older tables (kept for comparison)."""
+    from precond.evaluation.report import replace_section
+
+    replace_section(out, HEADING, section(rows, notes), before="## Precondition inference")

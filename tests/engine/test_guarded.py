@@ -1,0 +1,83 @@
+"""Guarded actions and conversational acts: a goodbye demonstrated only after a success stays allowed without
+that success; a booking keeps what it cannot rule out."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from precond.engine.engine import Engine
+from precond.engine.guarded import default
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
+from precond_client.schemas.errors import UnknownAction
+
+SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.informed = defaultdict(lambda: False)
+    self.affirmed = False
+  def INFORM(self, slot): self.informed[slot] = True
+  def AFFIRM(self): self.affirmed = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user, self.query_success = user, None
+  def set_query_status(self, ok): self.query_success = ok
+  def REQUEST(self, slot): pass
+  def Book(self): pass
+  def INFORM_BOOKED(self): pass
+  def GOODBYE(self): pass
+"""
+
+
+def _dialog(goodbye: bool) -> str:
+    """The goodbye right after the booking succeeded, in two dialogs: thin, and only ever after a success."""
+    return "\n".join(["user = USER()", "system = SYSTEM(user)", "system.REQUEST('day')", "user.INFORM('day')",
+                      "user.AFFIRM()", "system.Book()", "system.set_query_status(True)",
+                      "system.GOODBYE()" if goodbye else "system.INFORM_BOOKED()"]) + "\n"
+
+
+DEMOS = [_dialog(True), _dialog(True), _dialog(False), _dialog(False)]
+
+
+@pytest.fixture(scope="module")
+def engine() -> Iterator[Engine]:
+    with Sandbox(workers=2) as sandbox:
+        yield Engine(sandbox, None)
+
+
+def _infer(engine: Engine, **options: Any) -> InferResponse:
+    return engine.infer(InferRequest(spec=SPEC, demonstrations=DEMOS,
+                                     options=InferOptions(generators=["enumerate"], library=False, **options)))
+
+
+def test_the_default_guards_everything_but_the_conversational_acts() -> None:
+    actions = ["SYSTEM.REQUEST", "SYSTEM.Book", "SYSTEM.INFORM_BOOKED", "SYSTEM.GOODBYE", "SYSTEM.REQ_MORE",
+               "SYSTEM.OUT_OF_SCOPE", "SYSTEM.ANYTHING_ELSE", "SYSTEM.BLOCK_CARD", "Agent.take"]
+    assert default(actions) == ["SYSTEM.REQUEST", "SYSTEM.Book", "SYSTEM.INFORM_BOOKED", "SYSTEM.BLOCK_CARD",
+                                "Agent.take"]
+
+
+def test_a_goodbye_seen_only_after_success_stays_allowed_without_it_and_says_so(engine: Engine) -> None:
+    response = _infer(engine)
+    assert "self.query_success" not in response.preconditions["SYSTEM.GOODBYE"]
+    warning = response.warnings["SYSTEM.GOODBYE"]
+    assert "conversational act" in warning and "self.query_success" in warning
+    assert "options.guarded not given" in warning and "Book" in warning
+
+
+def test_guarded_it_keeps_the_correlate_as_assumed(engine: Engine) -> None:
+    response = _infer(engine, guarded=["SYSTEM.GOODBYE", "SYSTEM.Book"])
+    assert "self.query_success" in response.preconditions["SYSTEM.GOODBYE"]
+    assert response.evidence["SYSTEM.GOODBYE"]["self.query_success"].decided == "assumed"
+    assert "options.guarded not given" not in response.warnings["SYSTEM.GOODBYE"]
+
+
+def test_a_guarded_action_the_spec_does_not_define_is_refused_naming_it(engine: Engine) -> None:
+    """An unknown action is the API's 422 (`unknown_action`), naming the field and the action."""
+    with pytest.raises(UnknownAction) as caught:
+        _infer(engine, guarded=["SYSTEM.Book", "SYSTEM.CancelBooking"])
+    assert caught.value.field == "options.guarded[1]" and "CancelBooking" in caught.value.message
