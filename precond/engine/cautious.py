@@ -134,11 +134,28 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     kept = {c.satisfied for c in chosen}
     extra = assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept)
     if conversational:
-        return Choice(chosen, decided, notes, search, [c.representative.expression for c in extra])
+        own = [c for c in chosen if own_news(c.representative.expression)]
+        return Choice([c for c in chosen if c not in own], {e: d for e, d in decided.items()
+                                                            if all(c.representative.expression != e for c in own)},
+                      notes, search, [c.representative.expression for c in (*own, *extra)])
     for c in extra:
         chosen.append(c)
         decided[c.representative.expression] = "assumed"
     return Choice(chosen, decided, notes, search)
+
+
+def own_news(expression: str) -> bool:
+    """A positive fact about the agent's own state (`self.query_success`, `self.query_success is not None`): what
+    its own service call answered. A conversational act that follows it in the same turn (a goodbye after the
+    booking went through, the user's words between them not logged) was not enabled by it; the other party's
+    acts (`self.user.no_more`) and bad news (`not self.query_success`) are what a conversational act answers."""
+    node = _parsed(expression)
+    if node is None or polarity(expression) != "positive":
+        return False
+    if any(isinstance(n, ast.Constant) and n.value is False for n in ast.walk(node)):  # `is False`: bad news
+        return False
+    paths = [n for n in ast.walk(node) if isinstance(n, ast.Attribute)]
+    return bool(paths) and all(isinstance(n.value, ast.Name) and n.value.id == "self" for n in paths)
 
 
 def spoken_of(clusters: Sequence[Cluster], atoms: Sequence[Cluster], evidence: ActionEvidence, kept: set[int]
@@ -239,15 +256,18 @@ def assumed(clusters: Sequence[Cluster], evidence: ActionEvidence, kept: set[int
 def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_points: int, tool_call: bool
                ) -> list[Cluster]:
     """An action seen once or twice: the positive facts its calls share that enabled them (for a tool call,
-    every positive fact they share): the rule the same criterion would keep, on evidence too thin to call it
-    established."""
+    every positive fact they share), and the bad news an observation wrote just before every one of them (a
+    failure notice after `set_query_status(False)`: `not self.query_success`): the rule the same criterion would
+    keep, on evidence too thin to call it established."""
     mask = evidence.occurrence_mask
-    every = [c for c in candidates if mask and not mask & ~c.satisfied]
-    shared = [c for c in informative(cluster(every), n_points) if polarity(c.representative.expression) == "positive"]
+    every = informative(cluster([c for c in candidates if mask and not mask & ~c.satisfied]), n_points)
+    shared = [c for c in every if polarity(c.representative.expression) == "positive"]
     if tool_call:
         return shared
     index = {point: bit for bit, point in enumerate(evidence.points)}
-    return [c for c in shared if enabling_rate(c, evidence, index) > 0]
+    news = [c for c in every if c not in shared and evidence.writes
+            and len(_made(c, evidence, index)) == len(evidence.occurrences)]
+    return [c for c in shared if enabling_rate(c, evidence, index) > 0] + news
 
 
 def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: bool

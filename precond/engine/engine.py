@@ -284,7 +284,7 @@ class Engine:
         if request.options.unseen == "refuse":  # unless the code model's zero-shot guess, or a call labelled
             shown = {c.action for c in labelled.cases if c.verdict == "allow"} - {  # 'allow' and none 'refuse'
                 c.action for c in labelled.cases if c.verdict == "refuse"} if labelled else set()
-            chosen.update({a: [UNSEEN_RULE] for a in actions
+            chosen.update({a: [UNSEEN_RULE] for a in guarded
                            if not trace.actions[a].occurrences and not chosen[a] and a not in shown})
         with timer.phase("verify"):
             exempt = _exceptions_of(chosen, ranked)
@@ -309,7 +309,9 @@ class Engine:
                 f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
         default = "" if request.options.guarded is not None else guarding.note(guarded)
         for action in actions:  # a search cut at its bound, or a conversational act's unkept rules, say so
-            unguarded = "; ".join(w for w in (ranked[action].unguarded, default) if ranked[action].unguarded and w)
+            unseen = action not in guarded and not preconditions[action] and not trace.actions[action].occurrences
+            said = ranked[action].unguarded or (guarding.UNREFUSED if unseen else "")
+            unguarded = "; ".join(w for w in (said, default) if said and w)
             cuts = (warnings.get(action), stopped.get(action), ranked[action].search, unguarded)
             if any(cuts[1:]):
                 warnings[action] = "; ".join(w for w in cuts if w)

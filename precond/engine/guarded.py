@@ -21,6 +21,10 @@ SMALL_TALK = ("GOODBYE", "BYE", "HELLO", "GREET", "THANK", "WELCOME", "ANYTHING_
 """Words of the conversational acts' names: opening, closing, "anything else?", "I cannot help with that"."""
 
 
+UNREFUSED = ("conversational act (not in options.guarded): never refused for want of a rule, whatever options.unseen "
+             "says")
+
+
 def method_name(action: str) -> str:
     return action.rsplit(".", 1)[-1]
 

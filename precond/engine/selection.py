@@ -133,6 +133,9 @@ def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, vote
         if options.ranking == "cautious" and info.occurrences:
             choice = _with_thin(choice, seen.candidates("held", "tolerated", "thin", "chance", "refuted"),
                                 evidence, n_points, tool_call, conversational)
+        if conversational:  # a guess never refuses a conversational act: named, not kept
+            choice = cautious.Choice([], {}, {}, choice.search,
+                                     [*(c.representative.expression for c in choice.chosen), *choice.unguarded])
         return _Chosen(choice, valid, [], [])
     valid = seen.candidates("held", "tolerated")
     clusters = informative(cluster(valid), n_points)

@@ -23,8 +23,8 @@ DEFAULT_CONFIGS = "model+enumerate/cautious,enumerate/cautious,always,gt"
 HOW_CHOSEN: dict[str, str] = {
     "always": "baseline: no rule",
     "gt": "baseline: the ground truth (checks the scoring)",
-    "model+enumerate/cautious": "the shipped default, fixed on 4 SGD services before the other 16 domains existed",
-    "enumerate/cautious": "the shipped default without the model",
+    "model+enumerate/cautious": "the criterion fixed on 4 SGD services before the other 16 domains existed",
+    "enumerate/cautious": "the same without the model",
 }
 TEXT = """Per benchmark (SGD: 14 services; STAR: 6 tasks of human agents; ALFWorld valid_unseen): the mean over its
 domains, the worst domain, and `<=always` = how many domains score at or below `always` (no rule) on the paper's
@@ -91,8 +91,21 @@ def _fmt_worst(worst: tuple[str, float] | None) -> str:
     return "-" if worst is None else f"{worst[1]:.3f} ({worst[0]})"
 
 
+PARTS = {
+    "lib=lodo": "rule library leave-one-domain-out (each domain scored with the library of the other 20: their "
+                "`lib=0` inferred rules, never its own, never ground truth)",
+    "guard=spec": "`options.guarded` default from the spec (conversational acts by name), fixed before measuring",
+}
+
+
 def how_chosen(config: str, notes: Mapping[str, str] | None = None) -> str:
-    return (notes or {}).get(config) or HOW_CHOSEN.get(config) or "a setting of the learner, not chosen from data"
+    """The row's own note, else what its base config and its `key=value` parts say."""
+    if (notes or {}).get(config):
+        return (notes or {})[config]
+    parts = config.split("/")
+    base = "/".join(p for p in parts if p not in PARTS)
+    said = [HOW_CHOSEN.get(base, "a setting of the learner, not chosen from data")]
+    return "; ".join([*said, *(PARTS[p] for p in parts if p in PARTS)])
 
 
 def summary_table(summaries: Sequence[Summary], notes: Mapping[str, str] | None = None) -> str:
@@ -100,8 +113,8 @@ def summary_table(summaries: Sequence[Summary], notes: Mapping[str, str] | None 
              "| over worst | how chosen |", "|---|---|---|---|---|---|---|---|---|---|---|"]
     order = {b: i for i, b in enumerate(BENCHMARKS)}
     for s in sorted(summaries, key=lambda s: order.get(s.benchmark, len(order))):
-        below = f"{len(s.at_or_below_always)}" + (f" ({', '.join(s.at_or_below_always)})"
-                                                   if s.at_or_below_always else "")
+        below = "-" if s.config == "always" else f"{len(s.at_or_below_always)}" + (
+            f" ({', '.join(s.at_or_below_always)})" if s.at_or_below_always else "")
         lines.append(f"| {s.benchmark} | `{s.config}` | {s.domains} | {s.f1_mean:.3f} | {_fmt_worst(s.f1_worst)} | "
                      f"{below} | {_fmt(s.unsafe_mean)} | {_fmt_worst(s.unsafe_worst)} | {_fmt(s.over_mean)} | "
                      f"{_fmt_worst(s.over_worst)} | {how_chosen(s.config, notes)} |")

@@ -282,13 +282,17 @@ def test_an_action_without_occurrence_is_reported_not_silently_empty(
     engine: Engine, restaurants: dict[str, Any]
 ) -> None:
     demo = "user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST('city')\nuser.INFORM('city')\n"
-    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=[demo],
-                                         actions=["SYSTEM.REQUEST", "SYSTEM.GOODBYE"],
-                                         options={"generators": ["enumerate"]}))
+    actions = ["SYSTEM.REQUEST", "SYSTEM.GOODBYE"]
+    response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=[demo], actions=actions,
+                                         options={"generators": ["enumerate"], "guarded": actions}))
     assert set(response.warnings) == {"SYSTEM.GOODBYE", "SYSTEM.REQUEST"}  # REQUEST: called once
     assert response.warnings["SYSTEM.GOODBYE"].startswith("no occurrence: no demonstration calls SYSTEM.GOODBYE")
     assert response.preconditions["SYSTEM.GOODBYE"] == ["False"]  # options.unseen: "refuse" (the default)
     assert "refused" in response.warnings["SYSTEM.GOODBYE"]
+    conversational = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=[demo],
+                                               actions=actions, options={"generators": ["enumerate"]}))
+    assert conversational.preconditions["SYSTEM.GOODBYE"] == []  # by default a goodbye is not guarded
+    assert "never refused for want of a rule" in conversational.warnings["SYSTEM.GOODBYE"]
 
 
 def _programs(data: dict[str, Any], n: int) -> list[str]:

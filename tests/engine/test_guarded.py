@@ -81,3 +81,23 @@ def test_a_guarded_action_the_spec_does_not_define_is_refused_naming_it(engine: 
     with pytest.raises(UnknownAction) as caught:
         _infer(engine, guarded=["SYSTEM.Book", "SYSTEM.CancelBooking"])
     assert caught.value.field == "options.guarded[1]" and "CancelBooking" in caught.value.message
+
+
+FAILURE_SPEC = SPEC.replace("  def GOODBYE(self): pass\n",
+                            "  def GOODBYE(self): pass\n  def NOTIFY_FAILURE(self): pass\n")
+
+
+def _booking(ok: bool) -> str:
+    return "\n".join(["user = USER()", "system = SYSTEM(user)", "system.REQUEST('day')", "user.INFORM('day')",
+                      "user.AFFIRM()", "system.Book()", f"system.set_query_status({ok})",
+                      "system.INFORM_BOOKED()" if ok else "system.NOTIFY_FAILURE()"]) + "\n"
+
+
+def test_a_failure_notice_demonstrated_twice_is_refused_after_success(engine: Engine) -> None:
+    demos = [_booking(False), _booking(False), _booking(True), _booking(True), _booking(True)]
+    response = engine.infer(InferRequest(spec=FAILURE_SPEC, demonstrations=demos, options=InferOptions(
+        generators=["enumerate"], library=False)))
+    rules = response.preconditions["SYSTEM.NOTIFY_FAILURE"]
+    assert "not self.query_success" in rules
+    assert response.evidence["SYSTEM.NOTIFY_FAILURE"]["not self.query_success"].decided == "assumed"
+    assert "thin evidence" in response.warnings["SYSTEM.NOTIFY_FAILURE"]

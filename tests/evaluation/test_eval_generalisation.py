@@ -1,0 +1,56 @@
+"""The twenty-domain summary: a mean cannot hide a domain (worst domain, domains at or below `always`), and each
+row says how it was chosen; the leave-one-domain-out settings parse into requests."""
+
+from __future__ import annotations
+
+import pytest
+
+from precond.evaluation.configs import parse_config
+from precond.evaluation.generalisation import HOW_CHOSEN, section, summarize
+from precond.evaluation.library import source_config
+
+
+def _row(config: str, domain: str, benchmark: str, f1: float, unsafe: float | None = 0.0,
+         over: float | None = 0.0) -> dict[str, object]:
+    return {"config": config, "domain": domain, "benchmark": benchmark, "f1": f1, "unsafe_allow": unsafe,
+            "over_refuse": over, "variants": 4, "seed": 0, "error": None}
+
+
+ROWS = [_row("always", "A", "sgd", 0.5, None, 0.0), _row("always", "B", "sgd", 0.6, None, 0.0),
+        _row("always", "t", "star", 0.7, None, 0.0),
+        _row("x/cautious", "A", "sgd", 0.95, 0.1, 0.2), _row("x/cautious", "B", "sgd", 0.55, 0.3, 0.1),
+        _row("x/cautious", "t", "star", 0.9, None, 0.4)]
+
+
+def test_the_worst_domain_and_the_domains_at_or_below_always_are_counted_per_benchmark() -> None:
+    found = {(s.config, s.benchmark): s for s in summarize(ROWS)}
+    sgd = found[("x/cautious", "sgd")]
+    assert sgd.f1_mean == pytest.approx(0.75) and sgd.f1_worst == ("B", 0.55)
+    assert sgd.at_or_below_always == ["B"]
+    assert sgd.unsafe_worst == ("B", 0.3) and sgd.over_worst == ("A", 0.2)
+    star = found[("x/cautious", "star")]
+    assert star.at_or_below_always == [] and star.unsafe_mean is None
+    assert found[("always", "sgd")].at_or_below_always == ["A", "B"]
+
+
+def test_an_errored_domain_is_not_averaged_as_a_score() -> None:
+    rows = [*ROWS, {"config": "x/cautious", "domain": "C", "benchmark": "sgd", "error": "boom", "variants": 4,
+                    "seed": 0}]
+    assert {s.benchmark: s.domains for s in summarize(rows) if s.config == "x/cautious"} == {"sgd": 2, "star": 1}
+
+
+def test_every_row_says_how_it_was_chosen() -> None:
+    text = section(ROWS, {"x/cautious": "leave-one-domain-out: the test"})
+    assert "leave-one-domain-out: the test" in text and HOW_CHOSEN["always"] in text
+    assert "| sgd | `x/cautious` | 2 | 0.750 | 0.550 (B) | 1 (B) |" in text
+
+
+def test_library_and_guard_settings_reach_the_request() -> None:
+    lodo = parse_config("model+enumerate/cautious/guard=spec/lib=lodo")
+    options = lodo.infer_options(["SYSTEM.GOODBYE", "SYSTEM.Book"])
+    assert options.library and options.guarded is None
+    plain = parse_config("enumerate/cautious").infer_options(["SYSTEM.GOODBYE", "SYSTEM.Book"])
+    assert not plain.library and plain.guarded == ["SYSTEM.GOODBYE", "SYSTEM.Book"]
+    assert source_config(lodo).name == "model+enumerate/cautious/guard=spec"
+    with pytest.raises(ValueError, match="lib="):
+        parse_config("enumerate/cautious/lib=1")
