@@ -309,8 +309,8 @@ class Engine:
                 f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
         default = "" if request.options.guarded is not None else guarding.note(guarded)
         for action in actions:  # a search cut at its bound, or a conversational act's unkept rules, say so
-            unseen = action not in guarded and not preconditions[action] and not trace.actions[action].occurrences
-            said = ranked[action].unguarded or (guarding.UNREFUSED if unseen else "")
+            unrefused = action not in guarded and not preconditions[action] and unseen[action]
+            said = ranked[action].unguarded or (guarding.UNREFUSED if unrefused else "")
             unguarded = "; ".join(w for w in (said, default) if said and w)
             cuts = (warnings.get(action), stopped.get(action), ranked[action].search, unguarded)
             if any(cuts[1:]):
