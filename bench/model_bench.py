@@ -129,8 +129,8 @@ def backend_decode(model: CodeModel, prefix: Prefix, batch: int, steps: int) -> 
             tokens = out.logits[:, -1].argmax(-1, keepdim=True)
 
 
-def bench_backend(dtype: str, threads: int, repeat: int) -> dict[str, Any]:
-    settings = ModelSettings(dtype=dtype, threads=threads)
+def bench_backend(dtype: str, quant: str, threads: int, repeat: int) -> dict[str, Any]:
+    settings = ModelSettings(dtype=dtype, quant=quant, threads=threads)
     load_s, model = timed(lambda: load_code_model(settings))
     loaded = rss_mb()
     ids: list[int] = model.tokenizer(prompt_text(PROMPT_TOKENS, lambda t: model.tokenizer(t)["input_ids"]))[
@@ -148,6 +148,7 @@ def bench_backend(dtype: str, threads: int, repeat: int) -> dict[str, Any]:
     return {
         "engine": "backend",
         "dtype": model.info.dtype,
+        "quant": model.info.quant,
         "threads": threads,
         "load_s": round(load_s, 2),
         "prompt_tokens": len(ids),
@@ -212,6 +213,7 @@ def bench_llama_cpp(threads: int, repeat: int) -> dict[str, Any]:
     return {
         "engine": f"llama.cpp {getattr(llama_cpp, '__version__', '?')}",
         "dtype": "Q4_K_M (the GGUF as shipped)",
+        "quant": "Q4_K_M",
         "threads": threads,
         "load_s": round(load_s, 2),
         "prompt_tokens": len(ids),
@@ -250,12 +252,12 @@ def bench_domain(threads: int, samples: list[int], max_new_tokens: int) -> dict[
 
 
 def child(argv: list[str]) -> dict[str, Any]:
-    """One configuration, run in this (fresh) process: `backend DTYPE THREADS REPEAT`, `llama_cpp ...`."""
+    """One configuration, run in this (fresh) process: `backend DTYPE QUANT THREADS REPEAT`, `llama_cpp ...`."""
     kind, *rest = argv
     threads = int(rest[-2])
     torch.set_num_threads(threads)
     if kind == "backend":
-        return bench_backend(rest[0], threads, int(rest[-1]))
+        return bench_backend(rest[0], rest[1], threads, int(rest[-1]))
     if kind == "llama_cpp":
         return bench_llama_cpp(threads, int(rest[-1]))
     raise ValueError(f"unknown configuration {kind!r}")
@@ -282,6 +284,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"])
+    parser.add_argument("--quants", nargs="+", default=["none", "int8"], help="MODEL_QUANT values (int8: where the "
+                        "CPU runs it)")
+    parser.add_argument("--rounds", type=int, default=1, help="run every configuration this many times, "
+                        "interleaved (old and new side by side on a shared machine)")
     parser.add_argument("--repeat", type=int, default=3, help="each figure is the best of this many runs")
     parser.add_argument("--no-llama-cpp", action="store_true")
     parser.add_argument("--domain", action="store_true", help="also one SGD domain through CodeModel.complete")
@@ -305,16 +311,18 @@ def main() -> None:
         "repeat": args.repeat,
         "results": [],
     }
-    for threads in args.threads:
-        for dtype in args.dtypes:
-            report["results"].append(run_child(["backend", dtype, str(threads), str(args.repeat)]))
-        if args.no_llama_cpp:
-            continue
-        if importlib.util.find_spec("llama_cpp") is None:
-            logger.info(LLAMA_CPP_MISSING)
-            report["llama_cpp"] = LLAMA_CPP_MISSING
-            continue
-        report["results"].append(run_child(["llama_cpp", str(threads), str(args.repeat)]))
+    for _ in range(args.rounds):
+        for threads in args.threads:
+            for dtype in args.dtypes:
+                for quant in args.quants:
+                    report["results"].append(run_child(["backend", dtype, quant, str(threads), str(args.repeat)]))
+            if args.no_llama_cpp:
+                continue
+            if importlib.util.find_spec("llama_cpp") is None:
+                logger.info(LLAMA_CPP_MISSING)
+                report["llama_cpp"] = LLAMA_CPP_MISSING
+                continue
+            report["results"].append(run_child(["llama_cpp", str(threads), str(args.repeat)]))
     if args.domain:
         torch.set_num_threads(max(args.threads))
         report["domain"] = bench_domain(max(args.threads), args.samples, args.max_new_tokens)
@@ -327,13 +335,14 @@ def main() -> None:
 def markdown_table(results: list[dict[str, Any]]) -> str:
     key = f"samples_{SAMPLES}x{SAMPLE_TOKENS}_s"
     lines = [
-        f"| engine | dtype | threads | prefill tok/s | decode tok/s (batch 1) | {SAMPLES} x {SAMPLE_TOKENS} s "
+        f"| engine | dtype | quant | threads | prefill tok/s | decode tok/s (batch 1) | {SAMPLES} x {SAMPLE_TOKENS} s "
         "| load s | RSS after load MB | peak RSS MB | load avg (before, after) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
         lines.append(
-            f"| {r['engine']} | {r['dtype']} | {r['threads']} | {r['prefill_tok_s']} | {r['decode_b1_tok_s']} "
+            f"| {r['engine']} | {r['dtype']} | {r['quant']} | {r['threads']} | {r['prefill_tok_s']} "
+            f"| {r['decode_b1_tok_s']} "
             f"| {r[key]} | {r['load_s']} | {r['loaded_rss_mb']} | {r['peak_rss_mb']} "
             f"| {r['load_average'][0]}, {r['load_average'][1]} |"
         )

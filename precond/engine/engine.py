@@ -198,8 +198,8 @@ class Engine:
         return train_policy(self._weights, parse_spec(request.spec), request, out, progress, cancelled)
 
     def with_policy(self, adapter: Path, policy: str) -> Engine:
-        """An engine on the same sandbox whose model is this one's with the adapter at `adapter` merged into a
-        copy of the weights it changes (`backend.with_adapter`); it answers next actions naming `policy`."""
+        """An engine on the same sandbox whose model is this one's with the adapter at `adapter` beside the weights
+        it changes, unmerged (`backend.with_adapter`); it answers next actions naming `policy`."""
         from precond.engine.models.backend import with_adapter
 
         adapted = with_adapter(self.model(), adapter)

@@ -14,13 +14,14 @@ import os
 from dataclasses import fields, replace
 from pathlib import Path
 
-from pydantic import AliasChoices, Field
+from pydantic import AliasChoices, Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from precond.sandbox import Sandbox
 from precond.sandbox.types import Limits
 
 EMBEDDED = "embedded"
+QUANT_CHOICES = ("auto", "none", "int8")
 
 
 def default_cache_dir() -> Path:
@@ -53,6 +54,12 @@ class ModelSettings(BaseSettings):
         description="`auto` (bfloat16 on CUDA; on CPU bfloat16 with avx512_bf16/amx_bf16, else float32) or a "
         "torch dtype name (`float32`, `bfloat16`, `float16`).",
     )
+    quant: str = Field(
+        default="auto",
+        description="`auto` (int8 weights on a CPU with int8 dot products: avx512_vnni, avx_vnni or amx_int8; else "
+        "none), `none` (weights in `dtype`) or `int8` (refused at load where the CPU or torch cannot run it). "
+        "docs/model-speed.md has the speed and accuracy of each.",
+    )
     threads: int = Field(default=1, ge=1, description="CPU threads torch may use.")
     cache_dir: Path = Field(
         default_factory=default_cache_dir,
@@ -65,6 +72,14 @@ class ModelSettings(BaseSettings):
         "tenant reuses only its own; about 12 KB per token for the embedded 0.5B model in bfloat16, twice that in "
         "float32; least recently used first).",
     )
+
+    @field_validator("quant")
+    @classmethod
+    def _known_quant(cls, value: str) -> str:
+        """Named here so a typo fails when the settings are read, before any weights are."""
+        if value not in QUANT_CHOICES:
+            raise ValueError(f"MODEL_QUANT={value!r} is not one of {', '.join(QUANT_CHOICES)}")
+        return value
 
 
 _LIMITS = Limits()

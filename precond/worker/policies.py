@@ -4,8 +4,8 @@ adapter a next action names.
 A training writes its adapter into a scratch directory of this process (mode 0700, one per job, removed when
 the job ends however it ends); the worker then stores the weights and what trained them in the queue Redis
 (`precond/jobs/policy_adapters.py`) under the tag of the job's owner. A next action naming `adapter:<id>@<n>` is
-answered by an engine whose model is the served model with that adapter merged into a copy of the tensors it
-changes (`engine.models.backend.with_adapter`): the adapter is read under the job's owner's tag, never under
+answered by an engine whose model is the served model with that adapter beside the projections it changes,
+unmerged (`engine.models.backend.with_adapter`): the adapter is read under the job's owner's tag, never under
 anything the payload says, so one tenant's job cannot reach another tenant's adapter even with its id.
 """
 
@@ -35,9 +35,11 @@ from precond_client.schemas.training import PolicyAdapter, TrainPolicyResult
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
-ADAPTED_ENGINES = 1
-"""Adapted models a worker keeps (each holds its own copy of the attention projections, ~180 MB for the
-embedded model in float32); a next action of another adapter builds its own (about a second) in its place."""
+ADAPTED_ENGINES = 16
+"""Adapted models a worker keeps warm: each shares every weight of the served model and holds only its adapter,
+unmerged (~2 MB for the embedded model at rank 8, `backend.with_adapter`), so 16 cost ~35 MB; their kept prompt
+prefixes count against the served model's one bound (`MODEL_PREFIX_CACHE_TOKENS`). A next action of another
+adapter builds its own (a read of the adapter) in the least recently used one's place."""
 
 
 @cache

@@ -510,6 +510,14 @@ class ModelInfo(StrictBody):
         description="Why the model runs in `dtype`: the setting, or what the device can do "
         "(e.g. 'cpu without avx512_bf16/amx_bf16: float32').",
     )
+    quant: str = Field(
+        default="none",
+        description="How the weights are stored: `none` (in `dtype`) or `int8` (linear layers and embedding in 8 bits, "
+        "`MODEL_QUANT`).",
+    )
+    quant_reason: str = Field(
+        default="", description="Why: the setting, or what the CPU can do (e.g. 'int8 weights: cpu with avx512_vnni')."
+    )
     adapter: str | None = Field(
         default=None,
         description="The trained policy merged into the weights (`precond train-policy`): its name and the first "

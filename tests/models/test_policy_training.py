@@ -14,6 +14,8 @@ from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
 from precond.cli.main import app
+from precond.engine.models import Sampling
+from precond.engine.models import backend as backend_module
 from precond.engine.models.adapters import RESULT, WEIGHTS, AdapterError, read_result
 from precond.engine.models.backend import Weights, load_code_model, load_weights, with_adapter
 from precond.engine.settings import ModelSettings
@@ -38,8 +40,8 @@ DEMO = ("user = USER()\nsystem = SYSTEM(user)\nsystem.REQUEST('city')\nuser.INFO
         "system.REQUEST('date')\nuser.INFORM('date')\nsystem.GOODBYE()\n")
 
 
-def _settings(tiny_model_dir: Path) -> ModelSettings:
-    return ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", threads=1)
+def _settings(tiny_model_dir: Path, quant: str = "none") -> ModelSettings:
+    return ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", threads=1, quant=quant)
 
 
 def _request(steps: int = 3, demos: list[str] | None = None, **options: object) -> TrainPolicyRequest:
@@ -161,19 +163,49 @@ def test_a_pickle_in_place_of_the_weights_is_refused_unread(tiny_model_dir: Path
 
 def test_an_adapted_copy_answers_as_a_loaded_adapter_and_leaves_the_base_as_it_was(tiny_model_dir: Path,
                                                                                    adapter: Path) -> None:
-    """What a worker serves for a tenant's policy (`with_adapter`: the projections copied and merged, every
-    other tensor shared) is the model `load_code_model(adapter)` loads, and the served base model is not
-    touched by it, bit for bit."""
+    """What a worker serves for a tenant's policy (`with_adapter`: the adapter beside the projections, unmerged,
+    every weight shared) is the model `load_code_model(adapter)` loads (merged), and the served base model is
+    not touched by it, bit for bit."""
     base = load_code_model(_settings(tiny_model_dir))
     before = {name: t.clone() for name, t in base.model.state_dict().items()}
     adapted = with_adapter(base, adapter)
     loaded = load_code_model(_settings(tiny_model_dir), adapter)
     ids = base.tokenizer(SPEC + "\n# Current\n" + DEMO, return_tensors="pt")["input_ids"]
     with torch.no_grad():
-        assert torch.allclose(adapted.model(ids).logits, loaded.model(ids).logits, atol=1e-5)
+        assert torch.allclose(adapted.model(ids).logits, loaded.model(ids).logits, atol=1e-4)  # merged: other sums
         assert not torch.allclose(adapted.model(ids).logits, base.model(ids).logits)
     assert all(torch.equal(before[name], t) for name, t in base.model.state_dict().items())
     assert adapted.info.adapter == loaded.info.adapter and adapted.known_calls == loaded.known_calls
-    shared = {t.data_ptr() for t in base.model.parameters()} & {t.data_ptr() for t in adapted.model.parameters()}
-    assert shared and not any("proj" in n and "mlp" not in n for n, t in adapted.model.named_parameters()
-                              if t.data_ptr() in shared)  # the embeddings and MLPs are shared, the projections not
+    base_tensors = {t.data_ptr() for t in [*base.model.parameters(), *base.model.buffers()]}
+    own = {n for n, t in [*adapted.model.named_parameters(), *adapted.model.named_buffers()]
+           if t.data_ptr() not in base_tensors}
+    assert own and all(n.rsplit(".", 1)[-1] in ("a", "b") for n in own)  # only the adapter's tensors are new
+    assert all(t.data_ptr() in base_tensors for t in adapted.model.parameters())
+
+
+def test_an_adapter_runs_beside_int8_weights(tiny_model_dir: Path, adapter: Path,
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """An int8 base cannot take a merge; the unmerged adapter over it moves its answers toward the merged
+    full-width model's (the rest of the gap is int8's own error on this random tiny model)."""
+    monkeypatch.setattr(backend_module, "cpu_flags", lambda: frozenset({"avx2", "avx512_vnni"}))
+    small = load_code_model(_settings(tiny_model_dir, "int8"))
+    adapted, loaded = with_adapter(small, adapter), load_code_model(_settings(tiny_model_dir), adapter)
+    ids = small.tokenizer(SPEC + "\n# Current\n" + DEMO, return_tensors="pt")["input_ids"]
+    with torch.no_grad():
+        ours, merged, plain = (m.model(ids).logits for m in (adapted, loaded, small))
+    assert (ours - merged).norm() < (plain - merged).norm()  # the adapter acts, toward what the merge gives
+    assert adapted.info.quant == "int8" and adapted.info.adapter == loaded.info.adapter
+
+
+def test_an_adapted_copy_keeps_its_prompt_prefixes_apart_in_the_base_models_store(tiny_model_dir: Path,
+                                                                                   adapter: Path) -> None:
+    """The adapter changes the keys and values, so its prefixes are its own; they count against the base model's
+    one token bound, and a second request of the adapter reuses its first's."""
+    base = load_code_model(_settings(tiny_model_dir))
+    adapted = with_adapter(base, adapter)
+    assert adapted._prefixes is base._prefixes
+    sampling = Sampling(temperature=0, max_new_tokens=4)
+    first = adapted.complete(SPEC, ["\nsystem."], 1, sampling, "line")
+    base.complete(SPEC, ["\nsystem."], 1, sampling, "line")
+    assert len(base._prefixes.scopes()) == 2
+    assert adapted.complete(SPEC, ["\nsystem."], 1, sampling, "line") == first

@@ -4,8 +4,9 @@ An adapter directory holds `adapter_model.safetensors` (the weights: safetensors
 `adapter_config.json` (peft's, written for other tools and never read here) and `policy.json` (the
 `TrainPolicyResult`: the base model it was trained on, its rank, its losses). Loading trusts none of it: the
 sizes are bounded before reading, the base must be the one this process serves, the weights must be exactly
-the tensors the rank and the base model's attention projections call for, and they are merged into the
-weights (no adapter layers stay behind to slow serving).
+the tensors the rank and the base model's attention projections call for. Loaded on its own (`precond
+train-policy` results, the evaluation) an adapter is merged into the weights; a worker serving it beside the base
+model keeps it unmerged (`lora_weights`, `backend.with_adapter`): a few MB per adapter over shared weights.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from pydantic import ValidationError
 
@@ -28,6 +29,14 @@ TARGET_MODULES = ("q_proj", "k_proj", "v_proj", "o_proj")
 WEIGHTS = "adapter_model.safetensors"
 RESULT = "policy.json"
 MAX_RESULT_BYTES = 1_000_000
+LORA_ALPHA_PER_RANK = 2
+
+
+class Lora(NamedTuple):
+    """One module's low-rank change, `b @ a`, already scaled (peft's `lora_alpha / rank`)."""
+
+    a: Any
+    b: Any
 
 
 class AdapterError(InvalidInput):
@@ -40,8 +49,8 @@ class AdapterError(InvalidInput):
 def lora_config(rank: int) -> Any:
     from peft import LoraConfig
 
-    return LoraConfig(r=rank, lora_alpha=2 * rank, target_modules=list(TARGET_MODULES), lora_dropout=0.0,
-                      bias="none", task_type="CAUSAL_LM")
+    return LoraConfig(r=rank, lora_alpha=LORA_ALPHA_PER_RANK * rank, target_modules=list(TARGET_MODULES),
+                      lora_dropout=0.0, bias="none", task_type="CAUSAL_LM")
 
 
 def save_adapter(peft_model: Any, directory: Path, result: TrainPolicyResult) -> TrainPolicyResult:
@@ -78,6 +87,33 @@ def read_result(directory: Path) -> TrainPolicyResult:
 def merge_adapter(model: Any, directory: Path, base: ModelInfo) -> tuple[str, TrainPolicyResult]:
     """Merge the adapter at `directory` into `model` (in place); its name for the `model` block of responses,
     and what trained it."""
+    name, result, data = _read_adapter(directory, base)
+    _load_into(model, data, result.options.rank)
+    return name, result
+
+
+def lora_weights(model: Any, directory: Path, base: ModelInfo) -> tuple[str, TrainPolicyResult, dict[str, Lora]]:
+    """The adapter at `directory` as low-rank pairs per module of `model` it changes, left unmerged: checked
+    against the module names and sizes of `model` (full-width or int8) exactly as a merge checks them."""
+    name, result, data = _read_adapter(directory, base)
+    rank = result.options.rank
+    tensors = _tensors(data)
+    expected: dict[str, tuple[int, ...]] = {}
+    for module, layer in model.named_modules():
+        if module.rsplit(".", 1)[-1] in TARGET_MODULES:
+            expected[f"base_model.model.{module}.lora_A.weight"] = (rank, layer.in_features)
+            expected[f"base_model.model.{module}.lora_B.weight"] = (layer.out_features, rank)
+    _check_fit(tensors, expected, rank)
+    scale = LORA_ALPHA_PER_RANK  # lora_alpha / rank, as peft scales it
+    pairs = {key.removeprefix("base_model.model.").removesuffix(".lora_A.weight"):
+             Lora(tensors[key], tensors[key.replace("lora_A", "lora_B")] * scale)
+             for key in expected if key.endswith("lora_A.weight")}
+    return name, result, pairs
+
+
+def _read_adapter(directory: Path, base: ModelInfo) -> tuple[str, TrainPolicyResult, bytes]:
+    """Name, what trained it (its known calls filtered) and the weights' bytes, bounded and checked against
+    the served base model before anything is parsed."""
     result = read_result(directory)
     if (result.base_model, result.base_sha256) != (base.name, base.sha256):
         raise AdapterError(f"{directory}: trained on {result.base_model} ({result.base_sha256}), but this process "
@@ -86,9 +122,9 @@ def merge_adapter(model: Any, directory: Path, base: ModelInfo) -> tuple[str, Tr
     if not weights.is_file() or weights.stat().st_size > MAX_ADAPTER_BYTES:
         raise AdapterError(f"{directory}: no {WEIGHTS} of at most {MAX_ADAPTER_BYTES} bytes")
     data = weights.read_bytes()
-    _load_into(model, data, result.options.rank)
     calls = [c for c in result.calls if _one_call(c)]
-    return f"{directory.name}@{hashlib.sha256(data).hexdigest()[:12]}", result.model_copy(update={"calls": calls})
+    name = f"{directory.name}@{hashlib.sha256(data).hexdigest()[:12]}"
+    return name, result.model_copy(update={"calls": calls}), data
 
 
 def _one_call(text: str) -> bool:
@@ -100,24 +136,33 @@ def _one_call(text: str) -> bool:
     return len(body) == 1 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Call)
 
 
-def _load_into(model: Any, data: bytes, rank: int) -> None:
-    from peft import get_peft_model, set_peft_model_state_dict
+def _tensors(data: bytes) -> dict[str, Any]:
     from safetensors import SafetensorError
     from safetensors.torch import load as load_tensors
 
     try:
-        tensors = load_tensors(data)
+        return load_tensors(data)
     except SafetensorError as exc:
         raise AdapterError(f"{WEIGHTS} is not a safetensors file: {exc}") from None
-    peft_model = get_peft_model(model, lora_config(rank))
-    expected = {k.replace(".default", ""): v.shape for k, v in peft_model.state_dict().items() if "lora_" in k}
+
+
+def _check_fit(tensors: dict[str, Any], expected: dict[str, Any], rank: int) -> None:
     if set(tensors) != set(expected):
         extra = sorted(set(tensors) - set(expected))[:3]
         missing = sorted(set(expected) - set(tensors))[:3]
         raise AdapterError(f"{WEIGHTS} does not fit this model at rank {rank}: unexpected {extra}, missing {missing}")
-    wrong = [k for k, t in tensors.items() if t.shape != expected[k]]
+    wrong = [k for k, t in tensors.items() if tuple(t.shape) != tuple(expected[k])]
     if wrong:
         raise AdapterError(f"{WEIGHTS}: {wrong[0]} has shape {tuple(tensors[wrong[0]].shape)}, "
                            f"expected {tuple(expected[wrong[0]])}")
+
+
+def _load_into(model: Any, data: bytes, rank: int) -> None:
+    from peft import get_peft_model, set_peft_model_state_dict
+
+    tensors = _tensors(data)
+    peft_model = get_peft_model(model, lora_config(rank))
+    _check_fit(tensors, {k.replace(".default", ""): v.shape for k, v in peft_model.state_dict().items()
+                         if "lora_" in k}, rank)
     set_peft_model_state_dict(peft_model, tensors)
     peft_model.merge_and_unload()

@@ -24,7 +24,7 @@ import logging
 import threading
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -202,7 +202,8 @@ class CodeModel:
     """A causal code model behind `complete`; one call at a time (the cache it keeps is not shareable)."""
 
     def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 32,
-                 prefix_tokens: int = 32_768, known_calls: tuple[str, ...] = ()) -> None:
+                 prefix_tokens: int = 32_768, known_calls: tuple[str, ...] = (),
+                 prefixes: PrefixStore | None = None) -> None:
         self.model = model
         self.known_calls = known_calls
         """A fine-tuned policy's vocabulary (`TrainPolicyResult.calls`); empty for the base model."""
@@ -212,7 +213,9 @@ class CodeModel:
         self.prefix_tokens = prefix_tokens
         self.device = next(model.parameters()).device
         self._stop_ids = self._end_token_ids()
-        self._prefixes = PrefixStore(prefix_tokens)
+        self._prefixes = PrefixStore(prefix_tokens) if prefixes is None else prefixes
+        """Shared with the adapted copies of this model (`with_adapter`), whose entries are their own
+        (`_scope`): one bound on the memory of all kept prefixes."""
         self._lock = threading.Lock()
 
     def _end_token_ids(self) -> frozenset[int]:
@@ -334,7 +337,7 @@ class CodeModel:
     def _prefix_cache(self, tokens: tuple[int, ...], should_stop: Callable[[], bool] | None = None) -> Prefix:
         """The cache of `tokens`, reusing the closest one kept in this scope (`engine.scope`, the job's tenant)
         up to the last chunk boundary both share."""
-        scope = current_scope()
+        scope = current_scope() if self.info.adapter is None else f"{current_scope()}\0{self.info.adapter}"
         kept, shared = self._prefixes.closest(scope, tokens)
         if kept is not None and kept.tokens == tokens:
             return kept
@@ -597,6 +600,22 @@ def load_weights(settings: ModelSettings) -> Weights:
     return Weights(model, tokenizer, info, device)
 
 
+def quantized(weights: Weights, setting: str) -> Weights:
+    """The weights in the form `MODEL_QUANT` picks for serving (in place; training keeps full-width weights).
+
+    Raises QuantUnavailable, naming the setting and the missing CPU feature, where `int8` cannot run here."""
+    from precond.engine.models.quant import choose_quant, quantize
+
+    quant, reason = choose_quant(setting, weights.device, cpu_flags())
+    if quant == "int8":
+        layers = quantize(weights.model)
+        logger.info("%s: %d layers in int8", reason, layers)
+    elif setting == "auto":
+        logger.info("%s: weights stay %s", reason, weights.info.dtype)
+    return Weights(weights.model, weights.tokenizer,
+                   weights.info.model_copy(update={"quant": quant, "quant_reason": reason}), weights.device)
+
+
 def _resident(model: Any) -> None:
     """Read every weight once. transformers maps the safetensors file, so the weights become resident only as a
     forward pass first reads them: the worker's memory guard would charge that to the first model job (1.9 GB
@@ -611,36 +630,60 @@ def _resident(model: Any) -> None:
 def load_code_model(settings: ModelSettings, adapter: Path | None = None) -> CodeModel:
     """The serving model; with `adapter` (a trained policy, `engine.models.adapters`) merged into its weights."""
     weights = load_weights(settings)
-    model, info = weights.model, weights.info
     calls: tuple[str, ...] = ()
     if adapter is not None:
         from precond.engine.models.adapters import merge_adapter
 
-        name, trained = merge_adapter(model, adapter, info)
-        info, calls = info.model_copy(update={"adapter": name}), tuple(trained.calls)
+        name, trained = merge_adapter(weights.model, adapter, weights.info)
+        weights = replace(weights, info=weights.info.model_copy(update={"adapter": name}))
+        calls = tuple(trained.calls)
+    weights = quantized(weights, settings.quant)
+    model, info = weights.model, weights.info
     model.eval()
     _resident(model)
     if weights.device.type == "cpu":
         use_grouped_attention(model)
-    logger.info("loaded %s on %s (%s)%s", info.name, info.device, info.dtype_reason,
+    logger.info("loaded %s on %s (%s; %s)%s", info.name, info.device, info.dtype_reason, info.quant_reason,
                 f", policy adapter {info.adapter}" if info.adapter else "")
     return CodeModel(model, weights.tokenizer, info, max_batch=settings.max_batch,
                      prefix_tokens=settings.prefix_cache_tokens, known_calls=calls)
 
 
-def with_adapter(base: CodeModel, directory: Path) -> CodeModel:
-    """`base` with a trained policy merged into a copy of the tensors the adapter changes (the attention
-    projections, `adapters.TARGET_MODULES`); every other tensor is shared with `base`, which stays exactly as it
-    was. A worker serving a tenant's policy beside the base model thus holds the projections twice (about 180 MB
-    for the embedded 0.5B model in float32), not a second model, and never perturbs the base model's weights."""
-    from precond.engine.models.adapters import TARGET_MODULES, merge_adapter
+class LoraLinear(torch.nn.Module):
+    """A shared layer plus an adapter's low-rank change, unmerged: `base(x) + (x @ a.T) @ b.T`."""
 
-    shared: dict[int, Any] = {id(t): t for name, t in base.model.named_parameters()
-                              if name.rsplit(".", 2)[-2] not in TARGET_MODULES}
-    shared.update({id(t): t for _, t in base.model.named_buffers()})
-    model = copy.deepcopy(base.model, memo=shared)
-    name, trained = merge_adapter(model, directory, base.info)
+    def __init__(self, base: torch.nn.Module, a: torch.Tensor, b: torch.Tensor) -> None:
+        super().__init__()
+        self.base = base
+        self.a: torch.Tensor
+        self.b: torch.Tensor
+        self.register_buffer("a", a)
+        self.register_buffer("b", b)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out: torch.Tensor = self.base(x)
+        return out + (x @ self.a.T) @ self.b.T
+
+
+def with_adapter(base: CodeModel, directory: Path) -> CodeModel:
+    """`base` with a trained policy's low-rank changes beside the projections it trains (`LoraLinear`), unmerged:
+    every weight of `base` is shared, full-width or int8, and stays exactly as it was. So a warm adapter costs its
+    own tensors (rank x (in + out) per projection: ~2 MB for the embedded model at rank 8 in bfloat16) and a copy
+    of the module tree, and building it is a read of the adapter (no merge). Its prompt prefixes live in `base`'s
+    store, keyed by tenant and adapter, within the one token bound."""
+    from precond.engine.models.adapters import lora_weights
+
+    dtype = next(base.model.parameters()).dtype
+    name, trained, pairs = lora_weights(base.model, directory, base.info)
+    leaves: dict[int, Any] = {id(m): m for m in base.model.modules() if next(m.children(), None) is None}
+    leaves.update({id(t): t for t in [*base.model.parameters(), *base.model.buffers()]})
+    leaves[id(base.model.config)] = base.model.config
+    model = copy.deepcopy(base.model, memo=leaves)
+    for module, lora in pairs.items():
+        parent, _, child = module.rpartition(".")
+        owner = model.get_submodule(parent)
+        setattr(owner, child, LoraLinear(getattr(owner, child), lora.a.to(dtype), lora.b.to(dtype)))
     model.eval()
     return CodeModel(model, base.tokenizer, base.info.model_copy(update={"adapter": name}),
-                     max_batch=base.max_batch, prefix_tokens=base.prefix_tokens, known_calls=tuple(trained.calls))
-
+                     max_batch=base.max_batch, prefix_tokens=base.prefix_tokens, known_calls=tuple(trained.calls),
+                     prefixes=base._prefixes)

@@ -10,6 +10,7 @@ them; scopes share only the bound on memory, counted in tokens, least recently u
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
@@ -35,26 +36,31 @@ class PrefixStore:
     def __init__(self, max_tokens: int) -> None:
         self.max_tokens = max_tokens
         self._entries: OrderedDict[tuple[str, tuple[int, ...]], Prefix] = OrderedDict()
+        self._lock = threading.Lock()
+        """The base model and its adapted copies share a store, and may run in two job threads at once."""
 
     def closest(self, scope: str, tokens: tuple[int, ...]) -> tuple[Prefix | None, int]:
         """This scope's entry sharing the longest token prefix with `tokens`, and that length."""
         best, length = None, 0
-        for (owner, kept), entry in self._entries.items():
-            if owner != scope:
-                continue
-            shared = common_length(kept, tokens)
-            if shared > length:
-                best, length = entry, shared
-        if best is not None:
-            self._entries.move_to_end((scope, best.tokens))
+        with self._lock:
+            for (owner, kept), entry in self._entries.items():
+                if owner != scope:
+                    continue
+                shared = common_length(kept, tokens)
+                if shared > length:
+                    best, length = entry, shared
+            if best is not None:
+                self._entries.move_to_end((scope, best.tokens))
         return best, length
 
     def put(self, scope: str, entry: Prefix) -> None:
         """Keep `entry`, evicting least recently used entries (of any scope) beyond the token bound."""
-        self._entries[(scope, entry.tokens)] = entry
-        self._entries.move_to_end((scope, entry.tokens))
-        while len(self._entries) > 1 and sum(len(t) for _, t in self._entries) > self.max_tokens:
-            self._entries.popitem(last=False)
+        with self._lock:
+            self._entries[(scope, entry.tokens)] = entry
+            self._entries.move_to_end((scope, entry.tokens))
+            while len(self._entries) > 1 and sum(len(t) for _, t in self._entries) > self.max_tokens:
+                self._entries.popitem(last=False)
 
     def scopes(self) -> set[str]:
-        return {owner for owner, _ in self._entries}
+        with self._lock:
+            return {owner for owner, _ in self._entries}

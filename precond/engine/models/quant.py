@@ -1,0 +1,150 @@
+"""Weights in 8 bits on CPU (`MODEL_QUANT`): every linear layer, the vocabulary projection and the embedding.
+
+Decoding one token reads every weight once, so on a CPU a batch-1 step costs what the weights' bytes cost to
+stream. Of the int8 kernels torch 2.13 ships for x86, measured on 2 cores of an AVX-512-VNNI EPYC at the embedded
+model's layer shapes against a bfloat16 `linear` (bench/model_bench.py has the whole model):
+
+* `torch._int_mm` (oneDNN, VNNI), with each input row quantized to int8 by its own scale: 1.7-3x faster at batch
+  1 and 8, 1.5x on a 128-token prefill chunk. What `int8` runs.
+* fbgemm's dynamic int8 (`quantized::linear_dynamic`, what `quantize_dynamic` builds) is as fast, but scales the
+  whole batch by one number: a row's output then depends on the rows beside it (samples would change with the
+  batch), and the MLP's few huge activation channels crush the rest (logits off by 18% on a domain prompt).
+* weight-only int8 and int4 (`_weight_int8pack_mm`, `_weight_int4pack_mm_for_cpu`): faster at batch 1 only, 1-2.5x
+  slower than bfloat16 from batch 8 on, where the engine samples and prefills.
+
+Per row, the logits of a 300-token domain prompt move by 7% and the top token is the same at 99% of positions.
+The embedding's rows are int8 too, widened per looked-up row.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import torch
+from torch import nn
+
+from precond.engine.models.store import ModelStoreError
+from precond.engine.settings import QUANT_CHOICES as QUANTS
+
+logger = logging.getLogger(__name__)
+
+CPU_INT8_FLAGS = ("amx_int8", "avx512_vnni", "avx_vnni")
+"""int8 dot products in hardware: where `auto` quantizes (fbgemm's int8 path without them is emulated with
+16-bit sums, barely faster than float32)."""
+CPU_INT8_REQUIRED = "avx2"
+"""fbgemm's least instruction set: `MODEL_QUANT=int8` on a CPU without it is refused at load."""
+
+
+class QuantUnavailable(ModelStoreError):
+    """`MODEL_QUANT` names weights this machine cannot run."""
+
+
+def choose_quant(name: str, device: torch.device, flags: frozenset[str] | None) -> tuple[str, str]:
+    """The quantization to load with, and why (reported with the dtype in every response's `model` block).
+
+    `auto` quantizes only where it is fast (a CPU with int8 dot products and fbgemm); an explicit `int8` the
+    machine cannot run is an error naming the setting and what is missing, never a silent full-width model.
+    """
+    if name not in QUANTS:
+        raise QuantUnavailable(f"MODEL_QUANT={name!r} is not one of {', '.join(QUANTS)}")
+    if name == "none":
+        return "none", "MODEL_QUANT=none"
+    missing = _missing(device, flags)
+    if name == "int8":
+        if missing:
+            raise QuantUnavailable(f"MODEL_QUANT=int8 cannot run here: {missing}; set MODEL_QUANT=none or auto")
+        return "int8", "MODEL_QUANT=int8"
+    if missing:
+        return "none", f"no int8 weights: {missing}"
+    native = [flag for flag in CPU_INT8_FLAGS if flags is not None and flag in flags]
+    if not native:
+        return "none", f"no int8 weights: cpu without {'/'.join(CPU_INT8_FLAGS)}"
+    return "int8", f"int8 weights: cpu with {native[0]}"
+
+
+def _missing(device: torch.device, flags: frozenset[str] | None) -> str:
+    """Why this machine cannot run the int8 kernels, or '' when it can."""
+    if device.type != "cpu":
+        return f"int8 weights are CPU kernels and the model runs on {device.type}"
+    if not _int_mm_runs():
+        return "this torch build cannot multiply int8 matrices on CPU (torch._int_mm)"
+    if flags is None:
+        return f"cpu features unknown (no /proc/cpuinfo), so {CPU_INT8_REQUIRED} cannot be checked"
+    if CPU_INT8_REQUIRED not in flags:
+        return f"cpu without {CPU_INT8_REQUIRED} (fbgemm's int8 kernels need it)"
+    return ""
+
+
+def _int_mm_runs() -> bool:
+    try:
+        torch._int_mm(torch.ones(1, 8, dtype=torch.int8), torch.ones(8, 8, dtype=torch.int8))
+    except (RuntimeError, AttributeError):
+        return False
+    return True
+
+
+class Int8Linear(nn.Module):
+    """A linear layer with per-row int8 weights; each input row (token) is quantized with its own scale and the
+    product taken in int8 (`torch._int_mm`, oneDNN: VNNI where the CPU has it). Per row, so a sequence's output
+    never depends on the other rows of its batch (samples stay batch-independent, `backend.uniform`)."""
+
+    def __init__(self, linear: nn.Linear) -> None:
+        super().__init__()
+        self.in_features, self.out_features = linear.in_features, linear.out_features
+        weight = linear.weight.detach().float()
+        scales = weight.abs().amax(dim=1).clamp(min=1e-12) / 127.0
+        self.qweight_t: torch.Tensor
+        self.scales: torch.Tensor
+        self.bias: torch.Tensor | None
+        self.register_buffer("qweight_t", torch.round(weight / scales[:, None]).to(torch.int8).t().contiguous())
+        self.register_buffer("scales", scales)
+        self.register_buffer("bias", None if linear.bias is None else linear.bias.detach().float())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        rows = x.reshape(-1, self.in_features).float()
+        row_scales = rows.abs().amax(dim=1, keepdim=True).clamp(min=1e-12) / 127.0
+        product = torch._int_mm(torch.round(rows / row_scales).to(torch.int8), self.qweight_t)
+        out = product.float() * row_scales * self.scales
+        if self.bias is not None:
+            out = out + self.bias
+        return out.to(x.dtype).reshape(*x.shape[:-1], self.out_features)
+
+    def extra_repr(self) -> str:
+        return f"in_features={self.in_features}, out_features={self.out_features}, int8"
+
+
+class Int8Embedding(nn.Module):
+    """An embedding with per-row int8 weights: a lookup widens only the rows it reads."""
+
+    def __init__(self, embedding: nn.Embedding) -> None:
+        super().__init__()
+        weight = embedding.weight.detach()
+        self.dtype = weight.dtype
+        scales = weight.float().abs().amax(dim=1, keepdim=True).clamp(min=1e-12) / 127.0
+        self.qweight: torch.Tensor
+        self.scales: torch.Tensor
+        self.register_buffer("qweight", torch.round(weight.float() / scales).to(torch.int8))
+        self.register_buffer("scales", scales.to(self.dtype))
+        self.padding_idx = embedding.padding_idx
+
+    def forward(self, ids: torch.Tensor) -> torch.Tensor:
+        return self.qweight[ids].to(self.dtype) * self.scales[ids]
+
+
+def quantize(model: Any) -> int:
+    """Replace, in place, every `nn.Linear` (the vocabulary projection too, untied from the embedding) and the
+    input embedding by int8 versions; returns how many layers were replaced. Layer by layer, so the float32 copy
+    a layer's quantization needs is one layer's, never the model's."""
+    replaced = 0
+    embeddings = model.get_input_embeddings()
+    for parent in list(model.modules()):
+        for name, child in list(parent.named_children()):
+            if isinstance(child, nn.Linear):
+                setattr(parent, name, Int8Linear(child))
+                replaced += 1
+            elif child is embeddings:
+                setattr(parent, name, Int8Embedding(child))
+                replaced += 1
+    model.config.tie_word_embeddings = False
+    return replaced
