@@ -19,6 +19,7 @@ import importlib.util
 import json
 import logging
 import os
+import resource
 import statistics
 import tempfile
 import time
@@ -83,7 +84,7 @@ def histories(data: dict[str, Any], turns: int) -> list[str]:
     return found
 
 
-def run(runtime: str, dtype: str, threads: int, name: str, turns: int) -> dict[str, Any]:
+def run(runtime: str, dtype: str, quant: str, threads: int, name: str, turns: int) -> dict[str, Any]:
     """One row, in this process: the domain's default inference, then `turns` next-action requests."""
     import torch
 
@@ -99,7 +100,7 @@ def run(runtime: str, dtype: str, threads: int, name: str, turns: int) -> dict[s
         else:
             from precond.engine.models import load_code_model
 
-            loader = lambda: load_code_model(ModelSettings(dtype=dtype, threads=threads))  # noqa: E731
+            loader = lambda: load_code_model(ModelSettings(dtype=dtype, quant=quant, threads=threads))  # noqa: E731
         with SandboxSettings().build() as sandbox:
             engine = Engine(sandbox, loader)
             load_s, _ = timed(engine.model)
@@ -113,12 +114,14 @@ def run(runtime: str, dtype: str, threads: int, name: str, turns: int) -> dict[s
                 engine.next_action(request)
                 latencies.append(time.perf_counter() - start)
     return {
-        "runtime": runtime, "dtype": getattr(engine.model().info, "dtype", dtype), "threads": threads,
+        "runtime": runtime, "dtype": getattr(engine.model().info, "dtype", dtype),
+        "quant": getattr(engine.model().info, "quant", quant), "threads": threads,
         "domain": name, "load_s": round(load_s, 1), "infer_s": round(infer_s, 1),
         "infer_generate_s": inferred.stats.seconds.get("generate"),
         "next_action_p50_s": round(statistics.median(latencies), 2),
         "next_action_p95_s": round(sorted(latencies)[max(0, round(0.95 * len(latencies)) - 1)], 2),
         "requests": len(latencies),
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024,
     }
 
 
@@ -134,21 +137,23 @@ def main() -> None:
     parser.add_argument("--turns", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--dtypes", nargs="+", default=["auto"])
+    parser.add_argument("--quants", nargs="+", default=["auto"], help="MODEL_QUANT values, each beside each dtype")
+    parser.add_argument("--rounds", type=int, default=1, help="every configuration this many times, interleaved")
     parser.add_argument("--json", type=Path)
-    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
+    parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        runtime, dtype, threads, name, turns = args.child
-        print(json.dumps(run(runtime, dtype, int(threads), name, int(turns))))
+        runtime, dtype, quant, threads, name, turns = args.child
+        print(json.dumps(run(runtime, dtype, quant, int(threads), name, int(turns))))
         return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     from bench.model_bench import run_child
 
     threads = str(args.threads)
-    rows = [run_child(["backend", dtype, threads, args.domain, str(args.turns)], __file__, threads)
-            for dtype in args.dtypes]
+    rows = [run_child(["backend", dtype, quant, threads, args.domain, str(args.turns)], __file__, threads)
+            for _ in range(args.rounds) for dtype in args.dtypes for quant in args.quants]
     if importlib.util.find_spec("llama_cpp") is not None:
-        rows.append(run_child(["llama_cpp", "-", threads, args.domain, str(args.turns)], __file__, threads))
+        rows.append(run_child(["llama_cpp", "-", "-", threads, args.domain, str(args.turns)], __file__, threads))
     else:
         logger.info("llama.cpp: skipped (llama_cpp is not importable)")
     report = {"cpu": cpu_model(), "cores": os.cpu_count(), "rows": rows}
