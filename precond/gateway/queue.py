@@ -21,11 +21,11 @@ from precond.gateway.completions import Completions, Watch
 from precond.gateway.errors import bounded
 from precond.jobs.cache import ResultCache
 from precond.jobs.queue import steps
-from precond.jobs.queue.keys import IN_PROGRESS_PREFIX, RESULT_PREFIX, kind_of, progress_key
+from precond.jobs.queue.keys import IN_PROGRESS_PREFIX, RESULT_PREFIX, JobId, progress_key
 from precond.jobs.queue.kinds import KINDS, queue_for, queues_of
 from precond.jobs.queue.payloads import cancelled_end, decode_end, encode_job
 from precond.jobs.records import Outcome, parse_progress
-from precond_client.schemas.api import ErrorInfo, JobKind, JobProgress, JobStatus
+from precond_client.schemas.api import ErrorInfo, JobProgress, JobStatus
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""
@@ -43,78 +43,75 @@ class JobQueue:
         self.tenant_max_jobs = tenant_max_jobs
         self.result_ttl_s = result_ttl_s
 
-    def _job(self, job_id: str, queue: str) -> Job:
-        return Job(job_id, self.redis, _queue_name=queue)
+    def _job(self, job: JobId, queue: str) -> Job:
+        return Job(job.value, self.redis, _queue_name=queue)
 
-    async def _queue_of(self, job_id: str, kind: JobKind) -> str:
+    async def _queue_of(self, job: JobId) -> str:
         """The queue holding the job (an inference goes to one of two, by cost); its kind's default when
-        it is in none (running or finished: arq needs the queue only to tell queued from unknown)."""
-        queues = queues_of(kind)
+        it is in none (running or finished: the queue is needed only to tell queued from unknown)."""
+        queues = queues_of(job.kind)
         if len(queues) > 1:
             async with self.redis.pipeline(transaction=False) as pipe:
                 for queue in queues:
-                    pipe.zscore(queue, job_id)
+                    pipe.zscore(queue, job.value)
                 scores = await pipe.execute()
             for queue, score in zip(queues, scores, strict=True):
                 if score is not None:
                     return queue
-        return KINDS[kind].queue
+        return KINDS[job.kind].queue
 
     async def depth(self, queue: str) -> int:
         return int(await self.redis.zcard(queue))
 
-    async def submit(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
-                     timeout_s: float, poll_s: float) -> JobStatus | None:
+    async def submit(self, job: JobId, body: dict[str, Any], cache_key: str, timeout_s: float, poll_s: float
+                     ) -> JobStatus | None:
         """Enqueue unless the same job exists, then wait for it (`_wait`). Identical requests share the job
         already there, unless its last run says nothing final (cancelled, crashed: `_last_run_unusable`), which
         is run again. TenantFull or QueueFull past a bound. The job's result is cached under `cache_key`."""
-        queue = queue_for(kind, body)
-        with self.completions.watch(job_id) as watch:  # before the enqueue: its notice cannot come first
-            enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
-            if not enqueued and await self._last_run_unusable(self._job(job_id, queue)):
-                await steps.reopen(self.redis, job_id)
-                enqueued = await self._enqueue(kind, job_id, body, tenant_tag, cache_key, queue)
-            return await self._wait(job_id, timeout_s, poll_s, watch, read_first=not enqueued)
+        queue = queue_for(job.kind, body)
+        with self.completions.watch(job.value) as watch:  # before the enqueue: its notice cannot come first
+            enqueued = await self._enqueue(job, body, cache_key, queue)
+            if not enqueued and await self._last_run_unusable(self._job(job, queue)):
+                await steps.reopen(self.redis, job.value)
+                enqueued = await self._enqueue(job, body, cache_key, queue)
+            return await self._wait(job, timeout_s, poll_s, watch, read_first=not enqueued)
 
-    async def _enqueue(self, kind: JobKind, job_id: str, body: dict[str, Any], tenant_tag: str, cache_key: str,
-                       queue: str) -> bool:
+    async def _enqueue(self, job: JobId, body: dict[str, Any], cache_key: str, queue: str) -> bool:
         """One round trip (`steps.submit`): True when enqueued, False when the same job exists; TenantFull,
         QueueFull."""
         now = int(time.time() * 1000)
-        job = steps.Submission(queue, job_id, tenant_tag, encode_job(kind, body, cache_key, now), now,
-                               self.completions.channel)
-        return await steps.submit(self.redis, job, self.max_jobs, self.tenant_max_jobs)
+        submission = steps.Submission(queue, job.value, job.tenant, encode_job(job.kind, body, cache_key, now), now,
+                                      self.completions.channel)
+        return await steps.submit(self.redis, submission, self.max_jobs, self.tenant_max_jobs)
 
     async def _last_run_unusable(self, job: Job) -> bool:
         info = await job.result_info()
         return info is not None and _is_internal(info)
 
-    async def status(self, job_id: str) -> JobStatus | None:
-        """The job's state, read in one round trip once its queue is known (result, progress and arq's marks
-        together: a waiting request reads it at least twice)."""
-        kind = kind_of(job_id)
-        if kind is None:
-            return None
-        queue = await self._queue_of(job_id, kind)
+    async def status(self, job: JobId) -> JobStatus | None:
+        """The job's state, read in one round trip once its queue is known (result, progress and the in-progress
+        mark together: a waiting request reads it at least twice)."""
+        queue = await self._queue_of(job)
         async with self.redis.pipeline(transaction=False) as pipe:
-            pipe.get(RESULT_PREFIX + job_id)
-            pipe.get(progress_key(job_id))
-            pipe.exists(IN_PROGRESS_PREFIX + job_id)
-            pipe.zscore(queue, job_id)
+            pipe.get(RESULT_PREFIX + job.value)
+            pipe.get(progress_key(job.value))
+            pipe.exists(IN_PROGRESS_PREFIX + job.value)
+            pipe.zscore(queue, job.value)
             raw_result, raw_progress, in_progress, score = await pipe.execute()
         if raw_result:
-            return _ended(job_id, kind, raw_result, raw_progress)
+            return _ended(job, raw_result, raw_progress)
         progress = parse_progress(raw_progress)
         if not in_progress and score is None:
-            cached = await self.cache.get(job_id)
+            cached = await self.cache.get(job.value)
             if cached is None:
                 return None
             return JobStatus(
-                id=job_id, kind=kind, status="succeeded", progress=_done(progress), result=cached
+                id=job.value, kind=job.kind, status="succeeded", progress=_done(progress), result=cached
             )
-        return JobStatus(id=job_id, kind=kind, status="running" if in_progress else "queued", progress=progress)
+        return JobStatus(id=job.value, kind=job.kind, status="running" if in_progress else "queued",
+                         progress=progress)
 
-    async def _wait(self, job_id: str, timeout_s: float, poll_s: float, watch: Watch,
+    async def _wait(self, job: JobId, timeout_s: float, poll_s: float, watch: Watch,
                     read_first: bool) -> JobStatus | None:
         """The job's status once finished, or its current status when `timeout_s` runs out first. Woken by the
         job's completion notice (`watch`), whose end, when it carries one, is the answer without a read; polls
@@ -126,12 +123,11 @@ class JobQueue:
         if not read_first:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(watch.event.wait(), min(timeout_s, self._interval(poll_s)))
-        kind = kind_of(job_id)
         while True:
-            if watch.end is not None and kind is not None:
-                return _ended(job_id, kind, watch.end[1], watch.end[0])
+            if watch.end is not None:
+                return _ended(job, watch.end[1], watch.end[0])
             watch.event.clear()  # before reading: a notice that lands after the read still wakes us
-            status = await self.status(job_id)
+            status = await self.status(job)
             if status is None or status.status in ("succeeded", "failed", "cancelled"):
                 return status
             remaining = deadline - time.monotonic()
@@ -143,7 +139,7 @@ class JobQueue:
     def _interval(self, poll_s: float) -> float:
         return SAFETY_POLL_S if self.completions.subscribed else poll_s
 
-    async def cancel(self, job_id: str, confirm_s: float) -> JobStatus | None:
+    async def cancel(self, job: JobId, confirm_s: float) -> JobStatus | None:
         """Cancel a queued or running job; the answer says `cancelled` once it took effect.
 
         A queued job is taken out of its queue here, at once (a busy worker would see arq's abort mark only
@@ -152,30 +148,29 @@ class JobQueue:
         this waits up to `confirm_s` for that. Only existing unfinished jobs are marked: an abort mark for an
         unknown id would stay in arq's abort set and kill the next job that gets this id (arq#485).
         """
-        status = await self.status(job_id)
+        status = await self.status(job)
         if status is None or status.status not in ("queued", "running"):
             return status
-        queue = await self._queue_of(job_id, status.kind)
-        if status.status == "queued" and await self._cancel_queued(job_id, status.kind, queue):
-            return await self.status(job_id)
-        await steps.mark_abort(self.redis, queue, job_id, int(time.time() * 1000))
-        job = self._job(job_id, queue)
+        queue = await self._queue_of(job)
+        if status.status == "queued" and await self._cancel_queued(job, queue):
+            return await self.status(job)
+        await steps.mark_abort(self.redis, queue, job.value, int(time.time() * 1000))
         with contextlib.suppress(TimeoutError):
-            await job.abort(timeout=confirm_s, poll_delay=min(0.1, confirm_s / 4))
-        return await self.status(job_id)
+            await self._job(job, queue).abort(timeout=confirm_s, poll_delay=min(0.1, confirm_s / 4))
+        return await self.status(job)
 
-    async def _cancel_queued(self, job_id: str, kind: JobKind, queue: str) -> bool:
-        cancelled = cancelled_end(job_id, queue, kind, int(time.time() * 1000))
+    async def _cancel_queued(self, job: JobId, queue: str) -> bool:
+        cancelled = cancelled_end(job.value, queue, job.kind, int(time.time() * 1000))
         assert cancelled is not None  # a CancelledError always serialises
-        return await steps.cancel_queued(self.redis, queue, job_id, cancelled, self.result_ttl_s * 1000)
+        return await steps.cancel_queued(self.redis, queue, job.value, cancelled, self.result_ttl_s * 1000)
 
 
-def _ended(job_id: str, kind: JobKind, raw_result: bytes, raw_progress: bytes | None) -> JobStatus:
+def _ended(job: JobId, raw_result: bytes, raw_progress: bytes | None) -> JobStatus:
     """A job's state from its stored end (arq's result) and progress, as read back or as its notice carried it."""
     progress = parse_progress(raw_progress or None)
     state, result, error = _state(decode_end(raw_result))
     done = _done(progress) if state == "succeeded" else progress
-    return JobStatus(id=job_id, kind=kind, status=state, progress=done, result=result, error=error)
+    return JobStatus(id=job.value, kind=job.kind, status=state, progress=done, result=result, error=error)
 
 
 def _done(progress: JobProgress) -> JobProgress:

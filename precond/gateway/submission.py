@@ -34,20 +34,19 @@ async def submit_job(
     """The job's state after waiting up to `wait_s` (capped by `PRECOND_WAIT_MAX_S`; None: the cap):
     `succeeded` with its result at once when the result is cached."""
     settings = services.settings
-    job_id = keys.job_id(kind, payload, model, services.secret, caller.tag)
+    job = keys.JobId(kind, caller.tag, keys.job_id(kind, payload, model, services.secret, caller.tag))
     shared = settings.share_cache and not tenant_private(kind, payload)
-    cache_key = keys.cache_id(kind, payload, model, services.secret) if shared else job_id
+    cache_key = keys.cache_id(kind, payload, model, services.secret) if shared else job.value
     cached = await services.cache.get(cache_key)
     services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
     if cached is not None:  # only a request that passed the screen and ran has a cached result
         done = JobProgress(phase="done", done=1, total=1)
-        return JobStatus.model_construct(id=job_id, kind=kind, status="succeeded", progress=done, result=cached)
+        return JobStatus.model_construct(id=job.value, kind=kind, status="succeeded", progress=done, result=cached)
     if screen is not None:
         await screen()
     timeout = settings.wait_max_s if wait_s is None else min(wait_s, settings.wait_max_s)
     try:
-        status = await services.queue.submit(kind, job_id, payload, caller.tag, cache_key, timeout,
-                                             settings.wait_poll_s)
+        status = await services.queue.submit(job, payload, cache_key, timeout, settings.wait_poll_s)
     except TenantFull as full:
         refusal = services.quotas.jobs_refusal(caller, full.count, settings.retry_after_s)
         raise refusal_error(services, caller.tag, refusal) from None

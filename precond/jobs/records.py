@@ -15,7 +15,7 @@ from typing import Any, Literal
 from pydantic import BaseModel
 from redis.asyncio import Redis
 
-from precond.jobs.queue.keys import STATS_KEY, kind_of, owner_of, progress_key
+from precond.jobs.queue.keys import STATS_KEY, JobId, progress_key
 from precond_client.schemas.api import ErrorInfo, JobKind, JobProgress
 from precond_client.schemas.errors import PrecondError
 
@@ -69,12 +69,9 @@ def job_counts(kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> dict
     return counts
 
 
-def queue_time_counts(job_id: str, seconds: float) -> dict[str, float]:
+def queue_time_counts(job: JobId, seconds: float) -> dict[str, float]:
     """How long a job waited before a worker started it, per tenant: fairness, as the operator sees it."""
-    tag, kind = owner_of(job_id), kind_of(job_id)
-    if tag is None or kind is None:
-        return {}
-    return {f"queue_sum:{tag}:{kind}": max(0.0, seconds), f"queue_count:{tag}:{kind}": 1.0}
+    return {f"queue_sum:{job.tenant}:{job.kind}": max(0.0, seconds), f"queue_count:{job.tenant}:{job.kind}": 1.0}
 
 
 async def record_phase(redis: Redis[bytes], kind: JobKind, phase: str, seconds: float) -> None:

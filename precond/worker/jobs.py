@@ -23,7 +23,7 @@ from redis.asyncio import Redis
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.jobs.cache import ResultCache
-from precond.jobs.queue.keys import is_shared, owner_of
+from precond.jobs.queue.keys import JobId, is_shared
 from precond.jobs.queue.kinds import KINDS
 from precond.jobs.queue.payloads import ReinferJob
 from precond.jobs.records import Outcome, job_counts, record_phase, write_progress
@@ -129,10 +129,10 @@ def _outcome(
     return Outcome(status="succeeded", result=result), False
 
 
-async def _store_version(redis: Redis[bytes], job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+async def _store_version(redis: Redis[bytes], job: JobId, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
     """A re-inference's version, stored (the set's next version) or refused (conflict, bounds): its outcome."""
     try:
-        stored = await store(redis, owner_of(job_id) or "", ReinferJob.model_validate(body),
+        stored = await store(redis, job.tenant, ReinferJob.model_validate(body),
                              PreconditionSet.model_validate(result))
     except PrecondError as exc:
         return Outcome.failed(exc)
@@ -146,15 +146,15 @@ async def run_operation(
     A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with the
     job's end (precond/worker/queue_worker.py); a shared one is computed on fresh sandbox children only."""
     redis: Redis[bytes] = ctx["redis"]
-    tag = owner_of(ctx["job_id"]) or ""
+    job: JobId = ctx["job"]
     counts: JobCounts = ctx["counts"]
     try:
-        engine_of, body = await _engine_for(ctx, tag, kind, body)
+        engine_of, body = await _engine_for(ctx, job.tenant, kind, body)
         outcome, sandbox_limit = await _run(ctx, kind, body, engine_of, warm=not is_shared(cache_key or ""))
         if KINDS[kind].stores_version and outcome.result is not None:
-            outcome = await _store_version(redis, ctx["job_id"], body, outcome.result)
+            outcome = await _store_version(redis, job, body, outcome.result)
         if KINDS[kind].stores_adapter and outcome.result is not None:
-            outcome = await policies.store(redis, tag, ctx["job_id"], body, outcome.result)
+            outcome = await policies.store(redis, job.tenant, job.value, body, outcome.result)
     except PrecondError as exc:
         outcome, sandbox_limit = Outcome.failed(exc), False
     finally:
@@ -163,7 +163,7 @@ async def run_operation(
     counts.complete += 1
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
     cache: ResultCache = ctx["cache"]
-    writes = () if outcome.result is None else (cache.put(cache_key or ctx["job_id"], outcome.result),)
+    writes = () if outcome.result is None else (cache.put(cache_key or job.value, outcome.result),)
     return JobEnd(outcome.to_arq(), job_counts(kind, outcome.status, sandbox_limit), writes)
 
 
@@ -184,7 +184,8 @@ async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_
                warm: bool = True) -> tuple[Outcome, bool]:
     """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope."""
     settings: WorkerSettings = ctx["settings"]
-    job_id: str = ctx["job_id"]
+    job: JobId = ctx["job"]
+    job_id = job.value
     guard: MemoryGuard = ctx["memory"]
     loop = asyncio.get_running_loop()
     reporter = ProgressReporter(ctx["redis"], job_id, kind, loop, settings.result_ttl_s)
@@ -192,7 +193,7 @@ async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_
     allowance = settings.training_max_memory_mb * 1024 * 1024 if KINDS[kind].stores_adapter else 0
     future = loop.run_in_executor(
         None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,
-        owner_of(job_id) or job_id, partial(guard.running, job_id, allowance), warm,
+        job.tenant, partial(guard.running, job_id, allowance), warm,
     )
     try:
         return await asyncio.shield(future)

@@ -25,7 +25,7 @@ from redis.asyncio.client import PubSub
 from redis.exceptions import RedisError
 
 from precond.jobs.queue import steps
-from precond.jobs.queue.keys import owner_of, wake_channel
+from precond.jobs.queue.keys import JobId, wake_channel
 from precond.jobs.queue.payloads import encode_end
 from precond.jobs.queue.steps import Claim, Taken
 from precond.jobs.records import queue_time_counts
@@ -206,8 +206,9 @@ class QueueWorker:
 
     def _at_share(self) -> list[str]:
         """The tenants with `tenant_slots` runs going on here."""
-        running = Counter(owner_of(job_id) for job_id, task in self.tasks.items() if not task.done())
-        return [tag for tag, count in running.items() if tag is not None and count >= self.settings.tenant_slots]
+        running = [JobId.read(job_id) for job_id, task in self.tasks.items() if not task.done()]
+        tenants = Counter(job.tenant for job in running if job is not None)
+        return [tag for tag, count in tenants.items() if count >= self.settings.tenant_slots]
 
     async def _abort(self, marks: list[bytes]) -> None:
         """The runs here that are marked for abort are cancelled, and their marks forgotten."""
@@ -225,11 +226,11 @@ class QueueWorker:
         start_ms, job_id = int(time.time() * 1000), taken.id
         job = _Job(job_id, taken, start_ms)
         refused = self._refusal(job)
-        if refused is not None:
+        if refused is not None or job.identity is None:
             return await self._finish(job, claim, True, job.result(self.queue_name, False, refused), JobEnd({}))
         function = self.functions[job.name]
-        ctx = {**self.ctx, "job_id": job_id, "job_try": taken.job_try, "score": taken.score, "claim": claim.token}
-        waited = queue_time_counts(job_id, (start_ms - job.enqueue_ms) / 1000) if taken.job_try == 1 else {}
+        ctx = {**self.ctx, "job": job.identity, "job_try": taken.job_try, "score": taken.score, "claim": claim.token}
+        waited = queue_time_counts(job.identity, (start_ms - job.enqueue_ms) / 1000) if taken.job_try == 1 else {}
         self.job_tasks[job_id] = task = asyncio.get_running_loop().create_task(function(ctx, *job.args, **job.kwargs))
         try:
             end: JobEnd = await asyncio.wait_for(task, self.settings.timeout_s)
@@ -245,6 +246,8 @@ class QueueWorker:
 
     def _refusal(self, job: _Job) -> BaseException | None:
         """Why a taken job must end without running; None when it runs."""
+        if job.identity is None:
+            return JobExecutionFailed(f"not a job id of this service: {job.id[:120]!r}")
         if job.taken.job is None:
             return JobExecutionFailed("job expired")
         try:
@@ -337,6 +340,8 @@ class _Job:
 
     def __init__(self, job_id: str, taken: Taken, start_ms: int) -> None:
         self.id, self.taken, self.start_ms = job_id, taken, start_ms
+        self.identity = JobId.read(job_id)
+        """The job's kind and tenant, read once here; None for an id this service never hands out."""
         self.name, self.enqueue_ms = "<unknown>", 0
         self.args: tuple[Any, ...] = ()
         self.kwargs: dict[str, Any] = {}

@@ -9,6 +9,7 @@ import pytest
 
 from precond.engine.settings import ModelSettings
 from precond.jobs.queue import keys
+from precond_client.schemas.api import JobKind
 
 
 def test_the_gateway_reads_the_variables_the_model_settings_read() -> None:
@@ -27,3 +28,20 @@ def test_a_model_setting_changes_the_identity_and_other_variables_do_not(monkeyp
     changed = json.loads(identity())
     assert changed[1] == [["MODEL_PATH", "/models/other"]]
     assert ModelSettings().path == "/models/other"
+
+
+@pytest.mark.parametrize("kind", ["infer", "next-action", "check", "validate", "reinfer", "train-policy"])
+def test_a_job_id_is_read_once_into_its_kind_and_tenant(kind: JobKind) -> None:
+    tag = keys.tenant_tag(b"secret", "acme")
+    job = keys.JobId.parse(keys.job_id(kind, {"n": 1}, None, b"secret", tag))
+    assert (job.kind, job.tenant) == (kind, tag) and str(job) == job.value
+
+
+@pytest.mark.parametrize("bad", [
+    "", "check", "check--" + "0" * 48, "check-" + "0" * 48,  # no tenant: an error, never "" or the id itself
+    "check-" + "a" * 15 + "-" + "0" * 48, "nope-" + "a" * 16 + "-" + "0" * 48, "check-" + "A" * 16 + "-" + "0" * 48,
+])
+def test_an_id_without_a_tenant_or_of_another_shape_is_no_job(bad: str) -> None:
+    with pytest.raises(keys.NotAJobId):
+        keys.JobId.parse(bad)
+    assert keys.JobId.read(bad) is None

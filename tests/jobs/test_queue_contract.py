@@ -141,3 +141,28 @@ async def next_notice(notices: Any) -> tuple[str, bytes | None, bytes | None]:
         if message is not None:
             return read_notice(message["data"])
     raise AssertionError("no notice")
+
+
+def test_the_take_skips_a_tenant_by_its_tag_whatever_the_kind(redis_server: RedisServer) -> None:
+    """The take reads a job's tenant as `JobId` does (the part between the id's last two dashes), also for kinds
+    whose names have dashes of their own."""
+    busy, other = "aaaaaaaaaaaaaaaa", "bbbbbbbbbbbbbbbb"
+
+    async def scenario(redis: Redis[bytes]) -> None:
+        ids = [keys.job_id(kind, {}, None, b"secret", tag) for kind, tag in
+               (("next-action", busy), ("train-policy", busy), ("check", other))]
+        for score, job in enumerate(ids, start=1):
+            await redis.zadd(CHECK_QUEUE, {job: score})
+            await redis.set(JOB_PREFIX + job, encode_job("check", {}, job, 0))
+        _, taken, _ = await steps.take(redis, TAKE, 2**45, claim("w1"), [busy])
+        assert taken is not None and taken.id == ids[2]
+        assert keys.JobId.parse(ids[0]).tenant == busy
+
+    async def main() -> None:
+        redis: Redis[bytes] = Redis.from_url(redis_server.url)
+        try:
+            await scenario(redis)
+        finally:
+            await redis.aclose()  # type: ignore[attr-defined]
+
+    asyncio.run(main())

@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from precond.gateway.api_keys import KeyRecord, digest, new_key, read_records, write_records
-from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_QUEUE, owner_of, tenant_tag
+from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_QUEUE, JobId, tenant_tag
 from precond.stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
 
 SECRET = b"stack-secret-for-tests"
@@ -94,7 +94,7 @@ def test_a_revoked_key_stops_working_without_a_restart(stack: Stack, keys_file: 
 
 def test_another_tenants_job_is_not_found(stack: Stack, keys: dict[str, str]) -> None:
     job = queued(stack, 1, keys["acme"])
-    assert owner_of(job) == tenant_tag(SECRET, "acme")
+    assert JobId.parse(job).tenant == tenant_tag(SECRET, "acme")
     with client_for(stack, keys["globex"]) as other:
         for method in ("GET", "DELETE"):
             answer = other.request(method, f"/jobs/{job}")

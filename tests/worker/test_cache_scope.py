@@ -6,7 +6,7 @@ from functools import partial
 from typing import Any
 
 from precond.engine.scope import current
-from precond.jobs.queue.keys import job_id, owner_of, tenant_tag
+from precond.jobs.queue.keys import JobId, job_id, tenant_tag
 from precond.worker.jobs import _outcome
 from precond.worker.memory import MemoryGuard
 from precond_client.schemas.api import CheckRequest, CheckResponse
@@ -28,6 +28,6 @@ def test_the_engine_runs_in_the_jobs_tenant_scope_and_leaves_it_after() -> None:
     secret = b"s" * 32
     ident = job_id("check", body, None, secret, tenant_tag(secret, "tenant-a"))
     outcome, _ = _outcome(lambda: engine, "check", body, lambda *a: None, lambda: False,  # type: ignore[arg-type,return-value]
-                          10**6, owner_of(ident) or ident, partial(MemoryGuard(2**30).running, ident))
+                          10**6, JobId.parse(ident).tenant, partial(MemoryGuard(2**30).running, ident))
     assert outcome.status == "succeeded", outcome
     assert engine.seen == [tenant_tag(secret, "tenant-a")] and current() == ""

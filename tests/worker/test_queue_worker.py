@@ -104,9 +104,9 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
 
     async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:  # what holds while the job runs
-            seen["claim"] = await plain.hget(RUNNING_KEY, ctx["job_id"])
+            seen["claim"] = await plain.hget(RUNNING_KEY, ctx["job"].value)
             seen["heartbeat"] = await plain.get(worker_key("w1"))
-            seen["in_progress"] = await plain.exists(in_progress_key_prefix + ctx["job_id"])
+            seen["in_progress"] = await plain.exists(in_progress_key_prefix + ctx["job"].value)
             return JobEnd({"n": n}, {"jobs:test:succeeded": 1.0})
 
         job = job_id(1)
@@ -145,7 +145,7 @@ def test_a_finish_releases_its_own_runs_claim_only(redis_server: RedisServer) ->
 
     async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
-            await plain.hset(RUNNING_KEY, ctx["job_id"], "w2|later")
+            await plain.hset(RUNNING_KEY, ctx["job"].value, "w2|later")
             return JobEnd({"n": n})
 
         job = job_id(2)
@@ -184,6 +184,24 @@ def test_a_job_that_must_not_run_ends_failed_as_arq_ends_it(redis_server: RedisS
             expected = "job expired" if how == "expired" else "max 3 retries exceeded"
             assert isinstance(info.result, JobExecutionFailed) and str(info.result) == expected
         assert await plain.zscore(QUEUE, job) is None and not await plain.hexists(RUNNING_KEY, job)
+
+    run(redis_server, scenario)
+
+
+def test_a_job_whose_id_names_no_tenant_ends_failed_without_running(redis_server: RedisServer) -> None:
+    """Its tenant would own what it stores and whose cache scope it runs in: there is no fallback for it."""
+    ran: list[int] = []
+
+    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            ran.append(n)
+            return JobEnd({"n": n})
+
+        await redis.enqueue_job(FUNCTION, 1, _job_id="check-nobody", _queue_name=QUEUE)
+        async with worker(redis_server, operation):
+            info = await result_of(redis, "check-nobody")
+        assert not info.success and ran == []
+        assert isinstance(info.result, JobExecutionFailed) and "not a job id of this service" in str(info.result)
 
     run(redis_server, scenario)
 

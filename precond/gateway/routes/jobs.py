@@ -10,7 +10,7 @@ from precond.gateway.auth import RATE_LIMITED, CurrentCaller
 from precond.gateway.caller import Caller
 from precond.gateway.deps import ServicesDep
 from precond.gateway.errors import ServiceError
-from precond.jobs.queue.keys import owner_of
+from precond.jobs.queue.keys import JobId
 from precond_client.schemas.api import ErrorResponse, JobStatus
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
@@ -24,8 +24,7 @@ NOT_FOUND: dict[int | str, dict[str, Any]] = {
 
 @router.get("/{job_id}", response_model=JobStatus, responses=NOT_FOUND)
 async def get_job(job_id: str, services: ServicesDep, caller: CurrentCaller) -> JobStatus:
-    _own(job_id, caller)
-    status = await services.queue.status(job_id)
+    status = await services.queue.status(_own(job_id, caller))
     if status is None:
         raise ServiceError(404, f"no job {job_id}")
     return status
@@ -34,14 +33,15 @@ async def get_job(job_id: str, services: ServicesDep, caller: CurrentCaller) -> 
 @router.delete("/{job_id}", response_model=JobStatus, responses=NOT_FOUND)
 async def cancel_job(job_id: str, services: ServicesDep, caller: CurrentCaller) -> JobStatus:
     """Cancel a queued or running job; a finished job is returned unchanged."""
-    _own(job_id, caller)
-    status = await services.queue.cancel(job_id, confirm_s=min(2.0, services.settings.wait_max_s))
+    status = await services.queue.cancel(_own(job_id, caller), confirm_s=min(2.0, services.settings.wait_max_s))
     if status is None:
         raise ServiceError(404, f"no job {job_id}")
     return status
 
 
-def _own(job_id: str, caller: Caller) -> None:
-    """Another tenant's job answers exactly as a job that does not exist."""
-    if owner_of(job_id) != caller.tag:
+def _own(job_id: str, caller: Caller) -> JobId:
+    """The caller's job `job_id` names; another tenant's job answers exactly as a job that does not exist."""
+    job = JobId.read(job_id)
+    if job is None or job.tenant != caller.tag:
         raise ServiceError(404, f"no job {job_id}")
+    return job

@@ -13,6 +13,7 @@ import hmac
 import json
 import os
 import re
+from dataclasses import dataclass
 from functools import lru_cache
 from importlib import metadata
 from typing import Any, Final, get_args
@@ -90,16 +91,38 @@ def worker_key(worker_id: str) -> str:
     return f"{WORKER_PREFIX}{worker_id}"
 
 
-def kind_of(job_id: str) -> JobKind | None:
-    """The kind a job id names, or None for ids this service never hands out."""
-    match = _JOB_ID.match(job_id)
-    return match.group(1) if match else None  # type: ignore[return-value]
+class NotAJobId(ValueError):
+    """An id this service never hands out (its kind, tenant tag or digest is missing or malformed)."""
 
 
-def owner_of(job_id: str) -> str | None:
-    """The tenant tag a job id carries."""
-    match = _JOB_ID.match(job_id)
-    return match.group(2) if match else None
+@dataclass(frozen=True)
+class JobId:
+    """A job's identity, read once from its id and passed down as it is: its kind (which names its queue), its
+    tenant's tag (its owner: every store a job writes to is that tenant's) and the id itself."""
+
+    kind: JobKind
+    tenant: str
+    """The owner's tag (`tenant_tag`), never empty."""
+    value: str
+
+    def __str__(self) -> str:
+        return self.value
+
+    @classmethod
+    def parse(cls, job_id: str) -> JobId:
+        """The identity `job_id` names; NotAJobId for an id this service never hands out."""
+        match = _JOB_ID.match(job_id)
+        if match is None:
+            raise NotAJobId(f"not a job id of this service: {job_id[:120]!r}")
+        return cls(match.group(1), match.group(2), job_id)  # type: ignore[arg-type]
+
+    @classmethod
+    def read(cls, job_id: str) -> JobId | None:
+        """`parse` for ids from a request (untrusted): None for one this service never hands out."""
+        try:
+            return cls.parse(job_id)
+        except NotAJobId:
+            return None
 
 
 def tenant_tag(secret: bytes, tenant: str) -> str:
