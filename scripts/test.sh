@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# Install, then lint, type-check and run the test suite (the README's test command; CI runs exactly this):
-# the fast suite first, then the tests that run the real embedded model (`-m model`) as their own step.
+# Install, then lint, type-check and run the test suite (the README's test command; CI runs exactly this) in
+# three steps: the fast suite (`-m "not model and not stack"`), then the tests that start real stacks, pod
+# simulations and fresh installs (`-m stack`), then those that run the real embedded model (`-m model`).
+# One step alone: `python -m pytest -q -m "not model and not stack"` after `. .venv/bin/activate`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install.sh
@@ -19,5 +21,6 @@ pytest_step() {
   return "$code"
 }
 
-pytest_step -m "not model" "$@"
+pytest_step -m "not model and not stack" "$@"
+pytest_step -m stack "$@"
 pytest_step -m model "$@"

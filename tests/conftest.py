@@ -12,6 +12,18 @@ from precond.stack.tiny_model import build_tiny_model
 # Two threads on two busy cores run torch ~10x slower than one.
 torch.set_num_threads(1)
 
+STACK_FIXTURES = frozenset({"stack", "own_stack", "unconfinable", "rate_limited", "small_answers", "redis_down",
+                            "keyed"})
+"""Fixtures that start a stack (Redis, gateway and worker processes: precond.stack.local). A test that uses one,
+directly or through another fixture, is marked `stack` and runs in the test command's second step; a test that
+starts processes itself says so with `@pytest.mark.stack`."""
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if STACK_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.stack)
+
 
 @pytest.fixture(scope="session")
 def tiny_model_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:

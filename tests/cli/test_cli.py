@@ -12,6 +12,7 @@ import threading
 from pathlib import Path
 
 import httpx
+import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
@@ -142,6 +143,7 @@ def test_eval_without_data_names_the_path_and_the_setting(tmp_path: Path) -> Non
     assert "Traceback" not in result.stderr
 
 
+@pytest.mark.stack
 def test_serve_starts_its_own_redis_beside_an_open_one_and_prints_one_line_when_ready(
     tmp_path: Path, tiny_model_dir: Path
 ) -> None:

@@ -13,6 +13,8 @@ from precond.cli.supervisor import Supervisor
 from precond.stack.local import RedisServer, free_port
 from precond.worker.settings import WorkerSettings
 
+pytestmark = pytest.mark.stack
+
 
 def _supervisor(tmp_path: Path, port: int | None = None) -> Supervisor:
     return Supervisor(

@@ -22,6 +22,8 @@ from manifests import ROOT, base, container, pod_spec
 from precond.stack.identity import readable_sandbox_copy, runnable_python
 from precond.stack.local import RedisServer, Stack, make_stack, serving, wait_until
 
+pytestmark = pytest.mark.stack
+
 HERE = Path(__file__).parent
 ATTACKS = ROOT / "tests" / "sandbox" / "attack_probe.py"
 HEALTHCHECK = ROOT / "docker" / "healthcheck.py"

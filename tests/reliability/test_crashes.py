@@ -4,11 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 from arq.constants import in_progress_key_prefix
 
 from precond.stack import harness, scenarios
 from precond.stack.harness import scenario_stack
 from precond.stack.local import infer_body, wait_until
+
+pytestmark = pytest.mark.stack
 
 
 def test_sigkilled_workers_lose_no_job(tmp_path: Path, tiny_model_dir: Path) -> None:

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from precond.stack import scenarios
 from precond.stack.harness import FAST_SANDBOX, scenario_stack
+
+pytestmark = pytest.mark.stack
 
 
 def test_schemathesis_finds_no_5xx_and_no_schema_violation(tmp_path: Path, tiny_model_dir: Path) -> None:

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from precond.stack import scenarios
 from precond.stack.harness import FAST_SANDBOX, scenario_stack
+
+pytestmark = pytest.mark.stack
 
 
 def test_hostile_requests_are_rejected_and_contained(tmp_path: Path, tiny_model_dir: Path) -> None:

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from precond.stack import scenarios
 from precond.stack.harness import scenario_stack
+
+pytestmark = pytest.mark.stack
 
 
 def test_overload_is_429_and_cheap_paths_stay_fast(tmp_path: Path, tiny_model_dir: Path) -> None:

@@ -9,6 +9,8 @@ import pytest
 from precond.stack import scenarios
 from precond.stack.harness import scenario_stack
 
+pytestmark = pytest.mark.stack
+
 
 @pytest.mark.parametrize("kill", [False, True], ids=["sigterm", "sigkill"])
 def test_accepted_jobs_survive_a_redis_restart(tmp_path: Path, tiny_model_dir: Path, kill: bool) -> None:

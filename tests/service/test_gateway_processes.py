@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from precond.stack.local import check_body, make_stack, serving
+
+pytestmark = pytest.mark.stack
 
 
 def test_two_gateway_processes_share_the_port_and_the_jobs(tmp_path: Path, tiny_model_dir: Path) -> None:

@@ -162,6 +162,7 @@ def test_the_page_is_served_without_a_key_outside_the_openapi_document(stack: St
         assert "/precondition-sets" in paths and not [p for p in paths if p.startswith("/ui")]
 
 
+@pytest.mark.stack
 def test_the_page_is_under_the_rate_limit(tmp_path: Path, tiny_model_dir: Path) -> None:
     stack = make_stack(tmp_path, tiny_model_dir, PRECOND_TENANT_RATE_PER_S="0.01", PRECOND_TENANT_BURST="3")
     with serving(stack), stack.http() as http:

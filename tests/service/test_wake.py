@@ -4,7 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from precond.stack.local import check_body, infer_body, make_stack, serving
+
+pytestmark = pytest.mark.stack
 
 HOUR = "3600"
 
