@@ -15,6 +15,12 @@ comparisons (`is`/`is not` only against None, True or False, whose identity is t
 comprehensions with one `for` over a value (`{(f['flight_number'], f['date']) for f in flights}`,
 `all(f['date'] >= '2024-05-15' for f in ...)`). A new form of the learner is one entry.
 
+Work is bounded twice, since the history a rule reads grows with the conversation and a set is the tenant's own
+text: a rule nests at most MAX_NESTING comprehensions (more is refused when the set is loaded, `OutsideGrammar`),
+and one call's rules together take at most `Frame.budget` steps (an item of a comprehension is one; a comparison
+or `in` with a collection costs its size). A call whose rules run past it is refused, never allowed
+(`WorkExceeded` is raised like any error of a rule, and the guard refuses a call whose rule raised).
+
 A table (`Shape.kind == "table"`) is a `defaultdict(dict)` in the spec: reading a key it lacks inserts an
 empty dictionary, which a later rule of the same call sees (`key in table`). Here the table is never changed:
 what a call's rules would have inserted is kept in that call's `Frame` only, as the sandbox's copy of the state
@@ -49,17 +55,37 @@ class OutsideGrammar(ValueError):
     """A rule the interpreter does not evaluate: the message names the part and the reason."""
 
 
+MAX_NESTING = 2
+"""Comprehensions inside comprehensions: the learner writes one (`all(x['date'] >= ... for x in ...)`); each
+level multiplies the work by the length of what it iterates."""
+MAX_STEPS = 200_000
+"""Steps one call's rules may take: a rule linear in a long conversation's results uses a few thousand."""
+COLLECTIONS = (list, tuple, set, frozenset, dict)
+
+
+class WorkExceeded(RuntimeError):
+    """A call's rules ran past their step budget: the call is refused, with this as the reason."""
+
+
 class Frame:
-    """One call's evaluation: the state, the arguments by position, and the keys its rules inserted into tables."""
+    """One call's evaluation: the state, the arguments by position, the keys its rules inserted into tables, and
+    the steps left of its budget."""
 
-    __slots__ = ("args", "bound", "inserted", "state")
+    __slots__ = ("args", "bound", "budget", "inserted", "state")
 
-    def __init__(self, state: object, args: Sequence[Any]) -> None:
+    def __init__(self, state: object, args: Sequence[Any], budget: int = MAX_STEPS) -> None:
         self.state = state
         self.args = args
         self.inserted: set[tuple[str, Any]] | None = None
         self.bound: dict[str, Any] = {}
         """The comprehensions' variables, while one runs."""
+        self.budget = budget
+
+    def charge(self, steps: int) -> None:
+        self.budget -= steps
+        if self.budget < 0:
+            raise WorkExceeded(f"the rules took more than their budget of steps ({MAX_STEPS:,} a call): "
+                               "refused, not judged")
 
 
 Evaluate = Callable[[Frame], Any]
@@ -74,6 +100,8 @@ class Scope:
     params: tuple[str, ...]
     bound: tuple[str, ...] = ()
     """Variables of the comprehensions around the node (`x` in `all(x['date'] >= ... for x in flights)`)."""
+    nesting: int = 0
+    """Comprehensions around the node."""
 
 
 FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any}
@@ -182,6 +210,17 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
     return VALUE, lambda frame: container(frame)[key(frame)]
 
 
+def _charged(test: Callable[[Any, Any], Any]) -> Callable[[Any, Any, Frame], Any]:
+    """The comparison, its cost charged first: a collection's size (`==` and `in` walk it), else one step."""
+
+    def compare(left: Any, right: Any, frame: Frame) -> Any:
+        frame.charge(1 + (len(left) if isinstance(left, COLLECTIONS) else 0)
+                     + (len(right) if isinstance(right, COLLECTIONS) else 0))
+        return test(left, right)
+
+    return compare
+
+
 def _contains(path: str, table: Evaluate, negated: bool) -> Callable[[Any, Frame], Any]:
     """`x in table` as the spec's defaultdict answers it after this call's rules read it."""
 
@@ -207,12 +246,12 @@ def _compare(node: ast.expr, scope: Scope) -> Compiled:
         if isinstance(op, ast.Is | ast.IsNot) and not (isinstance(right, ast.Constant) and any(
                 right.value is s for s in SINGLETONS)):
             raise OutsideGrammar(f"{_text(node)}: `is` compares with None, True or False only")
-        steps.append((evaluate, COMPARE[type(op)]))
+        steps.append((evaluate, _charged(COMPARE[type(op)])))
     if len(steps) == 1:
         (right_value, test), = steps
         if right_value is None:
             return VALUE, lambda frame: test(left(frame), frame)
-        return VALUE, lambda frame: test(left(frame), right_value(frame))
+        return VALUE, lambda frame: test(left(frame), right_value(frame), frame)
 
     def chained(frame: Frame) -> Any:
         current, result = left(frame), True
@@ -221,7 +260,7 @@ def _compare(node: ast.expr, scope: Scope) -> Compiled:
                 result = test(current, frame)
             else:
                 following = right_value(frame)
-                result, current = test(current, following), following
+                result, current = test(current, following, frame), following
             if not result:
                 return result
         return result
@@ -285,12 +324,14 @@ def _comprehension(node: ast.expr, scope: Scope) -> Compiled:
     assert isinstance(node, ast.ListComp | ast.SetComp | ast.GeneratorExp)
     if len(node.generators) != 1:
         raise OutsideGrammar(f"{_text(node)}: one `for` only")
+    if scope.nesting >= MAX_NESTING:
+        raise OutsideGrammar(f"{_text(node)}: more than {MAX_NESTING} comprehensions nested (each multiplies the work)")
     generator = node.generators[0]
     target = generator.target
     if not isinstance(target, ast.Name) or generator.is_async or target.id == "self":
         raise OutsideGrammar(f"{_text(node)}: the variable must be a plain name")
     iterate = _value(generator.iter, scope)
-    inner = Scope(scope.self_shape, scope.params, (*scope.bound, target.id))
+    inner = Scope(scope.self_shape, scope.params, (*scope.bound, target.id), scope.nesting + 1)
     element = _value(node.elt, inner)
     tests = [_value(test, inner) for test in generator.ifs]
     name = target.id
@@ -299,6 +340,7 @@ def _comprehension(node: ast.expr, scope: Scope) -> Compiled:
         before = frame.bound.get(name, _UNBOUND)
         try:
             for item in iterate(frame):
+                frame.charge(1)
                 frame.bound[name] = item
                 if all(test(frame) for test in tests):
                     yield element(frame)

@@ -206,7 +206,7 @@ class _Builder:
         tests: list[_Test] = []
         for name, counts in sorted(self.facts.values.get(self.tool, {}).items()):
             common = [v for v, _ in counts.most_common(MAX_VALUES)]
-            if len(counts) <= MAX_VALUES:
+            if len(counts) <= MAX_VALUES and not _counted(counts):
                 for value in common:
                     ref = f"{self.got}[{name!r}]"
                     atoms += [f"{self.has} and {ref} == {value!r}", f"{self.has} and {ref} != {value!r}"]
@@ -312,6 +312,12 @@ class _Builder:
                         and not _redundant(group)):
                     found.append((-len(covered), size, f"{self.has} and ({' or '.join(t.text for t in group)})"))
         return [text for _, _, text in sorted(found)[:MAX_DISJUNCTIONS]]
+
+
+def _counted(counts: Counter[Scalar]) -> bool:
+    """A field of numbers (a count of bags, an amount): a policy compares it with a threshold or an argument,
+    never with one value the logs happen to show (`total_baggages == 3` is a correlate, not a reason)."""
+    return all(isinstance(v, int | float) and not isinstance(v, bool) for v in counts)
 
 
 def _equals(name: str, value: Scalar) -> Callable[[dict[str, object]], bool]:

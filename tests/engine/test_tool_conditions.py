@@ -55,6 +55,9 @@ def test_reads_fields_and_disjunctions_of_the_same_reservation() -> None:
     assert f"{READ} and {GOT}['cabin'] != 'economy'" in atoms
     assert f"{READ} and ({GOT}['cabin'] == 'business' or {GOT}['insurance'] == 'yes')" in atoms
     assert not any("self.results['cancel_reservation']" in a for a in atoms)  # a write's result is no read
+    # a count is compared with a threshold or an argument, never with one value the logs show (a correlate)
+    assert not any(f"{GOT}['total_baggages'] {op} " in a for a in atoms for op in ("==", "!="))
+    assert f"{READ} and {GOT}['total_baggages'] >= 0" in atoms
 
 
 def test_arguments_are_compared_with_the_field_of_the_same_name() -> None:
