@@ -46,7 +46,7 @@ from precond.engine.spec import (
     resolve_actions,
     skip_statements,
 )
-from precond.engine.tool_conditions import tool_atoms
+from precond.engine.tool_conditions import separating, tool_atoms
 from precond.engine.work import WorkBudget, points_of
 from precond.programs import checks
 from precond.sandbox.types import (
@@ -403,7 +403,7 @@ class Engine:
             found = enumerate_atoms(state, info, spec.methods[action].cls, budget.enumerated(n_points))
             proposals.add(action, found.atoms, "enumerate", len(found.atoms))
             if policy is not None and spec.methods[action].cls == state.tool_class:
-                policy[action] = set(tool_atoms(state.tool_facts, spec.methods[action].name, info.params))
+                policy[action] = separating(tool_atoms(state.tool_facts, spec.methods[action].name, info.params))
             if found.cut:
                 stopped[action] = budget.stopped(len(found.atoms), n_points)
         return stopped

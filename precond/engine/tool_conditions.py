@@ -344,6 +344,15 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
 
 
+def separating(atoms: Iterable[str]) -> set[str]:
+    """The conditions labelled calls are separated by: all but a field unequal to one value
+    (`...['cabin'] != 'basic_economy'`). A policy names what allows a call ("business", "insurance bought"); the
+    complement of one value the logs show also admits every value they do not (a cabin, a status to come), and
+    a rule made of it refuses calls the policy allows as soon as the other half's logs show them."""
+    return {a for a in atoms if not UNEQUAL_VALUE.search(a)}
+
+
+UNEQUAL_VALUE = re.compile(r"\]\[[^\]]+\] != (?:'[^']*'|-?\d|None|True|False)")
 KIND = re.compile(r"^([a-z]+(?:_[a-z]+)*)_\d+$")
 MAX_KINDS = 4
 KIND_COUNTS = (1, 2, 3)

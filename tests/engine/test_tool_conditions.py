@@ -131,3 +131,12 @@ def test_collections_dates_and_kinds_are_proposed_and_judged() -> None:
     reports = {c.assertion: c for c in judged.candidates["AGENT.update_reservation_flights"]}
     for atom in with_now:
         assert atom in reports and not reports[atom].reason.startswith("rejected"), (atom, reports.get(atom))
+
+
+def test_labelled_calls_are_separated_by_what_a_policy_names_not_by_the_complement_of_one_value() -> None:
+    atoms = [READ, f"{READ} and {GOT}['cabin'] != 'basic_economy'", f"{READ} and {GOT}['cabin'] == 'business'",
+             f"{READ} and {GOT}['insurance'] != 'no'", f"{READ} and total_baggages != {GOT}['total_baggages']",
+             f"{READ} and len(passengers) != len({GOT}['passengers'])"]
+    assert tool_conditions.separating(atoms) == {
+        READ, f"{READ} and {GOT}['cabin'] == 'business'", f"{READ} and total_baggages != {GOT}['total_baggages']",
+        f"{READ} and len(passengers) != len({GOT}['passengers'])"}
