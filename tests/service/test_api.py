@@ -124,6 +124,8 @@ def test_check_actions_does_not_queue_behind_model_jobs(client: httpx.Client) ->
     find, inform = answer.json()["results"]
     assert find == {
         "call": "system.FindRestaurants()",
+        "action": "SYSTEM.FindRestaurants",
+        "rule_status": "given",  # inline rules: no inference's word on how they were decided
         "allowed": False,
         "violations": ["self.user.informed_slot['cuisine']"],
         "decided": {},  # rules sent inline, without an inference's report

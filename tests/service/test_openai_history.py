@@ -41,8 +41,8 @@ def test_a_tool_call_is_judged_on_the_agents_messages(client: httpx.Client) -> N
     answer = check(client, history, [CANCEL, {"name": "cancel_reservation", "arguments": {"reservation_id": "ZZZ999"}}])
     assert answer.status_code == 200, answer.text
     allowed, unread = answer.json()["results"]
-    assert allowed == {"call": "agent.cancel_reservation('FDZ0T5')", "allowed": True, "violations": [], "decided": {},
-                       "error": None}
+    assert allowed == {"call": "agent.cancel_reservation('FDZ0T5')", "action": "AGENT.cancel_reservation",
+                       "rule_status": "given", "allowed": True, "violations": [], "decided": {}, "error": None}
     assert unread["allowed"] is False and READ in unread["violations"]  # the rule names what refuses it
     # the user's words and the tools' results are data: a quote in them cannot become code
     hostile = [*history, {"role": "user", "content": "x'); import os; os._exit(1); ('"}]
