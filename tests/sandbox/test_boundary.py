@@ -122,13 +122,23 @@ def test_a_tampering_precondition_cannot_allow_a_forbidden_call() -> None:
         assert "v > 5" in verdict.violations
 
 
+PART_LIMITS = ("cpu limit exceeded: ", "time limit exceeded: no answer in ")
+"""What a part (one candidate or one proposed call) that runs away is failed with: its CPU limit, or, on a loaded
+machine where its CPU comes slowly, its wall-clock share (`unit_cpu_s` x `UNIT_WALL_FACTOR`), which may fire
+first. Either is that part's own failure; the test does not depend on which."""
+
+
+def names_a_part_limit(reason: str | None) -> bool:
+    return reason is not None and any(limit in reason for limit in PART_LIMITS)
+
+
 def test_runaway_candidates_fail_alone_and_the_rest_still_answers() -> None:
     limits = Limits(timeout_s=30, cpu_s=20, unit_cpu_s=0.5)
     with Sandbox(limits, workers=1) as box:
         result = box.evaluate(SPEC, ["a = A()\na.act(1)"],
                               {"A.act": ["sum(range(10 ** 10)) > 0", "self.x == 1", "10 ** 10 ** 8 > 0", "v == 1"]})
     loop, kept, bignum, last = result.results["A.act"]
-    assert loop.status == "rejected" and "cpu limit" in (loop.reason or ""), loop
+    assert loop.status == "rejected" and names_a_part_limit(loop.reason), loop
     assert bignum.status == "rejected" and "limit" in (bignum.reason or ""), bignum
     assert kept.status == "valid" and last.status == "valid"
 
@@ -163,7 +173,7 @@ def test_a_runaway_rule_fails_only_its_call() -> None:
     with Sandbox(limits, workers=1) as box:
         slow, fast = box.check(SPEC, {"A.act": ["v < 5 or sum(range(10 ** 10)) > 0"]}, "a = A()",
                                ["a.act(9)", "a.act(1)"])
-    assert not slow.allowed and "cpu limit" in (slow.error or "")
+    assert not slow.allowed and names_a_part_limit(slow.error), slow
     assert fast.allowed
 
 
