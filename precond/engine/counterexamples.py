@@ -294,8 +294,10 @@ Term = tuple[str, ...]
 
 def _terms(truth: Mapping[str, int], positive: int, negative: int) -> list[Term]:
     """A greedy cover of the calls to allow by terms false at every call to refuse: one condition where one
-    does, else two; the term that allows the most uncovered calls first (then the fewer conditions, the
-    shorter text). Empty when there is nothing to refuse or nothing separates."""
+    does, else two; the term that allows the most uncovered calls first, then the fewer conditions, then the
+    conditions that hold at more calls to allow (a reason shared by every call, "nothing flown", before a
+    correlate of the few, "one way"), then the shorter text. Empty when there is nothing to refuse or nothing
+    separates."""
     if not negative or not positive:
         return []
     useful = sorted((e for e, t in truth.items() if t & positive),
@@ -311,7 +313,7 @@ def _terms(truth: Mapping[str, int], positive: int, negative: int) -> list[Term]
     uncovered = positive
     while uncovered and len(chosen) < MAX_TERMS and terms:
         best = min(terms, key=lambda t: (-(terms[t] & uncovered).bit_count(), sum(_conditions(e) for e in t),
-                                         len(_text([t]))))
+                                         -sum((truth[e] & positive).bit_count() for e in t), len(_text([t]))))
         if not terms[best] & uncovered:
             break
         chosen.append(best)

@@ -108,6 +108,13 @@ def test_terms_cover_the_calls_to_allow_with_as_few_conditions_as_separate_them(
     assert _terms({"c": 0b11111}, 0b00111, 0b11000) == []  # nothing separates: no rule is made up
 
 
+def test_a_tie_goes_to_the_condition_that_holds_at_more_calls_to_allow() -> None:
+    # bits 0-3 to allow, 4-5 to refuse: insured (0, 1), one way (0, 1, 2), nothing flown (0-3); the insured
+    # call 4 has flown, call 5 is one way and uninsured. Both pairs allow 0 and 1 and refuse 4 and 5.
+    truth = {"insured": 0b010011, "one_way": 0b100111, "nothing_flown": 0b101111, "recent": 0b001100}
+    assert _terms(truth, 0b001111, 0b110000) == [("recent",), ("nothing_flown", "insured")]
+
+
 class GuessingModel:
     """The code model, answering every prompt with `assert <guess>` (several samples agree: a zero-shot rule)."""
 
