@@ -23,8 +23,13 @@ DEFAULT_CONFIGS = "model+enumerate/cautious,enumerate/cautious,always,gt"
 HOW_CHOSEN: dict[str, str] = {
     "always": "baseline: no rule",
     "gt": "baseline: the ground truth (checks the scoring)",
-    "model+enumerate/cautious": "the criterion fixed on 4 SGD services before the other 16 domains existed",
+    "model+enumerate/cautious": "the learner before guarded actions and the rule library (main at bc4936d): its "
+                                "criterion was fixed on 4 SGD services before the other 16 domains existed",
     "enumerate/cautious": "the same without the model",
+    "model+enumerate/cautious/lib=lodo": "the library alone (every action guarded), each domain scored with the "
+                                         "library of the others; measured before the thin failure-notice rule",
+    "model+enumerate/cautious/guard=spec/lib=lodo": "the shipped default (guarded actions from the spec, the rule "
+                                                    "library), each domain scored with the library of the others",
 }
 TEXT = """Per benchmark (SGD: 14 services; STAR: 6 tasks of human agents; ALFWorld valid_unseen): the mean over its
 domains, the worst domain, and `<=always` = how many domains score at or below `always` (no rule) on the paper's
@@ -102,6 +107,8 @@ def how_chosen(config: str, notes: Mapping[str, str] | None = None) -> str:
     """The row's own note, else what its base config and its `key=value` parts say."""
     if (notes or {}).get(config):
         return (notes or {})[config]
+    if config in HOW_CHOSEN:
+        return HOW_CHOSEN[config]
     parts = config.split("/")
     base = "/".join(p for p in parts if p not in PARTS)
     said = [HOW_CHOSEN.get(base, "a setting of the learner, not chosen from data")]
@@ -139,14 +146,20 @@ def domain_table(rows: Sequence[Mapping[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def section(rows: Sequence[Mapping[str, Any]], notes: Mapping[str, str] | None = None) -> str:
+def section(rows: Sequence[Mapping[str, Any]], notes: Mapping[str, str] | None = None, where: str = "") -> str:
+    """`where`: the machine and time the section was written on (report.machine)."""
     first = rows[0] if rows else {"variants": "-", "seed": "-"}
-    return "\n".join([HEADING, "", TEXT.format(variants=first["variants"], seed=first["seed"]),
+    text = TEXT.format(variants=first["variants"], seed=first["seed"])
+    return "\n".join([HEADING, "", text, *([where, ""] if where else []),
                       summary_table(summarize(rows), notes), "", "### Per domain", "", domain_table(rows), ""])
 
 
 def write_section(rows: Sequence[Mapping[str, Any]], out: Path, notes: Mapping[str, str] | None = None) -> None:
     """This section first in the report, before the older tables (kept for comparison)."""
-    from precond.evaluation.report import replace_section
+    import os
 
-    replace_section(out, HEADING, section(rows, notes), before="## Precondition inference")
+    from precond.evaluation.report import machine, replace_section
+
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    where = f"{machine()}\n- load average when written (1, 5, 15 min): {load}"
+    replace_section(out, HEADING, section(rows, notes, where), before="## Precondition inference")

@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 
 from precond.engine.engine import Engine
+from precond.engine.library import Library
 from precond.engine.scope import scoped
 from precond.engine.spec import parse_spec, skip_statements
 from precond.sandbox import Sandbox
@@ -21,8 +22,12 @@ from tests.sandbox.warm_probe import COUNTING_SPEC
 
 @pytest.fixture(scope="module")
 def engine() -> Iterator[Engine]:
+    """Without the shipped rule library: these tests pin what the demonstrations alone give (test_library.py
+    tests the library)."""
     with Sandbox(workers=2) as sandbox:
-        yield Engine(sandbox, None)
+        engine = Engine(sandbox, None)
+        engine.library = Library()
+        yield engine
 
 
 def _without_exceptions(demos: list[str], response: InferResponse) -> list[str]:

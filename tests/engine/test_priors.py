@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.engine.library import Library
 from precond.sandbox import Sandbox
 from precond_client.schemas.api import MAX_PRIOR_RULES, InferOptions, InferRequest, InferResponse, PriorSource
 from precond_client.schemas.errors import InvalidInput, InvalidProgram
@@ -53,8 +54,12 @@ PINNED = Path(__file__).resolve().parent / "data" / "restaurants_enumerate_cauti
 
 @pytest.fixture(scope="module")
 def engine() -> Iterator[Engine]:
+    """Without the shipped rule library: these tests pin what the demonstrations alone give (test_library.py
+    tests the library)."""
     with Sandbox(workers=2) as sandbox:
-        yield Engine(sandbox, None)
+        engine = Engine(sandbox, None)
+        engine.library = Library()
+        yield engine
 
 
 def _infer(engine: Engine, **options: Any) -> InferResponse:
