@@ -8,7 +8,8 @@ then nothing in the set is code to run. The state that spec's program would buil
 service's 422), and each rule is evaluated by `rule_interpreter`, which evaluates exactly the forms the learner
 writes; a set with any other rule, or another spec, is not embeddable (`NotEmbeddable`, naming the rule and
 why): `ServiceGuard` judges it. Verdicts are the service's, violations, error texts and `decided` labels
-included (tests/client/test_guard_differential.py compares them on real logs).
+included, and so is where a history already broke a rule (`Session.history_violation`, `Guard.check_actions`;
+tests/client/test_guard_differential.py compares them on real logs).
 
 A call the guard cannot judge (arguments the converter refuses, a history it could not read; for
 `ServiceGuard`, also a service that does not answer) is refused with the reason, or, with
@@ -24,6 +25,7 @@ from typing import Any, Protocol
 
 from precond_client.errors import InvalidInput, PrecondError
 from precond_client.openai_log import (
+    Call,
     PlaceError,
     StateReader,
     Tool,
@@ -31,7 +33,7 @@ from precond_client.openai_log import (
     converter_spec,
 )
 from precond_client.rule_interpreter import TABLE, VALUE, Evaluate, Frame, OutsideGrammar, Scope, Shape, compile_rule
-from precond_client.schemas.api import CallVerdict, PreconditionSet, RuleStatus, rule_status
+from precond_client.schemas.api import CallVerdict, CheckResponse, PreconditionSet, RuleStatus, rule_status
 
 AGENT_SHAPE = Shape("object", {
     "user": Shape("object", {"messages": VALUE, "last_said": VALUE}),
@@ -157,6 +159,15 @@ class Guard:
                     problems.append(f"{action}: rule {text!r}: {exc}")
         return rules, problems
 
+    def check_actions(self, messages: Iterable[Mapping[str, Any]],
+                      calls: Iterable[Mapping[str, Any]]) -> CheckResponse:
+        """`/check-actions` in this process: each call (`{"name", "arguments"}`) judged after the whole history,
+        and where the history itself broke a rule (`history_violation`)."""
+        session = self.session(messages)
+        return CheckResponse.model_construct(
+            results=[session.check(c.get("name", ""), c.get("arguments", {})) for c in calls],
+            history_violation=session.history_violation)
+
     def session(self, messages: Iterable[Mapping[str, Any]] = ()) -> Session:
         """A conversation's state, after `messages` (more with `add`)."""
         session = Session(self)
@@ -197,6 +208,19 @@ class Guard:
         return _verdict(line, False, [clean(v, VIOLATION_CHARS) for v in violations],
                         self._labels(line, violations), clean("; ".join(errors)) if errors else None, status)
 
+    def broken(self, state: StateReader, call: Call) -> str | None:
+        """Where a history's call broke its tool's rules, in the service's words (`engine.broken_text`): the
+        program line the service renders it on, the call, the action and every rule that did not hold (one that
+        raises does not hold). The history is what happened: its later calls are still read."""
+        tool = self.tools[call.tool]
+        frame = Frame(state.state, tuple(_tupled(call.arguments.get(p)) for p in tool.params))
+        failed = [rule.text for rule in self.rules.get(tool.name, ()) if not _holds(rule, frame)]
+        if not failed:
+            return None
+        rules = ", ".join(f"`{rule}`" for rule in failed)
+        return (f"history, line {call.line + 1}: {call_line(call, tool)}: AGENT.{tool.name}'s "
+                f"rule{'s' if len(failed) > 1 else ''} {rules} did not hold")
+
     def status(self, tool: str) -> tuple[str, RuleStatus]:
         """The action of a tool and what its rule rests on, read from the set's `decided` as the service reads it:
         a tool without rules is 'missing' (every call allowed because nothing is known)."""
@@ -217,12 +241,32 @@ class Guard:
         return _verdict(call, not self.fail_closed, error=f"not judged: {reason}")
 
 
+def _holds(rule: _Rule, frame: Frame) -> bool:
+    try:
+        return bool(rule.evaluate(frame))
+    except Exception:  # as the sandbox judges a history: a rule that raises does not hold
+        return False
+
+
+class _HistoryReader(StateReader):
+    """The state, and the first of the history's own calls whose rules did not hold before it."""
+
+    def __init__(self, guard: Guard) -> None:
+        super().__init__(guard.tools, guard.writes, "history")
+        self.guard = guard
+        self.violation: str | None = None
+
+    def called(self, call: Call) -> None:
+        if self.violation is None:
+            self.violation = self.guard.broken(self, call)
+
+
 class Session:
     """A conversation for the embedded guard: the state after its messages, updated one message at a time."""
 
     def __init__(self, guard: Guard) -> None:
         self.guard = guard
-        self.reader = StateReader(guard.tools, guard.writes, "history")
+        self.reader = _HistoryReader(guard)
         self.messages = 0
         self.broken: InvalidInput | None = None
         """Why the history could not be read: every later call is judged unreadable."""
@@ -244,6 +288,11 @@ class Session:
     def extend(self, messages: Iterable[Mapping[str, Any]]) -> None:
         for message in messages:
             self.add(message)
+
+    @property
+    def history_violation(self) -> str | None:
+        """Where the messages so far first broke a rule (`/check-actions`' `history_violation`); None if never."""
+        return self.reader.violation
 
     def check(self, name: str, arguments: str | Mapping[str, Any]) -> CallVerdict:
         """The verdict on calling `name(**arguments)` now."""
@@ -280,6 +329,8 @@ class ServiceSession:
     def __init__(self, guard: ServiceGuard) -> None:
         self.guard = guard
         self.messages: list[dict[str, Any]] = []
+        self.history_violation: str | None = None
+        """The service's word, at the last check, on where the history broke a rule (`Session`'s alike)."""
 
     def add(self, message: Mapping[str, Any]) -> None:
         self.messages.append(dict(message))
@@ -296,6 +347,7 @@ class ServiceSession:
                                                       [self._call(name, arguments)])
         except PrecondError as exc:
             return self._refused(name, exc)
+        self.history_violation = answer.history_violation
         return answer.results[0]  # type: ignore[no-any-return]
 
     async def acheck(self, name: str, arguments: str | Mapping[str, Any]) -> CallVerdict:
@@ -306,6 +358,7 @@ class ServiceSession:
                                                             [self._call(name, arguments)])
         except PrecondError as exc:
             return self._refused(name, exc)
+        self.history_violation = answer.history_violation
         return answer.results[0]  # type: ignore[no-any-return]
 
 

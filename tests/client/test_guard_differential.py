@@ -1,7 +1,8 @@
 """The embedded guard answers as the service does: every set, history and call of the tool-call data, judged by
 `Guard` (in this process, its state built message by message) and by `/check-actions` with the stored set on a
 real stack (Redis, gateway, a worker with the real sandbox). Verdicts must be equal field for field: allowed,
-the rules that refuse, the error texts of rules that raise, the `decided` labels and the rendered call.
+the rules that refuse, the error texts of rules that raise, the `decided` labels and the rendered call; on the
+fixtures, so must be where a history already broke a rule (`history_violation`).
 
 The sets: the rules learned from the fixture's successful runs under each configuration of `precond eval tools`;
 every condition the enumerator proposes for the fixture's actions with `options.now` (kept or not, stored with
@@ -82,10 +83,11 @@ def learned_sets(client: Client, converted: Converted) -> list[PreconditionSet]:
                      {rule: e.model_dump() for rule, e in inferred.evidence.get(action, {}).items()})
             if found not in variants.setdefault(action, []):
                 variants[action].append(found)
-    return [client.create_set({"spec": converted.spec,
-                               "preconditions": {a: v[k][0] for a, v in variants.items() if k < len(v)},
-                               "evidence": {a: v[k][1] for a, v in variants.items() if k < len(v)}})
-            for k in range(max(len(v) for v in variants.values()))]
+    bodies = [{"spec": converted.spec, "preconditions": {a: v[k][0] for a, v in variants.items() if k < len(v)},
+               "evidence": {a: v[k][1] for a, v in variants.items() if k < len(v)}}
+              for k in range(max(len(v) for v in variants.values()))]
+    # a set without any rule is refused (it would allow everything); an action without rules is in the others
+    return [client.create_set(body) for body in bodies if any(body["preconditions"].values())]
 
 
 def every_condition(client: Client, converted: Converted) -> list[PreconditionSet]:
@@ -102,9 +104,10 @@ def every_condition(client: Client, converted: Converted) -> list[PreconditionSe
 
 
 def compare(client: Client, stored: PreconditionSet, runs: list[Messages], calls_at: CallsAt,
-            seen: Counter[str]) -> int:
+            seen: Counter[str], history: bool = False) -> int:
     """Each run's calls judged after each of its histories, by the service and by one embedded session per run
-    that took the run's messages one at a time; how many calls."""
+    that took the run's messages one at a time; how many calls. `history`: also where the history already broke
+    a rule (the session's, and `Guard.check_actions`' whole answer, against the service's `history_violation`)."""
     compared = 0
     guard = Guard.from_set(stored)
     for run in runs:
@@ -113,7 +116,13 @@ def compare(client: Client, stored: PreconditionSet, runs: list[Messages], calls
             calls = calls_at(run, index)
             for first in range(0, len(calls), MAX_CALLS):
                 batch = calls[first: first + MAX_CALLS]
-                service = client.check_with_set(stored.reference, run[:index], batch).results
+                answer = client.check_with_set(stored.reference, run[:index], batch)
+                service = answer.results
+                if history:
+                    assert session.history_violation == answer.history_violation, (stored.reference, index)
+                    whole = guard.check_actions(run[:index], batch)
+                    assert whole.model_dump() == answer.model_dump(), (stored.reference, index)
+                    seen.update(["history broken"] if answer.history_violation else [])
                 for call, expected in zip(batch, service, strict=True):
                     embedded = session.check(call["name"], call["arguments"])
                     assert embedded.model_dump() == expected.model_dump(), (stored.reference, index, call)
@@ -144,8 +153,8 @@ def test_the_embedded_guard_judges_the_fixtures_as_the_service_does(client: Clie
     hand = client.create_set({"spec": converted.spec, "preconditions": CLAUSE})
     seen: Counter[str] = Counter()
     for stored in [hand, *learned_sets(client, converted), *every_condition(client, converted)]:
-        compare(client, stored, runs, fixture_calls(runs, set(stored.preconditions)), seen)
-    assert min(seen[k] for k in ("allowed", "refused", "raised", "labelled")) > 0, seen
+        compare(client, stored, runs, fixture_calls(runs, set(stored.preconditions)), seen, history=True)
+    assert min(seen[k] for k in ("allowed", "refused", "raised", "labelled", "history broken")) > 0, seen
 
 
 def state_changing_calls(run: Messages, index: int, actions: Collection[str] = ()) -> list[dict[str, Any]]:
