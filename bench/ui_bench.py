@@ -38,7 +38,8 @@ SCREENSHOT_RULE = ("SYSTEM.INFORM", "self.user.selected")
 
 
 def stored_set(http: httpx.Client, request: dict[str, Any]) -> dict[str, Any]:
-    inferred = http.post("/infer-preconditions", params={"wait": 120}, json=request)
+    every = {**request, "options": {**request.get("options", {}), "candidates": "all"}}  # the page's alternatives
+    inferred = http.post("/infer-preconditions", params={"wait": 120}, json=every)
     inferred.raise_for_status()
     result = inferred.json()
     body = {"spec": request["spec"], "demonstrations": request["demonstrations"], "force": True,

@@ -9,7 +9,7 @@ cd "$(dirname "$0")/.."
 cat <<MSG
 Starting the service on http://127.0.0.1:${PORT:-8000} (first start converts the embedded model once, ~1 min).
 It names the Redis it uses, and says when it is ready (GET /ready answers 200). Then try (the rules, their
-evidence and warnings; "candidates": "all" lists every candidate with why it was dropped, about 0.5 MB):
+evidence and warnings; "candidates": "all" also lists every dropped candidate with why, 0.6-0.8 MB):
   curl -s -X POST "http://127.0.0.1:${PORT:-8000}/infer-preconditions?wait=60" \\
        -H 'Content-Type: application/json' -d @examples/infer-kept.json | python -m json.tool
 MSG

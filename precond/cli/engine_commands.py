@@ -221,8 +221,9 @@ Summary = Annotated[bool, typer.Option("--summary", help="Print a summary to rea
                                        "was decided, the calls it refuses, warnings) instead of the JSON.")]
 Candidates = Annotated[
     Listed | None,
-    typer.Option(help="Which candidate reports the JSON lists (sets the request's options.candidates): all, kept "
-                 "(the kept rules' only), none.", show_default=False),
+    typer.Option(help="Which candidate reports the JSON lists (sets the request's options.candidates): kept (the "
+                 "kept rules' only; the request's default), all (every dropped one too, with why), none.",
+                 show_default=False),
 ]
 
 

@@ -99,7 +99,7 @@ class InferConfig:
     def infer_options(self, actions: Sequence[str] = ()) -> InferOptions:
         """`guard=spec` is the request's default (`options.guarded` null); without `guard`, every action is guarded
         (the criterion before guarded actions existed), so cached rows keep their meaning."""
-        options: dict[str, Any] = {"library": False, **self.options}
+        options: dict[str, Any] = {"library": False, "candidates": "all", **self.options}  # probes rerank all valid
         guard = options.pop("guarded", "all")
         if guard == "all":
             options["guarded"] = list(actions)

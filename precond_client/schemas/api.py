@@ -146,10 +146,11 @@ class InferOptions(StrictBody):
         "`not self.query_success` (docs/results.md). False: each action's prompt alone (the paper).",
     )
     candidates: Listed = Field(
-        default="all",
-        description="Which candidate reports the answer lists: 'all' (default: every candidate with why it was "
-        "kept or dropped; hundreds of KB for a real domain), 'kept' (the kept rules' reports only: with "
-        "`evidence`, what a reviewer reads), 'none'. The rules, warnings and evidence are the same either way.",
+        default="kept",
+        description="Which candidate reports the answer lists: 'kept' (default: the kept rules' reports only; with "
+        "`evidence`, what a reviewer reads), 'all' (every candidate with why it was kept or dropped, the "
+        "alternatives a reviewer may pick instead; hundreds of KB for a real domain), 'none'. The rules, warnings "
+        "and evidence are the same either way.",
     )
     judge: bool = Field(
         default=False,

@@ -142,7 +142,7 @@ def test_a_zero_shot_guess_that_raises_on_the_state_is_dropped_and_reported(gues
     with Sandbox(workers=1) as sandbox:
         response = Engine(sandbox, lambda: model).infer(InferRequest.model_validate({
             "spec": converted.spec, "demonstrations": [t.program for t in converted.trajectories],
-            "actions": ["AGENT.send_certificate", CANCEL], "options": {"judge": False}}))
+            "actions": ["AGENT.send_certificate", CANCEL], "options": {"judge": False, "candidates": "all"}}))
     rules = response.preconditions["AGENT.send_certificate"]
     assert rules == ([guess] if kept else ["False"])
     if not kept:

@@ -383,7 +383,7 @@ def test_rule_errors_name_the_rule_and_give_a_hint(engine: Engine, restaurants: 
 def test_every_candidate_says_why_it_was_kept_or_dropped(
     engine: Engine, restaurants: dict[str, Any], ranking: str
 ) -> None:
-    response = engine.infer(_infer(restaurants, ranking=ranking, tolerance=0))
+    response = engine.infer(_infer(restaurants, ranking=ranking, tolerance=0, candidates="all"))
     reports = [c for cands in response.candidates.values() for c in cands]
     assert reports and all(c.reason for c in reports), [c.assertion for c in reports if not c.reason]
     kept = [c for c in reports if c.kept]
@@ -432,7 +432,7 @@ def test_thin_evidence_keeps_no_coincidence_with_the_papers_criteria(engine: Eng
     demos = [d["program"] for d in restaurants["demos"][:3]]
     response = engine.infer(InferRequest(spec=restaurants["spec_program"], demonstrations=demos,
                                          options={"generators": ["enumerate"], "ranking": "recency",
-                                                  "unseen": "allow"}))
+                                                  "unseen": "allow", "candidates": "all"}))
     thin = [a for a, reports in response.candidates.items()
             if any(c.evidence and 0 < c.evidence.occurrences < 3 for c in reports)]
     assert thin
@@ -465,7 +465,7 @@ def test_demonstrations_that_refute_every_candidate_give_an_empty_rule_with_reas
             "  def inc(self):\n    self.x += 1\n    self.on = not self.on\n  def act(self):\n    pass\n")
     demo = "a = A()\n" + "a.act()\na.inc()\n" * 4
     response = engine.infer(InferRequest(spec=spec, demonstrations=[demo], actions=["A.act"],
-                                         options={"generators": ["enumerate"]}))
+                                         options={"generators": ["enumerate"], "candidates": "all"}))
     assert response.preconditions["A.act"] == []
     reports = response.candidates["A.act"]
     assert reports and all(c.reason and not c.kept for c in reports)

@@ -29,7 +29,8 @@ def test_model_candidates_are_validated_and_ranked(engine: Engine, restaurants: 
         spec=restaurants["spec_program"],
         demonstrations=[d["program"] for d in restaurants["demos"]],
         actions=["SYSTEM.INFORM", "SYSTEM.GOODBYE", "SYSTEM.NOTIFY_SUCCESS"],
-        options={"generators": ["model"], "prompts_per_action": 1, "samples_per_prompt": 8, "seed": 0},
+        options={"generators": ["model"], "prompts_per_action": 1, "samples_per_prompt": 8, "seed": 0,
+                 "candidates": "all"},
     ))
     assert response.model is not None and response.model.name
     for action in ("SYSTEM.INFORM", "SYSTEM.GOODBYE", "SYSTEM.NOTIFY_SUCCESS"):

@@ -93,7 +93,7 @@ def _infer(sandbox: Sandbox, data: dict[str, Any], scorer: ScriptedScorer, judge
     engine = Engine(sandbox, loader)
     return engine.infer(InferRequest(spec=data["spec_program"], demonstrations=_without_goodbye(data),
                                      options={"generators": ["enumerate"], "judge": judge_on, "unseen": "allow",
-                                              "library": False}))
+                                              "library": False, "candidates": "all"}))
 
 
 def test_a_never_demonstrated_action_gets_the_rule_the_model_confidently_judges(

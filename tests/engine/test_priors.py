@@ -91,7 +91,7 @@ def test_a_never_demonstrated_action_takes_the_prior_and_names_its_source(engine
 
 def test_a_prior_the_demonstrations_contradict_is_refuted_with_its_evidence(engine: Engine) -> None:
     alone = _infer(engine)
-    response = _infer(engine, prior_rules={"SYSTEM.OFFER": ["self.query_success is False"]})
+    response = _infer(engine, prior_rules={"SYSTEM.OFFER": ["self.query_success is False"]}, candidates="all")
     assert response.preconditions["SYSTEM.OFFER"] == alone.preconditions["SYSTEM.OFFER"]
     report = next(c for c in response.candidates["SYSTEM.OFFER"] if c.assertion == "self.query_success is False")
     assert report.source == "prior" and not report.kept

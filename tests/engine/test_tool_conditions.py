@@ -127,7 +127,7 @@ def test_collections_dates_and_kinds_are_proposed_and_judged() -> None:
     with Sandbox(workers=1) as sandbox:  # the sandbox runs every one of these forms
         judged = Engine(sandbox, None).infer(InferRequest(
             spec=converted.spec, demonstrations=[t.program for t in converted.trajectories],
-            options=InferOptions(generators=["enumerate"], now="2024-05-15T15:00:00")))
+            options=InferOptions(generators=["enumerate"], now="2024-05-15T15:00:00", candidates="all")))
     reports = {c.assertion: c for c in judged.candidates["AGENT.update_reservation_flights"]}
     for atom in with_now:
         assert atom in reports and not reports[atom].reason.startswith("rejected"), (atom, reports.get(atom))

@@ -34,7 +34,9 @@ export function inferPanel(navigate) {
     bar.removeAttribute("value");  // indeterminate until the job reports
     clear(phase, "queued");
     try {
-      const first = await api("POST", "/infer-preconditions?wait=0", body);
+      // every candidate, so that the stored set offers the dropped ones as alternatives (the default is "kept")
+      const asked = { ...body, options: { ...(body.options || {}), candidates: "all" } };
+      const first = await api("POST", "/infer-preconditions?wait=0", asked);
       job = first.headers.get("X-Job-Id");
       cancel.hidden = first.status !== 202;
       const result = await follow(first, (status) => {
