@@ -11,6 +11,7 @@ import torch
 
 from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
 from precond.engine.models.backend import cpu_dtype, cpu_flags
+from precond.engine.models.quant import QuantUnavailable, choose_quant
 from precond.engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
 
 pytestmark = pytest.mark.model
@@ -62,6 +63,25 @@ def test_model_info(embedded: CodeModel) -> None:
     dtype, reason = cpu_dtype(cpu_flags(), torch.backends.cpu.get_cpu_capability())
     assert (embedded.info.device, embedded.info.dtype) == ("cpu", str(dtype).removeprefix("torch."))
     assert embedded.info.dtype_reason == reason
+    quant = choose_quant("auto", torch.device("cpu"), cpu_flags())
+    assert (embedded.info.quant, embedded.info.quant_reason) == quant  # int8 where the CPU has VNNI
+
+
+def test_int8_and_full_width_weights_greedily_write_the_same_assertions(embedded: CodeModel) -> None:
+    """The accuracy check in small (docs/model-speed.md has the evaluation): the greedy rules of two actions."""
+    other = "none" if embedded.info.quant == "int8" else "int8"
+    try:
+        second = load_code_model(ModelSettings(device="cpu", threads=1, quant=other, cache_dir=embedded_cache_dir()))
+    except QuantUnavailable as exc:
+        pytest.skip(str(exc))
+    suffixes = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert"]
+    greedy = Sampling(temperature=0, max_new_tokens=24)
+
+    def conditions(model: CodeModel) -> list[str]:  # the assertion's message may differ; the rule may not
+        texts = [text for (text,) in model.complete(sgd_prompt(), suffixes, 1, greedy, "statement")]
+        return [ast.dump(ast.parse("assert " + text).body[0].test) for text in texts]  # type: ignore[attr-defined]
+
+    assert conditions(embedded) == conditions(second)
 
 
 def test_gguf_path_is_converted_once_by_hash(embedded: CodeModel, tmp_path: Path) -> None:

@@ -18,6 +18,8 @@ The embedding's rows are int8 too, widened per looked-up row.
 
 from __future__ import annotations
 
+import ctypes
+import gc
 import logging
 from typing import Any
 
@@ -76,6 +78,22 @@ def _missing(device: torch.device, flags: frozenset[str] | None) -> str:
     return ""
 
 
+QUANTIZE_ROWS = 4096
+"""Rows widened to float32 at a time while quantizing: the vocabulary's 151,936 rows at once would be 0.5 GB."""
+
+
+def _rows_int8(weight: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Symmetric int8 per row, and each row's float32 scale (a column)."""
+    qweight = torch.empty(weight.shape, dtype=torch.int8)
+    scales = torch.empty(weight.shape[0], 1)
+    for start in range(0, weight.shape[0], QUANTIZE_ROWS):
+        rows = weight[start : start + QUANTIZE_ROWS].float()
+        scale = rows.abs().amax(dim=1, keepdim=True).clamp(min=1e-12) / 127.0
+        qweight[start : start + QUANTIZE_ROWS] = torch.round(rows / scale).to(torch.int8)
+        scales[start : start + QUANTIZE_ROWS] = scale
+    return qweight, scales
+
+
 def _int_mm_runs() -> bool:
     try:
         torch._int_mm(torch.ones(1, 8, dtype=torch.int8), torch.ones(8, 8, dtype=torch.int8))
@@ -92,13 +110,12 @@ class Int8Linear(nn.Module):
     def __init__(self, linear: nn.Linear) -> None:
         super().__init__()
         self.in_features, self.out_features = linear.in_features, linear.out_features
-        weight = linear.weight.detach().float()
-        scales = weight.abs().amax(dim=1).clamp(min=1e-12) / 127.0
+        qweight, scales = _rows_int8(linear.weight.detach())
         self.qweight_t: torch.Tensor
         self.scales: torch.Tensor
         self.bias: torch.Tensor | None
-        self.register_buffer("qweight_t", torch.round(weight / scales[:, None]).to(torch.int8).t().contiguous())
-        self.register_buffer("scales", scales)
+        self.register_buffer("qweight_t", qweight.t().contiguous())
+        self.register_buffer("scales", scales.squeeze(1))
         self.register_buffer("bias", None if linear.bias is None else linear.bias.detach().float())
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -119,12 +136,11 @@ class Int8Embedding(nn.Module):
 
     def __init__(self, embedding: nn.Embedding) -> None:
         super().__init__()
-        weight = embedding.weight.detach()
-        self.dtype = weight.dtype
-        scales = weight.float().abs().amax(dim=1, keepdim=True).clamp(min=1e-12) / 127.0
+        self.dtype = embedding.weight.dtype
+        qweight, scales = _rows_int8(embedding.weight.detach())
         self.qweight: torch.Tensor
         self.scales: torch.Tensor
-        self.register_buffer("qweight", torch.round(weight.float() / scales).to(torch.int8))
+        self.register_buffer("qweight", qweight)
         self.register_buffer("scales", scales.to(self.dtype))
         self.padding_idx = embedding.padding_idx
 
@@ -147,4 +163,19 @@ def quantize(model: Any) -> int:
                 setattr(parent, name, Int8Embedding(child))
                 replaced += 1
     model.config.tie_word_embeddings = False
+    _own_memory(model)
     return replaced
+
+
+def _own_memory(model: Any) -> None:
+    """Copy what stayed full-width (norms, biases) out of the weights file and return the freed heap: the file is
+    mapped whole, so one tensor left in it keeps every replaced layer's pages resident (measured: 2.6 GB RSS
+    against 1.7 GB for the full-width model)."""
+    with torch.no_grad():
+        for parameter in model.parameters():  # the int8 tensors are buffers of their own
+            parameter.data = parameter.data.clone()
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        return
