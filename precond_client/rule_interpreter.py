@@ -11,7 +11,7 @@ is refused when the rule is compiled (`OutsideGrammar`, with the node and why), 
 The grammar, one entry of `FORMS` per node type: constants (None, booleans, numbers, strings); the names `self`
 and the parameters; attributes the state's `Shape` declares; subscripts (a table of the state, or a value);
 comparisons (`is`/`is not` only against None, True or False, whose identity is the language's); `and`, `or`,
-`not`, unary minus and plus; calls of the functions in `FUNCTIONS`; tuples; list, set and generator
+`not`, unary minus and plus; `+`, `-`, `*`; calls of the functions in `FUNCTIONS`; tuples; list, set and generator
 comprehensions with one `for` over a value (`{(f['flight_number'], f['date']) for f in flights}`,
 `all(f['date'] >= '2024-05-15' for f in ...)`). A new form of the learner is one entry.
 
@@ -61,6 +61,7 @@ level multiplies the work by the length of what it iterates."""
 MAX_STEPS = 200_000
 """Steps one call's rules may take: a rule linear in a long conversation's results uses a few thousand."""
 COLLECTIONS = (list, tuple, set, frozenset, dict)
+SIZED = (*COLLECTIONS, str)
 
 
 class WorkExceeded(RuntimeError):
@@ -104,8 +105,12 @@ class Scope:
     """Comprehensions around the node."""
 
 
-FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any}
+FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any, "max": max, "min": min}
 """Builtins a rule may call; each gets values only."""
+ARITHMETIC: dict[type[ast.operator], Callable[[Any, Any], Any]] = {
+    ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul,
+}
+"""The arithmetic a policy states (`max(0, total_baggages - 2 * len(passengers))`)."""
 COMPARE: dict[type[ast.cmpop], Callable[[Any, Any], Any]] = {
     ast.Eq: operator.eq, ast.NotEq: operator.ne, ast.Lt: operator.lt, ast.LtE: operator.le, ast.Gt: operator.gt,
     ast.GtE: operator.ge, ast.In: lambda a, b: a in b, ast.NotIn: lambda a, b: a not in b,
@@ -300,16 +305,45 @@ def _unary(node: ast.expr, scope: Scope) -> Compiled:
     return VALUE, lambda frame: apply(operand(frame))
 
 
+def _size(value: Any) -> int:
+    return len(value) if isinstance(value, SIZED) else 0
+
+
+def _bin_op(node: ast.expr, scope: Scope) -> Compiled:
+    """`a + b`, `a - b`, `a * b` as Python answers them; what a sequence would become (`[0] * n`, `s + s`) is
+    charged before it is built."""
+    assert isinstance(node, ast.BinOp)
+    apply = ARITHMETIC.get(type(node.op))
+    if apply is None:
+        raise OutsideGrammar(f"{_text(node)}: the operator {type(node.op).__name__}")
+    left, right = _value(node.left, scope), _value(node.right, scope)
+    repeats = isinstance(node.op, ast.Mult)
+
+    def arithmetic(frame: Frame) -> Any:
+        a, b = left(frame), right(frame)
+        built = _size(a) + _size(b)
+        if repeats and built:
+            times = b if _size(a) else a
+            built = built * times if isinstance(times, int) and not isinstance(times, bool) and times > 0 else built
+        frame.charge(1 + built)
+        return apply(a, b)
+
+    return VALUE, arithmetic
+
+
 def _call(node: ast.expr, scope: Scope) -> Compiled:
     assert isinstance(node, ast.Call)
     function = FUNCTIONS.get(node.func.id) if isinstance(node.func, ast.Name) else None
     if function is None or node.keywords or any(isinstance(a, ast.Starred) for a in node.args):
         raise OutsideGrammar(f"{_text(node)}: calls {', '.join(FUNCTIONS)} only, with plain arguments")
     args = [_value(a, scope) for a in node.args]
-    if len(args) == 1:
-        only = args[0]
-        return VALUE, lambda frame: function(only(frame))
-    return VALUE, lambda frame: function(*(a(frame) for a in args))
+
+    def call(frame: Frame) -> Any:
+        values = [a(frame) for a in args]
+        frame.charge(1 + (sum(_size(v) for v in values) if function is not len else 0))  # max, min walk them
+        return function(*values)
+
+    return VALUE, call
 
 
 def _tuple(node: ast.expr, scope: Scope) -> Compiled:
@@ -373,4 +407,5 @@ FORMS: dict[type[ast.expr], Callable[[ast.expr, Scope], Compiled]] = {
     ast.BoolOp: _bool_op,
     ast.UnaryOp: _unary,
     ast.Call: _call,
+    ast.BinOp: _bin_op,
 }

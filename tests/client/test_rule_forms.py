@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 
 from precond_client.guard import AGENT_SHAPE
-from precond_client.rule_interpreter import Frame, OutsideGrammar, Scope, compile_rule
+from precond_client.rule_interpreter import Frame, OutsideGrammar, Scope, WorkExceeded, compile_rule
 
 R = "self.results['get_reservation_details'][reservation_id]"
 FLIGHTS = [{"flight_number": "HAT1", "date": "2024-05-20"}, {"flight_number": "HAT2", "date": "2024-05-21"}]
@@ -24,6 +24,12 @@ RULES = [
     f"all(x['payment_id'] in {R}['payment_methods'] for x in payment_methods)",
     f"all(x['missing'] >= '2024-05-15' for x in {R}['flights'])",  # raises KeyError, as in the sandbox
     f"any(x['date'] < '2024-05-15' or x['missing'] for x in {R}['flights'])",  # stops where Python stops
+    # the arithmetic a policy states: free bags per passenger, the rest paid
+    f"{R}['nonfree_baggages'] == max(0, {R}['total_baggages'] - 2 * len(flights))",
+    "min(len(flights), 3) + 1 - len(payment_methods) >= 0",
+    f"{R}['total_baggages'] - {R}['missing'] >= 0",  # raises KeyError, as in the sandbox
+    f"len(flights) * {R}['flights'] == {R}['flights'] + {R}['flights']",  # a sequence repeated, as Python does
+    "max(flights) == 0",  # raises TypeError (dicts are not ordered), as in the sandbox
 ]
 
 
@@ -56,7 +62,8 @@ def interpreted(rule: str, state: State, args: dict[str, Any]) -> tuple[str, Any
 @pytest.mark.parametrize("certificates", [1, 2])
 def test_collection_and_date_forms_answer_as_python(rule: str, flown: bool, certificates: int) -> None:
     flights = [{**FLIGHTS[0], "date": "2024-05-01"}, FLIGHTS[1]] if flown else FLIGHTS
-    state = State({"flights": flights, "payment_methods": {"certificate_1": {}, "credit_card_2": {}}})
+    state = State({"flights": flights, "payment_methods": {"certificate_1": {}, "credit_card_2": {}},
+                   "total_baggages": 3 + certificates, "nonfree_baggages": 1})
     args = {"reservation_id": "R1", "flights": FLIGHTS,
             "payment_methods": [{"payment_id": f"certificate_{n}"} for n in range(certificates)]}
     assert interpreted(rule, state, args) == python(rule, state, args)
@@ -71,3 +78,15 @@ def test_a_comprehension_variable_is_bound_only_inside_it() -> None:
     frame = Frame(State({}), [FLIGHTS])
     assert compile_rule("[x['date'] for x in flights]", scope)(frame) == ["2024-05-20", "2024-05-21"]
     assert frame.bound == {}
+
+
+def test_what_arithmetic_would_build_is_charged_before_it_is_built() -> None:
+    scope = Scope(AGENT_SHAPE, ("flights",))
+    with pytest.raises(OutsideGrammar, match="Pow"):
+        compile_rule("len(flights * 10 ** 12) > 0", scope)
+    repeated = compile_rule("len(flights * 1000000000000) > 0", scope)
+    with pytest.raises(WorkExceeded):
+        repeated(Frame(State({}), [FLIGHTS]))  # charged, never built
+    assert compile_rule("len(flights * 3) == 6", scope)(Frame(State({}), [FLIGHTS]))
+    with pytest.raises(OutsideGrammar, match="Div"):
+        compile_rule("len(flights) / 2 > 0", scope)
