@@ -31,7 +31,7 @@ def test_an_unknown_quantization_is_refused_when_the_settings_are_read(monkeypat
         (VNNI, ("int8", "int8 weights: cpu with avx512_vnni")),
         (frozenset({"avx2", "avx_vnni"}), ("int8", "int8 weights: cpu with avx_vnni")),
         (frozenset({"avx2", "avx512f"}), ("none", "no int8 weights: cpu without amx_int8/avx512_vnni/avx_vnni")),
-        (frozenset({"sse4_2"}), ("none", "no int8 weights: cpu without avx2 (fbgemm's int8 kernels need it)")),
+        (frozenset({"sse4_2"}), ("none", "no int8 weights: cpu without avx2 (the int8 kernels need it)")),
         (None, ("none", "no int8 weights: cpu features unknown (no /proc/cpuinfo), so avx2 cannot be checked")),
     ],
 )

@@ -4,13 +4,14 @@ Decoding one token reads every weight once, so on a CPU a batch-1 step costs wha
 stream. Of the int8 kernels torch 2.13 ships for x86, measured on 2 cores of an AVX-512-VNNI EPYC at the embedded
 model's layer shapes against a bfloat16 `linear` (bench/model_bench.py has the whole model):
 
-* `torch._int_mm` (oneDNN, VNNI), with each input row quantized to int8 by its own scale: 1.7-3x faster at batch
-  1 and 8, 1.5x on a 128-token prefill chunk. What `int8` runs.
+* `torch._int_mm` (oneDNN, VNNI), with each input row quantized to int8 by its own scale: 1.6-3.1x faster at
+  batch 1, 1.2-3.7x at batch 8, 1.5x on a 128-token prefill chunk. What `int8` runs (1.0-1.8x for the whole
+  model's batch-1 decode: the rows' quantization and bfloat16 attention remain).
 * fbgemm's dynamic int8 (`quantized::linear_dynamic`, what `quantize_dynamic` builds) is as fast, but scales the
   whole batch by one number: a row's output then depends on the rows beside it (samples would change with the
   batch), and the MLP's few huge activation channels crush the rest (logits off by 18% on a domain prompt).
-* weight-only int8 and int4 (`_weight_int8pack_mm`, `_weight_int4pack_mm_for_cpu`): faster at batch 1 only, 1-2.5x
-  slower than bfloat16 from batch 8 on, where the engine samples and prefills.
+* weight-only int8 and int4 (`_weight_int8pack_mm`, `_weight_int4pack_mm_for_cpu`): faster at batch 1, no faster
+  at batch 8 and 1.2-2.7x slower on a prefill chunk, where the engine samples and prefills.
 
 Per row, the logits of a 300-token domain prompt move by 7% and the top token is the same at 99% of positions.
 The embedding's rows are int8 too, widened per looked-up row.
@@ -32,10 +33,11 @@ from precond.engine.settings import QUANT_CHOICES as QUANTS
 logger = logging.getLogger(__name__)
 
 CPU_INT8_FLAGS = ("amx_int8", "avx512_vnni", "avx_vnni")
-"""int8 dot products in hardware: where `auto` quantizes (fbgemm's int8 path without them is emulated with
-16-bit sums, barely faster than float32)."""
+"""int8 dot products in hardware: where `auto` quantizes (without them int8 products are emulated with 16-bit
+sums, and only measuring there could show a gain)."""
 CPU_INT8_REQUIRED = "avx2"
-"""fbgemm's least instruction set: `MODEL_QUANT=int8` on a CPU without it is refused at load."""
+"""The least instruction set `MODEL_QUANT=int8` is accepted on (the int8 kernels' oldest path); below it the
+setting is refused at load."""
 
 
 class QuantUnavailable(ModelStoreError):
@@ -45,7 +47,7 @@ class QuantUnavailable(ModelStoreError):
 def choose_quant(name: str, device: torch.device, flags: frozenset[str] | None) -> tuple[str, str]:
     """The quantization to load with, and why (reported with the dtype in every response's `model` block).
 
-    `auto` quantizes only where it is fast (a CPU with int8 dot products and fbgemm); an explicit `int8` the
+    `auto` quantizes only where it is fast (a CPU with int8 dot products); an explicit `int8` the
     machine cannot run is an error naming the setting and what is missing, never a silent full-width model.
     """
     if name not in QUANTS:
@@ -74,7 +76,7 @@ def _missing(device: torch.device, flags: frozenset[str] | None) -> str:
     if flags is None:
         return f"cpu features unknown (no /proc/cpuinfo), so {CPU_INT8_REQUIRED} cannot be checked"
     if CPU_INT8_REQUIRED not in flags:
-        return f"cpu without {CPU_INT8_REQUIRED} (fbgemm's int8 kernels need it)"
+        return f"cpu without {CPU_INT8_REQUIRED} (the int8 kernels need it)"
     return ""
 
 
