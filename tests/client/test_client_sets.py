@@ -25,7 +25,7 @@ from precond_client import (
     rules,
 )
 
-ENUMERATE = InferOptions(generators=["enumerate"])
+ENUMERATE = InferOptions(generators=["enumerate"], library=False)  # the demonstrations alone: two dialogs, assumed
 HISTORY = History().user("INFORM_INTENT", "FindRestaurants").system("REQUEST", "city").user("INFORM", "city")
 
 
