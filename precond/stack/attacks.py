@@ -20,7 +20,7 @@ import httpx
 
 from precond.stack import harness
 from precond.stack.keyed import KeyedStack
-from precond.stack.local import DEMOS, SPEC, check_body, infer_body
+from precond.stack.local import DEMOS, RULES, SPEC, check_body, infer_body
 from precond_client.openai_log import Tool, spec_program
 
 POISON_SPEC = ("class A:\n  def __init__(self):\n    self.x = 0\n  def act(self, a, b, c, d): pass\n"
@@ -52,7 +52,7 @@ def unknown_act_body(methods: int = 850) -> dict[str, Any]:
 
 def oversized_set_body() -> dict[str, Any]:
     """3.8 MB of demonstrations, the last one broken: every one was parsed before the size bound applied."""
-    return {"spec": SPEC, "demonstrations": [DEMOS[0] * 25] * 180 + ["system.REQUEST(("]}
+    return {"spec": SPEC, "preconditions": RULES, "demonstrations": [DEMOS[0] * 25] * 180 + ["system.REQUEST(("]}
 
 
 def tool_call_check_body(seed: int = 0, tools: int = 258) -> dict[str, Any]:
@@ -81,7 +81,7 @@ ATTACKS: dict[str, tuple[int, Attack]] = {
     "2-loop": (2, lambda http, i: http.post("/check-actions", json=unknown_act_body()) if i % 2 else http.post(
         "/precondition-sets", json=oversized_set_body())),
     "4-sets": (2, lambda http, i: http.post("/precondition-sets", json={
-        "spec": SPEC, "demonstrations": [DEMOS[0] * 20 + f"# {i}\n", DEMOS[1] * 20]})),
+        "spec": SPEC, "preconditions": RULES, "demonstrations": [DEMOS[0] * 20 + f"# {i}\n", DEMOS[1] * 20]})),
     "5-sleep": (6, lambda http, i: http.post("/check-actions", json=_sleeping_check(i), params={"wait": 30})),
     "6-poison": (2, lambda http, i: http.post("/infer-preconditions", json={
         **POISON_BODY, "options": {"generators": ["enumerate"], "seed": i}}, params={"wait": 30})),

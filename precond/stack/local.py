@@ -37,6 +37,9 @@ EXAMPLES = {
 }
 SPEC: str = EXAMPLES["infer-enumerate"]["spec"]
 DEMOS: list[str] = EXAMPLES["infer-enumerate"]["demonstrations"]
+RULES: dict[str, list[str]] = EXAMPLES["check-actions"]["preconditions"]
+"""Hand-written rules of SPEC that every call of DEMOS satisfies: what a stored set needs (one without rules is
+refused)."""
 HEAVY_STATEMENT = "heavy = sum(range({n}))\n"
 """Legal, CPU-bound demonstration code: slows every sandbox run of the demonstration down (about 15 ms per
 million on this project's CI machines), well within the sandbox's limits."""

@@ -26,7 +26,7 @@ from precond.stack.attacks import (
     unknown_fields_body,
 )
 from precond.stack.keyed import KeyedStack, keyed_stack
-from precond.stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
+from precond.stack.local import DEMOS, RULES, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
 
 TENANTS = ("attacker-corp", "victim-corp", "prober-corp", "filler-corp")
 SET_BYTES_PER_TENANT = 60_000
@@ -55,7 +55,8 @@ def client(keyed: KeyedStack, tenant: str | None, timeout: float = 60) -> httpx.
 def test_a_deeply_nested_demonstration_is_a_422_not_a_500(keyed: KeyedStack) -> None:
     with client(keyed, "attacker-corp") as http:
         inferred = http.post("/infer-preconditions", json=infer_body(demonstrations=[deep_demonstration()]))
-        created = http.post("/precondition-sets", json={"spec": SPEC, "demonstrations": [DEMOS[0]]})
+        created = http.post("/precondition-sets", json={"spec": SPEC, "preconditions": RULES,
+                                                        "demonstrations": [DEMOS[0]]})
         assert created.status_code == 201, created.text
         more = {"demonstrations": [deep_demonstration()], "options": {"generators": ["enumerate"]}}
         reinferred = http.post(f"/precondition-sets/{created.json()['id']}/reinfer", json=more)
@@ -134,7 +135,7 @@ def test_ready_with_redis_down_does_not_show_where_redis_is(redis_down: Stack) -
 
 
 def test_a_tenants_stored_sets_are_bounded_in_bytes_and_others_still_store(keyed: KeyedStack) -> None:
-    body = {"spec": SPEC, "demonstrations": [DEMOS[0] * 20, DEMOS[1] * 20]}  # about 28 KB a set
+    body = {"spec": SPEC, "preconditions": RULES, "demonstrations": [DEMOS[0] * 20, DEMOS[1] * 20]}  # ~28 KB a set
     with client(keyed, "filler-corp") as http:
         codes = [http.post("/precondition-sets", json=body) for _ in range(5)]
     refused = [a for a in codes if a.status_code != 201]
