@@ -30,7 +30,7 @@ def test_model_candidates_are_validated_and_ranked(engine: Engine, restaurants: 
         demonstrations=[d["program"] for d in restaurants["demos"]],
         actions=["SYSTEM.INFORM", "SYSTEM.GOODBYE", "SYSTEM.NOTIFY_SUCCESS"],
         options={"generators": ["model"], "prompts_per_action": 1, "samples_per_prompt": 8, "seed": 0,
-                 "candidates": "all"},
+                 "candidates": "all", "library": False},  # the model's candidates alone (no library priors)
     ))
     assert response.model is not None and response.model.name
     for action in ("SYSTEM.INFORM", "SYSTEM.GOODBYE", "SYSTEM.NOTIFY_SUCCESS"):
