@@ -2,11 +2,11 @@
 
 A set is a client's data, not a cache entry: it has no TTL, lives in the queue Redis (which never evicts)
 and is bounded instead: `PRECOND_MAX_SETS_PER_TENANT` sets, `PRECOND_MAX_SET_VERSIONS` versions each,
-`PRECOND_MAX_SET_BYTES` per version. Keys carry the tenant's tag, so another tenant's set is simply not
+`PRECOND_MAX_SET_BYTES` per version. Keys carry the tenant, so another tenant's set is simply not
 there: the same 404 as a set that never existed, without any lookup of owners.
 
-Keys, the atomic scripts and the merge of a re-inference live in `precond/jobs/precondition_sets.py`: a worker
-appends the version a re-inference makes.
+Versions are kept by `precond/jobs/tenant_store.py` (the store trained policies use too) through
+`precond/jobs/precondition_sets.py`, which a worker also uses to append the version a re-inference makes.
 """
 
 from __future__ import annotations
@@ -22,21 +22,9 @@ from typing import Any
 from arq.connections import ArqRedis
 
 from precond.gateway.errors import ServiceError
-from precond.jobs.precondition_sets import (
-    APPEND_CONFLICT,
-    APPEND_MISSING,
-    CREATE_SCRIPT,
-    TENANT_BYTES_FULL,
-    append,
-    bytes_key,
-    decided,
-    index_key,
-    normal,
-    over_bounds,
-    set_key,
-    summary,
-    tenant_bytes_message,
-)
+from precond.jobs import tenant_store
+from precond.jobs.precondition_sets import decided, normal, over_bounds, put, summary, tenant_bytes_message
+from precond.jobs.tenant_store import SETS
 from precond_client.schemas.api import (
     CandidateReport,
     PreconditionSet,
@@ -89,18 +77,18 @@ class ParsedVersions:
         self.max_bytes = max_bytes_per_tenant
         self._by_tenant: dict[str, OrderedDict[tuple[str, int], tuple[int, PreconditionSet]]] = {}
 
-    def get(self, tag: str, set_id: str, number: int) -> PreconditionSet | None:
-        entries = self._by_tenant.get(tag)
+    def get(self, tenant: str, set_id: str, number: int) -> PreconditionSet | None:
+        entries = self._by_tenant.get(tenant)
         found = None if entries is None else entries.get((set_id, number))
         if entries is None or found is None:
             return None
         entries.move_to_end((set_id, number))
         return found[1]
 
-    def put(self, tag: str, set_id: str, number: int, size: int, version: PreconditionSet) -> None:
+    def put(self, tenant: str, set_id: str, number: int, size: int, version: PreconditionSet) -> None:
         if size > self.max_bytes:
             return
-        entries = self._by_tenant.setdefault(tag, OrderedDict())
+        entries = self._by_tenant.setdefault(tenant, OrderedDict())
         entries[(set_id, number)] = (size, version)
         entries.move_to_end((set_id, number))
         while sum(kept for kept, _ in entries.values()) > self.max_bytes:
@@ -127,27 +115,20 @@ class SetStore:
                                f"{self.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="body")
         return text
 
-    async def create(self, tag: str, version: PreconditionSet) -> PreconditionSet:
-        record = self._record(version)
-        made = await self.redis.eval(  # type: ignore[no-untyped-call]
-            CREATE_SCRIPT, 3, index_key(tag), set_key(tag, version.id), bytes_key(tag), version.id, self.max_sets,
-            record, self.max_tenant_bytes, version.created, summary(version),
-        )
-        if made == TENANT_BYTES_FULL:
+    def _bounds(self) -> tenant_store.Bounds:
+        return tenant_store.Bounds(self.max_sets, self.max_versions, self.max_tenant_bytes)
+
+    async def put(self, tenant: str, version: PreconditionSet) -> PreconditionSet:
+        """Store version n (1: a new set) if n-1 is still the latest; the bounds' and the conflict's errors."""
+        answer = await put(self.redis, tenant, version, self._record(version), self._bounds())
+        if answer == tenant_store.TOO_MANY_BYTES:
             raise ServiceError(422, tenant_bytes_message(self.max_tenant_bytes), "sets_limited")
-        if not made:
+        if answer == tenant_store.TOO_MANY_RECORDS:
             raise ServiceError(422, f"this tenant stores {self.max_sets} precondition sets already, the bound "
                                "(PRECOND_MAX_SETS_PER_TENANT)", "sets_limited")
-        return version.model_copy(update={"latest": 1})
-
-    async def append(self, tag: str, version: PreconditionSet) -> PreconditionSet:
-        record = self._record(version)
-        answer = await append(self.redis, tag, version, record, self.max_versions, self.max_tenant_bytes)
-        if answer == TENANT_BYTES_FULL:
-            raise ServiceError(422, tenant_bytes_message(self.max_tenant_bytes), "sets_limited")
-        if answer == APPEND_MISSING:
+        if answer == tenant_store.MISSING:
             raise not_found(version.id)
-        if answer == APPEND_CONFLICT:
+        if answer == tenant_store.CONFLICT:
             raise ServiceError(409, f"precondition set {version.id} got a new version meanwhile: read the latest "
                                "and edit again", "conflict")
         if answer < 0:
@@ -155,38 +136,37 @@ class SetStore:
                                "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version", "sets_limited")
         return version.model_copy(update={"latest": answer})
 
-    async def get(self, tag: str, reference: str) -> PreconditionSet:
+    async def get(self, tenant: str, reference: str) -> PreconditionSet:
         """A version of one of the tenant's sets (the latest when the reference names none); 404 otherwise."""
         set_id, number = parse_reference(reference)
-        key = set_key(tag, set_id)
-        latest = await self.redis.hget(key, "latest")
+        latest = await tenant_store.latest(self.redis, SETS, tenant, set_id)
         if latest is None:
             raise not_found(reference)
-        wanted = int(latest) if number is None else number
-        version = self.parsed.get(tag, set_id, wanted)
+        wanted = latest if number is None else number
+        version = self.parsed.get(tenant, set_id, wanted)
         if version is None:
-            raw = await self.redis.hget(key, str(wanted))
+            raw = await tenant_store.read(self.redis, SETS, tenant, set_id, wanted)
             if raw is None:
-                raise ServiceError(404, f"precondition set {set_id} has no version {wanted} (latest: {int(latest)})")
+                raise ServiceError(404, f"precondition set {set_id} has no version {wanted} (latest: {latest})")
             version = PreconditionSet.model_validate_json(raw)
-            self.parsed.put(tag, set_id, wanted, len(raw), version)
-        return version.model_copy(update={"latest": int(latest)})
+            self.parsed.put(tenant, set_id, wanted, len(raw), version)
+        return version.model_copy(update={"latest": latest})
 
 
-    async def summaries(self, tag: str, offset: int, limit: int) -> PreconditionSetList:
+    async def summaries(self, tenant: str, offset: int, limit: int) -> PreconditionSetList:
         """The tenant's sets, newest first, from each set's stored summary (never its versions, except for a set
         stored before summaries were kept: its latest version is read once here)."""
-        ids = sorted(member.decode() for member in await self.redis.smembers(index_key(tag)))
+        ids = await tenant_store.ids(self.redis, SETS, tenant)
         async with self.redis.pipeline(transaction=False) as pipe:
             for set_id in ids:
-                pipe.hmget(set_key(tag, set_id), ["created", "summary"])
+                pipe.hmget(SETS.record_key(tenant, set_id), ["created", "summary"])
             rows = await pipe.execute()
         found = []
         for set_id, (created, stored) in zip(ids, rows, strict=True):
             if stored is None:
                 try:
-                    latest = await self.get(tag, set_id)
-                    first = latest if latest.latest == 1 else await self.get(tag, f"{set_id}@1")
+                    latest = await self.get(tenant, set_id)
+                    first = latest if latest.latest == 1 else await self.get(tenant, f"{set_id}@1")
                 except ServiceError:  # gone meanwhile
                     continue
                 created, stored = first.created.encode(), summary(latest).encode()

@@ -3,10 +3,8 @@ atomic append of a version (the gateway for edits, a worker for re-inference), t
 version and the union of stored and new demonstrations. The merge of a re-inference with its base version is
 the engine's (`engine.reinference`).
 
-    precond:sets:<tenant tag>          Redis set of the tenant's set ids (its size is the per-tenant bound)
-    precond:set-bytes:<tenant tag>     bytes of all the tenant's stored versions (bounded per tenant)
-    precond:set:<tenant tag>:<id>      hash: `latest` → n, and `<n>` → version n as JSON (never rewritten);
-                                       `created` (of version 1) and `summary` (of the latest) for the list
+Sets are stored by `precond.jobs.tenant_store` (kind `SETS`: `precond:sets:<tenant>`, `precond:set:<tenant>:<id>`,
+`precond:set-bytes:<tenant>`), with `created` (of version 1) and `summary` (of the latest) beside the versions.
 """
 
 from __future__ import annotations
@@ -17,57 +15,10 @@ from typing import Any, Final
 
 from pydantic import TypeAdapter, ValidationError
 
-from precond.jobs.queue.keys import PREFIX
+from precond.jobs import tenant_store
 from precond.programs import checks
 from precond.programs.checks import normal as normal  # re-exported: the sets code compares rules by it
 from precond_client.schemas.api import CandidateReport, Preconditions, PreconditionSet, RuleEvidence
-
-_TENANT_BYTES = """
-local function over_bytes(key, record, bound)
-  return bound > 0 and tonumber(redis.call('get', key) or '0') + #record > bound
-end
-"""
-
-CREATE_SCRIPT: Final = _TENANT_BYTES + """
-if redis.call('scard', KEYS[1]) >= tonumber(ARGV[2]) then return 0 end
-if over_bytes(KEYS[3], ARGV[3], tonumber(ARGV[4])) then return -4 end
-redis.call('sadd', KEYS[1], ARGV[1])
-redis.call('hset', KEYS[2], 'latest', 1, '1', ARGV[3], 'created', ARGV[5], 'summary', ARGV[6])
-redis.call('incrby', KEYS[3], #ARGV[3])
-return 1
-"""
-"""Create a set with its version 1 unless the tenant is at its bound of sets or bytes: count and write in one
-step (with its creation time and the summary the list of sets reads, so listing never reads whole versions)."""
-
-APPEND_SCRIPT: Final = _TENANT_BYTES + """
-local latest = tonumber(redis.call('hget', KEYS[1], 'latest') or '0')
-if latest == 0 then return -1 end
-if latest ~= tonumber(ARGV[1]) then return -2 end
-if latest >= tonumber(ARGV[2]) then return -3 end
-if over_bytes(KEYS[2], ARGV[3], tonumber(ARGV[4])) then return -4 end
-redis.call('hset', KEYS[1], 'latest', latest + 1, tostring(latest + 1), ARGV[3], 'summary', ARGV[5])
-redis.call('incrby', KEYS[2], #ARGV[3])
-return latest + 1
-"""
-"""Append version latest+1, only if `latest` is still the version it was made from and the tenant's stored
-bytes stay within its bound."""
-
-APPEND_MISSING: Final = -1
-APPEND_CONFLICT: Final = -2
-APPEND_FULL: Final = -3
-TENANT_BYTES_FULL: Final = -4
-
-
-def index_key(tag: str) -> str:
-    return f"{PREFIX}:sets:{tag}"
-
-
-def set_key(tag: str, set_id: str) -> str:
-    return f"{PREFIX}:set:{tag}:{set_id}"
-
-
-def bytes_key(tag: str) -> str:
-    return f"{PREFIX}:set-bytes:{tag}"
 
 
 def tenant_bytes_message(max_tenant_bytes: int) -> str:
@@ -75,12 +26,14 @@ def tenant_bytes_message(max_tenant_bytes: int) -> str:
             "(PRECOND_MAX_SET_BYTES_PER_TENANT)")
 
 
-async def append(redis: Any, tag: str, version: PreconditionSet, record: str, max_versions: int,
-                 max_tenant_bytes: int | None) -> int:
-    """Store `record` (version n's JSON) as version n if n-1 is still the latest and the tenant's sets stay within
-    `max_tenant_bytes` (None: unbounded): n, or an APPEND_* / TENANT_BYTES_FULL code."""
-    return int(await redis.eval(APPEND_SCRIPT, 2, set_key(tag, version.id), bytes_key(tag), version.version - 1,
-                                max_versions, record, max_tenant_bytes or 0, summary(version)))
+async def put(redis: Any, tenant: str, version: PreconditionSet, record: str, bounds: tenant_store.Bounds) -> int:
+    """Store `record` (version n's JSON) as version n if n-1 is still the latest (n = 1: a new set, within the
+    tenant's bound of sets) and the tenant's sets stay within their bound of bytes: n, or a `tenant_store` code.
+    The list of sets reads each set's creation time and its latest version's summary, kept beside the versions,
+    so listing never reads whole versions."""
+    beside = {"summary": summary(version)} | ({"created": version.created} if version.version == 1 else {})
+    return await tenant_store.put(redis, tenant_store.SETS, tenant, version.id, version.version, record, bounds,
+                                  beside=beside)
 
 
 ESTABLISHED_AT: Final = 3

@@ -3,9 +3,9 @@ adapter a next action names.
 
 A training writes its adapter into a scratch directory of this process (mode 0700, one per job, removed when
 the job ends however it ends); the worker then stores the weights and what trained them in the queue Redis
-(`precond/jobs/policy_adapters.py`) under the tag of the job's owner. A next action naming `adapter:<id>@<n>` is
+(`precond/jobs/policy_adapters.py`) under the job's tenant. A next action naming `adapter:<id>@<n>` is
 answered by an engine whose model is the served model with that adapter beside the projections it changes,
-unmerged (`engine.models.backend.with_adapter`): the adapter is read under the job's owner's tag, never under
+unmerged (`engine.models.backend.with_adapter`): the adapter is read under the job's tenant, never under
 anything the payload says, so one tenant's job cannot reach another tenant's adapter even with its id.
 """
 
@@ -26,7 +26,7 @@ from typing import Any
 from pydantic import ValidationError
 
 from precond.engine.engine import Engine
-from precond.jobs import policy_adapters
+from precond.jobs import policy_adapters, tenant_store
 from precond.jobs.queue.payloads import TrainPolicyJob
 from precond.jobs.records import Outcome
 from precond.worker.memory import give_back_freed
@@ -73,20 +73,20 @@ def discard(body: dict[str, Any]) -> None:
 
 
 _REFUSALS = {
-    policy_adapters.MISSING: (NotFound, "no trained policy {id} of yours: it was deleted while this training ran"),
-    policy_adapters.CONFLICT: (Conflict, "trained policy {id} got version {version} from another training while "
-                                         "this one ran: train again to make the next version"),
-    policy_adapters.TOO_MANY_ADAPTERS: (InvalidInput, "this tenant has {max_adapters} trained policies, the bound "
-                                                      "(PRECOND_MAX_POLICIES_PER_TENANT): delete one first"),
-    policy_adapters.TOO_MANY_VERSIONS: (InvalidInput, "trained policy {id} has {max_versions} versions, the bound "
-                                                      "(PRECOND_MAX_POLICY_VERSIONS)"),
-    policy_adapters.TENANT_BYTES_FULL: (InvalidInput, "this tenant's trained policies would take more than "
-                                                      "{max_tenant_bytes:,} bytes, the bound "
-                                                      "(PRECOND_MAX_POLICY_BYTES_PER_TENANT): delete one first"),
+    tenant_store.MISSING: (NotFound, "no trained policy {id} of yours: it was deleted while this training ran"),
+    tenant_store.CONFLICT: (Conflict, "trained policy {id} got version {version} from another training while this "
+                            "one ran: train again to make the next version"),
+    tenant_store.TOO_MANY_RECORDS: (InvalidInput, "this tenant has {max_adapters} trained policies, the bound "
+                                    "(PRECOND_MAX_POLICIES_PER_TENANT): delete one first"),
+    tenant_store.TOO_MANY_VERSIONS: (InvalidInput, "trained policy {id} has {max_versions} versions, the bound "
+                                     "(PRECOND_MAX_POLICY_VERSIONS)"),
+    tenant_store.TOO_MANY_BYTES: (InvalidInput, "this tenant's trained policies would take more than "
+                                  "{max_tenant_bytes:,} bytes, the bound (PRECOND_MAX_POLICY_BYTES_PER_TENANT): "
+                                  "delete one first"),
 }
 
 
-async def store(redis: Any, tag: str, job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+async def store(redis: Any, tenant: str, job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
     """The trained adapter stored as the tenant's (its `PolicyAdapter` is the job's result), or refused at a
     bound or on a conflict; the scratch directory is removed either way."""
     from precond.engine.models.adapters import WEIGHTS  # not at import: the model code loads torch
@@ -97,8 +97,8 @@ async def store(redis: Any, tag: str, job_id: str, body: dict[str, Any], result:
         adapter = PolicyAdapter(id=job.adapter, version=job.version, reference=f"{job.adapter}@{job.version}",
                                 created=datetime.now(UTC).isoformat(timespec="seconds"),
                                 result=TrainPolicyResult.model_validate(result))
-        code = await policy_adapters.store(redis, tag, adapter, weights, job_id, job.max_adapters, job.max_versions,
-                                           job.max_tenant_bytes)
+        bounds = tenant_store.Bounds(job.max_adapters, job.max_versions, job.max_tenant_bytes)
+        code = await policy_adapters.store(redis, tenant, adapter, weights, job_id, bounds)
     finally:
         discard(body)
     if code < 0:
@@ -106,13 +106,13 @@ async def store(redis: Any, tag: str, job_id: str, body: dict[str, Any], result:
         text = message.format(id=job.adapter, version=job.version, max_adapters=job.max_adapters,
                               max_versions=job.max_versions, max_tenant_bytes=job.max_tenant_bytes)
         return Outcome.failed(error(text))
-    stored = await policy_adapters.get(redis, tag, f"{job.adapter}@{code}")
+    stored = await policy_adapters.get(redis, tenant, f"{job.adapter}@{code}")
     return Outcome(status="succeeded", result=(stored or adapter).model_dump(mode="json"))
 
 
 @dataclass(frozen=True)
 class StoredPolicy:
-    tag: str
+    tenant: str
     adapter: PolicyAdapter
     weights: bytes
 
@@ -121,14 +121,14 @@ class StoredPolicy:
         return f"adapter:{self.adapter.reference}"
 
 
-async def fetch(redis: Any, tag: str, policy: str) -> StoredPolicy:
-    """The adapter version `policy` names, read under the job owner's `tag`; NotFound when it is not there
+async def fetch(redis: Any, tenant: str, policy: str) -> StoredPolicy:
+    """The adapter version `policy` names, read under the job's `tenant`; NotFound when it is not there
     (deleted since the gateway resolved it, or never the tenant's)."""
-    adapter = await policy_adapters.get(redis, tag, policy.removeprefix("adapter:"))
-    weights = await policy_adapters.weights(redis, tag, adapter) if adapter is not None else None
+    adapter = await policy_adapters.get(redis, tenant, policy.removeprefix("adapter:"))
+    weights = await policy_adapters.weights(redis, tenant, adapter) if adapter is not None else None
     if adapter is None or weights is None:
         raise NotFound(f"no trained policy {policy.removeprefix('adapter:')[:40]} of yours", field="options.policy")
-    return StoredPolicy(tag, adapter, weights)
+    return StoredPolicy(tenant, adapter, weights)
 
 
 class AdaptedEngines:
@@ -141,7 +141,7 @@ class AdaptedEngines:
 
     def engine(self, base: Engine, stored: StoredPolicy) -> Engine:
         """Called in the job's thread (building merges the adapter: CPU work, under the job's memory bound)."""
-        key = (stored.tag, stored.adapter.reference)
+        key = (stored.tenant, stored.adapter.reference)
         with self._lock:
             if key in self._engines:
                 self._engines.move_to_end(key)

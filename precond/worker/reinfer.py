@@ -15,6 +15,7 @@ from typing import Any
 from precond.engine import reinference
 from precond.engine.engine import Engine
 from precond.jobs import precondition_sets as sets
+from precond.jobs import tenant_store
 from precond.jobs.queue.payloads import ReinferJob
 from precond_client.schemas.api import InferRequest, PreconditionSet, ValidateResponse
 from precond_client.schemas.errors import BlocksDemonstration, Conflict, InvalidInput, PrecondError, SetsLimited
@@ -107,37 +108,38 @@ def _warnings(job: ReinferJob, rules: dict[str, list[str]], inferred: dict[str, 
     return sets.set_warnings(base.spec, rules, base.rejected, {**kept, **inferred})
 
 
-async def store(redis: Any, tag: str, job: ReinferJob, version: PreconditionSet) -> PreconditionSet:
+async def store(redis: Any, tenant: str, job: ReinferJob, version: PreconditionSet) -> PreconditionSet:
     """Append the version if its base is still the latest; the errors a client can act on otherwise."""
     record = version.model_dump_json()
     if len(record.encode()) > job.max_bytes:
         raise SetsLimited(f"the re-inferred version takes {len(record.encode()):,} bytes, over the bound of "
                           f"{job.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="demonstrations")
-    answer = await sets.append(redis, tag, version, record, job.max_versions, job.max_tenant_bytes)
-    if answer == sets.TENANT_BYTES_FULL:
+    bounds = tenant_store.Bounds(records=0, versions=job.max_versions, tenant_bytes=job.max_tenant_bytes or 0)
+    answer = await sets.put(redis, tenant, version, record, bounds)
+    if answer == tenant_store.TOO_MANY_BYTES:
         raise SetsLimited(sets.tenant_bytes_message(job.max_tenant_bytes or 0))
-    if answer == sets.APPEND_CONFLICT:
-        mine = await _stored_by_an_earlier_run(redis, tag, version)
+    if answer == tenant_store.CONFLICT:
+        mine = await _stored_by_an_earlier_run(redis, tenant, version)
         if mine is not None:
             return mine
-    if answer in (sets.APPEND_CONFLICT, sets.APPEND_MISSING):
+    if answer in (tenant_store.CONFLICT, tenant_store.MISSING):
         raise Conflict(f"precondition set {version.id} got a new version while it was re-inferred from version "
                        f"{job.base.version}: read the latest and re-infer again")
-    if answer == sets.APPEND_FULL:
+    if answer == tenant_store.TOO_MANY_VERSIONS:
         raise SetsLimited(f"precondition set {version.id} has {job.max_versions} versions, the bound "
                           "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version")
     return version.model_copy(update={"latest": answer})
 
 
-async def _stored_by_an_earlier_run(redis: Any, tag: str, version: PreconditionSet) -> PreconditionSet | None:
+async def _stored_by_an_earlier_run(redis: Any, tenant: str, version: PreconditionSet) -> PreconditionSet | None:
     """The version this job makes, when an earlier run of it stored it already (its worker died before arq
     recorded the end, and the job was handed back): the same rules, demonstrations and diff at the same number."""
-    raw = await redis.hget(sets.set_key(tag, version.id), str(version.version))
-    latest = await redis.hget(sets.set_key(tag, version.id), "latest")
+    raw = await tenant_store.read(redis, tenant_store.SETS, tenant, version.id, version.version)
+    latest = await tenant_store.latest(redis, tenant_store.SETS, tenant, version.id)
     if raw is None or latest is None:
         return None
     stored = PreconditionSet.model_validate_json(raw)
     same = ("preconditions", "demonstrations", "required", "rejected", "diff")
     if any(getattr(stored, name) != getattr(version, name) for name in same):
         return None
-    return stored.model_copy(update={"latest": int(latest)})
+    return stored.model_copy(update={"latest": latest})

@@ -10,8 +10,9 @@ from types import SimpleNamespace
 import pytest
 
 from precond.engine.reinference import explain_removed, merge
-from precond.jobs.precondition_sets import APPEND_CONFLICT, normal, union
+from precond.jobs.precondition_sets import normal, union
 from precond.jobs.queue.payloads import ReinferJob
+from precond.jobs.tenant_store import CONFLICT
 from precond.worker.reinfer import reinfer, store
 from precond_client.schemas.api import CandidateReport, PreconditionSet, ValidateResponse
 from precond_client.schemas.errors import Conflict, InvalidInput
@@ -85,13 +86,13 @@ def test_actions_not_re_inferred_keep_their_rules() -> None:
 
 
 class _Stored:
-    """A set whose version 4 is stored already: `eval` (the append script) answers conflict, `hget` reads."""
+    """A set whose version 4 is stored already: `evalsha` (the store's script) answers conflict, `hget` reads."""
 
     def __init__(self, version: PreconditionSet) -> None:
         self.hash = {b"latest": b"4", b"4": version.model_dump_json().encode()}
 
-    async def eval(self, *args: object) -> int:
-        return APPEND_CONFLICT
+    async def evalsha(self, *args: object) -> int:
+        return CONFLICT
 
     async def hget(self, key: str, field: str) -> bytes | None:
         return self.hash.get(field.encode())

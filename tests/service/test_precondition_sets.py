@@ -12,8 +12,8 @@ from typing import Any
 import httpx
 import pytest
 
-from precond.gateway.set_store import index_key, set_key
 from precond.jobs.queue.keys import tenant_tag
+from precond.jobs.tenant_store import SETS
 from precond.stack.local import DEMOS, SPEC, Stack, check_body, example, infer_body, make_stack, serving
 from tests.service.test_tenants import SECRET, client_for, make_key
 
@@ -87,7 +87,7 @@ def test_a_set_from_an_inference_is_stored_versioned_and_owned(
     # stored without expiry, under the owner's tag
     redis = stack.redis.client()
     tag = tenant_tag(SECRET, "acme")
-    assert redis.ttl(set_key(tag, set_id)) == -1 and set_id.encode() in redis.smembers(index_key(tag))
+    assert redis.ttl(SETS.record_key(tag, set_id)) == -1 and set_id.encode() in redis.smembers(SETS.index_key(tag))
 
 
 def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(

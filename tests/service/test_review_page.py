@@ -13,8 +13,8 @@ from typing import Any
 import httpx
 import pytest
 
-from precond.jobs.precondition_sets import set_key
 from precond.jobs.queue.keys import tenant_tag
+from precond.jobs.tenant_store import SETS
 from precond.stack import browser
 from precond.stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
 from precond_client.schemas.api import rule_status
@@ -138,7 +138,7 @@ def test_a_set_stored_before_summaries_is_listed_from_its_versions(
     made = _create(acme, inferred)
     _ok(acme.post(f"/precondition-sets/{made['id']}/versions", json={"edits": [
         {"op": "remove", "action": "SYSTEM.GOODBYE", "rule": made["preconditions"]["SYSTEM.GOODBYE"][0]}]}), 201)
-    stack.redis.client().hdel(set_key(tenant_tag(SECRET, "acme"), made["id"]), "created", "summary")
+    stack.redis.client().hdel(SETS.record_key(tenant_tag(SECRET, "acme"), made["id"]), "created", "summary")
     listed = {s["id"]: s for s in _ok(acme.get("/precondition-sets", params={"limit": 100}))["sets"]}
     old = listed[made["id"]]
     assert (old["created"], old["latest"]) == (made["created"], 2)

@@ -15,8 +15,9 @@ from precond.gateway.deps import Services, ServicesDep
 from precond.gateway.errors import ServiceError
 from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.routes.operations import ERRORS, Wait, answer
-from precond.jobs import policy_adapters
+from precond.jobs import policy_adapters, tenant_store
 from precond.jobs.queue.payloads import TrainPolicyJob
+from precond.jobs.tenant_store import POLICIES
 from precond_client.schemas.api import ErrorResponse
 from precond_client.schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
 
@@ -57,7 +58,7 @@ async def retrain_policy(adapter_id: AdapterId, body: TrainPolicyRequest, reques
     earlier versions stay as they were, and `adapter:<id>` names the new one once it is stored."""
     if policy_adapters.parse_reference(adapter_id) is None or "@" in adapter_id:
         raise not_found(adapter_id)
-    latest = await policy_adapters.latest(services.redis, caller.tag, adapter_id)
+    latest = await tenant_store.latest(services.redis, POLICIES, caller.tag, adapter_id)
     if latest is None:
         raise not_found(adapter_id)
     return await _train(services, request, caller, body, adapter_id, latest + 1, wait)
@@ -75,7 +76,7 @@ async def _train(services: Services, request: Request, caller: CurrentCaller, bo
     if version > settings.max_policy_versions:
         raise ServiceError(422, f"trained policy {adapter_id} has {settings.max_policy_versions} versions, the bound "
                            "(PRECOND_MAX_POLICY_VERSIONS)", "invalid_input")
-    if version == 1 and await services.redis.scard(policy_adapters.index_key(caller.tag)) >= \
+    if version == 1 and await tenant_store.count(services.redis, POLICIES, caller.tag) >= \
             settings.max_policies_per_tenant:
         raise ServiceError(422, f"you have {settings.max_policies_per_tenant} trained policies, the bound "
                            "(PRECOND_MAX_POLICIES_PER_TENANT): delete one first", "invalid_input")
@@ -109,6 +110,6 @@ async def delete_policy(adapter_id: AdapterId, services: ServicesDep, caller: Cu
     """Delete the policy and all its versions (their bytes go back to your bound). A next action that names it
     afterwards is a 404; one already running finishes with the version it loaded."""
     if policy_adapters.parse_reference(adapter_id) is None or "@" in adapter_id \
-            or not await policy_adapters.delete(services.redis, caller.tag, adapter_id):
+            or not await tenant_store.delete(services.redis, POLICIES, caller.tag, adapter_id):
         raise not_found(adapter_id)
     return Response(status_code=204)

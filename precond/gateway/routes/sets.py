@@ -74,7 +74,7 @@ async def create_set(body: PreconditionSetCreate, services: ServicesDep, caller:
     warnings = set_warnings(body.spec, rules, {}, report.warnings)
     version = version_of(set_id, 1, body.spec, rules, body.demonstrations, {}, {}, [], validation, warnings,
                          report)
-    stored = await services.sets.create(caller.tag, version)
+    stored = await services.sets.put(caller.tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
 
@@ -126,7 +126,7 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     known = {action: warning for action, warning in base.warnings.items() if action not in edited}
     version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
                          body.edits, validation, set_warnings(base.spec, rules, rejected, known), Report.of(base))
-    stored = await services.sets.append(tag, version)
+    stored = await services.sets.put(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
 

@@ -194,7 +194,7 @@ class Submission:
 
     queue: str
     job_id: str
-    tenant_tag: str
+    tenant: str
     job: bytes
     enqueued_ms: int
     waiter: str
@@ -206,8 +206,8 @@ async def submit(redis: Redis[bytes], job: Submission, max_jobs: int, tenant_max
     code = int(await _SUBMIT(
         redis,
         [job.queue, fair_key(job.queue), JOB_PREFIX + job.job_id, RESULT_PREFIX + job.job_id, ABORTS_KEY,
-         tenant_jobs_key(job.tenant_tag), waiters_key(job.job_id)],
-        [job.job_id, max_jobs, job.tenant_tag, FAIR_EPOCH_MS, STATE_TTL_S, job.job,
+         tenant_jobs_key(job.tenant), waiters_key(job.job_id)],
+        [job.job_id, max_jobs, job.tenant, FAIR_EPOCH_MS, STATE_TTL_S, job.job,
          int(JOB_EXPIRY.total_seconds() * 1000), wake_channel(job.queue), tenant_max_jobs, JOB_PREFIX,
          job.enqueued_ms / 1000, job.waiter, WAITERS_TTL_S],
     ))
