@@ -89,6 +89,23 @@ def read(spec: Spec, runs: Sequence[Counterexamples], demos: Sequence[str], acti
     return labelled
 
 
+def of_actions(spec: Spec, runs: Sequence[Counterexamples], demos: Sequence[str],
+               actions: Sequence[str]) -> list[Counterexamples]:
+    """The runs whose every labelled call is a call of one of `actions`: a re-inference of some actions learns
+    from the labels of those actions, and the stored labels of the others wait for theirs."""
+    kept = []
+    for run in runs:
+        text = demos[run.demonstration] if run.demonstration is not None and run.demonstration < len(demos) \
+            else str(run.program)
+        try:
+            for call in run.calls:
+                _action_on(spec, text.splitlines(), call.line, "", actions)
+        except InvalidInput:
+            continue
+        kept.append(run)
+    return kept
+
+
 def _action_on(spec: Spec, lines: Sequence[str], line: int, where: str, actions: Sequence[str]) -> str:
     if line > len(lines):
         raise InvalidInput(f"the run has {len(lines)} lines", field=where)

@@ -123,6 +123,34 @@ def rendered_calls(spec: str, calls: Sequence[str | Mapping[str, Any]], tag: str
         return checks.too_deep("calls").problem
 
 
+def labelled_run(spec: str, history: str | Sequence[Mapping[str, Any]], call: str | Mapping[str, Any], tag: str,
+                 max_chars: int) -> tuple[str, int, str] | checks.Problem:
+    """A judged call as a run of its own: the history's program (rendered and bounded as `/check-actions`
+    renders it) with the call as its last line, that line, and the action it calls; or why it cannot be one (a
+    history that does not parse, a call that is no call of one of the spec's actions). Parsed, never run."""
+    program = history if isinstance(history, str) else rendered(spec, history, tag, max_chars)
+    lines = rendered_calls(spec, [call], tag)
+    if isinstance(program, checks.Problem) or isinstance(lines, checks.Problem):
+        return program if isinstance(program, checks.Problem) else lines  # type: ignore[return-value]
+    try:
+        checks.check_check(spec, {}, program, lines, tag)
+        _, methods = checks.remembered_spec_methods(tag, spec)
+        receivers = checks.history_receivers(tag, checks.spec_classes(methods), program)
+    except checks.ProgramProblem as exc:
+        return checks.Problem(exc.problem.type, exc.problem.field.replace("calls[0]", "call"), exc.problem.message)
+    except RecursionError:
+        return checks.too_deep("history").problem
+    action = checks.called_action(methods, receivers, lines[0])
+    if action is None or not methods[action].stub:
+        return checks.Problem("invalid_input", "call", f"{lines[0][:200]!r} is not a call of one of the spec's "
+                              "actions on an object the history creates")
+    run = f"{program.rstrip()}\n{lines[0]}\n" if program.strip() else f"{lines[0]}\n"
+    if len(run) > max_chars:
+        return checks.Problem("invalid_input", "history", f"the history and the call make a program of "
+                              f"{len(run):,} characters, over {max_chars:,}")
+    return run, len(run.splitlines()), action
+
+
 CHECK_NICENESS = 10
 
 

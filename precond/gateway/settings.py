@@ -8,6 +8,7 @@ from pathlib import Path
 from pydantic import AliasChoices, Field
 
 from precond.jobs.settings import QueueSettings
+from precond_client.schemas.api import MAX_COUNTEREXAMPLE_RUNS
 
 
 class GatewaySettings(QueueSettings):
@@ -91,6 +92,11 @@ class GatewaySettings(QueueSettings):
     )
     max_set_versions: int = Field(
         default=50, ge=1, description="Versions one precondition set may have (422 above: create a new set)."
+    )
+    max_set_counterexamples: int = Field(
+        default=100, ge=1, le=MAX_COUNTEREXAMPLE_RUNS,
+        description="Labelled calls one precondition set may keep (POST /precondition-sets/{id}/counterexamples; "
+        "422 `sets_limited` above): every re-inference of the set judges each of them in the sandbox.",
     )
     max_set_bytes: int = Field(
         default=1_000_000, ge=1_000,

@@ -12,12 +12,13 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
-from precond.engine import reinference
+from precond.engine import counterexamples, reinference
 from precond.engine.engine import Engine
+from precond.engine.spec import parse_spec, resolve_actions
 from precond.jobs import precondition_sets as sets
 from precond.jobs import tenant_store
 from precond.jobs.queue.payloads import ReinferJob
-from precond_client.schemas.api import InferRequest, PreconditionSet, ValidateResponse
+from precond_client.schemas.api import Counterexamples, InferRequest, PreconditionSet, ValidateResponse
 from precond_client.schemas.errors import BlocksDemonstration, Conflict, InvalidInput, PrecondError, SetsLimited
 
 ProgressFn = Callable[[str, int, int], None]
@@ -46,6 +47,7 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
     base = job.base
     demos = sets.union(base.demonstrations, job.demonstrations)
     field = _fields(job, demos)
+    labelled: list[Counterexamples] = []
     try:
         required = {action: rules for action, rules in base.required.items() if rules}
         if required:
@@ -62,7 +64,11 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
                     field=where,
                 )
         options = job.options.model_copy(update={"candidates": "all"})  # the diff's reasons come from them
-        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=options)
+        spec = parse_spec(base.spec)
+        labelled = counterexamples.of_actions(spec, [*base.counterexamples, *job.counterexamples], demos,
+                                              resolve_actions(spec, job.actions))
+        request = InferRequest(spec=base.spec, demonstrations=demos, actions=job.actions, options=options,
+                               counterexamples=labelled)
         inferred = engine.infer(request, progress, cancelled)
         merged = reinference.merge(base, inferred.preconditions, inferred.candidates,
                                    len(demos) - len(base.demonstrations), job.actions)
@@ -76,7 +82,7 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         report = (engine.validate(base.spec, judged, demos)
                   if judged else ValidateResponse())
     except PrecondError as exc:
-        exc.field = field(exc.field)
+        exc.field = field(_counterexample_field(exc.field, base.counterexamples, job.counterexamples, labelled))
         raise
     blocked: dict[tuple[str, str], str] = {}
     for b in report.blocked:
@@ -94,11 +100,28 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
         id=base.id, version=number, latest=number, reference=f"{base.id}@{number}",
         created=datetime.now(UTC).isoformat(timespec="seconds"), spec=base.spec,
         preconditions=merged.preconditions, demonstrations=demos, required=base.required, rejected=base.rejected,
+        counterexamples=[*base.counterexamples, *job.counterexamples],
         edits=[], validation=validation,
         diff=reinference.explain_removed(merged, blocked),
         warnings=_warnings(job, merged.preconditions, inferred.warnings), evidence=evidence,
         candidates=candidates, decided=sets.decided(merged.preconditions, evidence, candidates),
     )
+
+
+_LABEL_FIELD = re.compile(r"^counterexamples\[(\d+)\]")
+
+
+def _counterexample_field(name: str | None, stored: list[Counterexamples], new: list[Counterexamples],
+                          sent: list[Counterexamples]) -> str | None:
+    """Field of the inference's counterexamples → the set's (`base.counterexamples[i]`) or this request's (the
+    new call: `call`)."""
+    match = _LABEL_FIELD.match(name or "")
+    if match is None or name is None:
+        return name
+    run = sent[int(match.group(1))]
+    if any(run is mine for mine in new):
+        return "call"
+    return f"base.counterexamples[{next(i for i, r in enumerate(stored) if r is run)}]" + name[match.end():]
 
 
 def _warnings(job: ReinferJob, rules: dict[str, list[str]], inferred: dict[str, str]) -> dict[str, str]:

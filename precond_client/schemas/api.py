@@ -892,6 +892,25 @@ class PreconditionSetReinfer(StrictBody):
                         "(the rule is kept; `validation` reports what it blocks).")
 
 
+class SetCounterexample(StrictBody):
+    """A judged call a reviewer labels: after this history, this call must be refused (or allowed)."""
+
+    history: History = Field(description=HISTORY_DESCRIPTION)
+    call: str | ToolCall = Field(description="The call, as `/check-actions` takes it.")
+    verdict: CallVerdictLabel = Field(description="'refuse': it should have been refused; 'allow': it should have "
+                                      "been allowed.")
+    actions: list[str] | None = Field(
+        default=None, max_length=256,
+        description="Actions (`Class.method`) to re-infer; default: the call's action alone. The rules of the "
+        "others stay as they are.",
+    )
+    options: InferOptions = Field(default_factory=InferOptions, description="How candidates are made and ranked.")
+    base_version: int | None = Field(
+        default=None, ge=1, description="The version the call was judged with; 409 when it is no longer the latest."
+    )
+    force: bool = Field(default=False, description="Store even when a demonstration breaks a required rule.")
+
+
 class RuleChange(StrictBody):
     action: str
     rule: str
@@ -940,6 +959,10 @@ class PreconditionSet(StrictBody):
         "versions): occurrences, holds, exceptions, confidence.")
     candidates: dict[str, list[CandidateReport]] = Field(
         default_factory=dict, description="The inference's candidates per action, kept or dropped, with why.")
+    counterexamples: list[Counterexamples] = Field(
+        default_factory=list, description="The calls reviewers labelled (`POST /precondition-sets/{id}/"
+        "counterexamples`), each a run of its history and the call: every re-inference learns with them, and a "
+        "rule's `evidence[...].refuses` names those it refuses.")
     decided: dict[str, dict[str, str]] = Field(
         default_factory=dict, description="How each rule of this version was decided: 'established' (the "
         "demonstrations back it), 'assumed' (held at fewer than 3 demonstrated calls, or judged a requirement by "

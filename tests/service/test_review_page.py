@@ -18,6 +18,9 @@ from precond.jobs.tenant_store import SETS
 from precond.stack import browser
 from precond.stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
 from precond_client.schemas.api import rule_status
+from tests.engine.test_counterexamples import CANCEL
+from tests.engine.test_counterexamples import DEMOS as AIRLINE
+from tests.engine.test_counterexamples import run as airline_run
 from tests.service import test_precondition_sets as sets_tests
 from tests.service.test_tenants import SECRET, client_for
 
@@ -36,7 +39,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path,
           keys: tuple[Path, dict[str, str]]) -> Iterator[Stack]:
     stack = make_stack(tmp_path_factory.mktemp("ui"), tiny_model_dir, PRECOND_API_KEYS_FILE=str(keys[0]),
                        PRECOND_TENANT_RATE_PER_S="1000", PRECOND_TENANT_BURST="1000",
-                       PRECOND_MAX_BODY_BYTES=str(4 * 1024 * 1024))
+                       PRECOND_MAX_BODY_BYTES=str(4 * 1024 * 1024), PRECOND_MAX_SET_COUNTEREXAMPLES="1")
     with serving(stack, workers=1):
         yield stack
 
@@ -288,6 +291,48 @@ def test_the_try_it_panel_refuses_a_call_the_rules_refuse(
     second.locator("[name=act]").fill("SHOUT")
     page.locator("#try-check").click()
     expect(page.locator("#try-error")).to_contain_text("SHOUT")
+
+
+@needs_browser
+def test_a_judged_call_that_should_have_been_refused_is_learned_from_by_a_click(
+    page: Page, stack: Stack, acme: httpx.Client, keys: tuple[Path, dict[str, str]]
+) -> None:
+    """"this should have been refused" on an allowed call: the set's next version refuses it, its rule names it on
+    the page, and the set's bound of counterexamples (1 on this stack) is a 422 naming the setting."""
+    demos = [t.program for i, t in enumerate(AIRLINE.trajectories) if i != 2]  # no basic economy demonstrated
+    inferred = _ok(acme.post("/infer-preconditions", params={"wait": 120}, json={
+        "spec": AIRLINE.spec, "demonstrations": demos, "actions": [CANCEL],
+        "options": {"generators": ["enumerate"]}}))
+    made = _ok(acme.post("/precondition-sets", json={
+        "spec": AIRLINE.spec, "preconditions": inferred["preconditions"], "demonstrations": demos,
+        "evidence": inferred["evidence"], "candidates": inferred["candidates"]}), 201)
+    _open(page, stack, f"/ui/sets/{made['id']}", keys[1]["acme"])
+    page.locator("#try-json").fill(json.dumps(airline_run("F6", "economy", "no")[:3]))
+    call = "agent.cancel_reservation('F6')"
+    page.locator("#try-calls").fill(call)
+    page.locator("#try-check").click()
+    allowed = page.locator(f"#try-results .verdict[data-call=\"{call}\"]")
+    expect(allowed).to_have_class("verdict allowed")
+    allowed.locator("button.counterexample").click()
+    page.wait_for_url(f"**/ui/sets/{made['id']}@2")
+    latest = _ok(acme.get(f"/precondition-sets/{made['id']}"))
+    name = f"review 1: {call}"
+    assert latest["version"] == 2 and latest["counterexamples"][0]["calls"][0] == {
+        "line": 6, "verdict": "refuse", "name": name}
+    refusing = [rule for rule, e in latest["evidence"][CANCEL].items() if name in e["refuses"]]
+    assert refusing and set(refusing) <= set(latest["preconditions"][CANCEL])
+    expect(_rule(page, CANCEL, refusing[0]).locator(".refuses")).to_contain_text(name)
+    page.locator("#try-json").fill(json.dumps(airline_run("F6", "economy", "no")[:3]))
+    page.locator("#try-calls").fill(call)
+    page.locator("#try-check").click()
+    refused = page.locator(f"#try-results .verdict[data-call=\"{call}\"]")
+    expect(refused).to_have_class("verdict refused")
+    expect(refused.locator("button.counterexample")).to_have_text("this should have been allowed")
+    over = acme.post(f"/precondition-sets/{made['id']}/counterexamples", json={
+        "history": airline_run("H8", "business", "no")[:3], "call": "agent.cancel_reservation('H8')",
+        "verdict": "allow"})
+    assert over.status_code == 422 and over.json()["error"]["type"] == "sets_limited", over.text
+    assert "PRECOND_MAX_SET_COUNTEREXAMPLES" in over.json()["error"]["message"]
 
 
 @needs_browser

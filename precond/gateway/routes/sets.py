@@ -3,6 +3,7 @@ by a worker: the gateway never runs code). Another tenant's set is a 404, word f
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query, Request
@@ -22,13 +23,18 @@ from precond.jobs.queue.payloads import ReinferJob, ValidateRequest
 from precond.programs import checks
 from precond_client.schemas.api import (
     MAX_DEMONSTRATIONS,
+    MAX_SOURCE_CHARS,
+    MAX_SOURCE_NAME_CHARS,
+    Counterexamples,
     ErrorInfo,
     ErrorResponse,
+    LabelledCall,
     PreconditionSet,
     PreconditionSetCreate,
     PreconditionSetEdit,
     PreconditionSetList,
     PreconditionSetReinfer,
+    SetCounterexample,
     ValidateResponse,
 )
 
@@ -125,7 +131,8 @@ async def edit_set(set_id: SetId, body: PreconditionSetEdit, services: ServicesD
     edited = {edit.action for edit in body.edits}
     known = {action: warning for action, warning in base.warnings.items() if action not in edited}
     version = version_of(set_id, base.latest + 1, base.spec, rules, base.demonstrations, required, rejected,
-                         body.edits, validation, set_warnings(base.spec, rules, rejected, known), Report.of(base))
+                         body.edits, validation, set_warnings(base.spec, rules, rejected, known), Report.of(base)
+                         ).model_copy(update={"counterexamples": base.counterexamples})
     stored = await services.sets.put(tag, version)
     return JSONResponse(stored.model_dump(mode="json"), status_code=201)
 
@@ -167,6 +174,46 @@ async def reinfer_set(set_id: SetId, body: PreconditionSetReinfer, request: Requ
         field = problem.field if problem.field.startswith(("actions", "demonstrations[")) else "demonstrations"
         raise ServiceError(422, problem.message, problem.type, field=field)
     job = ReinferJob(base=base, demonstrations=body.demonstrations, actions=body.actions, options=options,
+                     force=body.force,
+                     max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
+                     max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
+    return await answer(services, request, caller, "reinfer", job, wait)
+
+
+@router.post("/{set_id}/counterexamples", response_model=PreconditionSet, responses=REINFER_RESPONSES)
+async def add_counterexample(set_id: SetId, body: SetCounterexample, request: Request, services: ServicesDep,
+                             caller: CurrentCaller, wait: Wait = None) -> Response:
+    """A judged call that should have been refused (or allowed), kept with the set: its history and call become a
+    run of their own (rendered and checked as `/check-actions` does, never run here), and the set is re-inferred
+    for the call's action (a job, as `/reinfer`) with every counterexample the set keeps and this one. The new
+    version stores them all, and each rule's `evidence[...].refuses` names the ones it refuses. At most
+    PRECOND_MAX_SET_COUNTEREXAMPLES per set (422 `sets_limited`)."""
+    tag, limit = caller.tag, services.settings.max_set_counterexamples
+    base = await _latest(services, tag, set_id, body.base_version)
+    if len(base.counterexamples) >= limit:
+        raise ServiceError(422, f"precondition set {set_id} keeps {len(base.counterexamples)} counterexamples, the "
+                           f"bound of {limit} (PRECOND_MAX_SET_COUNTEREXAMPLES): create a new set from its latest "
+                           "version", "sets_limited", field="call")
+    sent = body.model_dump(include={"history", "call"})  # events, messages and tool calls as plain data
+    chars = offload.rendering_chars(base.spec, len(json.dumps(sent, default=str)))
+    made = await services.checks.run(tag, chars, offload.labelled_run, base.spec, sent["history"], sent["call"], tag,
+                                     MAX_SOURCE_CHARS)
+    if isinstance(made, checks.Problem):
+        raise ServiceError(422, made.message, made.type, field=made.field)
+    program, line, action = made
+    name = f"review {len(base.counterexamples) + 1}: {program.splitlines()[-1].strip()}"[:MAX_SOURCE_NAME_CHARS]
+    labelled = Counterexamples(program=program, calls=[LabelledCall(line=line, verdict=body.verdict, name=name)])
+    actions = body.actions or [action]
+    options = await with_prior_sets(services, tag, body.options) if body.options.prior_sets else body.options
+    chars = len(base.spec) + sum(map(len, base.demonstrations)) + len(program) + sum(
+        len(run.program or "") for run in base.counterexamples)
+    services.sets.refuse_oversized(chars)
+    problem = await services.checks.run(tag, chars, offload.problem_of, checks.check_reinfer, base.spec, [],
+                                        base.demonstrations, actions, services.settings.max_work_points)
+    if problem is not None:
+        raise ServiceError(422, problem.message, problem.type, field="actions" if problem.field.startswith(
+            "actions") else f"base.{problem.field}")
+    job = ReinferJob(base=base, demonstrations=[], counterexamples=[labelled], actions=actions, options=options,
                      force=body.force,
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
                      max_tenant_bytes=services.settings.max_set_bytes_per_tenant)

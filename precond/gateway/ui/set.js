@@ -87,7 +87,7 @@ function render(set, navigate) {
           h("ul", { class: "rules" }, without.map((a) => h("li", { class: "rule", dataset: { action: a } },
             h("div", { class: "rule-head" }, h("code", {}, a)), h("p", { class: "reason" }, whyNoRule(set, a)),
             rejectedList(set, a), dropped(set, a, editable, edit), addForm(a, editable, edit))))) : null),
-      h("aside", {}, tryPanel(set), historyPanel(set, navigate))));
+      h("aside", {}, tryPanel(set, navigate), historyPanel(set, navigate))));
 }
 
 function versionPicker(set, navigate) {
@@ -135,6 +135,11 @@ function ruleItem(set, action, rule, editable, edit) {
     report && report.reason ? h("p", { class: "reason" }, report.kept ? "" : "The learner dropped it: ",
       report.reason) : null,
     evidenceLine(evidence),
+    evidence && (evidence.refuses || []).length ? h("p", { class: "refuses" }, "refuses the counterexamples: ",
+      evidence.refuses.map((name, i) => [i ? ", " : "", h("code", {}, name)])) : null,
+    evidence && (evidence.refuses_allowed || []).length ? h("p", { class: "refuses-allowed bad" },
+      "refuses calls labelled allowed: ", evidence.refuses_allowed.map((name, i) => [i ? ", " : "",
+        h("code", {}, name)])) : null,
     evidence ? evidence.exceptions.map((e) => exceptionCode(set, e, "exception")) : null,
     blocked.map((b) => exceptionCode(set, b, "would refuse")),
     slot);

@@ -1,11 +1,13 @@
 // Try a version: an event history (actor, act, args; typed row by row, or pasted as JSON: events or an agent's
 // OpenAI messages) and a few calls, judged by /check-actions with this version's rules. Arguments stay literals:
-// a word is a string, JSON scalars (2, true, null, "a, b") are values.
+// a word is a string, JSON scalars (2, true, null, "a, b") are values. A judged call the reviewer disagrees with
+// ("this should have been refused", or allowed) becomes a counterexample of the set: the API re-infers the call's
+// action with it, and the page opens the new version.
 
-import { api, follow } from "./api.js";
+import { api, follow, setPath } from "./api.js";
 import { clear, errorBox, h } from "./dom.js";
 
-export function tryPanel(set) {
+export function tryPanel(set, navigate) {
   const { actors, acts } = vocabulary(set.spec);
   const events = h("div", { class: "events", id: "try-events" });
   const pasted = h("textarea", { id: "try-json", "aria-label": "history as JSON",
@@ -26,9 +28,10 @@ export function tryPanel(set) {
         calls: calls.value.split("\n").map((c) => c.trim()).filter(Boolean) };
       if (!body.calls.length) throw new Error("write at least one call");
       const verdicts = await follow(await api("POST", "/check-actions?wait=10", body));
+      const label = (result) => counterexampleButton(set, body.history, result, error, navigate);
       clear(results, [verdicts.history_violation
         ? h("p", { class: "banner bad", id: "try-history-violation" }, `The history already broke a rule: `
-          + verdicts.history_violation) : null, ...verdicts.results.map(verdict)]);
+          + verdicts.history_violation) : null, ...verdicts.results.map((r) => verdict(r, label(r)))]);
     } catch (problem) {
       errorBox(error, problem);
     }
@@ -96,7 +99,32 @@ const STATUS_WORDS = {
   given: "its rule was given, not learned",
 };
 
-function verdict(result) {
+/** "This should have been refused" on an allowed call of an action (or "allowed" on a refused one): records the
+ * history and the call as a counterexample (`POST /precondition-sets/{id}/counterexamples`, a re-inference job
+ * of the call's action) and opens the version it makes. Only on the latest version: the API says 409 otherwise. */
+function counterexampleButton(set, history, result, error, navigate) {
+  if (!result.action || set.version !== set.latest) return null;
+  const wanted = result.allowed ? "refuse" : "allow";
+  const button = h("button", { type: "button", class: "counterexample", dataset: { verdict: wanted } },
+    result.allowed ? "this should have been refused" : "this should have been allowed");
+  button.onclick = async () => {
+    button.disabled = true;
+    button.textContent = "re-inferring…";
+    error.hidden = true;
+    try {
+      const made = await follow(await api("POST", `${setPath(set.id)}/counterexamples?wait=60`,
+        { history, call: result.call, verdict: wanted, base_version: set.version }));
+      navigate(`/ui/sets/${made.reference}`);
+    } catch (problem) {
+      button.disabled = false;
+      button.textContent = result.allowed ? "this should have been refused" : "this should have been allowed";
+      errorBox(error, problem);
+    }
+  };
+  return h("div", {}, button);
+}
+
+function verdict(result, label) {
   const allowed = result.allowed;
   const status = result.rule_status;
   return h("div", { class: `verdict ${allowed ? "allowed" : "refused"}`,
@@ -106,7 +134,7 @@ function verdict(result) {
       h("div", { class: "status" }, STATUS_WORDS[status] || status)] : null,
     result.violations.length ? h("div", {}, "violates: ", result.violations.map((v, i) => [i ? ", " : "",
       h("code", {}, v)])) : null,
-    result.error ? h("div", {}, result.error) : null);
+    result.error ? h("div", {}, result.error) : null, label);
 }
 
 /** Suggestions only (the API judges every event): the spec's classes as actors and its methods as acts. */

@@ -18,10 +18,12 @@ from pydantic import Field
 from precond.jobs.queue.keys import JOB_FUNCTION
 from precond_client.schemas.api import (
     ADAPTER_ID_PATTERN,
+    MAX_COUNTEREXAMPLE_RUNS,
     MAX_DEMONSTRATIONS,
     MAX_SOURCE_CHARS,
     PRECONDITIONS_DESCRIPTION,
     SPEC_DESCRIPTION,
+    Counterexamples,
     InferOptions,
     JobKind,
     Preconditions,
@@ -46,7 +48,10 @@ class ReinferJob(StrictBody):
     (the gateway resolved the base; the worker appends only if it is still the latest)."""
 
     base: PreconditionSet
-    demonstrations: list[str] = Field(min_length=1, max_length=MAX_DEMONSTRATIONS)
+    demonstrations: list[str] = Field(max_length=MAX_DEMONSTRATIONS)
+    counterexamples: list[Counterexamples] = Field(
+        default_factory=list, max_length=MAX_COUNTEREXAMPLE_RUNS,
+        description="New labelled calls, stored with the version after the base's (which the inference also uses).")
     actions: list[str] | None = None
     options: InferOptions = Field(default_factory=InferOptions)
     force: bool = False
