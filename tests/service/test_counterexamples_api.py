@@ -84,4 +84,9 @@ def test_a_reviewed_call_is_kept_with_the_set_and_its_next_version_refuses_it_na
                              json={"history": history, "call": call, "verdict": "refuse"} | bad)
         assert answer.status_code == 422, answer.text
         assert answer.json()["error"]["field"].startswith(field), answer.text
+    for verdict, said in (("refuse", "already labelled"), ("allow", "the other way ('refuse')")):
+        answer = client.post(f"/precondition-sets/{made['id']}/counterexamples",
+                             json={"history": history, "call": call, "verdict": verdict})
+        assert answer.status_code == 422 and answer.json()["error"]["field"] == "call", answer.text
+        assert said in answer.json()["error"]["message"] and name in answer.json()["error"]["message"]
     assert _ok(client.get(f"/precondition-sets/{made['id']}"))["latest"] == 3  # nothing stored by a refusal

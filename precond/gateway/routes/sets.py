@@ -201,6 +201,7 @@ async def add_counterexample(set_id: SetId, body: SetCounterexample, request: Re
     if isinstance(made, checks.Problem):
         raise ServiceError(422, made.message, made.type, field=made.field)
     program, line, action = made
+    _refuse_labelled_already(base.counterexamples, program, line, body.verdict)
     name = f"review {len(base.counterexamples) + 1}: {program.splitlines()[-1].strip()}"[:MAX_SOURCE_NAME_CHARS]
     labelled = Counterexamples(program=program, calls=[LabelledCall(line=line, verdict=body.verdict, name=name)])
     actions = body.actions or [action]
@@ -218,6 +219,19 @@ async def add_counterexample(set_id: SetId, body: SetCounterexample, request: Re
                      max_versions=services.settings.max_set_versions, max_bytes=services.settings.max_set_bytes,
                      max_tenant_bytes=services.settings.max_set_bytes_per_tenant)
     return await answer(services, request, caller, "reinfer", job, wait)
+
+
+def _refuse_labelled_already(kept: list[Counterexamples], program: str, line: int, verdict: str) -> None:
+    """One history and call is labelled once: again the same way adds nothing, the other way contradicts the
+    set's label (the inference would refuse both); 422 naming the stored one either way."""
+    lines = program.splitlines()
+    for i, run in enumerate(kept):
+        mine = (run.program or "").splitlines()
+        for call in run.calls:
+            if call.line == line and mine[:line] == lines[:line]:
+                how = "already" if call.verdict == verdict else f"the other way ({call.verdict!r}): it is"
+                raise ServiceError(422, f"this history and call are {how} labelled as base.counterexamples[{i}] "
+                                   f"({call.name})", "invalid_input", field="call")
 
 
 async def _latest(services: Services, tag: str, set_id: str, base_version: int | None) -> PreconditionSet:
