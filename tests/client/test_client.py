@@ -7,7 +7,6 @@ import asyncio
 import json
 import subprocess
 import sys
-import time
 
 import pytest
 
@@ -135,11 +134,12 @@ def _model_request(seed: int) -> InferRequest:
 
 
 def _empty_bucket(keyed: KeyedStack, tenant: str) -> None:
-    """No token now, and the next one a second after the gateway's first refusal (which resets the clock)."""
+    """No token for the next two seconds, then one a second: the bucket stamped a second ahead of Redis's own clock
+    (the bucket's clock, which never goes back, so a stamp an hour ahead would refuse for an hour)."""
     tag = tenant_tag(SECRET.encode(), tenant)
-    keyed.stack.redis.client().hset(
-        f"precond:tenant:{tag}:rate", mapping={"tokens": 0, "at": time.time() + 3600}
-    )
+    redis = keyed.stack.redis.client()
+    seconds, micros = redis.time()
+    redis.hset(f"precond:tenant:{tag}:rate", mapping={"tokens": 0, "at": seconds + micros / 1e6 + 1})
 
 
 def test_a_429_is_retried_after_its_retry_after(keyed: KeyedStack) -> None:
