@@ -10,6 +10,7 @@ Request bodies are the ones in examples/ (SGD Restaurants_1: its spec program an
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import copy
 import json
@@ -19,7 +20,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ from typing import Any
 
 import httpx
 import redis
+from redis.asyncio import Redis as AsyncRedis
 
 from precond.gateway.server import gateway_args
 
@@ -123,6 +125,18 @@ class RedisServer:
 
     def client(self) -> redis.Redis[bytes]:
         return redis.Redis(port=self.port, password=self.password, socket_timeout=2)
+
+    def run(self, scenario: Callable[[AsyncRedis[bytes]], Awaitable[None]]) -> None:
+        """Runs an async scenario with a client of this server, closed after it whatever happens: the queue's
+        and the stores' tests speak to Redis as the gateway and the worker do, through redis-py's asyncio client."""
+        async def main() -> None:
+            client: AsyncRedis[bytes] = AsyncRedis(port=self.port, password=self.password)
+            try:
+                await scenario(client)
+            finally:
+                await client.aclose()  # type: ignore[attr-defined]
+
+        asyncio.run(main())
 
     def argv(self, persistence: list[str]) -> list[str]:
         argv = ["/usr/bin/redis-server", "--port", str(self.port), "--bind", "127.0.0.1",

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Awaitable, Callable
 
 from arq.constants import in_progress_key_prefix, result_key_prefix
 from redis.asyncio import Redis
@@ -33,16 +32,6 @@ async def claim(redis: Redis[bytes], worker: Heartbeat, ttl_s: float, job: str, 
     await redis.hset(RUNNING_KEY, job, token)
 
 
-def run(redis_server: RedisServer, scenario: Callable[[Redis[bytes]], Awaitable[None]]) -> None:
-    async def main() -> None:
-        redis: Redis[bytes] = Redis.from_url(redis_server.url)
-        try:
-            await scenario(redis)
-        finally:
-            await redis.aclose()  # type: ignore[attr-defined]
-
-    asyncio.run(main())
-
 
 def test_a_dead_workers_unfinished_job_goes_back_and_a_live_workers_stays(redis_server: RedisServer) -> None:
     async def scenario(redis: Redis[bytes]) -> None:
@@ -62,7 +51,7 @@ def test_a_dead_workers_unfinished_job_goes_back_and_a_live_workers_stays(redis_
         assert await redis.exists(in_progress_key_prefix + "live-job")
         assert set(await redis.hkeys(RUNNING_KEY)) == {b"live-job"}  # the finished job's claim is dropped too
 
-    run(redis_server, scenario)
+    redis_server.run(scenario)
 
 
 def test_runs_a_worker_dropped_go_back_at_once_and_lost_claims_are_written_again(redis_server: RedisServer) -> None:
@@ -81,7 +70,7 @@ def test_runs_a_worker_dropped_go_back_at_once_and_lost_claims_are_written_again
         assert await redis.hget(RUNNING_KEY, "running") == running.encode()
         assert await redis.exists(worker_key("w"))
 
-    run(redis_server, scenario)
+    redis_server.run(scenario)
 
 
 def test_a_job_started_and_never_claimed_goes_back_a_lease_later(redis_server: RedisServer) -> None:
@@ -95,4 +84,4 @@ def test_a_job_started_and_never_claimed_goes_back_a_lease_later(redis_server: R
         assert not await redis.exists(in_progress_key_prefix + "orphan")
         assert not await redis.hexists(UNCLAIMED_KEY, "orphan")
 
-    run(redis_server, scenario)
+    redis_server.run(scenario)

@@ -124,14 +124,7 @@ def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server
         assert info is not None and info.success and info.job_try == 2
         await notices.aclose()  # type: ignore[attr-defined]
 
-    async def main() -> None:
-        redis: Redis[bytes] = Redis.from_url(redis_server.url)
-        try:
-            await scenario(redis)
-        finally:
-            await redis.aclose()  # type: ignore[attr-defined]
-
-    asyncio.run(main())
+    redis_server.run(scenario)
 
 
 async def next_notice(notices: Any) -> tuple[str, bytes | None, bytes | None]:
@@ -158,11 +151,4 @@ def test_the_take_skips_a_tenant_by_its_tag_whatever_the_kind(redis_server: Redi
         assert taken is not None and taken.id == ids[2]
         assert keys.JobId.parse(ids[0]).tenant == busy
 
-    async def main() -> None:
-        redis: Redis[bytes] = Redis.from_url(redis_server.url)
-        try:
-            await scenario(redis)
-        finally:
-            await redis.aclose()  # type: ignore[attr-defined]
-
-    asyncio.run(main())
+    redis_server.run(scenario)

@@ -5,9 +5,6 @@ nothing."""
 
 from __future__ import annotations
 
-import asyncio
-from collections.abc import Awaitable, Callable
-
 from redis.asyncio import Redis
 
 from precond.jobs import tenant_store as store
@@ -16,16 +13,6 @@ from precond.stack.local import RedisServer
 
 BOUNDS = Bounds(records=2, versions=3, tenant_bytes=100)
 
-
-def run(redis_server: RedisServer, scenario: Callable[[Redis[bytes]], Awaitable[None]]) -> None:
-    async def main() -> None:
-        redis: Redis[bytes] = Redis.from_url(redis_server.url)
-        try:
-            await scenario(redis)
-        finally:
-            await redis.aclose()  # type: ignore[attr-defined]
-
-    asyncio.run(main())
 
 
 def test_versions_are_stored_in_order_within_the_bounds(redis_server: RedisServer) -> None:
@@ -47,7 +34,7 @@ def test_versions_are_stored_in_order_within_the_bounds(redis_server: RedisServe
         assert await store.latest(redis, SETS, "other", "a") is None and await store.ids(redis, SETS, "other") == []
         assert await store.put(redis, SETS, "u", "c", 1, "c" * 1000, Bounds(1, 1, 0)) == 1  # 0: no byte bound
 
-    run(redis_server, scenario)
+    redis_server.run(scenario)
 
 
 def test_a_retried_job_finds_its_version_and_delete_gives_the_bytes_back(redis_server: RedisServer) -> None:
@@ -65,4 +52,4 @@ def test_a_retried_job_finds_its_version_and_delete_gives_the_bytes_back(redis_s
         assert not await store.delete(redis, POLICIES, "t", "p")
         assert await store.used_bytes(redis, POLICIES, "t") == 0 and await store.count(redis, POLICIES, "t") == 0
 
-    run(redis_server, scenario)
+    redis_server.run(scenario)
