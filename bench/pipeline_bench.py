@@ -9,7 +9,7 @@ backend (a second backend would be worth its upkeep only if it won by a wide mar
 
 Each configuration runs in a fresh process, one after another; take timings with nothing else running.
 
-    PYTHONPATH=. python bench/pipeline_bench.py [--domain Restaurants_1] [--turns 20] [--threads 2] [--json f]
+    python bench/pipeline_bench.py [--domain Restaurants_1] [--turns 20] [--threads 2] [--json f]
 """
 
 from __future__ import annotations
@@ -21,18 +21,22 @@ import logging
 import os
 import resource
 import statistics
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from precond.engine.engine import Engine
-from precond.engine.models.stopping import StopRule, stop_index
-from precond.engine.settings import ModelSettings, SandboxSettings
-from precond.evaluation.report import cpu_model
-from precond.evaluation.settings import data_path
-from precond_client.schemas.api import InferRequest, ModelInfo, NextActionRequest
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # `bench.model_bench` when run as `python bench/pipeline_bench.py`
+
+from precond.engine.engine import Engine  # noqa: E402
+from precond.engine.models.stopping import StopRule, stop_index  # noqa: E402
+from precond.engine.settings import ModelSettings, SandboxSettings  # noqa: E402
+from precond.evaluation.report import cpu_model  # noqa: E402
+from precond.evaluation.settings import data_path  # noqa: E402
+from precond_client.schemas.api import InferRequest, ModelInfo, NextActionRequest  # noqa: E402
 
 logger = logging.getLogger("pipeline_bench")
 
