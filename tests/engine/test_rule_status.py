@@ -21,31 +21,8 @@ from precond_client.schemas.api import (
     PriorSource,
     rule_status,
 )
+from tests.engine.test_cautious import CARD_SPEC as SPEC  # the card-blocking domain of the cautious tests
 
-SPEC = """from collections import defaultdict
-class USER:
-  def __init__(self):
-    self.intent = defaultdict(lambda: False)
-    self.informed = defaultdict(lambda: False)
-    self.affirmed = False
-  def INFORM_INTENT(self, intent): self.intent[intent] = True
-  def INFORM(self, slot): self.informed[slot] = True
-  def AFFIRM(self): self.affirmed = True
-
-class SYSTEM:
-  def __init__(self, user):
-    self.user = user
-    self.identity_verified = False
-    self.blocked = None
-  def REQUEST(self, slot): pass
-  def VERIFY_IDENTITY(self): pass
-  def CONFIRM(self): pass
-  def BLOCK_CARD(self): pass
-  def NOTIFY(self): pass
-  def REPORT_FRAUD(self): pass
-  def identity_result(self, ok): self.identity_verified = ok
-  def block_result(self, ok): self.blocked = ok
-"""
 DEMOS = ["\n".join([
     "user = USER()", "system = SYSTEM(user)", "user.INFORM_INTENT('block_card')",
     f"system.REQUEST({first!r})", f"user.INFORM({first!r})", f"system.REQUEST({second!r})",
