@@ -28,6 +28,8 @@ from precond_client.schemas.api import (
     NextActionRequest,
     PredictedAction,
     Rejection,
+    RuleStatus,
+    rule_status,
 )
 from precond_client.schemas.errors import Cancelled, InvalidInput
 
@@ -124,7 +126,7 @@ class NextActionPlanner:
             predicted = one(history, step)
             if predicted is None:
                 break
-            out.append(predicted.model_copy(update={"thoughts": thoughts}))
+            out.append(self._stated(predicted).model_copy(update={"thoughts": thoughts}))
             if predicted.call is None:
                 break  # no action to continue the turn from
             history = append_line(history, predicted.call)
@@ -161,6 +163,17 @@ class NextActionPlanner:
             self.options.preconditions_in_prompt,
         )
 
+    def _stated(self, predicted: PredictedAction) -> PredictedAction:
+        """The prediction with what the rule of each judged call's action rests on (`rule_status`): a call
+        allowed because nothing is known about its action says so, as a verdict of `check-actions` does."""
+        rejected = [r.model_copy(update={"rule_status": self._status(r.action)}) for r in predicted.rejected]
+        return predicted.model_copy(update={"rule_status": self._status(predicted.action), "rejected": rejected})
+
+    def _status(self, action: str | None) -> RuleStatus | None:
+        if action is None:
+            return None
+        return rule_status(self.request.preconditions.get(action, []), self.request.decided.get(action, {}))
+
     def _held(self, action: str | None, verdict: CallVerdict) -> list[str]:
         """The action's rules that hold: all but the violated ones, none when the call could not be judged."""
         if action is None or verdict.error is not None:
@@ -195,7 +208,7 @@ class NextActionPlanner:
                 return PredictedAction(call=None, verified=False, attempts=1, reason=NO_ACTION,
                                        rejected=[Rejection(call=greedy.text, reason=greedy.reason)])
             verdicts = self._check(history, [greedy.call])
-            return PredictedAction(call=greedy.call, verified=verdicts[0].allowed, attempts=1,
+            return PredictedAction(call=greedy.call, action=greedy.action, verified=verdicts[0].allowed, attempts=1,
                                    held=self._held(greedy.action, verdicts[0]),
                                    allowed=self._allowed_of(history))
         verdicts = self._verdicts(history, tried)
@@ -208,11 +221,14 @@ class NextActionPlanner:
         rejected: list[Rejection] = []
         for attempt, (prediction, verdict) in enumerate(zip(tried, verdicts, strict=True), start=1):
             if verdict.allowed and prediction.call is not None:
-                return PredictedAction(call=prediction.call, verified=True, attempts=attempt, rejected=rejected,
+                return PredictedAction(call=prediction.call, action=prediction.action, verified=True,
+                                       attempts=attempt, rejected=rejected,
                                        held=self._held(prediction.action, verdict), allowed=allowed)
-            rejected.append(_rejection(prediction.call or prediction.text, verdict, prediction.reason))
+            rejected.append(_rejection(prediction.call or prediction.text, verdict, prediction.reason,
+                                       prediction.action))
         if self.options.fallback == "greedy" and greedy.call is not None:
-            return PredictedAction(call=greedy.call, verified=False, attempts=len(tried), rejected=rejected,
+            return PredictedAction(call=greedy.call, action=greedy.action, verified=False, attempts=len(tried),
+                                   rejected=rejected,
                                    held=self._held(greedy.action, verdicts[0]), allowed=allowed,
                                    reason="fallback: the greedy call, which does not satisfy the preconditions")
         return PredictedAction(call=None, verified=False, attempts=len(tried), rejected=rejected, allowed=allowed,
@@ -237,7 +253,7 @@ class NextActionPlanner:
         candidates = self._candidates(history)
         verdicts = self._check(history, candidates.calls)
         allowed = [v.call for v in verdicts if v.allowed]
-        rejected = [_rejection(v.call, v, None) for v in verdicts if not v.allowed]
+        rejected = [_rejection(v.call, v, None, candidates.action[v.call]) for v in verdicts if not v.allowed]
         cut = (f"; argument values were cut to {constrained.MAX_PER_ACTION} calls per action, "
                f"{constrained.MAX_ENUMERATED} in all" if candidates.truncated else "")
         if not allowed:
@@ -254,7 +270,7 @@ class NextActionPlanner:
             return None  # handing the turn back is likelier than any allowed action
         verdict = next(v for v in verdicts if v.call == chosen)
         return PredictedAction(
-            call=chosen, verified=True, attempts=len(verdicts), rejected=rejected,
+            call=chosen, action=candidates.action[chosen], verified=True, attempts=len(verdicts), rejected=rejected,
             held=self._held(candidates.action[chosen], verdict),
             allowed=[AllowedCall(call=c, score=scores.get(c)) for c in allowed]
             if self.options.return_allowed else None,
@@ -316,6 +332,6 @@ class NextActionPlanner:
         return next(c for c in calls if list(candidates.args[c]) == chosen), full, False
 
 
-def _rejection(call: str, verdict: CallVerdict, reason: str | None) -> Rejection:
-    return Rejection(call=call, violations=verdict.violations,
+def _rejection(call: str, verdict: CallVerdict, reason: str | None, action: str | None) -> Rejection:
+    return Rejection(call=call, action=action, violations=verdict.violations,
                      reason=verdict.error or reason or "violates the preconditions")

@@ -615,10 +615,59 @@ class NextActionOptions(StrictBody):
         return self
 
 
+Decisions = Annotated[
+    dict[
+        Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)],
+        Annotated[dict[Assertion, Annotated[str, StringConstraints(max_length=20)]],
+                  Field(max_length=MAX_ASSERTIONS_PER_ACTION)],
+    ],
+    Field(max_length=MAX_ACTIONS),
+]
+
+
+DECIDED_DESCRIPTION = (
+    "How each rule was decided (action -> rule -> 'established' / 'assumed' / 'zero-shot' / 'unseen' / "
+    "'transferred'; an inference's `evidence[action][rule].decided`), named again in the verdicts of the rules "
+    "that refuse a call and read into every verdict's `rule_status`. A stored set fills it from its inference's "
+    "report; a rule it does not label is 'given'."
+)
+
+
+RuleStatus = Literal["established", "assumed", "transferred", "zero-shot", "missing", "given"]
+STATUS_OF_DECIDED: dict[str, RuleStatus] = {
+    "established": "established", "assumed": "assumed", "transferred": "transferred", "zero-shot": "zero-shot",
+    "unseen": "missing",
+}
+"""An inference's `decided` label as the status of the action it belongs to; any other label ('no evidence' or
+'validated': a rule written by hand, or a request that sent none) is 'given'."""
+WEAKEST_FIRST: tuple[RuleStatus, ...] = ("missing", "zero-shot", "transferred", "assumed", "given", "established")
+RULE_STATUS_DESCRIPTION = (
+    "What the verdict on this call rests on: how the rule of its action was decided (the weakest of its rules). "
+    "'established': the demonstrations show it; 'assumed': a fact every demonstrated call shared that they cannot "
+    "tell from a correlate (review it); 'transferred': a prior rule learned for other services, not refuted "
+    "here; 'zero-shot': the code model's guess from the spec, the action never or too thinly demonstrated; "
+    "'missing': no rule learned (an action never or too thinly demonstrated and no guess kept): every call "
+    "allowed when the action has no rule at all, every call refused when its rule is the placeholder `False` "
+    "(`options.unseen: 'refuse'`); 'given': the request's (or a reviewer's) own rules, with no inference's word "
+    "on how they were decided. Absent when the call is not a call of one of the spec's actions."
+)
+
+
+def rule_status(rules: Sequence[str], decided: Mapping[str, str]) -> RuleStatus:
+    """The status of an action whose rules are `rules`, from `decided` (rule -> label): the weakest, since a
+    verdict is only as good as the least backed rule that made it; no rule at all is 'missing'. One function for
+    the service's verdicts and the embedded guard's, so that both say the same."""
+    if not rules:
+        return "missing"
+    statuses = {STATUS_OF_DECIDED.get(decided.get(rule, ""), "given") for rule in rules}
+    return min(statuses, key=WEAKEST_FIRST.index)
+
+
 class NextActionRequest(_UsesRules):
     preconditions: Preconditions = Field(
         default_factory=dict, description=PRECONDITIONS_DESCRIPTION + " Predicted calls are verified against them."
     )
+    decided: Decisions = Field(default_factory=dict, description=DECIDED_DESCRIPTION)
     demonstrations: list[str] = Field(
         default_factory=list,
         max_length=MAX_DEMONSTRATIONS,
@@ -633,6 +682,9 @@ class NextActionRequest(_UsesRules):
 
 class Rejection(StrictBody):
     call: str
+    action: str | None = Field(
+        default=None, description="The action (`Class.method`) the call is a call of; absent when it is not one.")
+    rule_status: RuleStatus | None = Field(default=None, description=RULE_STATUS_DESCRIPTION)
     violations: list[str] = Field(default_factory=list)
     reason: str | None = None
 
@@ -650,6 +702,9 @@ class PredictedAction(StrictBody):
         description="The action call; null: no verified action (every attempt is in `rejected`, `reason` says "
         "why), or nothing allowed (`nothing_allowed`). Never a line that is not a call of an action."
     )
+    action: str | None = Field(
+        default=None, description="The action (`Class.method`) of `call`; absent when `call` is null.")
+    rule_status: RuleStatus | None = Field(default=None, description=RULE_STATUS_DESCRIPTION)
     verified: bool = Field(description="The call satisfies the preconditions after the history (run in the sandbox).")
     held: list[str] = Field(
         default_factory=list,
@@ -690,25 +745,9 @@ class NextActionResponse(StrictBody):
     model: ModelInfo | None = None
 
 
-Decisions = Annotated[
-    dict[
-        Annotated[str, StringConstraints(max_length=MAX_ACTION_CHARS)],
-        Annotated[dict[Assertion, Annotated[str, StringConstraints(max_length=20)]],
-                  Field(max_length=MAX_ASSERTIONS_PER_ACTION)],
-    ],
-    Field(max_length=MAX_ACTIONS),
-]
-
-
 class CheckRequest(_UsesRules):
     preconditions: Preconditions = Field(default_factory=dict, description=PRECONDITIONS_DESCRIPTION)
-    decided: Decisions = Field(
-        default_factory=dict,
-        description="How each rule was decided (action -> rule -> 'established' / 'assumed' / 'zero-shot' / "
-        "'unseen' / 'transferred'; an inference's `evidence[action][rule].decided`), named again in the verdicts "
-        "of the rules that refuse a call and read into every verdict's `rule_status`. A stored set fills it from "
-        "its inference's report; a rule it does not label is 'given'.",
-    )
+    decided: Decisions = Field(default_factory=dict, description=DECIDED_DESCRIPTION)
     history: History = Field(description=HISTORY_DESCRIPTION)
     calls: list[str | ToolCall] = Field(
         min_length=1,
@@ -717,36 +756,6 @@ class CheckRequest(_UsesRules):
         "(e.g. `system.REQUEST('cuisine')`), or tool calls `{\"name\", \"arguments\"}` over a spec from "
         "`precond convert openai` (the verdict's `call` is then the rendered `agent.<name>(...)`).",
     )
-
-
-RuleStatus = Literal["established", "assumed", "transferred", "zero-shot", "missing", "given"]
-STATUS_OF_DECIDED: dict[str, RuleStatus] = {
-    "established": "established", "assumed": "assumed", "transferred": "transferred", "zero-shot": "zero-shot",
-    "unseen": "missing",
-}
-"""An inference's `decided` label as the status of the action it belongs to; any other label ('no evidence' or
-'validated': a rule written by hand, or a request that sent none) is 'given'."""
-WEAKEST_FIRST: tuple[RuleStatus, ...] = ("missing", "zero-shot", "transferred", "assumed", "given", "established")
-RULE_STATUS_DESCRIPTION = (
-    "What the verdict on this call rests on: how the rule of its action was decided (the weakest of its rules). "
-    "'established': the demonstrations show it; 'assumed': a fact every demonstrated call shared that they cannot "
-    "tell from a correlate (review it); 'transferred': a prior rule learned for other services, not refuted "
-    "here; 'zero-shot': the code model's guess from the spec, the action never or too thinly demonstrated; "
-    "'missing': no rule learned (an action never or too thinly demonstrated and no guess kept): every call "
-    "allowed when the action has no rule at all, every call refused when its rule is the placeholder `False` "
-    "(`options.unseen: 'refuse'`); 'given': the request's (or a reviewer's) own rules, with no inference's word "
-    "on how they were decided. Absent when the call is not a call of one of the spec's actions."
-)
-
-
-def rule_status(rules: Sequence[str], decided: Mapping[str, str]) -> RuleStatus:
-    """The status of an action whose rules are `rules`, from `decided` (rule -> label): the weakest, since a
-    verdict is only as good as the least backed rule that made it; no rule at all is 'missing'. One function for
-    the service's verdicts and the embedded guard's, so that both say the same."""
-    if not rules:
-        return "missing"
-    statuses = {STATUS_OF_DECIDED.get(decided.get(rule, ""), "given") for rule in rules}
-    return min(statuses, key=WEAKEST_FIRST.index)
 
 
 class CallVerdict(StrictBody):

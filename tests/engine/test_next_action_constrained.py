@@ -90,6 +90,26 @@ def test_preconditions_that_allow_nothing_say_so(engine: Engine, restaurants: di
     assert action.rejected and all(r.violations == ["False"] for r in action.rejected)
 
 
+def test_each_judged_call_says_what_the_rule_of_its_action_rests_on(engine: Engine, restaurants: dict[str, Any]
+                                                                    ) -> None:
+    """A chosen or refused call says, as a verdict of `check-actions` does, whether its action's rule is
+    established, assumed, given or missing: a call allowed because nothing is known about its action says so."""
+    rules = _gt(restaurants)
+    request = _request(restaurants, {"SYSTEM.REQUEST": rules["SYSTEM.REQUEST"]}, choose_by="line").model_copy(
+        update={"decided": {"SYSTEM.REQUEST": {r: "assumed" for r in rules["SYSTEM.REQUEST"]}}})
+    [action] = engine.next_action(request).actions
+    refused = {r.call: r for r in action.rejected}
+    assert (refused["system.REQUEST('city')"].action, refused["system.REQUEST('city')"].rule_status) == (
+        "SYSTEM.REQUEST", "assumed")
+    allowed = {a.call for a in action.allowed or []}
+    assert "system.FindRestaurants()" in allowed  # no rule for it: allowed, and the answer must say why
+    assert action.call is not None and action.action == _action_of(action.call)
+    assert action.rule_status == ("assumed" if action.action == "SYSTEM.REQUEST" else "missing")
+    [unlabelled] = engine.next_action(_request(restaurants, {"SYSTEM.REQUEST": rules["SYSTEM.REQUEST"]},
+                                               choose_by="line")).actions
+    assert {r.rule_status for r in unlabelled.rejected} == {"given"}
+
+
 def test_later_actions_of_a_turn_are_allowed_in_the_state_they_are_made(
     engine: Engine, restaurants: dict[str, Any]
 ) -> None:

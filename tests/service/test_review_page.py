@@ -70,6 +70,23 @@ def test_check_actions_with_a_set_names_how_each_refusing_rule_was_decided(
         "missing"]  # allowed or refused because nothing is known says so
 
 
+def test_next_action_with_a_set_says_what_each_judged_calls_rule_rests_on(
+    acme: httpx.Client, inferred: dict[str, Any]
+) -> None:
+    """The set's labels reach a next action as they reach a check: a refused call of the never-demonstrated
+    failure notice says 'missing', the others what their inference decided."""
+    made = _create(acme, inferred)
+    [action] = _ok(acme.post("/next-action", params={"wait": 60}, json={
+        "precondition_set": made["reference"], "history": [{"actor": "user", "act": "INFORM", "args": ["city"]}],
+        "options": {"mode": "constrained"}}))["actions"]
+    statuses = {r["action"]: r["rule_status"] for r in action["rejected"]}
+    assert statuses["SYSTEM.NOTIFY_FAILURE"] == "missing"
+    assert statuses["SYSTEM.FindRestaurants"] == rule_status(made["preconditions"]["SYSTEM.FindRestaurants"],
+                                                            made["decided"]["SYSTEM.FindRestaurants"]) != "given"
+    assert action["rule_status"] == rule_status(made["preconditions"].get(action["action"], []),
+                                                made["decided"].get(action["action"], {}))
+
+
 def test_a_set_keeps_its_inference_report_and_says_how_each_rule_was_decided(
     acme: httpx.Client, inferred: dict[str, Any]
 ) -> None:

@@ -129,7 +129,7 @@ async def _with_rules_and_program(
         update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
         if isinstance(body, NextActionRequest) and not body.demonstrations:
             update["demonstrations"] = stored.demonstrations
-        if isinstance(body, CheckRequest):
+        if isinstance(body, CheckRequest | NextActionRequest):
             update["decided"] = stored.decided
         body = body.model_copy(update=update)
     if not isinstance(body.history, str):
