@@ -4,8 +4,8 @@ runs; a refused call answers the model with a `ToolMessage` (status "error") tha
     tool_node = guarded_tool_node(tools, Guard.from_set(client.get_set("ps_...@3")))  # in place of ToolNode(tools)
 
 The judging is the ToolNode's tool-call wrapper (`wrap_tool_call` / `awrap_tool_call`), the interception point
-LangGraph provides; `GuardedToolCalls.wrap` has the signature of LangChain's `wrap_tool_call` middleware too
-(`langchain.agents.middleware.wrap_tool_call(GuardedToolCalls(judge).wrap)` for `create_agent`, untested here).
+LangGraph provides; LangChain's `create_agent` takes the same judging as a middleware
+(`precond_client.adapters.langchain_agents.GuardMiddleware`).
 The history is the graph state's messages, converted by LangChain's `convert_to_openai_messages` and added to the
 thread's guard session as they grow (`Conversation`); a thread is the `thread_id` of the run's config.
 """

@@ -4,7 +4,8 @@ before reading it (refused: the tool never runs, and the model's next input hold
 cancels it (allowed: the tool runs).
 
 OpenAI Agents SDK: its own `agents.testing.ScriptedModel`. LangGraph: a graph of a model node (LangChain's
-`GenericFakeChatModel`, which answers a fixed list of messages) and the guarded `ToolNode`.
+`GenericFakeChatModel`, which answers a fixed list of messages) and the guarded `ToolNode`. LangChain's
+`create_agent`: the same fake model (tools bound as given) with the guard as its middleware.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 import pytest
 from agents import Agent, Runner, function_tool
 from agents.testing import ScriptedModel, assistant_message, function_call
+from langchain.agents import create_agent
 from langchain_core.language_models.fake_chat_models import GenericFakeChatModel
 from langchain_core.messages import AIMessage, BaseMessage, HumanMessage, ToolMessage
 from langchain_core.tools import tool
@@ -27,6 +29,7 @@ from langgraph.prebuilt import tools_condition
 from precond.evaluation import tools
 from precond.stack.keyed import KeyedStack
 from precond_client import AsyncClient, Client, PreconditionSet
+from precond_client.adapters.langchain_agents import GuardMiddleware
 from precond_client.adapters.langgraph import guarded_tool_node
 from precond_client.adapters.openai_agents import protect
 from precond_client.guard import Guard, Judge, ServiceGuard
@@ -124,3 +127,46 @@ def test_the_langgraph_tool_node_refuses_before_the_tool_runs_and_tells_the_mode
     assert refused.status == "error" and refused.tool_call_id == "call-0"
     assert str(refused.content).startswith("Error: the precondition guard") and READ in str(refused.content)
     assert "cancelled" in str(seen[3][-1].content)
+
+
+class _ToolCallingFake(GenericFakeChatModel):
+    """`create_agent` binds the tools to its model; the fake's answers already name them."""
+
+    def bind_tools(self, tools: Any, **kwargs: Any) -> Any:
+        return self
+
+
+@pytest.mark.parametrize("run", ["invoke", "ainvoke"])
+def test_the_create_agent_middleware_refuses_before_the_tool_runs_and_tells_the_model(
+    judge: Judge, run: str, keyed: KeyedStack
+) -> None:
+    ran: list[str] = []
+
+    @tool
+    def get_reservation_details(reservation_id: str) -> str:
+        """Read a reservation."""
+        ran.append(f"get {reservation_id}")
+        return json.dumps(RESERVATION)
+
+    @tool
+    def cancel_reservation(reservation_id: str) -> str:
+        """Cancel a reservation."""
+        ran.append(f"cancel {reservation_id}")
+        return json.dumps(RESERVATION | {"status": "cancelled"})
+
+    if run == "invoke" and isinstance(judge, ServiceGuard):  # a synchronous agent judges with a `Client`
+        judge = ServiceGuard(Client(keyed.url, api_key=keyed.keys["guard"]), judge.reference)
+    answers = [AIMessage("", tool_calls=[{"name": name, "args": args, "id": f"call-{n}"}])
+               for n, (name, args) in enumerate(scripted_calls())]
+    model = _ToolCallingFake(messages=iter([*answers, AIMessage("Cancelled.")]))
+    agent = create_agent(model, tools=[get_reservation_details, cancel_reservation],
+                         middleware=[GuardMiddleware(judge)])
+    state = {"messages": [HumanMessage("Please cancel R1.")]}
+    config: Any = {"configurable": {"thread_id": "t1"}}
+    final = agent.invoke(state, config) if run == "invoke" else asyncio.run(agent.ainvoke(state, config))
+    assert final["messages"][-1].content == "Cancelled."
+    assert ran == ["get R1", "cancel R1"]  # the first cancellation never reached the tool
+    results = [m for m in final["messages"] if isinstance(m, ToolMessage)]
+    assert results[0].status == "error" and results[0].tool_call_id == "call-0"
+    assert str(results[0].content).startswith("Error: the precondition guard") and READ in str(results[0].content)
+    assert "cancelled" in str(results[-1].content)

@@ -52,7 +52,7 @@ def test_the_wheel_holds_the_client_and_its_schemas_and_needs_httpx_and_pydantic
     requires = sorted(headers.get_all("Requires-Dist") or [])
     base = [r for r in requires if "extra ==" not in r]
     assert [r.split(">")[0].split("=")[0].strip() for r in base] == ["httpx", "pydantic"], requires
-    assert sorted(headers.get_all("Provides-Extra") or []) == ["langgraph", "openai-agents"]
+    assert sorted(headers.get_all("Provides-Extra") or []) == ["langchain", "langgraph", "openai-agents"]
 
 
 USE = """
