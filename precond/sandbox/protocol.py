@@ -23,6 +23,7 @@ from precond.sandbox.types import (
     PointGrid,
     Position,
     ProgramError,
+    Record,
     SandboxCrashed,
     SandboxError,
     SandboxUnavailable,
@@ -34,7 +35,7 @@ LIMIT_NAMES = frozenset({"timeout", "cpu", "memory", "output", "recursion", "res
 
 
 def as_args(value: object) -> Args:
-    """JSON arrays as tuples, recursively, so that Points are hashable."""
+    """JSON arrays as tuples and objects as Records, recursively, so that Points are hashable."""
     if not isinstance(value, list):
         raise TypeError("arguments must be a list")
     return tuple(_tupled(v) for v in value)
@@ -43,6 +44,8 @@ def as_args(value: object) -> Args:
 def _tupled(value: object) -> object:
     if isinstance(value, list):
         return tuple(_tupled(v) for v in value)
+    if isinstance(value, dict) and all(isinstance(k, str) for k in value):
+        return Record({k: _tupled(v) for k, v in value.items()})
     if isinstance(value, str):
         return value
     if value is None or isinstance(value, (bool, int, float)):

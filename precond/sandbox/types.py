@@ -1,8 +1,8 @@
 """What crosses the sandbox boundary, as the worker sees it.
 
 The sandbox knows nothing of HTTP, Redis or pydantic: plain frozen dataclasses keep it importable by any
-caller and cheap to construct. Argument values are JSON values (str, int, float, bool, None, lists), because
-JSON is the only thing that crosses the process boundary.
+caller and cheap to construct. Argument values are JSON values (str, int, float, bool, None, lists, objects
+with string keys), because JSON is the only thing that crosses the process boundary.
 """
 
 from __future__ import annotations
@@ -13,6 +13,14 @@ from typing import Literal, overload
 
 JSONScalar = str | int | float | bool | None
 Args = tuple[object, ...]
+
+
+class Record(dict[str, object]):
+    """An argument that is an object (`{'payment_id': 'certificate_1', 'amount': 50}`): a dict to the conditions
+    judged on it, hashable here because a Point is a key. Its values are frozen too (lists as tuples)."""
+
+    def __hash__(self) -> int:  # type: ignore[override]
+        return hash(tuple(sorted(self.items())))
 
 
 @dataclass(frozen=True)

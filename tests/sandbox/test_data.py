@@ -231,3 +231,34 @@ def test_history_error_is_program_error(big: Sandbox) -> None:
         big.check(domain["spec_program"], gt(domain), history, ["user.SELECT()"])
     assert caught.value.where == "history" and caught.value.line == 3
     assert caught.value.exc_type == "AttributeError"
+
+
+DICT_SPEC = """
+class AGENT:
+  def __init__(self):
+    self.paid = 0
+  def book(self, user, payment_methods):
+    self.paid += 1
+"""
+DICT_DEMO = """
+agent = AGENT()
+agent.book('mia', [{'payment_id': 'certificate_1', 'amount': 250}, {'payment_id': 'credit_card_2', 'amount': 5}])
+agent.book('mia', [{'payment_id': 'certificate_1', 'amount': 50}, {'payment_id': 'certificate_3', 'amount': 5}])
+"""
+
+
+def test_object_arguments_are_judged_as_the_dicts_they_are(big: Sandbox) -> None:
+    """A list of objects passed to an action (payment methods) reaches the conditions as dicts, at the
+    demonstrated calls and at points given back: counting them by a field is a condition that can hold."""
+    one = "len([x for x in payment_methods if 'certificate_' in x['payment_id']]) <= 1"
+    result = big.evaluate(DICT_SPEC, [DICT_DEMO], {"AGENT.book": [one, "payment_methods[0]['amount'] >= 50"]})
+    points = result.points["AGENT.book"]
+    first = next(p for p in points if p.position == 1 and p.args[1][1]["payment_id"] == "credit_card_2")
+    counted, amount = result.results["AGENT.book"]
+    assert counted.status == "invalid" and counted.satisfied >> points.index(first) & 1
+    assert amount.status == "valid"
+    second = next(p for p in points if p.position == 2 and p.args[1][1]["payment_id"] == "certificate_3")
+    assert not counted.satisfied >> points.index(second) & 1
+    again = big.evaluate(DICT_SPEC, [DICT_DEMO], {"AGENT.book": [one]}, {"AGENT.book": [first, second]})
+    assert again.results["AGENT.book"][0].satisfied == 0b01
+    assert {first, second} == set(again.points["AGENT.book"]) and hash(first) == hash(Point(0, 1, first.args))

@@ -41,13 +41,17 @@ def describe(exc: BaseException) -> tuple[str, str]:
 
 
 def jsonable(value: object) -> object:
-    """Argument values as JSON values; anything else travels as its (clean) repr."""
+    """Argument values as JSON values; anything else travels as its (clean) repr. A dict with string keys
+    travels as an object: conditions read its fields (`x['payment_id']` of each payment method), which its
+    repr would not let them."""
     if value is None or isinstance(value, (bool, int, float)):
         return value
     if isinstance(value, str):
         return value
     if isinstance(value, (list, tuple)):
         return [jsonable(v) for v in value]
+    if type(value) is dict and all(type(k) is str for k in value):
+        return {clean(k, 200): jsonable(v) for k, v in value.items()}
     try:
         return clean(repr(value), 200)
     except FATAL:
