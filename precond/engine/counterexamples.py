@@ -18,6 +18,7 @@ condition at every labelled call (`Labelled.points` are its points).
 from __future__ import annotations
 
 import ast
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
@@ -168,6 +169,8 @@ class Separation:
     """Per kept rule, the calls labelled 'allow' (or demonstrated) it refuses: where it is wrong."""
     exempt: set[Point]
     """Demonstrated calls labelled 'refuse': verification skips them (the kept rules refuse them by design)."""
+    unrefused: list[str]
+    """The calls labelled 'refuse' that no kept rule refuses: nothing the conditions say separates them."""
 
 
 def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
@@ -198,12 +201,16 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     kept, notes = _kept(ranked, truth, positive, negative)
     remaining = negative & ~_refused_by(kept, truth, negative)
     pool = {e: t for e, t in truth.items() if e in policy} if policy else truth
-    required, learned = _smallest(pool, positive, remaining)
+    # with no call to allow (never demonstrated, every labelled call refused), nothing bounds a separating rule
+    # from above: only the limits a policy states are learned from the calls to refuse (`_limits`)
+    required, learned = _smallest(pool, positive, remaining) if positive else (_limits(pool, negative, remaining), [])
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
     for e in required:
         chosen.append(Cluster((Candidate(e, "enumerate", by_text[e].satisfied),)))
-        notes[e] = "kept: holds at every call to allow and refuses calls labelled 'refuse'"
+        notes[e] = ("kept: holds at every call to allow and refuses calls labelled 'refuse'" if positive else
+                    "kept: a limit that refuses calls labelled 'refuse'; no call of the action is labelled 'allow' "
+                    "or demonstrated")
     decided_required: dict[str, Decided] = dict.fromkeys(required, "established")
     results, evidence, verdicts = list(ranked.results), dict(ranked.evidence), dict(ranked.verdicts)
     decided = {**{e: d for e, d in ranked.decided.items() if e in kept}, **decided_required}
@@ -228,7 +235,9 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         wrong[e] = [_name(examples[k]) for k in _bits_of(positive & ~truth.get(e, 0))]
     exempt = {p for p, c in labelled_demos.items() if c.verdict == REFUSE}
     return Separation(replace(ranked, results=results, chosen=chosen, reasons=reasons, evidence=evidence,
-                              verdicts=verdicts, decided=decided), refuses, wrong, exempt)
+                              verdicts=verdicts, decided=decided), refuses, wrong, exempt,
+                      [_name(examples[k]) for k in _bits_of(negative & ~_refused_by(
+                          {c.representative.expression for c in chosen}, truth, negative))])
 
 
 def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
@@ -286,6 +295,20 @@ def _smallest(truth: Mapping[str, int], positive: int, negative: int) -> tuple[l
         if best is None or cost < best[0]:
             best = (cost, order[:k], terms)
     return (best[1], best[2]) if best else ([], [])
+
+
+LIMIT_FORMS = re.compile(r" not in | != | < |\bany\(|\]\[[^\]]+\] == (?:'[^']*'|-?\d|None|True|False)")
+"""What a permission does not say: a read missing, a value unequal, a date before, one logged value required."""
+
+
+def _limits(truth: Mapping[str, int], negative: int, remaining: int) -> list[str]:
+    """With nothing to allow, the conditions that refuse `remaining` of the calls labelled 'refuse' (`negative`)
+    and state a limit or a requirement (at most n of a kind, every payment on the profile, the reservation read,
+    nothing flown, booked within the day) that some of those calls meet, the one refusing the most first
+    (`_required`). Nothing else bounds a rule here: `user_id not in ...` or `membership == 'regular'` refuse
+    these calls and every other, and only a call to allow could show it, so none of those forms is learned; and
+    a condition no labelled call meets (every saved passenger born after today) says no more than `False`."""
+    return _required({e: t for e, t in truth.items() if t & negative and not LIMIT_FORMS.search(e)}, 0, remaining)
 
 
 def _has_or(expression: str) -> bool:

@@ -307,6 +307,10 @@ class Engine:
             listed_here = "; ".join(f"`{e}` ({why})" for e, why in list(dropped_here.items())[:3])
             warnings[action] = "; ".join(w for w in (warnings.get(action), (
                 f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
+        for action, separation in separated.items():
+            if separation.unrefused:
+                warnings[action] = "; ".join(w for w in (warnings.get(action), _unrefused(
+                    separation.unrefused, preconditions[action] == [UNSEEN_RULE])) if w)
         default = "" if request.options.guarded is not None else guarding.note(guarded)
         for action in actions:  # a search cut at its bound, or a conversational act's unkept rules, say so
             unrefused = action not in guarded and not preconditions[action] and unseen[action]
@@ -587,6 +591,17 @@ def _raised(first_violation: str | None) -> bool:
     false answer (`: assertion fails`) or a state it could not copy."""
     return bool(first_violation) and not str(first_violation).endswith(
         (": assertion fails", ": the state could not be copied"))
+
+
+def _unrefused(names: Sequence[str], placeholder: bool) -> str:
+    """The warning of an action whose calls labelled 'refuse' no learned rule refuses: which, and what refuses
+    them instead (the placeholder of a never-demonstrated action) or that nothing does."""
+    listed_here = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    then = ("the action stays refused (options.unseen: 'refuse')" if placeholder
+            else "the rules allow them: review them, or write the rule")
+    return (f"unseparated: {len(names)} call(s) labelled 'refuse' ({listed_here}) that no learned condition "
+            f"refuses (none separates them from the calls to allow or, with none to allow, states a limit they "
+            f"break); {then}")
 
 
 def _labelled(verdict: CallVerdict, spec: Spec, decided: Mapping[str, Mapping[str, str]]) -> CallVerdict:

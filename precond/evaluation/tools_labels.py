@@ -35,8 +35,12 @@ class Judged:
     """The label."""
     broken: tuple[str, ...]
     """The rules the label says the call breaks."""
+    kept: tuple[str, ...]
+    """The rules the label says apply to the call and it keeps."""
     refused: bool
     """The guard's verdict."""
+    reason: str = ""
+    """What a refusal rests on (`reason_of`); empty for a call allowed."""
 
 
 def halves(converted: Converted) -> tuple[set[str], set[str]]:
@@ -62,9 +66,30 @@ def infer_request(converted: Converted, records: list[dict[str, Any]], train: se
         "options": {"generators": ["enumerate"], "candidates": "none", "now": NOW}})
 
 
+REASONS = ("counterexample", "established", "assumed", "unseen", "other", "error")
+"""What a refusal rests on: a violated rule that refuses a training call labelled refused (`counterexample`);
+else the weakest violated rule's `decided` (`established`: the demonstrations show it; `assumed`: a possible
+correlate; `unseen`: the placeholder `False` of an action with no rule learned, `options.unseen`); `other`
+(transferred, zero-shot) or `error` (a rule or the call raised)."""
+
+
+def reason_of(verdict: Any, refuses: dict[str, list[str]]) -> str:
+    """The reason kind of a refused call's verdict, `refuses` being each rule's refused counterexamples."""
+    if verdict.error:
+        return "error"
+    if any(refuses.get(rule) for rule in verdict.violations):
+        return "counterexample"
+    kinds = {verdict.decided.get(rule, "established") for rule in verdict.violations}
+    return next((k for k in ("unseen", "assumed", "established") if k in kinds), "other")
+
+
 def judge(engine: Any, converted: Converted, records: list[dict[str, Any]], test: set[str],
-          rules: dict[str, list[str]]) -> list[Judged]:
-    """Every labelled call of the test tasks, on the history before it."""
+          inferred: Any) -> list[Judged]:
+    """Every labelled call of the test tasks, on the history before it, by the `inferred` rules (an
+    InferResponse: its rules, how each was decided and the counterexamples each refuses)."""
+    rules: dict[str, list[str]] = inferred.preconditions
+    decided = {a: {r: e.decided for r, e in inferred.evidence.get(a, {}).items() if e.decided} for a in rules}
+    refuses = {r: list(e.refuses) for a in rules for r, e in inferred.evidence.get(a, {}).items()}
     runs = {t.name: t for t in converted.trajectories}
     judged = []
     for record in records:
@@ -75,11 +100,13 @@ def judge(engine: Any, converted: Converted, records: list[dict[str, Any]], test
         call = next(c for c, m in zip(trajectory.calls, trajectory.messages, strict=True)
                     if m == record["message_index"])
         lines = trajectory.program.splitlines()
-        verdict = engine.check(CheckRequest(spec=converted.spec, preconditions=rules,
+        verdict = engine.check(CheckRequest(spec=converted.spec, preconditions=rules, decided=decided,
                                             history="\n".join(lines[: call.line]) + "\n",
                                             calls=[lines[call.line]])).results[0]
-        broken = tuple(r for r in RULE_NAMES if (record.get("rules") or {}).get(r) is False)
-        judged.append(Judged(_task(name), record["tool"], bool(record["allowed"]), broken, not verdict.allowed))
+        said = record.get("rules") or {}
+        broken, kept = (tuple(r for r in RULE_NAMES if said.get(r) is value) for value in (False, True))
+        judged.append(Judged(_task(name), record["tool"], bool(record["allowed"]), broken, kept, not verdict.allowed,
+                             "" if verdict.allowed else reason_of(verdict, refuses)))
     return judged
 
 
@@ -105,21 +132,31 @@ def run(engine: Any, data: Path, progress: Callable[[str], None]) -> dict[str, A
     for labelled in (False, True):
         judged: list[Judged] = []
         rules_of: list[dict[str, list[str]]] = []
+        directions: list[dict[str, Any]] = []
         infer_s = judge_s = 0.0
         for train, test in ((first, second), (second, first)):
             started = time.perf_counter()
             inferred = engine.infer(infer_request(converted, records, train, labelled, source))
             infer_s += time.perf_counter() - started
             started = time.perf_counter()
-            judged += judge(engine, converted, records, test, inferred.preconditions)
+            direction = judge(engine, converted, records, test, inferred)
+            directions.append(scores(direction))
+            judged += direction
             judge_s += time.perf_counter() - started
             rules_of.append(inferred.preconditions)
         mode = "with labels" if labelled else "without labels"
         out[mode] = {
-            "total": scores(judged), "rules": rules_of, "infer_s": round(infer_s, 2), "judge_s": round(judge_s, 2),
+            "total": scores(judged), "directions": directions, "rules": rules_of,
+            "infer_s": round(infer_s, 2), "judge_s": round(judge_s, 2),
             "per_tool": {tool: scores([j for j in judged if j.tool == tool]) for tool in WRITES},
             "per_rule": {rule: {"unsafe_allowed": sum(not j.refused for j in judged if rule in j.broken),
-                                "breaking": sum(rule in j.broken for j in judged)} for rule in RULE_NAMES},
+                                "breaking": sum(rule in j.broken for j in judged),
+                                "over_refused": sum(j.refused for j in judged if j.allowed and rule in j.kept),
+                                "keeping": sum(rule in j.kept for j in judged if j.allowed)}
+                         for rule in RULE_NAMES},
+            "refusals": {kind: {"right": sum(j.reason == kind for j in judged if not j.allowed),
+                                "over": sum(j.reason == kind for j in judged if j.allowed)}
+                         for kind in REASONS if any(j.reason == kind for j in judged)},
         }
         total = out[mode]["total"]
         progress(f"{mode}: unsafe_allow {total['unsafe_allowed']}/{total['labelled_refused']} "
@@ -129,7 +166,8 @@ def run(engine: Any, data: Path, progress: Callable[[str], None]) -> dict[str, A
 
 
 def table(result: dict[str, Any]) -> str:
-    """Per tool and per rule, without and with labels side by side (markdown)."""
+    """Per tool, per split direction, per policy rule and per reason a refusal rests on, without and with
+    labels side by side (markdown)."""
     plain, labelled = result["without labels"], result["with labels"]
 
     def cell(s: dict[str, Any], part: str, whole: str) -> str:
@@ -143,9 +181,24 @@ def table(result: dict[str, Any]) -> str:
         lines.append(f"| {tool} | {cell(a, 'unsafe_allowed', 'labelled_refused')} | "
                      f"{cell(b, 'unsafe_allowed', 'labelled_refused')} | {cell(a, 'over_refused', 'labelled_allowed')}"
                      f" | {cell(b, 'over_refused', 'labelled_allowed')} |")
-    lines += ["", "| policy rule | breaking calls allowed, without labels | with labels |", "|---|---|---|"]
+    lines += ["", "| trained on, judged on | unsafe_allow without labels | with labels | over_refuse without labels "
+              "| with labels |", "|---|---|---|---|---|"]
+    for k, name in enumerate(("first half, second", "second half, first")):
+        a, b = plain["directions"][k], labelled["directions"][k]
+        lines.append(f"| {name} | {cell(a, 'unsafe_allowed', 'labelled_refused')} | "
+                     f"{cell(b, 'unsafe_allowed', 'labelled_refused')} | {cell(a, 'over_refused', 'labelled_allowed')}"
+                     f" | {cell(b, 'over_refused', 'labelled_allowed')} |")
+    lines += ["", "| policy rule | breaking calls allowed, without labels | with labels | keeping calls refused, "
+              "without labels | with labels |", "|---|---|---|---|---|"]
     for rule in RULE_NAMES:
         a, b = plain["per_rule"][rule], labelled["per_rule"][rule]
-        if a["breaking"]:
-            lines.append(f"| {rule} | {a['unsafe_allowed']}/{a['breaking']} | {b['unsafe_allowed']}/{b['breaking']} |")
+        if a["breaking"] or a["keeping"]:
+            lines.append(f"| {rule} | {cell(a, 'unsafe_allowed', 'breaking')} | {cell(b, 'unsafe_allowed', 'breaking')}"
+                         f" | {cell(a, 'over_refused', 'keeping')} | {cell(b, 'over_refused', 'keeping')} |")
+    lines += ["", "| a refusal rests on | calls labelled refused, without labels | with labels | calls labelled "
+              "allowed, without labels | with labels |", "|---|---|---|---|---|"]
+    for kind in REASONS:
+        a, b = (m["refusals"].get(kind, {"right": 0, "over": 0}) for m in (plain, labelled))
+        if a["right"] or a["over"] or b["right"] or b["over"]:
+            lines.append(f"| {kind} | {a['right']} | {b['right']} | {a['over']} | {b['over']} |")
     return "\n".join(lines) + "\n"

@@ -149,3 +149,69 @@ def test_a_zero_shot_guess_that_raises_on_the_state_is_dropped_and_reported(gues
         report = next(c for c in response.candidates["AGENT.send_certificate"] if c.assertion == guess)
         assert not report.kept and "raises on the spec's state (AGENT has no attribute 'reservation')" in report.reason
         assert "AGENT has no attribute 'reservation'" in response.warnings["AGENT.send_certificate"]
+
+
+BOOK_TOOLS = [*TOOLS, *[{"type": "function", "function": {"name": name, "parameters": {
+    "properties": {p: {"type": "array" if p == "payment_methods" else "string"} for p in params},
+    "required": list(params)}}}
+    for name, params in [("get_user_details", ("user_id",)), ("book_reservation", ("user_id", "payment_methods"))]]]
+BOOK = "AGENT.book_reservation"
+
+
+def booking(user: str, paid: Sequence[str], membership: str = "gold", amount: int = 50) -> list[dict[str, object]]:
+    profile = f'{{"user_id": "{user}", "membership": "{membership}", ' \
+              f'"payment_methods": {{{", ".join(f"{chr(34)}{p}{chr(34)}: {{}}" for p in paid)}}}}}'
+    methods = ", ".join(f'{{"payment_id": "{p}", "amount": {amount}}}' for p in paid)
+    return [{"role": "user", "content": "please book"},
+            {"role": "assistant", "tool_calls": [{"function": {"name": "get_user_details",
+                                                               "arguments": f'{{"user_id": "{user}"}}'}}]},
+            {"role": "tool", "content": profile},
+            {"role": "assistant", "tool_calls": [{"function": {"name": "book_reservation", "arguments":
+                                                               f'{{"user_id": "{user}", "payment_methods": '
+                                                               f'[{methods}]}}'}}]},
+            {"role": "tool", "content": "{}"}]
+
+
+def test_an_action_never_demonstrated_learns_the_limit_its_refused_calls_break(engine: Engine) -> None:
+    """Only calls labelled 'refuse' and no demonstration: the rule is the limit some of them break (at most one
+    certificate), not `False`; a refused call no limit explains stays allowed and the warning names it."""
+    demos = convert([run("A1", "business", "no"), run("B2", "economy", "yes"), run("D4", "business", "yes")],
+                    BOOK_TOOLS)
+    refused = convert([booking("u1", ["certificate_1", "certificate_2"]),
+                       booking("u2", ["certificate_3", "certificate_4", "credit_card_5"]),
+                       booking("u3", ["certificate_6", "certificate_7", "certificate_8"]),
+                       booking("u4", ["certificate_9"])], BOOK_TOOLS)
+    labels = [{"program": t.program, "calls": [{"line": CALL_LINE, "verdict": "refuse", "name": t.name}]}
+              for t in refused.trajectories]
+    inferred = engine.infer(InferRequest.model_validate({
+        "spec": demos.spec, "demonstrations": [t.program for t in demos.trajectories], "actions": [CANCEL, BOOK],
+        "options": {"generators": ["enumerate"]}, "counterexamples": labels}))
+    limit = "len([x for x in payment_methods if 'certificate_' in x['payment_id']]) <= 1"
+    assert inferred.preconditions[BOOK] == [limit]
+    assert sorted(inferred.evidence[BOOK][limit].refuses) == sorted(t.name for t in refused.trajectories[:3])
+    assert inferred.evidence[BOOK][limit].decided == "established"
+    assert f"unseparated: 1 call(s) labelled 'refuse' ({refused.trajectories[3].name})" in inferred.warnings[BOOK]
+    one = convert([booking("u9", ["certificate_1", "credit_card_2"], "silver")], BOOK_TOOLS).trajectories[0].program
+    lines = one.splitlines()
+    verdicts = engine.check(CheckRequest(spec=demos.spec, preconditions=inferred.preconditions,
+                                         history="\n".join(lines[: CALL_LINE - 1]) + "\n",
+                                         calls=[lines[CALL_LINE - 1], lines[CALL_LINE - 1].replace(
+                                             "credit_card_2", "certificate_2")])).results
+    assert [v.allowed for v in verdicts] == [True, False]
+
+
+def test_an_action_never_demonstrated_whose_labelled_calls_nothing_separates_stays_refused(engine: Engine) -> None:
+    """Calls labelled both ways that no condition separates: the placeholder `False` (options.unseen), its
+    status 'unseen', and a warning that says the labels could not be separated."""
+    demos = convert([run("A1", "business", "no"), run("B2", "economy", "yes"), run("D4", "business", "yes")],
+                    BOOK_TOOLS)
+    both = convert([booking("u1", ["certificate_1"]), booking("u1", ["certificate_1"], amount=60)], BOOK_TOOLS)
+    labels = [{"program": t.program, "calls": [{"line": CALL_LINE, "verdict": verdict, "name": t.name}]}
+              for t, verdict in zip(both.trajectories, ("allow", "refuse"), strict=True)]
+    inferred = engine.infer(InferRequest.model_validate({
+        "spec": demos.spec, "demonstrations": [t.program for t in demos.trajectories], "actions": [CANCEL, BOOK],
+        "options": {"generators": ["enumerate"]}, "counterexamples": labels}))
+    assert inferred.preconditions[BOOK] == ["False"]
+    assert inferred.evidence[BOOK]["False"].decided == "unseen"
+    assert "unseparated: 1 call(s) labelled 'refuse'" in inferred.warnings[BOOK]
+    assert "stays refused (options.unseen: 'refuse')" in inferred.warnings[BOOK]

@@ -91,3 +91,36 @@ def test_the_guard_from_successful_runs_refuses_a_write_without_its_read(tmp_pat
     text = report.read_text()
     assert text.index(TOOLS_HEADING) < text.index("## Speed") and "| read before write |" in text
     assert (tmp_path / "img" / "tools_guard.png").stat().st_size > 0
+
+
+def test_the_labels_score_says_per_direction_per_rule_and_per_reason_what_the_guard_did(tmp_path: Path) -> None:
+    """`eval tools --labels` on the fixture runs, with labels written here: the two split directions add up to
+    the total, a rule's over-refusals count the calls that keep it, and every refusal names what it rests on."""
+    from precond.evaluation import tools_labels
+
+    for name in ("trajectories.json", "tools.json"):
+        (tmp_path / name).write_text((TAU / name).read_text())
+    writes = {(5, 18): "update_reservation_passengers", (5, 20): "update_reservation_flights",
+              (5, 22): "update_reservation_baggages", (30, 24): "cancel_reservation", (30, 30): "cancel_reservation",
+              (15, 20): "update_reservation_flights", (39, 10): "cancel_reservation"}
+    trials = {5: 1, 30: 1, 15: 2, 39: 1}
+    records = [{"task_id": task, "trial": trials[task], "message_index": at, "tool": tool,
+                "allowed": task != 39,
+                "rules": {"T1": task != 39, "T4": True if tool == "cancel_reservation" else None}}
+               for (task, at), tool in writes.items()]
+    (tmp_path / "labels.json").write_text(json.dumps(records))
+    result = tools_labels.run(build_engine(with_model=False), tmp_path, print)
+    for mode in ("without labels", "with labels"):
+        scored = result[mode]
+        total, directions = scored["total"], scored["directions"]
+        assert total["calls"] == len(records) == sum(d["calls"] for d in directions)
+        assert total["over_refused"] == sum(d["over_refused"] for d in directions)
+        assert scored["per_rule"]["T1"]["keeping"] == 6 and scored["per_rule"]["T4"]["keeping"] == 2
+        assert scored["per_rule"]["T1"]["over_refused"] == total["over_refused"]
+        refusals = scored["refusals"]
+        assert set(refusals) <= set(tools_labels.REASONS)
+        assert sum(r["over"] for r in refusals.values()) == total["over_refused"]
+        assert sum(r["right"] for r in refusals.values()) == total["labelled_refused"] - total["unsafe_allowed"]
+    assert result["without labels"]["refusals"]  # each half alone is too thin: its actions' rules refuse
+    table = tools_labels.table(result)
+    assert "| second half, first |" in table and "| a refusal rests on |" in table and "| T1 |" in table
