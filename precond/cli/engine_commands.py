@@ -280,8 +280,8 @@ def _with_options(body: InferRequest, update: dict[str, Any]) -> InferRequest:
 def next_action(
     request: RequestFile,
     adapter: Annotated[Path | None, typer.Option(help="A trained policy (`precond train-policy --out DIR`): the "
-                                                 "model predicts with it merged into its weights (BC).",
-                                                 show_default=False)] = None,
+                                                 "model predicts with it beside its weights, unmerged, as the "
+                                                 "service serves it (BC).", show_default=False)] = None,
     server: Server = None,
     api_key: ApiKey = None,
 ) -> None:
@@ -297,7 +297,8 @@ def next_action(
               "--server, or give the adapter's directory with --adapter and leave options.policy out", 2)
     from precond.engine.factory import build_engine
 
-    _run(build_engine(adapter=adapter).next_action, body)
+    engine = build_engine()
+    _run((engine if adapter is None else engine.with_policy(adapter, None)).next_action, body)
 
 
 def train_policy(

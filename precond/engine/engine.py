@@ -197,9 +197,10 @@ class Engine:
             raise ModelUnavailable("no code model is configured for this worker")
         return train_policy(self._weights, parse_spec(request.spec), request, out, progress, cancelled)
 
-    def with_policy(self, adapter: Path, policy: str) -> Engine:
+    def with_policy(self, adapter: Path, policy: str | None) -> Engine:
         """An engine on the same sandbox whose model is this one's with the adapter at `adapter` beside the weights
-        it changes, unmerged (`backend.with_adapter`); it answers next actions naming `policy`."""
+        it changes, unmerged (`backend.with_adapter`); it answers next actions naming `policy` (None: naming none,
+        the command line's `--adapter`)."""
         from precond.engine.models.backend import with_adapter
 
         adapted = with_adapter(self.model(), adapter)

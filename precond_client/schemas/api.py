@@ -521,7 +521,7 @@ class ModelInfo(StrictBody):
     )
     adapter: str | None = Field(
         default=None,
-        description="The trained policy merged into the weights (`precond train-policy`): its name and the first "
+        description="The trained policy the model predicts with (`precond train-policy`): its name and the first "
         "12 hex digits of its weights' sha256; null for the base model.",
     )
 

@@ -209,3 +209,26 @@ def test_an_adapted_copy_keeps_its_prompt_prefixes_apart_in_the_base_models_stor
     base.complete(SPEC, ["\nsystem."], 1, sampling, "line")
     assert len(base._prefixes.scopes()) == 2
     assert adapted.complete(SPEC, ["\nsystem."], 1, sampling, "line") == first
+
+
+def test_next_action_with_an_adapter_keeps_it_unmerged_as_the_service_does(
+    tiny_model_dir: Path, adapter: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`precond next-action --adapter` predicts with the adapter beside the weights (`with_adapter`), the path a
+    worker serves, never merging it: the answer names the adapter and no merge runs."""
+    from precond.engine.models import adapters
+
+    def no_merge(*_: object) -> None:
+        raise AssertionError("the adapter was merged")
+
+    monkeypatch.setattr(adapters, "merge_adapter", no_merge)
+    for name, value in {"MODEL_PATH": str(tiny_model_dir), "MODEL_DEVICE": "cpu", "MODEL_DTYPE": "float32",
+                        "MODEL_QUANT": "none"}.items():
+        monkeypatch.setenv(name, value)
+    body = tmp_path / "next.json"
+    body.write_text(json.dumps({"spec": SPEC, "history": DEMO.rsplit("system.", 1)[0],
+                                "options": {"max_new_tokens": 4}}))
+    result = CliRunner().invoke(app, ["next-action", str(body), "--adapter", str(adapter)])
+    assert result.exit_code == 0, result.output
+    answer = json.loads(result.stdout)
+    assert answer["model"]["adapter"].startswith("bc@")

@@ -4,9 +4,9 @@ An adapter directory holds `adapter_model.safetensors` (the weights: safetensors
 `adapter_config.json` (peft's, written for other tools and never read here) and `policy.json` (the
 `TrainPolicyResult`: the base model it was trained on, its rank, its losses). Loading trusts none of it: the
 sizes are bounded before reading, the base must be the one this process serves, the weights must be exactly
-the tensors the rank and the base model's attention projections call for. Loaded on its own (`precond
-train-policy` results, the evaluation) an adapter is merged into the weights; a worker serving it beside the base
-model keeps it unmerged (`lora_weights`, `backend.with_adapter`): a few MB per adapter over shared weights.
+the tensors the rank and the base model's attention projections call for. The evaluation merges an adapter into
+full-width weights; a worker serving it beside the base model, and `precond next-action --adapter`, keep it
+unmerged (`lora_weights`, `backend.with_adapter`): a few MB per adapter over shared weights.
 """
 
 from __future__ import annotations
