@@ -600,8 +600,44 @@ def load_weights(settings: ModelSettings) -> Weights:
     return Weights(model, tokenizer, info, device)
 
 
+def serving_weights(settings: ModelSettings) -> Weights:
+    """The weights in the form `MODEL_QUANT` picks for serving (training keeps full-width ones, `load_weights`).
+
+    int8 weights of a GGUF (the embedded model's too) come from their own cache (`engine.models.int8cache`),
+    built from the full-width one once: the process never holds the full-width model (peak resident memory
+    is the int8 model's). A Hugging Face directory is loaded full-width and quantized in place.
+    Raises QuantUnavailable, naming the setting and the missing CPU feature, where `int8` cannot run here."""
+    from transformers import AutoTokenizer
+
+    from precond.engine.models import int8cache
+    from precond.engine.models.quant import choose_quant, quantize, release_heap
+
+    torch.set_num_threads(settings.threads)
+    device = resolve_device(settings.device)
+    quant, quant_reason = choose_quant(settings.quant, device, cpu_flags())
+    if quant != "int8":
+        if settings.quant == "auto":
+            logger.info("%s: weights stay full-width", quant_reason)
+        weights = load_weights(settings)
+    else:
+        dtype, reason = choose_dtype(settings.dtype, device)
+        directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
+        if sha256 is None:
+            weights = load_weights(settings)
+            logger.info("%s: %d layers quantized after loading", quant_reason, quantize(weights.model))
+        else:
+            tokenizer = AutoTokenizer.from_pretrained(directory)
+            release_heap()  # the tokenizer's parse, before the weights are read (lower peak)
+            model, home = int8cache.load(directory, settings.cache_dir, directory.name, dtype)
+            logger.info("%s: int8 weights read from %s", quant_reason, home)
+            info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=_dtype_name(dtype),
+                             dtype_reason=reason)
+            weights = Weights(model, tokenizer, info, device)
+    return replace(weights, info=weights.info.model_copy(update={"quant": quant, "quant_reason": quant_reason}))
+
+
 def quantized(weights: Weights, setting: str) -> Weights:
-    """The weights in the form `MODEL_QUANT` picks for serving (in place; training keeps full-width weights).
+    """`weights` (full-width, loaded by `load_weights`) in the form `MODEL_QUANT` picks, quantized in place.
 
     Raises QuantUnavailable, naming the setting and the missing CPU feature, where `int8` cannot run here."""
     from precond.engine.models.quant import choose_quant, quantize
@@ -628,16 +664,20 @@ def _resident(model: Any) -> None:
 
 
 def load_code_model(settings: ModelSettings, adapter: Path | None = None) -> CodeModel:
-    """The serving model; with `adapter` (a trained policy, `engine.models.adapters`) merged into its weights."""
-    weights = load_weights(settings)
+    """The serving model; with `adapter` (a trained policy, `engine.models.adapters`) merged into full-width
+    weights, then quantized (the evaluation's fine-tuned policies; a service keeps adapters unmerged,
+    `with_adapter`)."""
     calls: tuple[str, ...] = ()
-    if adapter is not None:
+    if adapter is None:
+        weights = serving_weights(settings)
+    else:
         from precond.engine.models.adapters import merge_adapter
 
+        weights = load_weights(settings)
         name, trained = merge_adapter(weights.model, adapter, weights.info)
         weights = replace(weights, info=weights.info.model_copy(update={"adapter": name}))
         calls = tuple(trained.calls)
-    weights = quantized(weights, settings.quant)
+        weights = quantized(weights, settings.quant)
     model, info = weights.model, weights.info
     model.eval()
     _resident(model)
