@@ -417,6 +417,7 @@ def _batch(pairs_file: Path, spec: Path | None, rules: Path | None) -> None:
     if not isinstance(pairs, list) or not all(isinstance(p, dict) and {"history", "call"} <= set(p) for p in pairs):
         _fail(f"{pairs_file}: expected a list of {{\"history\": ..., \"call\": ...}}", 2)
     preconditions = loaded.get("preconditions", loaded) if isinstance(loaded, dict) else loaded
+    decided = _decided_of(loaded)
     from precond.engine.factory import build_engine
 
     engine = build_engine(with_model=False)
@@ -424,7 +425,8 @@ def _batch(pairs_file: Path, spec: Path | None, rules: Path | None) -> None:
         where = f"{pairs_file}: [{index}]"
         try:
             body = CheckRequest.model_validate({"spec": spec_text, "preconditions": preconditions,
-                                                "history": pair["history"], "calls": [pair["call"]]})
+                                                "decided": decided, "history": pair["history"],
+                                                "calls": [pair["call"]]})
             verdict = engine.check(body).results[0]
         except ValidationError as exc:
             _fail(f"{where}:\n" + "\n".join(_problems(exc)), 2)

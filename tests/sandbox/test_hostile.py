@@ -108,3 +108,17 @@ def test_str_raising_gives_type_name_only(small: Sandbox) -> None:
     with pytest.raises(ProgramError) as caught:
         small.trace(SPEC, ["a = A()\n" + PROGRAMS["str_raises"]])
     assert caught.value.exc_type == "E" and caught.value.message == ""
+
+
+def test_an_argument_that_contains_itself_crosses_bounded(small: Sandbox) -> None:
+    """A list or object passed to an action that contains itself, twice over: the boundary copies it to a
+    bounded depth and size (the rest as its repr), instead of recursing without end or copying 2**n items."""
+    found = small.trace(SPEC, ["a = A()\nl = []\nl.append(l)\nl.append(l)\nd = {'k': 1}\nd['a'] = d\nd['b'] = d\n"
+                               "a.act(l)\na.act(d)\n"])
+    shown, named = (o.args[0] for o in found.actions["A.act"].occurrences)
+    assert len(repr(shown)) < 3_000_000 and len(repr(named)) < 3_000_000
+    depth = 0
+    while isinstance(named, dict):
+        named, depth = named["a"], depth + 1
+    assert 0 < depth <= 16 and isinstance(named, str)
+    assert_still_works(small)

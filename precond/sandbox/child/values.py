@@ -40,7 +40,14 @@ def describe(exc: BaseException) -> tuple[str, str]:
     return name, clean(message)
 
 
-def jsonable(value: object) -> object:
+MAX_DEPTH = 16
+MAX_ITEMS = 10_000
+"""Nesting, and items in all, of the lists and objects one argument value keeps; past either (a value that
+contains itself, twice over) the rest travels as its repr, so that no demonstration can make the boundary
+recurse without end or copy without bound."""
+
+
+def jsonable(value: object, depth: int = 0, budget: list[int] | None = None) -> object:
     """Argument values as JSON values; anything else travels as its (clean) repr. A dict with string keys
     travels as an object: conditions read its fields (`x['payment_id']` of each payment method), which its
     repr would not let them."""
@@ -48,16 +55,25 @@ def jsonable(value: object) -> object:
         return value
     if isinstance(value, str):
         return value
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    if type(value) is dict and all(type(k) is str for k in value):
-        return {clean(k, 200): jsonable(v) for k, v in value.items()}
+    left = [MAX_ITEMS] if budget is None else budget
+    if isinstance(value, (list, tuple)) and _take(left, len(value), depth):
+        return [jsonable(v, depth + 1, left) for v in value]
+    if type(value) is dict and all(type(k) is str for k in value) and _take(left, len(value), depth):
+        return {clean(k, 200): jsonable(v, depth + 1, left) for k, v in value.items()}
     try:
         return clean(repr(value), 200)
     except FATAL:
         raise
     except BaseException:
         return clean(type(value).__name__, 100)
+
+
+def _take(left: list[int], items: int, depth: int) -> bool:
+    """Whether a container of `items` at `depth` still fits the budget (and takes its share of it)."""
+    if depth >= MAX_DEPTH or items > left[0]:
+        return False
+    left[0] -= items
+    return True
 
 
 def tupled(value: object) -> object:
