@@ -109,13 +109,15 @@ def _presence(expression: str) -> bool:
 
 
 def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequence[Cluster],
-           evidence: ActionEvidence, tool_call: bool, conversational: bool = False) -> Choice:
+           evidence: ActionEvidence, tool_call: bool, conversational: bool = False, follow_up: bool = False
+           ) -> Choice:
     """`clusters`: the candidates that passed validation (triggers come from these); `common`: those plus the
     ones true almost everywhere (not separated from chance), which a tool call may still require; `atoms`:
     every judged candidate, for the disjunction's terms (each alone is refuted by the calls the others cover).
     A `conversational` act (not among `options.guarded`: a goodbye, "anything else?") keeps only what its
     calls establish: refusing it where a correlate fails costs the user a dead end, allowing it costs little,
-    so the assumed rules are named (`Choice.unguarded`), not kept."""
+    so the assumed rules are named (`Choice.unguarded`), not kept; a `follow_up` offer ("anything else?") keeps
+    that its agent's request was answered (`_conversational`)."""
     chosen = triggers(clusters, evidence)
     decided: dict[str, Decided] = {c.representative.expression: "established" for c in chosen}
     notes: dict[str, str] = {}
@@ -134,25 +136,55 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     kept = {c.satisfied for c in chosen}
     extra = assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept)
     if conversational:
-        own = [c for c in chosen if own_news(c.representative.expression)]
-        return Choice([c for c in chosen if c not in own], {e: d for e, d in decided.items()
-                                                            if all(c.representative.expression != e for c in own)},
-                      notes, search, [c.representative.expression for c in (*own, *extra)])
+        return _conversational(chosen, decided, notes, search, extra, common, evidence, follow_up)
     for c in extra:
         chosen.append(c)
         decided[c.representative.expression] = "assumed"
     return Choice(chosen, decided, notes, search)
 
 
-def own_news(expression: str) -> bool:
-    """A positive fact about the agent's own state (`self.query_success`, `self.query_success is not None`): what
-    its own service call answered. A conversational act that follows it in the same turn (a goodbye after the
-    booking went through, the user's words between them not logged) was not enabled by it; the other party's
-    acts (`self.user.no_more`) and bad news (`not self.query_success`) are what a conversational act answers."""
+def _conversational(chosen: Sequence[Cluster], decided: Mapping[str, Decided], notes: dict[str, str], search: str,
+                    extra: Sequence[Cluster], common: Sequence[Cluster], evidence: ActionEvidence, follow_up: bool
+                    ) -> Choice:
+    """A conversational act keeps its triggers but the agent's own answer (`own_answer`) and names the rest.
+
+    A `follow_up` offer ("anything else?") asks whether the user needs more once the agent served a request, so
+    where nothing the other party did explains its calls (a log without the user's acts) it keeps the presence
+    of that answer (`self.query_success is not None`) where it held at every call, whichever answers the calls
+    followed: refused only before anything was asked, never after a failure. Where the user's thanks or
+    decline enabled it, those are its rule, before anything was asked too."""
+    own = [c for c in chosen if own_answer(c.representative.expression)]
+    kept = [c for c in chosen if c not in own]
+    out: dict[str, Decided] = {c.representative.expression: decided[c.representative.expression] for c in kept
+                               if c.representative.expression in decided}
+    if follow_up and not kept:
+        for c in served((*own, *extra, *common), evidence):
+            out[c.representative.expression] = decided.get(c.representative.expression, "assumed")
+            kept.append(c)
+    named = [c.representative.expression for c in (*own, *extra) if c not in kept]
+    return Choice(kept, out, {e: n for e, n in notes.items() if e in out}, search, list(dict.fromkeys(named)))
+
+
+def served(clusters: Sequence[Cluster], evidence: ActionEvidence) -> list[Cluster]:
+    """What a follow-up offer keeps: the first presence test of the agent's own answer that held at every call."""
+    mask = evidence.occurrence_mask
+    for c in clusters:
+        if mask and not mask & ~c.satisfied:
+            for m in c.members:  # beside `x` on points where every answer was a success, the same cluster
+                if _presence(m.expression) and own_answer(m.expression) and polarity(m.expression) == "positive":
+                    return [Cluster((m,))]
+    return []
+
+
+def own_answer(expression: str) -> bool:
+    """A fact about the agent's own state alone (`self.query_success`, `not self.query_success`,
+    `self.query_success is not None`): what its own service call answered. A conversational act that follows
+    it in the same turn (a goodbye after the booking went through or after it failed, the user's words between
+    them not logged) was not enabled by it; the other party's acts (`self.user.no_more`) are what a
+    conversational act answers, and a disjunction that names them keeps the failure as one of its terms
+    (`self.user.no_more or not self.query_success`)."""
     node = _parsed(expression)
-    if node is None or polarity(expression) != "positive":
-        return False
-    if any(isinstance(n, ast.Constant) and n.value is False for n in ast.walk(node)):  # `is False`: bad news
+    if node is None or isinstance(node, ast.BoolOp):
         return False
     paths = [n for n in ast.walk(node) if isinstance(n, ast.Attribute)]
     return bool(paths) and all(isinstance(n.value, ast.Name) and n.value.id == "self" for n in paths)
@@ -312,6 +344,65 @@ def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: b
                              f"(p = {counts.chance():.2f}): not separated from chance{budget}"), cut
     note = f"a disjunction: each term was made true before the calls it covers{budget}"
     return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), terms, note, cut
+
+
+def unread(chosen: Sequence[Cluster]) -> list[Cluster]:
+    """The kept rules without a presence test (`x is not None`) beside a test of the same answer's value (`not x`,
+    `x`): the value is what the action reports; that some answer came says nothing more, and beside `not x` it
+    would refuse before anything was asked, which a failure notice's rule does not."""
+    valued = [_leaves(c.representative.expression) for c in chosen if not _presence(c.representative.expression)]
+    return [c for c in chosen if not (_presence(c.representative.expression)
+                                      and polarity(c.representative.expression) == "positive"
+                                      and _leaves(c.representative.expression) in valued)]
+
+
+def slipped(chosen: Sequence[Cluster], atoms: Sequence[Cluster], evidence: ActionEvidence, share: float
+            ) -> tuple[list[Cluster], dict[str, str], dict[str, str]]:
+    """The kept rules with each bare presence test (`x is not None`: an answer came) read for its value.
+
+    Beside a kept test of the same answer's value it is dropped (`unread`). Alone, it is the narrowest trigger
+    of a failure notice whose calls all followed a failure (`not x` also holds before anything was asked), and
+    it may hold at every call only because a human agent once reported the other answer: three "reservation
+    failed" notices after a failure and one after a success keep `x is not None`, which allows the notice after
+    a success too. When a test of the value (`not x`, `x`) holds at all calls or all but at most `share` of them,
+    and at every call where it holds the answer came since the agent's previous turn (the notice reports news),
+    it replaces the presence test; the calls it refuses are its exceptions. Also, per replacing rule, why, and
+    the presence test it replaced."""
+    mask = evidence.occurrence_mask
+    n = mask.bit_count()
+    index = {point: bit for bit, point in enumerate(evidence.points)}
+    out: list[Cluster] = []
+    notes: dict[str, str] = {}
+    replaced: dict[str, str] = {}
+    for c in unread(chosen):
+        expression = c.representative.expression
+        if not (_presence(expression) and polarity(expression) == "positive"):
+            out.append(c)
+            continue
+        state = _leaves(expression)
+        best: tuple[int, Cluster] | None = None
+        for v in atoms:
+            text = v.representative.expression
+            node = _parsed(text)
+            if node is None or isinstance(node, ast.BoolOp) or _presence(text) or _leaves(text) != state:
+                continue
+            holds = (v.satisfied & mask).bit_count()
+            if n - holds > share * n or holds <= n - holds or len(_made(v, evidence, index)) < holds:
+                continue
+            if best is None or holds > best[0]:
+                best = (holds, v)
+        if best is None:
+            out.append(c)
+            continue
+        holds, v = best
+        out.append(v)
+        replaced[v.representative.expression] = expression
+        slips = (f", so the calls where the agent reported the other answer are its exceptions "
+                 f"(options.answer_slips: at most {share:.0%} of the calls)") if holds < n else ""
+        notes[v.representative.expression] = (
+            f"read for its value: it held at {holds} of {n} calls, each time just after that answer came, and "
+            f"replaces {expression!r} (an answer came before every call){slips}")
+    return out, notes, replaced
 
 
 def _made(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, int]) -> set[int]:

@@ -163,7 +163,9 @@ def state_read(expression: str) -> frozenset[tuple[str, object]]:
 def preferred(priors: Sequence[Prior], results: Mapping[str, CandidateResult], verdicts: Mapping[str, Verdict],
               evidence: ActionEvidence, demonstrated: bool, sparse: bool) -> list[Candidate]:
     """The surviving priors most sources name: for a never-demonstrated action every prior the sandbox could
-    judge survives; otherwise one that held at every demonstrated call (on thin evidence too)."""
+    judge survives; otherwise one that held at every demonstrated call (on thin evidence too). Equally named
+    priors that no point satisfies together (one service guessed `self.query_success is None`, another
+    `self.query_success is not None`) are no majority reading: neither is preferred."""
     mask = evidence.occurrence_mask
     fates = SURVIVING_THIN if sparse else SURVIVING
     alive: list[tuple[Prior, CandidateResult]] = []
@@ -175,7 +177,51 @@ def preferred(priors: Sequence[Prior], results: Mapping[str, CandidateResult], v
             continue
         alive.append((prior, result))
     best = max((len(p.sources) for p, _ in alive), default=0)
-    return [Candidate(p.expression, "prior", r.satisfied) for p, r in alive if len(p.sources) == best]
+    top = [(p, r) for p, r in alive if len(p.sources) == best]
+    clashing = {i for i, (p, _) in enumerate(top) for j, (q, _) in enumerate(top)
+                if i != j and contradict(p.expression, q.expression)}
+    return [Candidate(p.expression, "prior", r.satisfied) for i, (p, r) in enumerate(top) if i not in clashing]
+
+
+ANSWERS = (None, True, False)
+"""The values an answer of the agent's own service takes (`query_success`: not asked, yes, no)."""
+
+
+def contradict(a: str, b: str) -> bool:
+    """Whether two rules about one value (`self.query_success is None`, `self.query_success is not None`) hold
+    for none of `ANSWERS` together. Read from their syntax, never run: rules of other services are untrusted
+    and the sandbox is for judging them on states; a rule this cannot read contradicts nothing."""
+    state = state_read(a)
+    if len(state) != 1 or state_read(b) != state:
+        return False
+    try:
+        left, right = (ast.parse(e.strip(), mode="eval").body for e in (a, b))
+    except (SyntaxError, ValueError, RecursionError):
+        return False
+    both = [(_value(left, v), _value(right, v)) for v in ANSWERS]
+    return all(x is not None and y is not None for x, y in both) and not any(x and y for x, y in both)
+
+
+def _value(node: ast.expr, value: bool | None) -> bool | None:
+    """`node` with its one state read as `value`; None where it is not a test this reads (a call, an operator)."""
+    if isinstance(node, ast.Attribute | ast.Subscript):
+        return bool(value)
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, ast.Not):
+        inner = _value(node.operand, value)
+        return None if inner is None else not inner
+    if isinstance(node, ast.BoolOp):
+        parts = [_value(v, value) for v in node.values]
+        if any(p is None for p in parts):
+            return None
+        return all(parts) if isinstance(node.op, ast.And) else any(parts)
+    if isinstance(node, ast.Compare) and len(node.ops) == 1 and isinstance(node.left, ast.Attribute | ast.Subscript) \
+            and isinstance(node.comparators[0], ast.Constant) and node.comparators[0].value in ANSWERS:
+        other, op = node.comparators[0].value, node.ops[0]
+        if isinstance(op, ast.Is | ast.Eq):
+            return value is other
+        if isinstance(op, ast.IsNot | ast.NotEq):
+            return value is not other
+    return None
 
 
 def support(priors: Sequence[Prior]) -> dict[str, int]:

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import ast
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from precond.engine import cautious, priors
+from precond.engine import guarded as guarding
 from precond.engine.evidence import Evidence, OccurrenceIndex, describe, gather, strict, thin, too_few, verdict
 from precond.engine.freshness import Access
 from precond.engine.ranking import (
@@ -29,7 +30,7 @@ from precond.engine.ranking import (
 )
 from precond.engine.report import Proposals, Ranked
 from precond.sandbox.types import ActionInfo, CandidateResult, EvaluateResult, TraceResult
-from precond_client.schemas.api import InferOptions, Verdict
+from precond_client.schemas.api import Decided, InferOptions, Verdict
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,8 @@ def select_rules(actions: Sequence[str], inference: Inference, guarded: Sequence
     turns = previous_turns(inference.trace)
     tool_calls = _tool_calls(inference.trace) if inference.options.ranking == "cautious" else set()
     shielded = set(actions if guarded is None else guarded)
-    return {action: _select(action, inference, turns, action in tool_calls, action not in shielded)
+    return {action: _select(action, inference, turns, action in tool_calls, action not in shielded,
+                            action not in shielded and guarding.follow_up_name(guarding.method_name(action)))
             for action in actions}
 
 
@@ -87,10 +89,12 @@ class _Chosen:
     clusters: list[Cluster]
     cut: list[Cluster]
     """What the criterion chose and the tolerance's budget left out."""
+    slipped: list[str] = field(default_factory=list)
+    """Kept rules with exceptions by `options.answer_slips` (`cautious.slipped`): tolerated, not refuted."""
 
 
 def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], int], tool_call: bool,
-            conversational: bool) -> Ranked:
+            conversational: bool, follow_up: bool = False) -> Ranked:
     options, info = inference.options, inference.trace.actions[action]
     points = inference.evaluated.points.get(action, ())
     seen = _judged(action, info, inference)
@@ -98,7 +102,7 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
                               not info.occurrences or thin(seen.index.occurrences, options.tolerance),
                               options.tolerance, inference.writes if options.ranking == "cautious" else {})
     votes = inference.proposals.votes.get(action, {})
-    chosen = _choose(seen, evidence, options, votes, info, tool_call, conversational)
+    chosen = _choose(seen, evidence, options, votes, info, tool_call, conversational, follow_up)
     choice = chosen.choice
     if not evidence.thin and too_few(info.occurrences):  # strict validation on one or two calls: not established
         choice = replace(choice, decided={e: "assumed" if d == "established" else d for e, d in choice.decided.items()})
@@ -106,8 +110,12 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     prior = inference.prior
     if prior is not None and prior.rules.get(action):
         choice = _with_priors(choice, prior, action, seen.results, seen.verdicts, evidence)
+        read = cautious.unread(choice.chosen)  # a transferred `not x` beside an own `x is not None`, or the reverse
+        choice = replace(choice, chosen=read, decided={e: d for e, d in choice.decided.items()
+                                                       if any(c.representative.expression == e for c in read)})
         transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items() if d == "transferred"}
     reported, judged, verdicts = _with_composites(choice, seen.results, seen.judged, seen.verdicts, seen.index)
+    verdicts |= {e: "tolerated" for e in chosen.slipped if e in choice.decided}
     reasons = {**_screened(verdicts, judged, options.tolerance, {r.expression: r.reason for r in seen.results}),
                **explain(options.ranking, chosen.valid, chosen.clusters, choice.chosen, evidence, votes, chosen.cut)}
     reasons |= _decided_reasons(choice, reasons)
@@ -123,7 +131,7 @@ def unguarded_note(rules: Sequence[str]) -> str:
 
 
 def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, votes: Mapping[str, int],
-            info: ActionInfo, tool_call: bool, conversational: bool) -> _Chosen:
+            info: ActionInfo, tool_call: bool, conversational: bool, follow_up: bool) -> _Chosen:
     """The criterion's rules, within the tolerance's budget; an action too thinly demonstrated ranks like an
     unseen one (the hook for the spec's zero-shot judgment)."""
     n_points = len(evidence.points)
@@ -134,19 +142,29 @@ def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, vote
             choice = _with_thin(choice, seen.candidates("held", "tolerated", "thin", "chance", "refuted"),
                                 evidence, n_points, tool_call, conversational)
         if conversational:  # a guess never refuses a conversational act: named, not kept
-            choice = cautious.Choice([], {}, {}, choice.search,
-                                     [*(c.representative.expression for c in choice.chosen), *choice.unguarded])
+            kept = cautious.served(cluster(seen.candidates("held", "tolerated", "thin", "chance")), evidence) \
+                if follow_up and options.ranking == "cautious" else []
+            named = [*(c.representative.expression for c in choice.chosen), *choice.unguarded]
+            choice = cautious.Choice(kept, {c.representative.expression: "assumed" for c in kept}, {}, choice.search,
+                                     [e for e in named if all(e != c.representative.expression for c in kept)])
         return _Chosen(choice, valid, [], [])
     valid = seen.candidates("held", "tolerated")
     clusters = informative(cluster(valid), n_points)
     if options.ranking == "cautious":
         common = informative(cluster(seen.candidates("held", "tolerated", "chance")), n_points)
         atoms = informative(cluster(seen.candidates("held", "tolerated", "chance", "refuted")), n_points)
-        found = cautious.choose(clusters, common, atoms, evidence, tool_call, conversational)
+        found = cautious.choose(clusters, common, atoms, evidence, tool_call, conversational, follow_up)
         kept = within_budget(found.chosen, evidence)
-        return _Chosen(cautious.Choice(kept, found.decided, found.notes, found.search, found.unguarded), valid,
-                       clusters,
-                       [c for c in found.chosen if c not in kept])
+        cut = [c for c in found.chosen if c not in kept]
+        decided, notes = dict(found.decided), dict(found.notes)
+        slips: dict[str, str] = {}
+        if not conversational and not strict(options.tolerance) and options.answer_slips > 0:
+            read, slips, replaced = cautious.slipped(kept, atoms, evidence, options.answer_slips)
+            decided |= {new: decided.get(old, "established") for new, old in replaced.items()}
+            decided = {e: d for e, d in decided.items() if any(c.representative.expression == e for c in read)}
+            kept, notes = read, {**{e: n for e, n in notes.items() if e in decided}, **slips}
+        return _Chosen(cautious.Choice(kept, decided, notes, found.search, found.unguarded), valid, clusters, cut,
+                       list(slips))
     picked = by_criterion(options.ranking, clusters, evidence)
     kept = within_budget(picked, evidence)
     return _Chosen(cautious.Choice(kept, {c.representative.expression: "established" for c in kept}), valid,
@@ -190,8 +208,10 @@ def _with_thin(choice: cautious.Choice, judged: Sequence[Candidate], evidence: A
     extra = [c for c in cautious.thin_rules(judged, evidence, n_points, tool_call) if c.satisfied not in kept]
     if conversational:
         return replace(choice, unguarded=[c.representative.expression for c in extra])
-    return replace(choice, chosen=[*choice.chosen, *extra],
-                   decided={**choice.decided, **{c.representative.expression: "assumed" for c in extra}})
+    chosen = cautious.unread([*choice.chosen, *extra])
+    decided: dict[str, Decided] = {**choice.decided, **{c.representative.expression: "assumed" for c in extra}}
+    return replace(choice, chosen=chosen,
+                   decided={e: d for e, d in decided.items() if any(c.representative.expression == e for c in chosen)})
 
 
 def _with_priors(choice: cautious.Choice, prior: priors.Priors, action: str, results: Sequence[CandidateResult],

@@ -29,7 +29,9 @@ HOW_CHOSEN: dict[str, str] = {
     "model+enumerate/cautious/lib=lodo": "the library alone (every action guarded), each domain scored with the "
                                          "library of the others; measured before the thin failure-notice rule",
     "model+enumerate/cautious/guard=spec/lib=lodo": "the shipped default (guarded actions from the spec, the rule "
-                                                    "library), each domain scored with the library of the others",
+                                                    "library), each domain scored with the library of the others; "
+                                                    "`options.answer_slips` at its declared default 0.3 (the "
+                                                    "evidence weighting's bound on slips, fixed before measuring)",
 }
 TEXT = """Per benchmark (SGD: 14 services; STAR: 6 tasks of human agents; ALFWorld valid_unseen): the mean over its
 domains, the worst domain, and `<=always` = how many domains score at or below `always` (no rule) on the paper's

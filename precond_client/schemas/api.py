@@ -37,6 +37,7 @@ POLICY_PATTERN = rf"^adapter:{ADAPTER_REFERENCE[1:]}"
 
 MAX_TOLERANCE = 0.5
 DEFAULT_TOLERANCE = 0.05
+DEFAULT_ANSWER_SLIPS = 0.3
 MAX_LISTED_EXCEPTIONS = 20
 
 Generator = Literal["model", "enumerate"]
@@ -219,6 +220,19 @@ class InferOptions(StrictBody):
         "occurrences clearly more often than at the other points of the same demonstrations, and the action "
         "occurs at least 3 times (fewer: treated as never demonstrated). "
         "docs/method.md: 'Evidence-weighted validation'.",
+    )
+    answer_slips: float = Field(
+        default=DEFAULT_ANSWER_SLIPS,
+        ge=0.0,
+        le=MAX_TOLERANCE,
+        allow_inf_nan=False,
+        description="Share of an action's demonstrated calls at which a human agent may have reported the other "
+        "answer (a 'reservation failed' notice after a success) while an answer came before every call. Within "
+        "it, the test of the answer's value that the other calls share replaces the bare 'an answer came' "
+        "(`self.query_success is not None`, which allows the notice after either answer); the calls it refuses "
+        "are listed as the rule's exceptions in `evidence`. 0 keeps the bare test; ignored at `tolerance` 0 "
+        "(strict validation). The default (0.3) is the evidence weighting's bound on slips (a minority of the "
+        "calls), fixed before it was measured. docs/method.md: 'Evidence-weighted validation'.",
     )
 
     def priors(self) -> list[tuple[str, str, dict[str, list[str]]]]:

@@ -101,3 +101,44 @@ def test_a_failure_notice_demonstrated_twice_is_refused_after_success(engine: En
     assert "not self.query_success" in rules
     assert response.evidence["SYSTEM.NOTIFY_FAILURE"]["not self.query_success"].decided == "assumed"
     assert "thin evidence" in response.warnings["SYSTEM.NOTIFY_FAILURE"]
+
+
+OFFER_SPEC = FAILURE_SPEC.replace("  def GOODBYE(self): pass\n",
+                                  "  def GOODBYE(self): pass\n  def ANYTHING_ELSE(self): pass\n")
+
+
+def _served(ok: bool) -> str:
+    """A human agent's log: the booking answers, the agent reports it, offers more help and says goodbye in the
+    same turn (the user's words between them not logged)."""
+    return "\n".join(["user = USER()", "system = SYSTEM(user)", "system.REQUEST('day')", "user.INFORM('day')",
+                      "user.AFFIRM()", "system.Book()", f"system.set_query_status({ok})",
+                      "system.INFORM_BOOKED()" if ok else "system.NOTIFY_FAILURE()", "system.ANYTHING_ELSE()",
+                      "system.GOODBYE()"]) + "\n"
+
+
+def test_anything_else_keeps_that_a_request_was_answered_and_a_goodbye_keeps_nothing(engine: Engine) -> None:
+    """"Anything else?" follows a served request, whatever its answer: refused before anything was asked, allowed
+    after a failure; the goodbye beside it answers the user, at any time."""
+    demos = [_served(True), _served(True), _served(False), _served(True)]
+    response = engine.infer(InferRequest(spec=OFFER_SPEC, demonstrations=demos, options=InferOptions(
+        generators=["enumerate"], library=False)))
+    assert response.preconditions["SYSTEM.ANYTHING_ELSE"] == ["self.query_success is not None"]
+    assert response.preconditions["SYSTEM.GOODBYE"] == []
+
+
+def test_anything_else_seen_only_after_success_is_not_refused_after_a_failure(engine: Engine) -> None:
+    demos = [_served(True)] * 4
+    response = engine.infer(InferRequest(spec=OFFER_SPEC, demonstrations=demos, options=InferOptions(
+        generators=["enumerate"], library=False)))
+    assert response.preconditions["SYSTEM.ANYTHING_ELSE"] == ["self.query_success is not None"]
+
+
+def test_a_failure_notice_seen_only_after_failures_is_refused_after_a_success(engine: Engine) -> None:
+    """Every notice followed a failure, so "an answer came" (`is not None`) is its narrowest trigger; it would
+    allow the notice after a success. The failure itself is what it reports; the goodbye keeps neither."""
+    demos = [_served(False).replace("system.ANYTHING_ELSE()\n", "")] * 4 + [_booking(True)] * 2
+    response = engine.infer(InferRequest(spec=OFFER_SPEC, demonstrations=demos, options=InferOptions(
+        generators=["enumerate"], library=False)))
+    assert response.preconditions["SYSTEM.NOTIFY_FAILURE"] == ["not self.query_success"]
+    assert response.preconditions["SYSTEM.INFORM_BOOKED"] == ["self.query_success"]
+    assert response.preconditions["SYSTEM.GOODBYE"] == []

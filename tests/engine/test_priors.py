@@ -115,6 +115,16 @@ def test_sources_vote_and_the_majority_reading_wins(engine: Engine) -> None:
     assert response.evidence["SYSTEM.NOTIFY_FAILURE"]["not self.query_success"].source == "ps_a@1, ps_b@2"
 
 
+def test_tied_priors_that_contradict_each_other_are_no_majority(engine: Engine) -> None:
+    """One service guessed `is None`, another `is not None`: kept together they would refuse the notice
+    everywhere. Neither is preferred; the reading they both allow stays."""
+    sources = [PriorSource(source="ps_a@1", rules={"SYSTEM.NOTIFY_FAILURE": ["self.query_success is None"]}),
+               PriorSource(source="ps_b@1", rules={"SYSTEM.NOTIFY_FAILURE": ["self.query_success is not None"]}),
+               PriorSource(source="ps_c@1", rules={"SYSTEM.NOTIFY_FAILURE": ["not self.query_success"]})]
+    response = _infer(engine, prior_sources=sources)
+    assert response.preconditions["SYSTEM.NOTIFY_FAILURE"] == ["not self.query_success"]
+
+
 def test_a_prior_naming_what_this_spec_does_not_define_is_dropped_with_a_reason(engine: Engine) -> None:
     alone = _infer(engine)
     response = _infer(engine, prior_rules={

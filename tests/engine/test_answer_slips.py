@@ -1,0 +1,72 @@
+"""A human agent's failure notice, once sent after a success: the notice keeps the failure as its rule, with
+that call as its exception (`options.answer_slips`), instead of "an answer came", which allows it after a
+success."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from precond.engine.engine import Engine
+from precond.sandbox import Sandbox
+from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
+
+SPEC = """from collections import defaultdict
+class USER:
+  def __init__(self):
+    self.informed = defaultdict(lambda: False)
+  def INFORM(self, slot): self.informed[slot] = True
+
+class SYSTEM:
+  def __init__(self, user):
+    self.user, self.query_success = user, None
+  def set_query_status(self, ok): self.query_success = ok
+  def REQUEST(self, slot): pass
+  def Reserve(self): pass
+  def INFORM_RESERVED(self): pass
+  def INFORM_RESERVATION_FAILED(self): pass
+"""
+
+
+def _dialog(ok: bool, notice: str) -> str:
+    return "\n".join(["user = USER()", "system = SYSTEM(user)", "system.REQUEST('flight')", "user.INFORM('flight')",
+                      "system.Reserve()", f"system.set_query_status({ok})", f"system.{notice}()"]) + "\n"
+
+
+FAILED, RESERVED = "INFORM_RESERVATION_FAILED", "INFORM_RESERVED"
+DEMOS = [_dialog(False, FAILED), _dialog(False, FAILED), _dialog(True, FAILED), _dialog(False, FAILED),
+         _dialog(True, RESERVED), _dialog(True, RESERVED), _dialog(True, RESERVED)]
+"""Four failure notices, the third after a success (the agent's slip)."""
+
+
+@pytest.fixture(scope="module")
+def engine() -> Iterator[Engine]:
+    with Sandbox(workers=2) as sandbox:
+        yield Engine(sandbox, None)
+
+
+def _infer(engine: Engine, **options: Any) -> InferResponse:
+    return engine.infer(InferRequest(spec=SPEC, demonstrations=DEMOS, options=InferOptions(
+        generators=["enumerate"], library=False, **options)))
+
+
+def test_the_notice_sent_once_after_a_success_keeps_the_failure_and_names_that_call(engine: Engine) -> None:
+    response = _infer(engine)
+    assert response.preconditions[f"SYSTEM.{FAILED}"] == ["not self.query_success"]
+    kept = response.evidence[f"SYSTEM.{FAILED}"]["not self.query_success"]
+    assert (kept.occurrences, kept.holds) == (4, 3)
+    assert [(e.demonstration, e.call) for e in kept.exceptions] == [(2, f"system.{FAILED}()")]
+
+
+def test_without_answer_slips_it_keeps_only_that_an_answer_came(engine: Engine) -> None:
+    response = _infer(engine, answer_slips=0.0)
+    assert response.preconditions[f"SYSTEM.{FAILED}"] == ["self.query_success is not None"]
+
+
+def test_two_slips_in_four_calls_are_not_slips(engine: Engine) -> None:
+    demos = [*DEMOS[:3], _dialog(True, FAILED), *DEMOS[4:]]
+    response = engine.infer(InferRequest(spec=SPEC, demonstrations=demos, options=InferOptions(
+        generators=["enumerate"], library=False)))
+    assert "not self.query_success" not in response.preconditions[f"SYSTEM.{FAILED}"]
