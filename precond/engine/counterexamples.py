@@ -171,6 +171,9 @@ class Separation:
     """Demonstrated calls labelled 'refuse': verification skips them (the kept rules refuse them by design)."""
     unrefused: list[str]
     """The calls labelled 'refuse' that no kept rule refuses: nothing the conditions say separates them."""
+    unshown: bool
+    """No demonstrated call to allow: none demonstrated, or each labelled 'refuse'. The action is then refused
+    (`options.unseen`) unless its labelled calls give it a rule, as a never-demonstrated one is."""
 
 
 def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
@@ -198,10 +201,12 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         bits += [_bit(elsewhere.satisfied if elsewhere and elsewhere.status != "rejected" else 0, b)
                  for b in case_bits]
         truth[result.expression] = sum(1 << k for k, held in enumerate(bits) if held)
-    kept, notes = _kept(ranked, truth, positive, negative)
+    demonstrated = len(examples) - len(case_points)
+    unshown = all(e.refuse for e in examples[:demonstrated])
+    kept, notes = _kept(ranked, truth, positive, negative, unshown)
     remaining = negative & ~_refused_by(kept, truth, negative)
     pool = {e: t for e, t in truth.items() if e in policy} if policy else truth
-    # with no call to allow (never demonstrated, every labelled call refused), nothing bounds a separating rule
+    # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule
     # from above: only the limits a policy states are learned from the calls to refuse (`_limits`)
     required, learned = _smallest(pool, positive, remaining) if positive else (_limits(pool, negative, remaining), [])
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
@@ -237,12 +242,13 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     return Separation(replace(ranked, results=results, chosen=chosen, reasons=reasons, evidence=evidence,
                               verdicts=verdicts, decided=decided), refuses, wrong, exempt,
                       [_name(examples[k]) for k in _bits_of(negative & ~_refused_by(
-                          {c.representative.expression for c in chosen}, truth, negative))])
+                          {c.representative.expression for c in chosen}, truth, negative))], unshown)
 
 
-def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
+def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int, unshown: bool = False
           ) -> tuple[set[str], dict[str, str]]:
-    """The ranking's rules that allow every call to allow; an assumed one only if it refuses a labelled call."""
+    """The ranking's rules that allow every call to allow; an assumed one only if it refuses a labelled call,
+    and so every one when each demonstrated call is labelled 'refuse' (`unshown`): they rest on those calls."""
     kept, notes = set(), {}
     for cluster in ranked.chosen:
         e = cluster.representative.expression
@@ -253,6 +259,9 @@ def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
             notes[e] = f"dropped: refuses {(positive & ~held).bit_count()} call(s) labelled or demonstrated to allow"
         elif ranked.decided.get(e) == "assumed" and not negative & ~held:
             notes[e] = "dropped: assumed, and refuses none of the calls labelled 'refuse' (a correlate, not a reason)"
+        elif unshown and not negative & ~held:
+            notes[e] = ("dropped: every demonstrated call it rests on is labelled 'refuse', and it refuses none of "
+                        "them (evidence against it, not for)")
         else:
             kept.add(e)
     return kept, notes

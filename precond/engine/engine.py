@@ -285,8 +285,9 @@ class Engine:
         if request.options.unseen == "refuse":  # unless the code model's zero-shot guess, or a call labelled
             shown = {c.action for c in labelled.cases if c.verdict == "allow"} - {  # 'allow' and none 'refuse'
                 c.action for c in labelled.cases if c.verdict == "refuse"} if labelled else set()
-            chosen.update({a: [UNSEEN_RULE] for a in guarded
-                           if not trace.actions[a].occurrences and not chosen[a] and a not in shown})
+            unshown = {a for a, s in separated.items() if s.unshown}
+            chosen.update({a: [UNSEEN_RULE] for a in guarded if (not trace.actions[a].occurrences or a in unshown)
+                           and not chosen[a] and a not in shown})
         with timer.phase("verify"):
             exempt = _exceptions_of(chosen, ranked)
             for separation in separated.values():

@@ -215,3 +215,15 @@ def test_an_action_never_demonstrated_whose_labelled_calls_nothing_separates_sta
     assert inferred.evidence[BOOK]["False"].decided == "unseen"
     assert "unseparated: 1 call(s) labelled 'refuse'" in inferred.warnings[BOOK]
     assert "stays refused (options.unseen: 'refuse')" in inferred.warnings[BOOK]
+
+
+def test_rules_resting_only_on_demonstrated_calls_labelled_refuse_are_not_kept(engine: Engine) -> None:
+    """Every demonstrated call labelled 'refuse' and none 'allow': the demonstrations are evidence against the
+    rules they show, not for, so the action is refused as a never-demonstrated one is (`options.unseen`)."""
+    labels = [{"demonstration": k, "calls": [{"line": CALL_LINE, "verdict": "refuse", "name": f"demo {k}"}]}
+              for k in range(len(DEMOS.trajectories))]
+    assert engine.infer(request([])).preconditions[CANCEL] != ["False"]
+    inferred = engine.infer(request(labels))
+    assert inferred.preconditions[CANCEL] == ["False"]
+    assert inferred.evidence[CANCEL]["False"].decided == "unseen"
+    assert "stays refused (options.unseen: 'refuse')" in inferred.warnings[CANCEL]
