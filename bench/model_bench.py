@@ -280,12 +280,17 @@ def run_child(argv: list[str], script: str = __file__, threads: str | None = Non
     return result
 
 
+def split_values(values: list[str]) -> list[str]:
+    """`--quants none int8` and `--quants none,int8` alike."""
+    return [value for given in values for value in given.split(",") if value]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--threads", nargs="+", type=int, default=[1, 2])
     parser.add_argument("--dtypes", nargs="+", default=["float32", "bfloat16"])
     parser.add_argument("--quants", nargs="+", default=["none", "int8"], help="MODEL_QUANT values (int8: where the "
-                        "CPU runs it)")
+                        "CPU runs it), `none int8` or `none,int8`")
     parser.add_argument("--rounds", type=int, default=1, help="run every configuration this many times, "
                         "interleaved (old and new side by side on a shared machine)")
     parser.add_argument("--repeat", type=int, default=3, help="each figure is the best of this many runs")
@@ -314,7 +319,7 @@ def main() -> None:
     for _ in range(args.rounds):
         for threads in args.threads:
             for dtype in args.dtypes:
-                for quant in args.quants:
+                for quant in split_values(args.quants):
                     report["results"].append(run_child(["backend", dtype, quant, str(threads), str(args.repeat)]))
             if args.no_llama_cpp:
                 continue

@@ -108,6 +108,7 @@ def run(runtime: str, dtype: str, quant: str, threads: int, name: str, turns: in
         with SandboxSettings().build() as sandbox:
             engine = Engine(sandbox, loader)
             load_s, _ = timed(engine.model)
+            load_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
             infer_s, inferred = timed(lambda: engine.infer(InferRequest(spec=data["spec_program"],
                                                                         demonstrations=demos)))
             latencies = []
@@ -125,6 +126,7 @@ def run(runtime: str, dtype: str, quant: str, threads: int, name: str, turns: in
         "next_action_p50_s": round(statistics.median(latencies), 2),
         "next_action_p95_s": round(sorted(latencies)[max(0, round(0.95 * len(latencies)) - 1)], 2),
         "requests": len(latencies),
+        "load_peak_rss_mb": load_peak,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024,
     }
 
@@ -141,7 +143,8 @@ def main() -> None:
     parser.add_argument("--turns", type=int, default=20)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--dtypes", nargs="+", default=["auto"])
-    parser.add_argument("--quants", nargs="+", default=["auto"], help="MODEL_QUANT values, each beside each dtype")
+    parser.add_argument("--quants", nargs="+", default=["auto"], help="MODEL_QUANT values, each beside each dtype "
+                        "(`none int8` or `none,int8`)")
     parser.add_argument("--rounds", type=int, default=1, help="every configuration this many times, interleaved")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
@@ -151,11 +154,11 @@ def main() -> None:
         print(json.dumps(run(runtime, dtype, quant, int(threads), name, int(turns))))
         return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    from bench.model_bench import run_child
+    from bench.model_bench import run_child, split_values
 
     threads = str(args.threads)
     rows = [run_child(["backend", dtype, quant, threads, args.domain, str(args.turns)], __file__, threads)
-            for _ in range(args.rounds) for dtype in args.dtypes for quant in args.quants]
+            for _ in range(args.rounds) for dtype in args.dtypes for quant in split_values(args.quants)]
     if importlib.util.find_spec("llama_cpp") is not None:
         rows.append(run_child(["llama_cpp", "-", "-", threads, args.domain, str(args.turns)], __file__, threads))
     else:

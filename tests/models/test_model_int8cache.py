@@ -55,6 +55,8 @@ def test_the_cached_int8_model_is_the_one_quantized_in_memory(source: Path, tmp_
     assert not any(isinstance(m, nn.Linear) for m in model.modules())
     assert isinstance(model.get_input_embeddings(), Int8Embedding)
     assert isinstance(model.get_output_embeddings(), Int8Linear)
+    output, embedding = model.get_output_embeddings(), model.get_input_embeddings()
+    assert output.transposed == (output.qweight is not embedding.qweight)  # an untied projection: in x out
     assert torch.equal(logits(model.eval()), logits(in_memory(source)))
     again, _ = int8cache.load(source, cache, KEY, torch.float32)
     assert torch.equal(logits(again.eval()), logits(model))

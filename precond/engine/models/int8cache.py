@@ -36,7 +36,7 @@ from precond.engine.models.store import ModelStoreError
 
 logger = logging.getLogger(__name__)
 
-FORMAT = 1
+FORMAT = 2
 """Bumped whenever what is stored changes (names, layout, rounding): an older file is then built again."""
 WEIGHTS = "model.safetensors"
 MANIFEST = "int8.json"
@@ -62,6 +62,9 @@ class _Plan:
         if self.tied:
             self.quantized -= {name for name, module in modules.items() if module is output}
         self.embedding = embedding_name
+        self.output = next((name for name, module in modules.items() if module is output), "")
+        self.transposed = "" if self.tied else self.output
+        """The untied vocabulary projection, stored in x out (`quant.Int8Linear`'s `transposed`)."""
         self.copied = [name for name in names
                        if not (name.endswith(".weight") and name.removesuffix(".weight") in self.quantized)]
 
@@ -107,14 +110,15 @@ def build(source: Path, target: Path, dtype: torch.dtype) -> None:
         entries: list[tuple[str, torch.dtype, tuple[int, ...]]] = []
         for module in sorted(plan.quantized):
             shape = tuple(weights.get_slice(f"{module}.weight").get_shape())
-            entries += [(f"{module}.qweight", torch.int8, shape), (f"{module}.scales", torch.float32, shape[:1])]
+            stored = shape[::-1] if module == plan.transposed else shape
+            entries += [(f"{module}.qweight", torch.int8, stored), (f"{module}.scales", torch.float32, shape[:1])]
         for name in plan.copied:
             entries.append((name, dtype, tuple(weights.get_slice(name).get_shape())))
 
         def tensors() -> Iterator[torch.Tensor]:
             for module in sorted(plan.quantized):
                 qweight, scales = rows_int8(weights.get_tensor(f"{module}.weight"))
-                yield qweight
+                yield qweight.t().contiguous() if module == plan.transposed else qweight
                 yield scales
             for name in plan.copied:
                 yield weights.get_tensor(name).to(dtype)
@@ -215,20 +219,18 @@ def _assemble(directory: Path, tensors: dict[str, torch.Tensor], dtype: torch.dt
     with torch.device("meta"):
         model = AutoModelForCausalLM.from_config(config, dtype=dtype)  # type: ignore[no-untyped-call]
     plan = _Plan(model, [name for name, _ in model.named_parameters()])
-    output = model.get_output_embeddings()
     layers: dict[str, nn.Module] = {}
     for name in sorted(plan.quantized):
         module = model.get_submodule(name)
         qweight, scales = tensors.pop(f"{name}.qweight"), tensors.pop(f"{name}.scales")
         if isinstance(module, nn.Linear):
-            layers[name] = Int8Linear(qweight, scales, None)
+            layers[name] = Int8Linear(qweight, scales, None, transposed=name == plan.transposed)
         else:
             layers[name] = Int8Embedding(qweight, scales, dtype, getattr(module, "padding_idx", None))
     if plan.tied:
         shared = layers[plan.embedding]
         assert isinstance(shared, Int8Embedding)
-        output_name = next(name for name, module in model.named_modules() if module is output)
-        layers[output_name] = Int8Linear(shared.qweight, shared.scales, None)
+        layers[plan.output] = Int8Linear(shared.qweight, shared.scales, None)
     for name, layer in layers.items():
         bias = tensors.pop(f"{name}.bias", None)
         if isinstance(layer, Int8Linear) and bias is not None:
