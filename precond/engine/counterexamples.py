@@ -207,8 +207,9 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     remaining = negative & ~_refused_by(kept, truth, negative)
     pool = {e: t for e, t in truth.items() if e in policy} if policy else truth
     # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule
-    # from above: only the limits a policy states are learned from the calls to refuse (`_limits`)
-    required, learned = _smallest(pool, positive, remaining) if positive else (_limits(pool, negative, remaining), [])
+    # from above: only the limits a tool's policy states are learned from the calls to refuse (`_limits`)
+    required, learned = _smallest(pool, positive, remaining) if positive else (
+        _limits(pool, negative, remaining) if policy else [], [])
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
     for e in required:

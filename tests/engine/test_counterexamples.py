@@ -227,3 +227,31 @@ def test_rules_resting_only_on_demonstrated_calls_labelled_refuse_are_not_kept(e
     assert inferred.preconditions[CANCEL] == ["False"]
     assert inferred.evidence[CANCEL]["False"].decided == "unseen"
     assert "stays refused (options.unseen: 'refuse')" in inferred.warnings[CANCEL]
+
+
+DIALOG_SPEC = """class USER:
+  def __init__(self):
+    self.confirmed = False
+  def confirm(self):
+    self.confirmed = True
+class SYSTEM:
+  def __init__(self, user):
+    self.user = user
+  def greet(self):
+    pass
+  def book(self):
+    pass
+"""
+
+
+def test_without_a_tool_spec_calls_to_refuse_alone_give_no_rule(engine: Engine) -> None:
+    """The limits learned from calls to refuse alone are a tool spec's (counts, reads, dates); over a dialog's
+    state any condition one refused call meets and another breaks would do, so the action stays refused."""
+    start = "user = USER()\nsystem = SYSTEM(user)\n"
+    runs = [start + "system.book()\n", start + "user.confirm()\nsystem.book()\n"]
+    labels = [{"program": p, "calls": [{"line": len(p.splitlines()), "verdict": "refuse"}]} for p in runs]
+    inferred = engine.infer(InferRequest.model_validate({
+        "spec": DIALOG_SPEC, "demonstrations": [start + "system.greet()\n"] * 3,
+        "actions": ["SYSTEM.greet", "SYSTEM.book"], "options": {"generators": ["enumerate"]},
+        "counterexamples": labels}))
+    assert inferred.preconditions["SYSTEM.book"] == ["False"]
