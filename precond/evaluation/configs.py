@@ -16,7 +16,8 @@ the rules the evidence settled for the others: the paper's prompt)
 `demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
 `maxrate` = re-rank the same inference's valid candidates with precond/evaluation/ranking_probe.py (a measurement of
 a ranking change, not an engine option), `tol` = the request's `options.tolerance` (0: the paper's strict
-validation), and for the noise and sparsity sweep (precond/evaluation/noise.py, SGD only): `sample` = draw the
+validation), `slips` = its `options.answer_slips` (0: a notice keeps "an answer came"), and for the noise and
+sparsity sweep (precond/evaluation/noise.py, SGD only): `sample` = draw the
 `demos` demonstrations at random with this seed (instead of the first N), `noise` = inject agent errors at
 this share of the system steps (seeded by `sample`).
 Two names are baselines that run no inference: `always` (no precondition: every action always allowed)
@@ -129,6 +130,8 @@ def parse_config(name: str) -> InferConfig:
             max_rate = float(value)
         elif key == "tol":
             options["tolerance"] = float(value)
+        elif key == "slips":
+            options["answer_slips"] = float(value)
         elif key == "sample":
             sample = int(value)
         elif key == "noise":

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from precond.evaluation.configs import parse_config
-from precond.evaluation.generalisation import HOW_CHOSEN, section, summarize
+from precond.evaluation.generalisation import HOW_CHOSEN, how_chosen, section, summarize
 from precond.evaluation.library import source_config
 
 
@@ -54,3 +54,10 @@ def test_library_and_guard_settings_reach_the_request() -> None:
     assert source_config(lodo).name == "model+enumerate/cautious/guard=spec"
     with pytest.raises(ValueError, match="lib="):
         parse_config("enumerate/cautious/lib=1")
+
+
+def test_answer_slips_reach_the_request_and_the_row_says_so() -> None:
+    config = parse_config("enumerate/cautious/guard=spec/lib=lodo/slips=0")
+    assert config.infer_options(["SYSTEM.Book"]).answer_slips == 0.0
+    assert source_config(config).name == "enumerate/cautious/guard=spec/slips=0"
+    assert "answer_slips" in how_chosen(config.name)
