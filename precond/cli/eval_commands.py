@@ -249,7 +249,8 @@ def tools(
     cache_dir: CacheOption = DEFAULT_CACHE,
     labels: Annotated[bool, typer.Option("--labels", help="Score on labels.json instead, trained on half the tasks "
                                          "and judged on the other half, both ways, with and without the labels "
-                                         "as counterexamples (precond/evaluation/tools_labels.py).")] = False,
+                                         "as counterexamples; per direction, tool, policy rule and what each "
+                                         "refusal rests on (precond/evaluation/tools_labels.py).")] = False,
 ) -> None:
     """Guard tool calls: rules from the successful airline runs, judged on every state-changing call."""
     from precond.evaluation.tools import CONFIGS, GuardConfig, run
