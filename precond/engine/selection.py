@@ -110,9 +110,8 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     prior = inference.prior
     if prior is not None and prior.rules.get(action):
         choice = _with_priors(choice, prior, action, seen.results, seen.verdicts, evidence)
-        read = cautious.unread(choice.chosen)  # a transferred `not x` beside an own `x is not None`, or the reverse
-        choice = replace(choice, chosen=read, decided={e: d for e, d in choice.decided.items()
-                                                       if any(c.representative.expression == e for c in read)})
+        choice, slipped = _read_priors(choice, seen, evidence, options, conversational, too_few(info.occurrences))
+        chosen = replace(chosen, slipped=[*chosen.slipped, *slipped])
         transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items() if d == "transferred"}
     reported, judged, verdicts = _with_composites(choice, seen.results, seen.judged, seen.verdicts, seen.index)
     verdicts |= {e: "tolerated" for e in chosen.slipped if e in choice.decided}
@@ -121,6 +120,30 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     reasons |= _decided_reasons(choice, reasons)
     return Ranked(reported, chosen.valid, chosen.clusters, choice.chosen, reasons, judged, verdicts, choice.decided,
                   transferred, choice.search, unguarded_note(choice.unguarded))
+
+
+def _read_priors(choice: cautious.Choice, seen: _Judged, evidence: ActionEvidence, options: InferOptions,
+                 conversational: bool, few: bool) -> tuple[cautious.Choice, list[str]]:
+    """The rules with the priors, read as the action's own are (`cautious.slipped`): a transferred `not x` beside
+    an own `x is not None` (or the reverse) leaves the presence test out, and a transferred presence test (another
+    service's guess that a notice needs an answer) is read for the value its own calls show. A rule read from
+    the calls is theirs again: established, or assumed on one or two of them. Also the kept rules with
+    exceptions."""
+    notes: dict[str, str] = {}
+    replaced: dict[str, str] = {}
+    if conversational or strict(options.tolerance) or options.answer_slips <= 0 or options.ranking != "cautious":
+        read = cautious.unread(choice.chosen)
+    else:
+        atoms = informative(cluster(seen.candidates("held", "tolerated", "thin", "chance", "refuted")),
+                            len(evidence.points))
+        read, notes, replaced = cautious.slipped(choice.chosen, atoms, evidence, options.answer_slips)
+    own: Decided = "assumed" if few else "established"
+    decided = {**choice.decided, **{new: own if choice.decided.get(old) in (None, "transferred")
+                                    else choice.decided[old] for new, old in replaced.items()}}
+    kept = {c.representative.expression for c in read}
+    return replace(choice, chosen=read, decided={e: d for e, d in decided.items() if e in kept},
+                   notes={**{e: n for e, n in choice.notes.items() if e in kept}, **notes}), [
+        e for e in notes if e in kept]
 
 
 def unguarded_note(rules: Sequence[str]) -> str:

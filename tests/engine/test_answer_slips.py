@@ -70,3 +70,14 @@ def test_two_slips_in_four_calls_are_not_slips(engine: Engine) -> None:
     response = engine.infer(InferRequest(spec=SPEC, demonstrations=demos, options=InferOptions(
         generators=["enumerate"], library=False)))
     assert "not self.query_success" not in response.preconditions[f"SYSTEM.{FAILED}"]
+
+
+def test_a_prior_that_a_notice_needs_an_answer_is_read_for_the_value_its_calls_show(engine: Engine) -> None:
+    """Another service guessed `is not None` for its never-demonstrated notice; here the notice is called twice,
+    each time just after a failure: the failure is the reading, kept as assumed (two calls)."""
+    demos = [_dialog(False, FAILED), _dialog(False, FAILED), *DEMOS[4:]]
+    response = engine.infer(InferRequest(spec=SPEC, demonstrations=demos, options=InferOptions(
+        generators=["enumerate"], library=False,
+        prior_rules={f"SYSTEM.{FAILED}": ["self.query_success is not None"]})))
+    assert response.preconditions[f"SYSTEM.{FAILED}"] == ["not self.query_success"]
+    assert response.evidence[f"SYSTEM.{FAILED}"]["not self.query_success"].decided == "assumed"
