@@ -1,17 +1,17 @@
 """The int8 weights kept on disk, so that a worker loads them without ever holding the full-width model.
 
-Quantizing after a full-width load peaks at the full-width model plus the int8 one (2.5 GB resident for the
+Quantizing after a full-width load peaks at the full-width model plus the int8 one (2.3-2.9 GB resident for the
 embedded model). Instead, the first int8 load writes the quantized tensors once, next to the full-width cache
-they come from (`<sha256>-<dtype>-int8`), reading that cache one tensor at a time; every load then builds the
-model's modules on the `meta` device (no memory) and fills them from this file alone: the int8 matrices, their
-scales, and the few full-width tensors (norms, biases). The vocabulary projection tied to the embedding is one
-int8 matrix (`quant.quantize`), stored once.
+they come from (`<sha256>-<dtype>-int8v<format>`), reading that cache one tensor at a time; every load then
+builds the model's modules on the `meta` device (no memory) and fills them from this file alone: the int8
+matrices, their scales, and the few full-width tensors (norms, biases). A vocabulary projection tied to the
+embedding is one int8 matrix, stored once; an untied one is stored transposed (`quant.Int8Linear`).
 
 The file is safetensors, streamed as it is written (one tensor in memory at a time) into a temporary directory
-renamed into place, with a manifest holding its sha256; a load reads it into memory (no mapping: the bytes
-are the process's own, counted once) while hashing it, and a file that does not match its manifest, or was
-made from another source or by another format, is built again, never used. Its location comes from the worker's
-settings (`MODEL_CACHE_DIR`), never from a request.
+renamed into place, with a manifest holding its sha256. A load reads it into the process's own memory while
+hashing it, except an untied embedding, which is hashed and then mapped (a prompt makes only its rows resident);
+a file that does not match its manifest, or was made from another source, is built again, never used. Its
+location comes from the worker's settings (`MODEL_CACHE_DIR`), never from a request.
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ from precond.engine.models.store import ModelStoreError
 logger = logging.getLogger(__name__)
 
 FORMAT = 2
-"""Bumped whenever what is stored changes (names, layout, rounding): an older file is then built again."""
+"""Bumped whenever what is stored changes (names, layout, rounding). Part of the directory's name, so processes
+of two versions sharing a cache directory keep a copy each instead of rebuilding each other's."""
 WEIGHTS = "model.safetensors"
 MANIFEST = "int8.json"
 _DTYPES = {torch.int8: "I8", torch.float32: "F32", torch.bfloat16: "BF16", torch.float16: "F16"}
@@ -257,7 +258,7 @@ def _assemble(directory: Path, tensors: dict[str, torch.Tensor], dtype: torch.dt
 def load(source: Path, cache_dir: Path, key: str, dtype: torch.dtype) -> tuple[Any, Path]:
     """The int8 model of `source` (full-width weights of cache key `key`) and where its int8 copy is; the copy
     is built first where it is missing or does not verify."""
-    target = cache_dir / f"{key}-int8"
+    target = cache_dir / f"{key}-int8v{FORMAT}"
     tensors = _read(target, source.name) if target.is_dir() else None
     if tensors is None:
         if target.exists():
