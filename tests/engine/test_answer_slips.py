@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from pydantic import ValidationError
 
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
@@ -81,3 +82,10 @@ def test_a_prior_that_a_notice_needs_an_answer_is_read_for_the_value_its_calls_s
         prior_rules={f"SYSTEM.{FAILED}": ["self.query_success is not None"]})))
     assert response.preconditions[f"SYSTEM.{FAILED}"] == ["not self.query_success"]
     assert response.evidence[f"SYSTEM.{FAILED}"]["not self.query_success"].decided == "assumed"
+
+
+@pytest.mark.parametrize("value", [-0.01, 0.51, "often", None, float("nan")])
+def test_answer_slips_outside_0_to_half_or_not_a_number_is_refused_naming_it(value: object) -> None:
+    with pytest.raises(ValidationError) as caught:
+        InferOptions.model_validate({"answer_slips": value})
+    assert caught.value.errors()[0]["loc"] == ("answer_slips",)
