@@ -63,7 +63,8 @@ class ModelSettings(BaseSettings):
     threads: int = Field(default=1, ge=1, description="CPU threads torch may use.")
     cache_dir: Path = Field(
         default_factory=default_cache_dir,
-        description="Where converted weights are kept. Unset: `$XDG_CACHE_HOME/precond` (`~/.cache/precond`).",
+        description="Where converted weights (full-width and int8, keyed by the source's sha256) are kept. Unset: "
+        "`$XDG_CACHE_HOME/precond` (`~/.cache/precond`).",
     )
     max_batch: int = Field(default=32, ge=1, description="Most sequences decoded in one forward pass.")
     prefix_cache_tokens: int = Field(
