@@ -88,12 +88,41 @@ def _bytes(tensor: torch.Tensor) -> memoryview:
     return memoryview(array).cast("B")
 
 
+class _Source:
+    """A full-width safetensors file read one tensor at a time with plain reads, never mapped: a mapped file's
+    pages stay resident while it is open, which put the whole full-width model (1 GB) under the build's peak."""
+
+    def __init__(self, file: Path, stream: Any) -> None:
+        self.file, self.stream = file, stream
+        (size,) = struct.unpack("<Q", stream.read(8))
+        if size > _MAX_HEADER:
+            raise ModelStoreError(f"{file}: a safetensors header of {size} bytes")
+        self.header: dict[str, Any] = json.loads(stream.read(size))
+        self.header.pop("__metadata__", None)
+        self.base = 8 + size
+
+    def shape(self, name: str) -> tuple[int, ...]:
+        return tuple(self.header[name]["shape"])
+
+    def tensor(self, name: str) -> torch.Tensor:
+        entry = self.header[name]
+        if entry["dtype"] not in _CODES:
+            raise ModelStoreError(f"{self.file}: {name} is {entry['dtype']}, not a float or int8 tensor")
+        tensor = torch.empty(entry["shape"], dtype=_CODES[entry["dtype"]])
+        view = _bytes(tensor) if tensor.numel() else memoryview(b"")
+        start, end = entry["data_offsets"]
+        self.stream.seek(self.base + start)
+        if end - start != len(view) or self.stream.readinto(view) != len(view):
+            raise ModelStoreError(f"{self.file}: {name} is cut short")
+        return tensor
+
+
 def build(source: Path, target: Path, dtype: torch.dtype) -> None:
     """Write `source`'s (a full-width Hugging Face directory, one safetensors file) int8 copy to `target`.
 
-    Two passes over the source's tensors, each read alone: the first computes the header (shapes only), the second
-    quantizes and streams. Raises ModelStoreError where the source is not one file of plain tensors."""
-    from safetensors import safe_open
+    The source's tensors are read one at a time (`_Source`), quantized and streamed out, so the build holds one
+    tensor's full-width and int8 copies at a time. Raises ModelStoreError where the source is not one file of
+    plain tensors."""
     from transformers import AutoConfig, AutoModelForCausalLM
 
     file = source / WEIGHTS
@@ -102,27 +131,28 @@ def build(source: Path, target: Path, dtype: torch.dtype) -> None:
     config = AutoConfig.from_pretrained(source)
     with torch.device("meta"):
         skeleton = AutoModelForCausalLM.from_config(config, dtype=dtype)  # type: ignore[no-untyped-call]
-    with safe_open(file, framework="pt") as weights:
-        names = list(weights.keys())
+    with file.open("rb") as stream:
+        weights = _Source(file, stream)
+        names = list(weights.header)
         plan = _Plan(skeleton, names)
         missing = [m for m in plan.quantized if f"{m}.weight" not in names]
         if missing:
             raise ModelStoreError(f"{file} lacks the weights of {sorted(missing)[:3]}")
         entries: list[tuple[str, torch.dtype, tuple[int, ...]]] = []
         for module in sorted(plan.quantized):
-            shape = tuple(weights.get_slice(f"{module}.weight").get_shape())
+            shape = weights.shape(f"{module}.weight")
             stored = shape[::-1] if module == plan.transposed else shape
             entries += [(f"{module}.qweight", torch.int8, stored), (f"{module}.scales", torch.float32, shape[:1])]
         for name in plan.copied:
-            entries.append((name, dtype, tuple(weights.get_slice(name).get_shape())))
+            entries.append((name, dtype, weights.shape(name)))
 
         def tensors() -> Iterator[torch.Tensor]:
             for module in sorted(plan.quantized):
-                qweight, scales = rows_int8(weights.get_tensor(f"{module}.weight"))
+                qweight, scales = rows_int8(weights.tensor(f"{module}.weight"))
                 yield qweight.t().contiguous() if module == plan.transposed else qweight
                 yield scales
             for name in plan.copied:
-                yield weights.get_tensor(name).to(dtype)
+                yield weights.tensor(name).to(dtype)
 
         target.mkdir(parents=True)
         digest = hashlib.sha256()
