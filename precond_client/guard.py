@@ -32,12 +32,22 @@ from precond_client.openai_log import (
     call_line,
     converter_spec,
 )
-from precond_client.rule_interpreter import TABLE, VALUE, Evaluate, Frame, OutsideGrammar, Scope, Shape, compile_rule
+from precond_client.rule_interpreter import (
+    LISTS,
+    TABLE,
+    VALUE,
+    Evaluate,
+    Frame,
+    OutsideGrammar,
+    Scope,
+    Shape,
+    compile_rule,
+)
 from precond_client.schemas.api import CallVerdict, CheckResponse, PreconditionSet, RuleStatus, rule_status
 
 AGENT_SHAPE = Shape("object", {
     "user": Shape("object", {"messages": VALUE, "last_said": VALUE}),
-    "results": TABLE, "changes": TABLE, "errors": TABLE, "last_ok": VALUE,
+    "results": TABLE, "changes": TABLE, "errors": TABLE, "seen": LISTS, "last_ok": VALUE,
 })
 """What a rule may read of the state: the attributes `AGENT_STATE` and `USER_SPEC` give AGENT and USER."""
 MAX_CALL_CHARS = 4000

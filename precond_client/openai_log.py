@@ -8,7 +8,10 @@ naming the same field) and paired with its call in exactly one way.
 The spec: one action (a stub of AGENT) per tool, its parameters in the schema's order; two observations:
 `user.says(text)` for a user message and `agent.result(tool, key, ok, value)` for a tool's result, which keeps
 the parsed JSON result in `agent.results[tool][key]` (a state-changing tool's in `agent.changes`, errors in
-`agent.errors`), `key` being the call's identifying argument (its first `*_id` parameter). `AgentState` is that
+`agent.errors`), `key` being the call's identifying argument (its first `*_id` parameter). A read's result is
+also kept, whatever its key, as records in `agent.seen[tool]`: a list result's items (an item that is a list, a
+connecting flight's legs, flattened once), the last MAX_SEEN of them, so that a rule can read every search of
+the conversation where `results` keeps only the last result per key (a search has none). `AgentState` is that
 spec's state kept in Python: the guard updates it message by message where the sandbox runs the program.
 Calls and results are paired by position (tool-call ids repeat in real logs). Arguments and results are parsed
 JSON, never code. Standard library only: the light client ships it, and the gateway renders histories with it.
@@ -35,12 +38,15 @@ class USER:
     self.messages += 1
     self.last_said = text
 '''
-AGENT_STATE = '''class AGENT:
+MAX_SEEN = 200
+"""Records a read tool keeps in `seen` (the oldest dropped first): a conversation's searches, bounded."""
+AGENT_STATE = f'''class AGENT:
   def __init__(self, user):
     self.user = user
     self.results = defaultdict(dict)
     self.changes = defaultdict(dict)
     self.errors = defaultdict(dict)
+    self.seen = defaultdict(list)
     self.last_ok = None
   def result(self, tool, key, ok, value):
     self.last_ok = ok
@@ -50,9 +56,12 @@ AGENT_STATE = '''class AGENT:
       self.changes[tool][key] = value
     else:
       self.results[tool][key] = value
+      listed = value if isinstance(value, list) else [value]
+      records = [r for v in listed for r in (v if isinstance(v, list) else [v])]
+      self.seen[tool][:] = (self.seen[tool] + records)[-{MAX_SEEN}:]
 '''
 PREAMBLE = ("user = USER()", "agent = AGENT(user)")
-RESERVED = {"result", "says", "user", "results", "changes", "errors", "last_ok"}
+RESERVED = {"result", "says", "user", "results", "changes", "errors", "seen", "last_ok"}
 """Names of the spec's own members: a tool cannot be called so."""
 RESERVED_PARAMETERS = ("self", "tool", "key", "ok", "value")
 WRITE_VERBS = {"book", "cancel", "update", "send", "create", "delete", "modify", "add", "remove", "set", "change",
@@ -373,6 +382,7 @@ class AgentState:
     results: dict[str, dict[Any, Any]] = field(default_factory=dict)
     changes: dict[str, dict[Any, Any]] = field(default_factory=dict)
     errors: dict[str, dict[Any, Any]] = field(default_factory=dict)
+    seen: dict[str, list[Any]] = field(default_factory=dict)
     last_ok: bool | None = None
 
     def result(self, tool: str, key: Any, ok: bool, value: Any) -> None:
@@ -384,6 +394,13 @@ class AgentState:
             self.changes.setdefault(tool, {})[key] = value
         else:
             self.results.setdefault(tool, {})[key] = value
+            self.seen[tool] = (self.seen.get(tool, []) + records(value))[-MAX_SEEN:]
+
+
+def records(value: Any) -> list[Any]:
+    """A read's result as the records `seen` keeps (AGENT_STATE): a list's items, an item that is a list flattened
+    once (a one-stop search's pairs of legs); anything else is one record."""
+    return [r for v in (value if isinstance(value, list) else [value]) for r in (v if isinstance(v, list) else [v])]
 
 
 class StateReader(Reader):

@@ -21,10 +21,10 @@ and one call's rules together take at most `Frame.budget` steps (an item of a co
 or `in` with a collection costs its size). A call whose rules run past it is refused, never allowed
 (`WorkExceeded` is raised like any error of a rule, and the guard refuses a call whose rule raised).
 
-A table (`Shape.kind == "table"`) is a `defaultdict(dict)` in the spec: reading a key it lacks inserts an
-empty dictionary, which a later rule of the same call sees (`key in table`). Here the table is never changed:
-what a call's rules would have inserted is kept in that call's `Frame` only, as the sandbox's copy of the state
-keeps it for one call.
+A table (`Shape.kind == "table"`) is a `defaultdict(dict)` in the spec (`defaultdict(list)` where `Shape.lists`):
+reading a key it lacks inserts an empty dictionary (list), which a later rule of the same call sees (`key in
+table`). Here the table is never changed: what a call's rules would have inserted is kept in that call's `Frame`
+only, as the sandbox's copy of the state keeps it for one call.
 """
 
 from __future__ import annotations
@@ -45,10 +45,13 @@ class Shape:
 
     kind: Kind
     attributes: Mapping[str, Shape] = field(default_factory=dict)
+    lists: bool = False
+    """A table whose missing key reads as an empty list (`defaultdict(list)`), not an empty dictionary."""
 
 
 VALUE = Shape("value")
 TABLE = Shape("table")
+LISTS = Shape("table", lists=True)
 
 
 class OutsideGrammar(ValueError):
@@ -197,7 +200,7 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
     shape, container = _compile(node.value, scope)
     key = _value(node.slice, scope)
     if shape.kind == "table":
-        path = ast.unparse(node.value)
+        path, empty = ast.unparse(node.value), list if shape.lists else dict
 
         def read(frame: Frame) -> Any:
             table, wanted = container(frame), key(frame)
@@ -206,8 +209,8 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
             except KeyError:
                 if frame.inserted is None:
                     frame.inserted = set()
-                frame.inserted.add((path, wanted))  # what defaultdict(dict) inserts, for this call only
-                return {}
+                frame.inserted.add((path, wanted))  # what the defaultdict inserts, for this call only
+                return empty()
 
         return VALUE, read
     if shape.kind != "value":

@@ -17,6 +17,7 @@ from precond.convert import openai as openai_converter
 from precond.convert import sgd as sgd_converter
 from precond.convert.shape import ConvertError, load_json
 from precond.programs import checks
+from precond_client.openai_log import MAX_SEEN
 from precond_client.schemas.api import InferRequest
 
 app = typer.Typer(help="Convert dialog data (SGD files, JSON event logs) to a spec, programs and a request.",
@@ -132,7 +133,9 @@ def openai(
                + (f"; labelled calls: {counted.count('refuse')} to refuse, {counted.count('allow')} to allow, "
                   f"in {len(runs)} runs" if labels is not None else "")
                + (f"; {left} labels of tools that are not actions left out"
-                  if (left := labels_reader.skipped(converted, read)) else ""), err=True)
+                  if (left := labels_reader.skipped(converted, read)) else "")
+               + (f"; in {past} trajectories a read tool listed more than {MAX_SEEN} records: `self.seen` keeps "
+                  "the last of them" if (past := converted.past_seen) else ""), err=True)
 
 
 @app.command("programs")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import keyword
 import math
+from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -22,6 +23,7 @@ from precond.programs import checks
 from precond.programs.history import render as render_events
 from precond.programs.names import python_name
 from precond_client.openai_log import (
+    MAX_SEEN,
     PREAMBLE,
     RESERVED,
     RESERVED_PARAMETERS,
@@ -30,6 +32,7 @@ from precond_client.openai_log import (
     Reader,
     Tool,
     call_line,
+    records,
     spec_program,
     writes_of,
 )
@@ -56,6 +59,18 @@ class Converted:
     def without_writes(self) -> int:
         """Trajectories with no state-changing call: accepted and counted, never dropped silently."""
         return sum(1 for t in self.trajectories if not any(c.tool in self.writes for c in t.calls))
+
+    @property
+    def past_seen(self) -> int:
+        """Trajectories in which a read tool listed more than MAX_SEEN records: `self.seen` keeps the last
+        MAX_SEEN of them, and the command says so, never dropping them silently."""
+        def over(trajectory: Trajectory) -> bool:
+            listed: Counter[str] = Counter()
+            for call in trajectory.calls:
+                if call.tool not in self.writes and call.result is not None and call.result[0]:
+                    listed[call.tool] += len(records(call.result[1]))
+            return any(n > MAX_SEEN for n in listed.values())
+        return sum(1 for t in self.trajectories if over(t))
 
 
 def _fail(where: str, message: str) -> PlaceError:

@@ -17,6 +17,9 @@ so this module adds, for an action whose parameter names the key of an earlier t
   result's object of that name (`all(x['payment_id'] in ...['payment_methods'] for x in payment_methods)`);
 - with `options.now`, dates of the result against it (`...['created_at'] >= '2024-05-14T15:00:00'`, a day before;
   `all(x['date'] >= '2024-05-15' for x in ...['flights'])`);
+- each item of a list argument named in what earlier reads listed (`all(x['flight_number'] in [y['flight_number']
+  for y in self.seen['search_direct_flight']] + ... for x in flights)`, the result's list of the same name one
+  more source): every search of the conversation, not only the last (`self.seen`, records of list results);
 - how many items of a list argument are of a kind read off their ids (`len([x for x in payment_methods if
   'certificate_' in x['payment_id']]) <= 1`).
 
@@ -36,9 +39,12 @@ from dataclasses import dataclass, field
 from datetime import datetime, timedelta
 
 from precond.engine.spec import Spec
+from precond_client.openai_log import records
 
 RESULT_PARAMS = ("tool", "key", "ok", "value")
 RESULTS = "self.results"
+SEEN = "self.seen"
+MAX_SOURCES = 3
 MAX_VALUES = 6
 MAX_DISJUNCTS = 3
 MAX_DISJUNCTIONS = 24
@@ -73,6 +79,9 @@ class ToolFacts:
     """(tool, list field) → the scalar fields of its items (dicts) and their values."""
     now: str | None = None
     """The conversations' time (`options.now`): dates are compared with it."""
+    records: dict[str, Counter[str]] = field(default_factory=dict)
+    """tool → how many of its listed records (`self.seen[tool]`, dicts) hold each field, with the count of
+    records under the empty name: a field every record holds can be read off all of them."""
 
 
 def tool_class(spec: Spec) -> str | None:
@@ -135,6 +144,12 @@ class _Replay:
         if ok is True and isinstance(value, dict):
             self.results[(tool, key)] = value
             self._note_fields(tool, value)
+        if ok is True and isinstance(value, list):
+            counts = self.facts.records.setdefault(tool, Counter())
+            for record in records(value):
+                counts[""] += 1
+                if isinstance(record, dict):
+                    counts.update(k for k, v in record.items() if isinstance(k, str) and isinstance(v, str | int))
 
     def _note_fields(self, tool: str, value: dict[object, object]) -> None:
         counts = self.facts.values.setdefault(tool, {})
@@ -262,6 +277,48 @@ class _Builder:
                     atoms.append(f"{self.has} and all(x[{name!r}] in {ref} for x in {param})")
         return atoms
 
+    def routes(self) -> list[str]:
+        """`listed`, with the result's list of the same name as one more source (a flight change's new
+        segments among the searches or the reservation's own flights)."""
+        atoms: list[str] = []
+        for param in self.params:
+            if param == self.key or param not in self.facts.lists.get(self.tool, set()):
+                continue
+            held = self.facts.item_fields.get((self.tool, param), {})
+            ref = f"{self.got}[{param!r}]"
+            for name in _item_names(self.facts, self.action, param):
+                if name in held and sum(held[name].values()) > 0:
+                    own = f"[y[{name!r}] for y in {ref}]"
+                    atoms += [f"{self.has} and {text}" for text in listed(self.facts, param, name, own)]
+        return atoms
+
+    def endpoints(self) -> list[str]:
+        """The route of a list argument's items kept: each item looked up by its `_item_names` field among the
+        records earlier reads listed and the result's list of the same name, the airports its segments leave and
+        never reach (`{origin} - {destination}`) are those of the result's own list, and those they reach and
+        never leave too (degree balance: a one-way trip keeps its origin and destination, a round trip stays a
+        closed tour; "ATL to PHL" changed to ATL-DFW-EWR does not). Pairs of item fields whose values overlap
+        (airports), at most MAX_PAIR_FIELDS."""
+        atoms: list[str] = []
+        for param in self.params:
+            held = self.facts.item_fields.get((self.tool, param), {})
+            if param == self.key or param not in self.facts.lists.get(self.tool, set()) or not held:
+                continue
+            names = _item_names(self.facts, self.action, param)
+            ends = sorted(f for f in held if f not in names)
+            pairs = [(a, b) for a in ends for b in ends if a != b and set(held[a]) & set(held[b])]
+            for name in (n for n in names if n in held):
+                chosen = f"[x[{name!r}] for x in {param}]"
+                own = f"{self.got}[{param!r}]"
+                for a, b in pairs[:MAX_PAIR_FIELDS]:
+                    tools = [t for t in _listing(self.facts, name) if all(
+                        self.facts.records[t][f] == self.facts.records[t][""] for f in (a, b))]
+                    found = " + ".join([f"{SEEN}[{t!r}]" for t in tools] + [own])
+                    new = [f"{{y[{f!r}] for y in {found} if y[{name!r}] in {chosen}}}" for f in (a, b)]
+                    old = [f"{{y[{f!r}] for y in {own}}}" for f in (a, b)]
+                    atoms.append(f"{self.has} and {new[0]} - {new[1]} == {old[0]} - {old[1]}")
+        return atoms
+
     def _argument_items(self, param: str) -> dict[str, int]:
         """The scalar fields of the dict items of a list argument at the demonstrated calls, by how often."""
         counts: Counter[str] = Counter()
@@ -338,10 +395,46 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
                 continue
             builder = _Builder(facts, action, params, key, tool)
             fields, tests = builder.fields()
-            atoms += (builder.read() + builder.arguments() + builder.collections() + builder.moments()
-                      + builder.disjunctions(tests) + fields)
+            atoms += (builder.read() + builder.arguments() + builder.collections() + builder.routes()
+                      + builder.endpoints()
+                      + builder.moments() + builder.disjunctions(tests) + fields)
+    for param in params:
+        for name in _item_names(facts, action, param):
+            atoms += listed(facts, param, name)
     atoms += kinds(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
+
+
+def _item_names(facts: ToolFacts, action: str, param: str) -> list[str]:
+    """The fields every dict item of a list argument holds at the demonstrated calls and that name the item rather
+    than order it (`flight_number`, not a date or an amount), at most MAX_PAIR_FIELDS, in order: what an item is
+    looked up by among what earlier reads listed."""
+    values: dict[str, list[Scalar]] = {}
+    items = 0
+    for seen in facts.seen.get(action, []):
+        value = seen.args.get(param)
+        for item in value if isinstance(value, list) else []:
+            items += 1
+            for k, v in item.items() if isinstance(item, dict) else []:
+                if isinstance(k, str) and isinstance(v, str | int):
+                    values.setdefault(k, []).append(v)
+    return sorted(k for k, v in values.items() if len(v) == items and not _ordered(v))[:MAX_PAIR_FIELDS]
+
+
+def _listing(facts: ToolFacts, name: str) -> list[str]:
+    """The tools (at most MAX_SOURCES) every listed record of which holds the field."""
+    return sorted(t for t, counts in facts.records.items() if counts[""] and counts[name] == counts[""])[:MAX_SOURCES]
+
+
+def listed(facts: ToolFacts, param: str, name: str, *more: str) -> list[str]:
+    """Each item of a list argument has a `name` that some earlier read listed: `self.seen[tool]` of the (at
+    most MAX_SOURCES) tools whose every record holds that field, plus the lists of `more` (the new segments of a
+    flight change come from earlier searches: "the route of each segment comes from search results"). Of the
+    records the state keeps, the last MAX_SEEN a tool (`precond_client.openai_log.AgentState`)."""
+    sources = [f"[y[{name!r}] for y in {SEEN}[{t!r}]]" for t in _listing(facts, name)] + list(more)
+    if not sources:
+        return []
+    return [f"all(x[{name!r}] in {' + '.join(sources)} for x in {param})"]
 
 
 def separating(atoms: Iterable[str]) -> set[str]:

@@ -96,7 +96,7 @@ def test_a_rule_outside_the_grammar_makes_the_set_non_embeddable_naming_it(rule:
 
 
 @pytest.mark.parametrize(("spec", "why"), [
-    (SPEC.replace("self.last_ok = ok", "self.last_ok = True"), "line 18 differs from what `precond convert openai`"),
+    (SPEC.replace("self.last_ok = ok", "self.last_ok = True"), "line 19 differs from what `precond convert openai`"),
     (SPEC + "  def helper(self):\n    return 1\n", "differs from what `precond convert openai`"),
     ("class AGENT:\n  pass\n", "no `WRITES = (...)`"),
     ("import os\n", "no `WRITES = (...)`"),
