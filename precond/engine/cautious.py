@@ -27,9 +27,17 @@ the permissive side silently. For each action it keeps:
    a confirmation of the city needs the city; an offer of what a search found does not need the user's
    words): acting on any other phase there costs a re-ask, not a blocked card, and dialog acts are what an
    assistant says most (docs/results.md measures both sides).
+4. *Behind a yes*: where a flag of the other party (`self.user.affirmed`) was made true right before every call
+   of a tool call, it answers the agent's confirmation of what that party said before, so that party's
+   earlier facts are not assumed (`behind_trigger`; named in the warning, `Choice.behind`); the agent's own
+   state (an identity check, a search's success) is the service's answer, which no yes replaces, and stays
+   assumed. What else held at each call is searched for a disjunction (`hidden_disjunction`: refills left
+   or the doctor's approval, neither at every refill): kept, assumed, where a demonstration shows the yes
+   without it and no call; otherwise offered among the dropped candidates for a reviewer.
 
-Actions demonstrated too thinly to learn from get every positive fact their few calls share, assumed
-(`thin_rules`); never-demonstrated actions are `options.unseen`'s business (engine.engine).
+Actions demonstrated too thinly to learn from get the positive facts their few calls share, assumed
+(`thin_rules`: for a tool call every one but those behind a yes, for a dialog act what enabled it and what it
+speaks of); never-demonstrated actions are `options.unseen`'s business (engine.engine).
 """
 
 from __future__ import annotations
@@ -66,6 +74,8 @@ class Choice:
     notes: dict[str, str] = field(default_factory=dict)  # expression -> why it was kept, in words
     search: str = ""  # the disjunction search stopped at its bound: what it looked at, in words
     unguarded: list[str] = field(default_factory=list)  # assumed rules a conversational act does not keep
+    behind: list[str] = field(default_factory=list)  # the other party's facts its "yes" before every call covers
+    offered: list[tuple[Cluster, str]] = field(default_factory=list)  # composed alternatives not kept, and why
 
 
 def polarity(expression: str) -> str:
@@ -135,12 +145,101 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
             search = f"disjunction search bounded: {note}"
     kept = {c.satisfied for c in chosen}
     extra = assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept)
+    assenting = behind_trigger(chosen, evidence) if tool_call else frozenset()
+    behind = [c for c in extra if assenting and parties(c.representative.expression) <= assenting]
+    extra = [c for c in extra if c not in behind]
+    offered: list[tuple[Cluster, str]] = []
+    if assenting:
+        found, witnessed, why = hidden_disjunction(atoms, chosen, evidence, assenting)
+        if found is not None and witnessed:
+            extra.append(found)
+            notes[found.representative.expression] = why
+        elif found is not None:
+            offered.append((found, why))
     if conversational:
         return _conversational(chosen, decided, notes, search, extra, common, evidence, follow_up)
     for c in extra:
         chosen.append(c)
         decided[c.representative.expression] = "assumed"
-    return Choice(chosen, decided, notes, search)
+    return Choice(chosen, decided, notes, search, behind=[c.representative.expression for c in behind],
+                  offered=offered)
+
+
+def behind_trigger(chosen: Sequence[Cluster], evidence: ActionEvidence) -> frozenset[str]:
+    """The objects of the other party (`self.user`) one of whose flags, made true since the agent's previous turn,
+    came before every demonstrated call: the user's "yes" before each booking. Empty when there is none."""
+    index = {point: bit for bit, point in enumerate(evidence.points)}
+    found: set[str] = set()
+    for c in chosen:
+        owners = parties(c.representative.expression)
+        if _flag(c.representative.expression) and "self" not in owners \
+                and evidence.occurrences and all(enabled_at(c, evidence, index)):
+            found |= owners
+    return frozenset(found)
+
+
+def _flag(expression: str) -> bool:
+    """`self.user.affirmed`: a flag of an object, not an entry of a mapping (`informed_slot['date']`, the last
+    of the slots given) nor a comparison."""
+    node = _parsed(expression)
+    while isinstance(node, ast.Attribute):
+        node = node.value
+    return isinstance(node, ast.Name) and node.id == "self" and "." in expression
+
+
+def parties(expression: str) -> frozenset[str]:
+    """Whose state a condition reads: the object each outermost attribute is read from (`self.user` in
+    `self.user.informed_slot['city']`, `self` in `self.query_success is None`)."""
+    node = _parsed(expression)
+    if node is None:
+        return frozenset()
+    inner = {id(n.value) for n in ast.walk(node) if isinstance(n, ast.Attribute)}
+    return frozenset(ast.unparse(n.value) for n in ast.walk(node)
+                     if isinstance(n, ast.Attribute) and id(n) not in inner)
+
+
+def hidden_disjunction(atoms: Sequence[Cluster], chosen: Sequence[Cluster], evidence: ActionEvidence,
+                       assenting: frozenset[str]) -> tuple[Cluster | None, bool, str]:
+    """Behind a "yes" that came before every call, what else held at each: a greedy cover of the calls by the
+    positive facts not of the party that said yes (a refill with refills left at some calls, with the doctor's
+    approval at the others), each term failing at some call (one that held at all of them is assumed alone),
+    at most MAX_TERMS terms; None unless two or more terms cover every call. Also whether the demonstrations
+    witness it: a state where the kept rules held, the action was not taken and no term held (the patient said
+    yes, no refill was left, the doctor said no, and the refill did not follow); and what happened, in words.
+    Witnessed, the disjunction is kept (assumed); otherwise it is offered among the dropped candidates."""
+    index = {point: bit for bit, point in enumerate(evidence.points)}
+    bits = [index.get(occ) for occ in evidence.occurrences]
+    if not bits or any(b is None for b in bits):
+        return None, False, ""
+    calls = set(range(len(bits)))
+    held = {c.satisfied: {k for k, b in enumerate(bits) if b is not None and (c.satisfied >> b) & 1} for c in atoms}
+    usable = [c for c in atoms if polarity(c.representative.expression) == "positive"
+              and not _presence(c.representative.expression)
+              and not parties(c.representative.expression) <= assenting
+              and held[c.satisfied] and held[c.satisfied] != calls][:MAX_DISJUNCTION_ATOMS]
+    uncovered, terms = set(calls), list[Cluster]()
+    while uncovered and len(terms) < MAX_TERMS:
+        best = max(usable, key=lambda c: (len(held[c.satisfied] & uncovered), -len(c.representative.expression)),
+                   default=None)
+        if best is None or not held[best.satisfied] & uncovered:
+            break
+        terms.append(best)
+        uncovered -= held[best.satisfied]
+    if uncovered or len(terms) < 2:
+        return None, False, ""
+    expression = " or ".join(t.representative.expression for t in terms)
+    satisfied = 0
+    for t in terms:
+        satisfied |= t.satisfied
+    kept = (1 << len(evidence.points)) - 1
+    for c in chosen:
+        kept &= c.satisfied
+    witnessed = bool(kept & ~evidence.occurrence_mask & ~satisfied)
+    what = "a disjunction behind the trigger: at every call one of its terms held, none at all of them"
+    why = (f"{what}; the demonstrations show the trigger without any term and no call; assumed (review it)"
+           if witnessed else f"dropped: {what}; no demonstration shows the trigger without any term and no call, so "
+           "nothing tells it from a coincidence (a reviewer may keep it)")
+    return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), witnessed, why
 
 
 def _conversational(chosen: Sequence[Cluster], decided: Mapping[str, Decided], notes: dict[str, str], search: str,
@@ -287,19 +386,24 @@ def assumed(clusters: Sequence[Cluster], evidence: ActionEvidence, kept: set[int
 
 def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_points: int, tool_call: bool
                ) -> list[Cluster]:
-    """An action seen once or twice: the positive facts its calls share that enabled them (for a tool call,
-    every positive fact they share), and the bad news an observation wrote just before every one of them (a
-    failure notice after `set_query_status(False)`: `not self.query_success`): the rule the same criterion would
-    keep, on evidence too thin to call it established."""
+    """An action seen once or twice: the positive facts its calls share that enabled them, the facts about the
+    values a dialog act speaks of (`spoken_of`: the slots a confirmation confirms) and the bad news an
+    observation wrote just before every one of them (a failure notice after `set_query_status(False)`: `not
+    self.query_success`); for a tool call every positive fact they share but those behind a yes
+    (`behind_trigger`): the rule the same criterion would keep, on evidence too thin to call it established."""
     mask = evidence.occurrence_mask
     every = informative(cluster([c for c in candidates if mask and not mask & ~c.satisfied]), n_points)
     shared = [c for c in every if polarity(c.representative.expression) == "positive"]
-    if tool_call:
-        return shared
     index = {point: bit for bit, point in enumerate(evidence.points)}
+    if tool_call:
+        assenting = behind_trigger(shared, evidence)
+        return [c for c in shared if not assenting or all(enabled_at(c, evidence, index))
+                or not parties(c.representative.expression) <= assenting]
     news = [c for c in every if c not in shared and evidence.writes
             and len(_made(c, evidence, index)) == len(evidence.occurrences)]
-    return [c for c in shared if enabling_rate(c, evidence, index) > 0] + news
+    enabled = [c for c in shared if enabling_rate(c, evidence, index) > 0]
+    atoms = informative(cluster(candidates), n_points)
+    return [*enabled, *news, *spoken_of(every, atoms, evidence, {c.satisfied for c in (*enabled, *news)})]
 
 
 def disjunction(atoms: Sequence[Cluster], evidence: ActionEvidence, tool_call: bool

@@ -314,11 +314,11 @@ class Engine:
                 warnings[action] = "; ".join(w for w in (warnings.get(action), _unrefused(
                     separation.unrefused, preconditions[action] == [UNSEEN_RULE])) if w)
         default = "" if request.options.guarded is not None else guarding.note(guarded)
-        for action in actions:  # a search cut at its bound, or a conversational act's unkept rules, say so
+        for action in actions:  # a search cut at its bound, or the rules an act does not keep, say so
             unrefused = action not in guarded and not preconditions[action] and unseen[action]
             said = ranked[action].unguarded or (guarding.UNREFUSED if unrefused else "")
             unguarded = "; ".join(w for w in (said, default) if said and w)
-            cuts = (warnings.get(action), stopped.get(action), ranked[action].search, unguarded)
+            cuts = (warnings.get(action), stopped.get(action), ranked[action].search, ranked[action].behind, unguarded)
             if any(cuts[1:]):
                 warnings[action] = "; ".join(w for w in cuts if w)
         progress("done", 1, 1)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import ast
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from precond.engine.cautious import Choice
 from precond.engine.library import Library
@@ -229,15 +229,22 @@ def support(priors: Sequence[Prior]) -> dict[str, int]:
     return {p.expression: len(p.sources) for p in priors}
 
 
-def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[str, int], sparse: bool) -> Choice:
+def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[str, int], sparse: bool,
+           params: Sequence[str] = (), common: frozenset[str] = frozenset()) -> Choice:
     """The action's rules with the preferred priors where the demonstrations do not decide.
 
-    Never or thinly demonstrated: the priors replace the zero-shot and assumed guesses. Otherwise:
+    Never demonstrated: the priors replace the zero-shot guess. Thinly demonstrated: they replace the guesses
+    about the state they read; the other assumed guesses stay (another service's rule says what it requires,
+    not that this one's confirmation does not need the slots it confirms). Otherwise:
+    * where the demonstrations established a disjunction of triggers, the priors' alternatives join it
+      (`_alternatives`);
     * a kept rule a prior names too becomes the prior's (transferred: two services agree);
     * an established rule about the state a prior is about (`state_read`: `self.query_success is not None`
       beside the prior `not self.query_success`) is another reading of it, which the calls cannot tell apart:
       the prior's reading replaces it (and a rule the demonstrations and a prior agree on settles the
-      reading of its state: no other prior, no other established rule about it);
+      reading of its state: no other prior, no other established rule about it), unless the prior is
+      `common` here (not separated from chance at this service's calls: they decide, and it is not their
+      reading);
     * assumed rules stay unless a prior reads their state: another service's rule says what it requires,
       not that this one's correlates are not required;
     * a prior the ranking passed over (a phase, a common fact) joins when two or more sources name it.
@@ -246,16 +253,29 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
         return choice
     prior_decided: dict[str, Decided] = {c.expression: "transferred" for c in chosen_priors}
     if sparse:
-        return Choice([Cluster((c,)) for c in chosen_priors], prior_decided, _notes(chosen_priors), choice.search)
+        own_kept = [
+            c for c in choice.chosen if choice.decided.get(c.representative.expression) in ("established", "assumed")
+            and not any(_about(state_read(c.representative.expression), state_read(p.expression))
+                        for p in chosen_priors)]
+        return replace(choice, chosen=[*own_kept, *(Cluster((c,)) for c in chosen_priors)],
+                       decided={**{c.representative.expression: choice.decided[c.representative.expression]
+                                   for c in own_kept}, **prior_decided},
+                       notes={**{e: n for e, n in choice.notes.items()
+                                 if any(e == c.representative.expression for c in own_kept)},
+                              **_notes(chosen_priors)})
+    choice, chosen_priors = _alternatives(choice, chosen_priors, params)
+    if not chosen_priors:
+        return choice
     by_text = {normal(c.expression): c for c in chosen_priors}
     own = {normal(c.representative.expression): c for c in choice.chosen}
     agreed = [by_text[t] for t in by_text if t in own]
     settled = [state_read(c.expression) for c in agreed]
     others = [c for c in chosen_priors if normal(c.expression) not in own
               and not any(_about(state_read(c.expression), s) for s in settled)]
-    readings = [c for c in others if any(choice.decided.get(k.representative.expression) == "established"
-                                         and _about(state_read(k.representative.expression), state_read(c.expression))
-                                         for k in choice.chosen)]
+    readings = [c for c in others if c.expression not in common
+                and any(choice.decided.get(k.representative.expression) == "established"
+                        and _about(state_read(k.representative.expression), state_read(c.expression))
+                        for k in choice.chosen)]
     joining = [c for c in others if c not in readings and support.get(c.expression, 0) >= 2]
     transferred = [*agreed, *readings, *joining]
     if not transferred:
@@ -269,8 +289,8 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
                                    for c in kept}
     decided.update({c.expression: "transferred" for c in transferred})
     notes = {e: n for e, n in choice.notes.items() if e in decided}
-    return Choice([*kept, *(Cluster((c,)) for c in transferred)], decided, {**notes, **_notes(transferred)},
-                  choice.search)
+    return replace(choice, chosen=[*kept, *(Cluster((c,)) for c in transferred)], decided=decided,
+                   notes={**notes, **_notes(transferred)})
 
 
 def _about(state: frozenset[tuple[str, object]], other: frozenset[tuple[str, object]]) -> bool:
@@ -281,3 +301,69 @@ def _about(state: frozenset[tuple[str, object]], other: frozenset[tuple[str, obj
 def _notes(transferred: Sequence[Candidate]) -> dict[str, str]:
     return {c.expression: "transferred: a prior rule that held at every demonstrated call, preferred where the "
             "demonstrations do not decide" for c in transferred}
+
+
+MAX_MERGED_TERMS = 6
+"""A kept disjunction with the priors' alternatives: at most this many terms (twice the cover's bound)."""
+
+
+def _alternatives(choice: Choice, chosen_priors: Sequence[Candidate], params: Sequence[str]
+                  ) -> tuple[Choice, list[Candidate]]:
+    """Where the demonstrations established a disjunction of single conditions (the calls were enabled by one
+    of several triggers: "anything else?" after a "no, thanks" or after a failure), a prior of a single
+    condition or a disjunction of them is another service's list of what enables the same act: its terms
+    join the disjunction as alternatives, not the conjunction (conjoined, a trigger that enabled the act
+    elsewhere would refuse it wherever another alternative enabled it). Several established disjunctions
+    are several such lists and become one. A term about the action's own arguments is a requirement on what
+    is asked, not an alternative trigger: such a prior is left to the other cases, as is a conjunction.
+    Returns the choice and the priors left for the other cases."""
+    own = [c for c in choice.chosen if choice.decided.get(c.representative.expression) == "established"
+           and len(_terms(c.representative.expression)) > 1]
+    alternatives = [c for c in chosen_priors if _terms(c.expression)
+                    and not any(_names(t) & set(params) for t in _terms(c.expression))]
+    if not own or not alternatives:
+        return choice, list(chosen_priors)
+    merged: list[str] = []
+    for expression in [*(c.representative.expression for c in own), *(c.expression for c in alternatives)]:
+        for term in _terms(expression):
+            if normal(term) not in {normal(t) for t in merged} and len(merged) < MAX_MERGED_TERMS:
+                merged.append(term)
+    if len(own) == 1 and len(merged) == len(_terms(own[0].representative.expression)):
+        return choice, list(chosen_priors)  # nothing to join: the other cases read the priors
+    expression = " or ".join(merged)
+    satisfied = 0
+    for c in own:
+        satisfied |= c.satisfied
+    for p in alternatives:
+        satisfied |= p.satisfied
+    joined = Cluster((Candidate(expression, own[0].representative.source, satisfied),))
+    replaced = {c.representative.expression for c in own}
+    chosen = [joined if c is own[0] else c for c in choice.chosen if c is own[0] or c not in own]
+    decided: dict[str, Decided] = {e: d for e, d in choice.decided.items() if e not in replaced}
+    decided[expression] = "established"
+    listed = ", ".join(repr(c.expression) for c in alternatives)
+    notes = {e: n for e, n in choice.notes.items() if e not in replaced}
+    notes[expression] = (f"{choice.notes.get(own[0].representative.expression, 'a disjunction of triggers')}; "
+                         f"joined by the prior rules' alternatives ({listed})")
+    return replace(choice, chosen=chosen, decided=decided, notes=notes), [
+        c for c in chosen_priors if c not in alternatives]
+
+
+def _names(expression: str) -> set[str]:
+    try:
+        return {n.id for n in ast.walk(ast.parse(expression, mode="eval")) if isinstance(n, ast.Name)}
+    except (SyntaxError, ValueError, RecursionError):
+        return set()
+
+
+def _terms(expression: str) -> list[str]:
+    """The terms of a disjunction of single conditions (one condition: itself); [] for anything else (a
+    conjunction inside, a tool call's credential sets)."""
+    try:
+        node = ast.parse(expression.strip(), mode="eval").body
+    except (SyntaxError, ValueError, RecursionError):
+        return []
+    values = node.values if isinstance(node, ast.BoolOp) and isinstance(node.op, ast.Or) else [node]
+    if any(isinstance(n, ast.BoolOp) for v in values for n in ast.walk(v)):
+        return []
+    return [ast.unparse(v) for v in values]

@@ -67,6 +67,8 @@ class Ranked:
     """Where the disjunction search stopped at its bound (`engine.cautious.MAX_DISJUNCTION_ATOMS`), in words."""
     unguarded: str = ""
     """The assumed rules a conversational act (not in `options.guarded`) did not keep, in words."""
+    behind: str = ""
+    """The other party's facts a tool call did not keep because its "yes" came before every call, in words."""
 
 
 @dataclass(frozen=True)

@@ -118,8 +118,9 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     reasons = {**_screened(verdicts, judged, options.tolerance, {r.expression: r.reason for r in seen.results}),
                **explain(options.ranking, chosen.valid, chosen.clusters, choice.chosen, evidence, votes, chosen.cut)}
     reasons |= _decided_reasons(choice, reasons)
+    reasons |= {c.representative.expression: why for c, why in choice.offered}
     return Ranked(reported, chosen.valid, chosen.clusters, choice.chosen, reasons, judged, verdicts, choice.decided,
-                  transferred, choice.search, unguarded_note(choice.unguarded))
+                  transferred, choice.search, unguarded_note(choice.unguarded), behind_note(choice.behind))
 
 
 def _read_priors(choice: cautious.Choice, seen: _Judged, evidence: ActionEvidence, options: InferOptions,
@@ -151,6 +152,13 @@ def unguarded_note(rules: Sequence[str]) -> str:
         return ""
     return (f"conversational act (not in options.guarded): not kept, as its calls do not establish them: "
             f"{'; '.join(rules)}")
+
+
+def behind_note(rules: Sequence[str]) -> str:
+    if not rules:
+        return ""
+    return ("not kept: the other party's yes came before every call and covers what it said before (review "
+            f"them): {'; '.join(rules)}")
 
 
 def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, votes: Mapping[str, int],
@@ -186,8 +194,7 @@ def _choose(seen: _Judged, evidence: ActionEvidence, options: InferOptions, vote
             decided |= {new: decided.get(old, "established") for new, old in replaced.items()}
             decided = {e: d for e, d in decided.items() if any(c.representative.expression == e for c in read)}
             kept, notes = read, {**{e: n for e, n in notes.items() if e in decided}, **slips}
-        return _Chosen(cautious.Choice(kept, decided, notes, found.search, found.unguarded), valid, clusters, cut,
-                       list(slips))
+        return _Chosen(replace(found, chosen=kept, decided=decided, notes=notes), valid, clusters, cut, list(slips))
     picked = by_criterion(options.ranking, clusters, evidence)
     kept = within_budget(picked, evidence)
     return _Chosen(cautious.Choice(kept, {c.representative.expression: "established" for c in kept}), valid,
@@ -244,24 +251,28 @@ def _with_priors(choice: cautious.Choice, prior: priors.Priors, action: str, res
     found = list(prior.rules[action].values())
     best = priors.preferred(found, {r.expression: r for r in results}, verdicts, evidence, bool(evidence.occurrences),
                             evidence.thin)
-    return priors.prefer(choice, best, priors.support(found), evidence.thin)
+    common = frozenset(e for e, v in verdicts.items() if v == "chance")
+    return priors.prefer(choice, best, priors.support(found), evidence.thin, evidence.params, common)
 
 
 def _with_composites(choice: cautious.Choice, results: Sequence[CandidateResult], judged: dict[str, Evidence],
                      verdicts: dict[str, Verdict], index: OccurrenceIndex
                      ) -> tuple[Sequence[CandidateResult], dict[str, Evidence], dict[str, Verdict]]:
-    """Chosen rules the ranking composed (disjunctions) join the reports like any candidate; their satisfaction
-    set is the union of their terms' (verification then runs them in the sandbox like every kept rule)."""
+    """Rules the ranking composed (disjunctions), chosen or only offered to a reviewer, join the reports like any
+    candidate; their satisfaction set is the union of their terms' (verification then runs the chosen ones in the
+    sandbox like every kept rule)."""
     known = {r.expression for r in results}
-    extra = [c.representative for c in choice.chosen if c.representative.expression not in known]
+    composed = [*choice.chosen, *(c for c, _ in choice.offered)]
+    extra = list({c.representative.expression: c.representative for c in composed
+                  if c.representative.expression not in known}.values())
     if not extra:
         return results, judged, verdicts
     judged, verdicts = dict(judged), dict(verdicts)
     for candidate in extra:
         judged[candidate.expression] = gather(candidate.satisfied, index)
         verdicts[candidate.expression] = "held" if not index.mask & ~candidate.satisfied else "tolerated"
-    composed = [CandidateResult(c.expression, "valid", None, c.satisfied) for c in extra]
-    return (*results, *composed), judged, verdicts
+    rows = [CandidateResult(c.expression, "valid", None, c.satisfied) for c in extra]
+    return (*results, *rows), judged, verdicts
 
 
 def _decided_reasons(choice: cautious.Choice, ranked: Mapping[str, str]) -> dict[str, str]:

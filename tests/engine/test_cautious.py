@@ -136,6 +136,7 @@ def _shop_dialog(ending: str) -> str:
 
 
 SHOP_DEMOS = [_shop_dialog(e) for e in ("failed", "booked", "failed", "declined", "failed", "booked")]
+SHOP_DEMOS_NO_FAILURE = [_shop_dialog(e) for e in ("booked", "declined", "booked", "declined", "booked", "declined")]
 
 
 @pytest.fixture(scope="module")
@@ -278,3 +279,33 @@ def test_anything_else_after_a_failure_a_thanks_or_a_decline_is_a_disjunction_of
     assert _allowed(engine, SHOP_SPEC, rules, [*searched, *_events(("user", "THANK", []))], "system.REQ_MORE()")
     paper = _infer(engine, SHOP_SPEC, SHOP_DEMOS, ranking="recency").preconditions
     assert _allowed(engine, SHOP_SPEC, paper, searched, "system.REQ_MORE()")
+
+
+def test_what_the_user_said_before_their_yes_is_not_assumed_but_the_services_answers_are(engine: Engine) -> None:
+    """The user's yes came right before every card block: it answers the confirmation of what they said before,
+    so their earlier words are not kept as assumed rules (named in the warning instead); the identity check is
+    the service's answer, which no yes replaces, and stays assumed."""
+    response = _infer(engine, CARD_SPEC, CARD_DEMOS)
+    rules = response.preconditions["SYSTEM.BLOCK_CARD"]
+    assert set(rules) == {"self.user.affirmed", "self.identity_verified"}
+    warning = response.warnings["SYSTEM.BLOCK_CARD"]
+    assert "yes came before every call" in warning and "self.user.informed['name']" in warning
+    identity_from_the_bank = _events(("user", "INFORM_INTENT", ["block_card"]), ("system", "VERIFY_IDENTITY", []),
+                                     ("system", "identity_result", [True]), ("system", "CONFIRM", []),
+                                     ("user", "AFFIRM", []))
+    assert _allowed(engine, CARD_SPEC, response.preconditions, identity_from_the_bank, "system.BLOCK_CARD()")
+    assert not _allowed(engine, CARD_SPEC, response.preconditions, CONFIRMED_FIRST, "system.BLOCK_CARD()")
+
+
+def test_a_confirmation_seen_in_one_dialog_keeps_the_slots_it_confirms_beside_a_prior(engine: Engine) -> None:
+    """Confirmed in one dialog only (too thin to establish anything), with another service's rule for the
+    confirmation: that rule joins the slots the confirmations spoke of, assumed; it does not replace them."""
+    one = [_shop_dialog("booked"), *(_shop_dialog("failed") for _ in range(3))]
+    response = engine.infer(InferRequest(spec=SHOP_SPEC, demonstrations=one, options=InferOptions(
+        generators=["enumerate"], prior_rules={"SYSTEM.CONFIRM": ["self.user.selected"]})))
+    decided = {rule: e.decided for rule, e in response.evidence["SYSTEM.CONFIRM"].items()}
+    assert decided["self.user.selected"] == "transferred"
+    assert decided["self.user.informed['city']"] == decided["self.user.informed['date']"] == "assumed"
+    selected_without_city = _events(("user", "INFORM_INTENT", ["book"]), ("user", "INFORM", ["date"]),
+                                    ("system", "SEARCH", []), ("system", "answer", [True]), ("user", "SELECT", []))
+    assert not _allowed(engine, SHOP_SPEC, response.preconditions, selected_without_city, "system.CONFIRM('date')")

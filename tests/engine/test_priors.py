@@ -13,7 +13,14 @@ import pytest
 from precond.engine.engine import UNSEEN_RULE, Engine
 from precond.engine.library import Library
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import MAX_PRIOR_RULES, InferOptions, InferRequest, InferResponse, PriorSource
+from precond_client.schemas.api import (
+    MAX_PRIOR_RULES,
+    CheckRequest,
+    InferOptions,
+    InferRequest,
+    InferResponse,
+    PriorSource,
+)
 from precond_client.schemas.errors import InvalidInput, InvalidProgram
 
 SPEC = """from collections import defaultdict
@@ -156,3 +163,42 @@ def test_the_number_of_prior_rules_is_bounded() -> None:
     InferOptions(prior_rules=rules)
     with pytest.raises(ValueError, match=f"at most {MAX_PRIOR_RULES}"):
         InferOptions(prior_rules=rules, prior_sources=[PriorSource(source="x", rules={"SYSTEM.B": ["True"]})])
+
+
+def test_a_prior_trigger_joins_an_established_disjunction_as_one_more_alternative(engine: Engine) -> None:
+    """"Anything else?" after a thanks or after a decline (a disjunction the demonstrations establish); two other
+    services learned it after a selection. Conjoined, their rule would refuse the question after a thanks that
+    followed no selection; it is one more thing that enables the question."""
+    from tests.engine.test_cautious import SHOP_DEMOS_NO_FAILURE, SHOP_SPEC
+
+    sources = [PriorSource(source=s, rules={"SYSTEM.REQ_MORE": ["self.user.selected"]}) for s in ("ps_a@1", "ps_b@1")]
+    response = engine.infer(InferRequest(spec=SHOP_SPEC, demonstrations=SHOP_DEMOS_NO_FAILURE, options=InferOptions(
+        generators=["enumerate"], prior_sources=sources)))
+    (rule,) = response.preconditions["SYSTEM.REQ_MORE"]
+    assert set(rule.split(" or ")) == {"self.user.thanked", "self.user.declined", "self.user.selected"}
+    assert response.evidence["SYSTEM.REQ_MORE"][rule].decided == "established"
+    report = next(c for c in response.candidates["SYSTEM.REQ_MORE"] if c.assertion == rule)
+    assert report.reason and "joined by the prior rules' alternatives" in report.reason
+
+
+def test_a_prior_common_at_this_services_calls_does_not_replace_what_they_established(engine: Engine) -> None:
+    """The offer follows the search's success here (established). Another service's reading of that state
+    also holds wherever the intent was stated, almost everywhere in these dialogs (not separated from chance at
+    these calls): it is not this service's reading, and replacing the established rule with it would allow an
+    offer before any search."""
+    from tests.engine.test_cautious import SHOP_DEMOS, SHOP_SPEC
+
+    prior = "self.success or self.user.intent['book']"
+    sources = [PriorSource(source=s, rules={"SYSTEM.OFFER": [prior]}) for s in ("ps_a@1", "ps_b@1", "ps_c@1")]
+    response = engine.infer(InferRequest(spec=SHOP_SPEC, demonstrations=SHOP_DEMOS, options=InferOptions(
+        generators=["enumerate"], prior_sources=sources, candidates="all")))
+    rules = response.preconditions["SYSTEM.OFFER"]
+    assert "self.success" in rules
+    assert response.evidence["SYSTEM.OFFER"]["self.success"].decided == "established"
+    report = next(c for c in response.candidates["SYSTEM.OFFER"] if c.assertion == prior)
+    assert report.evidence is not None and report.evidence.verdict == "chance"
+    before_search = [{"actor": "user", "act": "INFORM_INTENT", "args": ["book"]},
+                     {"actor": "user", "act": "INFORM", "args": ["city"]}]
+    verdict = engine.check(CheckRequest(spec=SHOP_SPEC, preconditions=response.preconditions, history=before_search,
+                                        calls=["system.OFFER()"])).results[0]
+    assert verdict.error is None and not verdict.allowed
