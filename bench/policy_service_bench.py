@@ -126,7 +126,11 @@ def main() -> None:
             tuned = [timed(quiet, b) for b in asks(domain, args.asks, f"adapter:{policy['id']}", 300)]
             row["worker_rss_after_mb"] = round(worker_rss_mb())
             row["policy_first_s"] = round(tuned[0], 2)
-            row["policy_rest_median_s"] = round(statistics.median(tuned[1:]), 2) if len(tuned) > 1 else None
+            rest = sorted(tuned[1:])
+            row["policy_rest_median_s"] = round(statistics.median(rest), 2) if rest else None
+            row["policy_rest_p95_s"] = round(rest[min(len(rest) - 1, round(0.95 * (len(rest) - 1)))], 2) \
+                if rest else None
+            row["policy_rest_s"] = [round(s, 2) for s in tuned[1:]]
             row["base_after_s"] = [round(timed(flood, b), 2) for b in asks(domain, 2, None, 200)]
     print(json.dumps(row, indent=1))
     if args.json:
