@@ -16,7 +16,7 @@ README = ROOT / "README.md"
 GLOSSARY = ROOT / "docs" / "index.md"
 
 # Text that narrates the project's making: the same pattern the developers' guide greps for.
-NOTEBOOK = re.compile(r"session [0-9]|issue #?[0-9]", re.IGNORECASE)
+NOTEBOOK = re.compile(r"session [0-9]|issue #?[0-9]|\bthe issue(?:'s)?\b", re.IGNORECASE)
 SKIPPED_DIRS = {"node_modules", "build", "dist", "var", "__pycache__"}  # and every dot-directory (.venv, .git)
 
 # The project's own vocabulary: every one of these the README uses must have a glossary entry.

@@ -31,7 +31,7 @@ def atoms_for(query_params: int) -> list[str]:
 
 def test_a_query_with_many_parameters_makes_a_bounded_number_of_candidates() -> None:
     # 4^10 = 1,048,576 argument lists (two atoms each) before the bound; small enough to show the old code's
-    # product without taking the machine's memory, and the 14-parameter poison of the issue the same way.
+    # product without taking the machine's memory, and a 14-parameter poisoned spec the same way.
     for query_params in (10, 14):
         queries = [a for a in atoms_for(query_params) if ".q(" in a]
         assert 0 < len(queries) <= 2 * MAX_QUERY_CALLS, (query_params, len(queries))
