@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -60,20 +60,26 @@ def scripted_calls() -> list[tuple[str, dict[str, str]]]:
     return [cancel, ("get_reservation_details", {"reservation_id": "R1"}), cancel]
 
 
-def test_the_agents_sdk_guardrail_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
-    ran: list[str] = []
+def airline_tools(decorator: Callable[[Callable[[str], str]], Any], ran: list[str]) -> tuple[Any, Any]:
+    """The read and the cancellation as a framework's tools (`decorator`: its tool decorator), each noting in
+    `ran` that it ran."""
 
-    @function_tool
     def get_reservation_details(reservation_id: str) -> str:
         """Read a reservation."""
         ran.append(f"get {reservation_id}")
         return json.dumps(RESERVATION)
 
-    @function_tool
     def cancel_reservation(reservation_id: str) -> str:
         """Cancel a reservation."""
         ran.append(f"cancel {reservation_id}")
         return json.dumps(RESERVATION | {"status": "cancelled"})
+
+    return decorator(get_reservation_details), decorator(cancel_reservation)
+
+
+def test_the_agents_sdk_guardrail_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
+    ran: list[str] = []
+    get_reservation_details, cancel_reservation = airline_tools(function_tool, ran)
 
     steps = [[function_call(name, args, call_id=f"call-{n}")] for n, (name, args) in enumerate(scripted_calls())]
     model = ScriptedModel([*steps, [assistant_message("Cancelled.")]])
@@ -90,18 +96,7 @@ def test_the_agents_sdk_guardrail_refuses_before_the_tool_runs_and_tells_the_mod
 
 def test_the_langgraph_tool_node_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
     ran: list[str] = []
-
-    @tool
-    def get_reservation_details(reservation_id: str) -> str:
-        """Read a reservation."""
-        ran.append(f"get {reservation_id}")
-        return json.dumps(RESERVATION)
-
-    @tool
-    def cancel_reservation(reservation_id: str) -> str:
-        """Cancel a reservation."""
-        ran.append(f"cancel {reservation_id}")
-        return json.dumps(RESERVATION | {"status": "cancelled"})
+    get_reservation_details, cancel_reservation = airline_tools(tool, ran)
 
     answers = [AIMessage("", tool_calls=[{"name": name, "args": args, "id": f"call-{n}"}])
                for n, (name, args) in enumerate(scripted_calls())]
@@ -141,18 +136,7 @@ def test_the_create_agent_middleware_refuses_before_the_tool_runs_and_tells_the_
     judge: Judge, run: str, keyed: KeyedStack
 ) -> None:
     ran: list[str] = []
-
-    @tool
-    def get_reservation_details(reservation_id: str) -> str:
-        """Read a reservation."""
-        ran.append(f"get {reservation_id}")
-        return json.dumps(RESERVATION)
-
-    @tool
-    def cancel_reservation(reservation_id: str) -> str:
-        """Cancel a reservation."""
-        ran.append(f"cancel {reservation_id}")
-        return json.dumps(RESERVATION | {"status": "cancelled"})
+    get_reservation_details, cancel_reservation = airline_tools(tool, ran)
 
     if run == "invoke" and isinstance(judge, ServiceGuard):  # a synchronous agent judges with a `Client`
         judge = ServiceGuard(Client(keyed.url, api_key=keyed.keys["guard"]), judge.reference)

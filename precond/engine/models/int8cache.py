@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from precond.engine.models.quant import Int8Embedding, Int8Linear, _own_memory, rows_int8
-from precond.engine.models.store import ModelStoreError
+from precond.engine.models.store import ModelStoreError, publish
 
 logger = logging.getLogger(__name__)
 
@@ -301,8 +301,8 @@ def load(source: Path, cache_dir: Path, key: str, dtype: torch.dtype) -> tuple[A
 
 
 def _build_into(source: Path, target: Path, dtype: torch.dtype) -> None:
-    """Build in a scratch directory beside `target` and rename it into place (replacing a stale copy), so no
-    reader ever sees a half-written file; a concurrent builder's finished copy is as good as ours."""
+    """Build in a scratch directory beside `target` and rename it into place (`store.publish`), replacing a
+    stale copy."""
     logger.info("quantizing %s to int8 once (%s)", source, target)
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=f".build-{target.name}-") as scratch:
@@ -312,9 +312,4 @@ def _build_into(source: Path, target: Path, dtype: torch.dtype) -> None:
             stale = Path(scratch) / "stale"
             with contextlib.suppress(OSError):  # another process moved it first
                 os.rename(target, stale)
-        try:
-            os.rename(built, target)
-        except OSError:
-            if not target.is_dir():
-                raise
-            logger.info("another process built %s first; using its copy", target)
+        publish(built, target)

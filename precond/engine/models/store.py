@@ -135,13 +135,19 @@ def ensure_converted(
     with tempfile.TemporaryDirectory(dir=cache_dir, prefix=f".build-{sha256[:12]}-{dtype}-") as scratch:
         built = Path(scratch) / "model"
         convert_gguf(stage(Path(scratch)), built, dtype)
-        try:
-            os.rename(built, target)
-        except OSError:
-            if not target.is_dir():
-                raise
-            logger.info("another process built %s first; using its copy", target)
+        publish(built, target)
     return target
+
+
+def publish(built: Path, target: Path) -> None:
+    """Move a finished build into place with one rename, so no reader ever sees a half-written directory; a
+    concurrent builder's finished copy (the rename fails on a directory already there) is as good as ours."""
+    try:
+        os.rename(built, target)
+    except OSError:
+        if not target.is_dir():
+            raise
+        logger.info("another process built %s first; using its copy", target)
 
 
 def embedded_model_dir(
