@@ -26,6 +26,7 @@ from precond.engine.evidence import OccurrenceIndex, gather
 from precond.engine.ranking import Candidate, Cluster
 from precond.engine.report import Ranked
 from precond.engine.spec import Spec
+from precond.engine.tool_conditions import allowance, arithmetic
 from precond.sandbox.types import CandidateResult, Point, TraceResult
 from precond_client.schemas.api import Counterexamples, Decided
 from precond_client.schemas.errors import InvalidInput
@@ -205,11 +206,19 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     unshown = all(e.refuse for e in examples[:demonstrated])
     kept, notes = _kept(ranked, truth, positive, negative, unshown)
     remaining = negative & ~_refused_by(kept, truth, negative)
-    pool = {e: t for e, t in truth.items() if e in policy} if policy else truth
+    pool = {e: t for e, t in truth.items() if e in policy and not arithmetic(e)} if policy else truth
     # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule
     # from above: only the limits a tool's policy states are learned from the calls to refuse (`_limits`)
     required, learned = _smallest(pool, positive, remaining) if positive else (
         _limits(pool, negative, remaining) if policy else [], [])
+    if policy and (kept or required or learned):
+        # an allowance only tightens a rule the other conditions give: alone it would open an action whose
+        # labelled calls nothing else separates (one that stays refused, `options.unseen`)
+        left = remaining & ~_refused_by(set(required), truth, remaining)
+        if learned:
+            left &= _held(learned, truth, (1 << len(examples)) - 1)
+        required += _allowance({e: t for e, t in truth.items() if e in policy and arithmetic(e)}, positive,
+                               negative, left)
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
     for e in required:
@@ -256,7 +265,10 @@ def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
         held = truth.get(e)
         if held is None:
             continue
-        if positive & ~held:
+        if arithmetic(e):
+            notes[e] = ("dropped: an allowance is chosen only where it refuses calls labelled 'refuse' "
+                        "(a count that fits the logs is a correlate)")
+        elif positive & ~held:
             notes[e] = f"dropped: refuses {(positive & ~held).bit_count()} call(s) labelled or demonstrated to allow"
         elif ranked.decided.get(e) == "assumed" and not negative & ~held:
             notes[e] = "dropped: assumed, and refuses none of the calls labelled 'refuse' (a correlate, not a reason)"
@@ -319,6 +331,19 @@ def _limits(truth: Mapping[str, int], negative: int, remaining: int) -> list[str
     these calls and every other, and only a call to allow could show it, so none of those forms is learned; and
     a condition no labelled call meets (every saved passenger born after today) says no more than `False`."""
     return _required({e: t for e, t in truth.items() if t & negative and not LIMIT_FORMS.search(e)}, 0, remaining)
+
+
+def _allowance(truth: Mapping[str, int], positive: int, negative: int, remaining: int) -> list[str]:
+    """The largest allowance (the most generous, `tool_conditions.allowance`) that holds at every call to allow (or,
+    with none, at some call labelled 'refuse': one no call meets says no more than `False`) and refuses the most
+    of the calls labelled 'refuse' that the other conditions leave allowed (`remaining`); none if none does.
+    Chosen after the others, so it never replaces a condition that already separates."""
+    best, refused = None, 0
+    for e, t in sorted(truth.items(), key=lambda item: -allowance(item[0])):
+        meets = not positive & ~t if positive else bool(t & negative)
+        if meets and (remaining & ~t).bit_count() > refused:
+            best, refused = e, (remaining & ~t).bit_count()
+    return [best] if best else []
 
 
 def _has_or(expression: str) -> bool:

@@ -21,7 +21,10 @@ so this module adds, for an action whose parameter names the key of an earlier t
   for y in self.seen['search_direct_flight']] + ... for x in flights)`, the result's list of the same name one
   more source): every search of the conversation, not only the last (`self.seen`, records of list results);
 - how many items of a list argument are of a kind read off their ids (`len([x for x in payment_methods if
-  'certificate_' in x['payment_id']]) <= 1`).
+  'certificate_' in x['payment_id']]) <= 1`);
+- the arithmetic a policy states over two integer arguments and a list argument's length, an allowance of k
+  (0..3) per item (`nonfree_baggages == max(0, total_baggages - 3 * len(passengers))`: bags beyond the free
+  ones are charged, the others not). These only separate labelled calls (`arithmetic`, `counterexamples`).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
 which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
@@ -402,6 +405,7 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
         for name in _item_names(facts, action, param):
             atoms += listed(facts, param, name)
     atoms += kinds(facts, action, params)
+    atoms += allowances(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
 
 
@@ -468,6 +472,45 @@ def kinds(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
             counted = f"len([x for x in {param} if {kind + '_'!r} in x[{name!r}]])"
             atoms += [f"{counted} <= {n}" for n in KIND_COUNTS]
     return atoms
+
+
+ALLOWANCES = (3, 2, 1, 0)
+"""Allowances per item, the largest first: with no call to allow, of the limits that refuse the same calls
+labelled 'refuse' the first (the most generous allowance) is chosen."""
+ARITHMETIC = re.compile(r"^\w+ == max\(0, \w+ - (\d) \* len\(\w+\)\)$")
+
+
+def allowances(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """`b == max(0, a - k * len(items))` for two arguments that are integers at every seen call of the action
+    and a list argument: the charged part `b` of a count `a` is what exceeds an allowance of k per item ("each
+    passenger has k free bags; each extra one is paid"). Only actions whose calls show such arguments get them, and
+    only lists of what the call brings, not of references to what was read (a flight some search listed, a payment
+    method among the profile's): an allowance is per passenger, not per segment or payment."""
+    calls = facts.seen.get(action, [])
+    if not calls:
+        return []
+    integers = [p for p in params if all(_integer(c.args.get(p)) for c in calls)]
+    referred = set().union(*facts.mappings.values()) if facts.mappings else set()
+    lists = [p for p in params if all(isinstance(c.args.get(p), list) for c in calls) and p not in referred
+             and not any(_listing(facts, name) for name in _item_names(facts, action, p))]
+    return [f"{b} == max(0, {a} - {k} * len({n}))"
+            for k in ALLOWANCES for a, b in itertools.permutations(integers, 2) for n in lists]
+
+
+def allowance(atom: str) -> int:
+    """The k of an allowance (`allowances`), -1 for any other condition."""
+    match = ARITHMETIC.match(atom)
+    return int(match.group(1)) if match else -1
+
+
+def _integer(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def arithmetic(atom: str) -> bool:
+    """An allowance (`allowances`): chosen only to refuse calls labelled 'refuse' that the other conditions
+    leave allowed, never kept from demonstrations alone (a count that happens to fit the logs is a correlate)."""
+    return bool(ARITHMETIC.match(atom))
 
 
 def _moment(text: str | None) -> datetime | None:
