@@ -154,7 +154,8 @@ def converter_spec(spec: str) -> tuple[tuple[Tool, ...], frozenset[str]]:
         at = next((n for n, (a, b) in enumerate(zip(given, wanted, strict=False)) if a != b),
                   min(len(given), len(wanted)))
         raise ValueError(f"line {at + 1} differs from what `precond convert openai` writes: it is not that spec "
-                         "(a rule over another spec needs the service)")
+                         "(one an older version wrote: convert the logs again; a rule over another spec needs the "
+                         "service)")
     return tools, frozenset(names)
 
 
