@@ -130,6 +130,8 @@ async def _flood(url: str, secret: bytes, entries: int, size: int) -> tuple[dict
     try:
         for i, job_id in enumerate(ids[:-1]):
             await results.put(job_id, {"results": [], "pad": f"{i}:" + "x" * size})
+            if i == 0:  # Redis's LRU clock ticks once a second: entries of the same second look as old as each
+                await asyncio.sleep(1.1)  # other and allkeys-lru evicts among them by chance, the first one too
         first = await results.get(ids[0])
         await results.put(ids[-1], {"results": [], "fresh": True})
         fresh = await results.get(ids[-1]) == {"results": [], "fresh": True}
