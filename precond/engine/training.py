@@ -26,7 +26,7 @@ from typing import Any
 import torch
 
 from precond.engine import prompting
-from precond.engine.models.adapters import lora_config, save_adapter
+from precond.engine.models.adapters import save_adapter, with_lora
 from precond.engine.models.backend import Weights
 from precond.engine.next_action import classify
 from precond.engine.spec import Spec, parse_source
@@ -153,8 +153,6 @@ def train_policy(load: Callable[[], Weights], spec: Spec, request: TrainPolicyRe
                  progress: ProgressFn, cancelled: Callable[[], bool]) -> TrainPolicyResult:
     """Check the request, load the model, train, then save the adapter at `out` (only when every step ran: a
     cancelled training saves nothing)."""
-    from peft import get_peft_model
-
     options = request.options
     lines = action_lines(spec, request.demonstrations)
     start = time.perf_counter()
@@ -163,7 +161,7 @@ def train_policy(load: Callable[[], Weights], spec: Spec, request: TrainPolicyRe
     prefix_list = weights.tokenizer(prefix, add_special_tokens=False)["input_ids"]
     found = examples(weights.tokenizer, len(prefix_list), request.demonstrations, spec, lines, options.max_tokens)
     torch.manual_seed(options.seed)
-    model = get_peft_model(weights.model, lora_config(options.rank))
+    model = with_lora(weights.model, options.rank)
     prefix_ids = torch.tensor([prefix_list], device=weights.device)
     losses = _fit(model, prefix_ids, _schedule(found, options.steps, options.seed), options, progress, cancelled)
     progress("train", options.steps, options.steps)

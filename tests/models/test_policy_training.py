@@ -5,6 +5,7 @@ one: what is asserted is the plumbing and the refusals, not the quality (bench/ 
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import pytest
@@ -232,3 +233,12 @@ def test_next_action_with_an_adapter_keeps_it_unmerged_as_the_service_does(
     assert result.exit_code == 0, result.output
     answer = json.loads(result.stdout)
     assert answer["model"]["adapter"].startswith("bc@")
+
+
+def test_training_and_loading_an_adapter_warn_of_nothing(tiny_model_dir: Path, tmp_path: Path) -> None:
+    """peft read transformers' deprecated `is_gradient_checkpointing` in every training and adapter load: a
+    FutureWarning in the worker's log about code that is not ours."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        _train(tiny_model_dir, tmp_path / "bc", _request(steps=2))
+        load_code_model(_settings(tiny_model_dir), tmp_path / "bc")

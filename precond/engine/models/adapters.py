@@ -16,6 +16,7 @@ import hashlib
 import os
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -51,6 +52,17 @@ def lora_config(rank: int) -> Any:
 
     return LoraConfig(r=rank, lora_alpha=LORA_ALPHA_PER_RANK * rank, target_modules=list(TARGET_MODULES),
                       lora_dropout=0.0, bias="none", task_type="CAUSAL_LM")
+
+
+def with_lora(model: Any, rank: int) -> Any:
+    """`model` with LoRA layers of `rank` (peft's `get_peft_model`). peft reads transformers'
+    `is_gradient_checkpointing`, which warns of its own deprecation each time (a FutureWarning in every training
+    and adapter load, about code that is not ours): that one warning is silenced here, no other."""
+    from peft import get_peft_model
+
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*is_gradient_checkpointing.*", category=FutureWarning)
+        return get_peft_model(model, lora_config(rank))
 
 
 def save_adapter(peft_model: Any, directory: Path, result: TrainPolicyResult) -> TrainPolicyResult:
@@ -158,10 +170,10 @@ def _check_fit(tensors: dict[str, Any], expected: dict[str, Any], rank: int) -> 
 
 
 def _load_into(model: Any, data: bytes, rank: int) -> None:
-    from peft import get_peft_model, set_peft_model_state_dict
+    from peft import set_peft_model_state_dict
 
     tensors = _tensors(data)
-    peft_model = get_peft_model(model, lora_config(rank))
+    peft_model = with_lora(model, rank)
     _check_fit(tensors, {k.replace(".default", ""): v.shape for k, v in peft_model.state_dict().items()
                          if "lora_" in k}, rank)
     set_peft_model_state_dict(peft_model, tensors)
