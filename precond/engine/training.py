@@ -16,6 +16,7 @@ Demonstrations are untrusted text, but nothing here runs them: they are parsed (
 
 from __future__ import annotations
 
+import math
 import random
 import time
 from collections.abc import Callable, Sequence
@@ -191,6 +192,10 @@ def _fit(model: Any, prefix_ids: torch.Tensor, schedule: Sequence[Example], opti
         for group in optimizer.param_groups:
             group["lr"] = options.learning_rate * (1 - 0.9 * step / max(1, len(schedule) - 1))
         loss = _loss(model, prefix_ids, example, prefix_ids.device)
+        if not math.isfinite(loss.item()):
+            raise InvalidInput(f"the training diverged: the loss at step {step + 1} is {loss.item()}, so no "
+                               "adapter was saved (a lower options.learning_rate may help)",
+                               field="options.learning_rate")
         loss.backward()  # type: ignore[no-untyped-call]
         torch.nn.utils.clip_grad_norm_(trainable, 1.0)
         optimizer.step()

@@ -32,6 +32,7 @@ import torch
 
 from precond.engine.models.attention import use_grouped_attention
 from precond.engine.models.kvcache import GrowingLayer, growing_cache
+from precond.engine.models.loading import check_built, one_at_a_time
 from precond.engine.models.prefixes import Prefix, PrefixStore
 from precond.engine.models.stopping import StopRule, stop_index
 from precond.engine.models.store import (
@@ -591,11 +592,13 @@ def load_weights(settings: ModelSettings) -> Weights:
     torch.set_num_threads(settings.threads)
     device = resolve_device(settings.device)
     dtype, reason = choose_dtype(settings.dtype, device)
-    directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
-    tokenizer = AutoTokenizer.from_pretrained(directory)
-    model = AutoModelForCausalLM.from_pretrained(
-        directory, dtype=dtype, device_map=str(device) if device.type != "cpu" else None
-    )
+    with one_at_a_time():
+        directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
+        tokenizer = AutoTokenizer.from_pretrained(directory)
+        model = AutoModelForCausalLM.from_pretrained(
+            directory, dtype=dtype, device_map=str(device) if device.type != "cpu" else None
+        )
+    check_built(model, directory)
     info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=_dtype_name(dtype), dtype_reason=reason)
     return Weights(model, tokenizer, info, device)
 
@@ -621,14 +624,16 @@ def serving_weights(settings: ModelSettings) -> Weights:
         weights = load_weights(settings)
     else:
         dtype, reason = choose_dtype(settings.dtype, device)
-        directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
+        with one_at_a_time():
+            directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
         if sha256 is None:
             weights = load_weights(settings)
             logger.info("%s: %d layers quantized after loading", quant_reason, quantize(weights.model))
         else:
             tokenizer = _lean(AutoTokenizer.from_pretrained(directory))
             release_heap()  # the tokenizer's parse, before the weights are read (lower peak)
-            model, home = int8cache.load(directory, settings.cache_dir, directory.name, dtype)
+            with one_at_a_time():
+                model, home = int8cache.load(directory, settings.cache_dir, directory.name, dtype)
             logger.info("%s: int8 weights read from %s", quant_reason, home)
             info = ModelInfo(name=name, sha256=sha256, device=str(device), dtype=_dtype_name(dtype),
                              dtype_reason=reason)
