@@ -206,7 +206,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     unshown = all(e.refuse for e in examples[:demonstrated])
     kept, notes = _kept(ranked, truth, positive, negative, unshown)
     remaining = negative & ~_refused_by(kept, truth, negative)
-    pool = {e: t for e, t in truth.items() if e in policy and not arithmetic(e)} if policy else truth
+    pool = {e: t for e, t in truth.items() if e in policy and allowance(e) < 0} if policy else truth
     # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule
     # from above: only the limits a tool's policy states are learned from the calls to refuse (`_limits`)
     required, learned = _smallest(pool, positive, remaining) if positive else (
@@ -217,7 +217,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         left = remaining & ~_refused_by(set(required), truth, remaining)
         if learned:
             left &= _held(learned, truth, (1 << len(examples)) - 1)
-        required += _allowance({e: t for e, t in truth.items() if e in policy and arithmetic(e)}, positive,
+        required += _allowance({e: t for e, t in truth.items() if e in policy and allowance(e) >= 0}, positive,
                                negative, left)
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
@@ -265,10 +265,7 @@ def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
         held = truth.get(e)
         if held is None:
             continue
-        if arithmetic(e):
-            notes[e] = ("dropped: an allowance is chosen only where it refuses calls labelled 'refuse' "
-                        "(a count that fits the logs is a correlate)")
-        elif positive & ~held:
+        if positive & ~held:
             notes[e] = f"dropped: refuses {(positive & ~held).bit_count()} call(s) labelled or demonstrated to allow"
         elif ranked.decided.get(e) == "assumed" and not negative & ~held:
             notes[e] = "dropped: assumed, and refuses none of the calls labelled 'refuse' (a correlate, not a reason)"
@@ -372,10 +369,11 @@ def _terms(truth: Mapping[str, int], positive: int, negative: int) -> list[Term]
     does, else two; the term that allows the most uncovered calls first, then the fewer conditions, then the
     conditions that hold at more calls to allow (a reason shared by every call, "nothing flown", before a
     correlate of the few, "one way"), then the shorter text. Empty when there is nothing to refuse or nothing
-    separates."""
+    separates. Never a price (`tool_conditions.scaled`): a price holds at every call to allow (`_required`), and
+    prices that each fit a few of them are counts fitted one by one."""
     if not negative or not positive:
         return []
-    useful = sorted((e for e, t in truth.items() if t & positive),
+    useful = sorted((e for e, t in truth.items() if t & positive and not arithmetic(e)),
                     key=lambda e: (-(truth[e] & positive).bit_count(), (truth[e] & negative).bit_count(), len(e)))
     terms: dict[Term, int] = {(e,): truth[e] for e in useful if not truth[e] & negative}
     paired = [e for e in useful if truth[e] & negative][:MAX_PAIRED]

@@ -24,7 +24,10 @@ so this module adds, for an action whose parameter names the key of an earlier t
   'certificate_' in x['payment_id']]) <= 1`);
 - the arithmetic a policy states over two integer arguments and a list argument's length, an allowance of k
   (0..3) per item (`nonfree_baggages == max(0, total_baggages - 3 * len(passengers))`: bags beyond the free
-  ones are charged, the others not). These only separate labelled calls (`arithmetic`, `counterexamples`).
+  ones are charged, the others not); and an integer argument priced per item of a list, the call's own or one
+  of what was read (`any(amount == 100 * len(self.results['get_reservation_details'][x]['passengers']) for x in
+  self.results['get_reservation_details'])`: "$100 times the number of passengers" of a reservation read).
+  These only separate labelled calls (`arithmetic`, `counterexamples`).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
 which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
@@ -54,6 +57,7 @@ MAX_DISJUNCTIONS = 24
 MIN_COVER = 0.75
 MAX_ATOMS = 400
 MAX_PAIR_FIELDS = 2
+MAX_ENTRIES = 1000
 ISO_DATE = re.compile(r"^\d{4}-\d{2}-\d{2}")
 Scalar = str | int | float | bool | None
 
@@ -85,6 +89,9 @@ class ToolFacts:
     records: dict[str, Counter[str]] = field(default_factory=dict)
     """tool → how many of its listed records (`self.seen[tool]`, dicts) hold each field, with the count of
     records under the empty name: a field every record holds can be read off all of them."""
+    entries: set[str] = field(default_factory=set)
+    """The names of the entries of the objects reads returned (a profile's payment methods by id), at most
+    MAX_ENTRIES: what an item naming one of them refers to."""
 
 
 def tool_class(spec: Spec) -> str | None:
@@ -163,6 +170,8 @@ class _Replay:
                 continue
             if isinstance(item, dict):
                 mappings.add(name)
+                self.facts.entries.update(k for k in list(item)[:MAX_ENTRIES - len(self.facts.entries)]
+                                          if isinstance(k, str))
             if isinstance(item, list):
                 lists.add(name)
                 _note_items(self.facts.item_fields.setdefault((tool, name), {}), item)
@@ -406,6 +415,7 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
             atoms += listed(facts, param, name)
     atoms += kinds(facts, action, params)
     atoms += allowances(facts, action, params)
+    atoms += scaled(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
 
 
@@ -490,11 +500,30 @@ def allowances(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
     if not calls:
         return []
     integers = [p for p in params if all(_integer(c.args.get(p)) for c in calls)]
-    referred = set().union(*facts.mappings.values()) if facts.mappings else set()
-    lists = [p for p in params if all(isinstance(c.args.get(p), list) for c in calls) and p not in referred
-             and not any(_listing(facts, name) for name in _item_names(facts, action, p))]
+    lists = _own_lists(facts, action, params)
     return [f"{b} == max(0, {a} - {k} * len({n}))"
             for k in ALLOWANCES for a, b in itertools.permutations(integers, 2) for n in lists]
+
+
+def _own_lists(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """The list arguments of what the call brings (passengers), not of references to what was read (a flight some
+    search listed, a payment method among the profile's): what an allowance or a price counts per item."""
+    calls = facts.seen.get(action, [])
+    referred = set().union(*facts.mappings.values()) if facts.mappings else set()
+    return [p for p in params if calls and all(isinstance(c.args.get(p), list) for c in calls) and p not in referred
+            and not any(_listing(facts, name) for name in _item_names(facts, action, p))]
+
+
+def _own_records(facts: ToolFacts, tool: str) -> list[str]:
+    """A read's list fields of records that refer to nothing else read (a reservation's passengers, not its
+    flights, which searches listed, nor its payments, which name the profile's payment methods)."""
+    own = []
+    for name in sorted(facts.lists.get(tool, set())):
+        fields = facts.item_fields.get((tool, name), {})
+        names = [f for f, values in fields.items() if not _ordered(values)]
+        if fields and not any(_listing(facts, f) or set(fields[f]) & facts.entries for f in names):
+            own.append(name)
+    return own
 
 
 def allowance(atom: str) -> int:
@@ -507,10 +536,78 @@ def _integer(value: object) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+SCALED = re.compile(r"^(?:\w+ in self\.results\[[^\]]+\] and |any\()?\w+ == \d+ \* len\(")
+
+
+@dataclass(frozen=True)
+class _Items:
+    """Where the items a price counts are: the list argument `name` (no `tool`), or the list field `name` of the
+    result of the read `tool` that the call's argument `key` names, or of any result of it (no `key`)."""
+
+    text: str
+    """The condition, with `{0}` for the argument and `{1}` for the price."""
+    name: str
+    tool: str | None = None
+    key: str | None = None
+
+    def at(self, call: Seen) -> list[object]:
+        if self.tool is None:
+            return [call.args.get(self.name)]
+        if self.key is not None:
+            return [_field(call.results.get((self.tool, call.args.get(self.key))), self.name)]
+        return [_field(value, self.name) for (tool, _), value in call.results.items() if tool == self.tool]
+
+
+def scaled(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """`a == k * len(items)` for an argument `a` that is an integer at every seen call of the action: an amount
+    priced per item ("$100 times the number of passengers"). The items are records of their own (`_own_lists`,
+    `_own_records`): a list argument of the call, or a list field of a read's result, the one the call names by
+    its key (`reservation_id in ... and amount == 100 * len(...[reservation_id]['passengers'])`) or, where no
+    parameter of the action keys that read, any result of it (`any(amount == 100 * len(...[x]['passengers']) for
+    x in ...)`: a compensation for one of the reservations read). Not an argument that a read's result counts too
+    (`total_baggages`): that one is compared with what it was, or shares out as an allowance, and its equality
+    with a multiple is a logged count scaled (a correlate, as `total_baggages == 3` is). The prices k are what
+    the seen calls show, `a // len(items)` wherever that divides, at most MAX_VALUES an argument and a list, the
+    most common first: a price is read off the calls, never assumed."""
+    calls = facts.seen.get(action, [])
+    counts = {name for values in facts.values.values() for name, held in values.items() if _counted(held)}
+    integers = [p for p in params if calls and p not in counts and all(_integer(c.args.get(p)) for c in calls)]
+    keyed = {tool: param for tool, param in facts.key_param.items() if param in params}
+    sources = [_Items(f"{{0}} == {{1}} * len({name})", name) for name in _own_lists(facts, action, params)]
+    for tool in sorted(facts.lists):
+        table = f"{RESULTS}[{tool!r}]"
+        for name in _own_records(facts, tool):
+            key = keyed.get(tool)
+            sources.append(_Items(f"{key} in {table} and {{0}} == {{1}} * len({table}[{key}][{name!r}])"
+                                  if key else f"any({{0}} == {{1}} * len({table}[x][{name!r}]) for x in {table})",
+                                  name, tool, key))
+    atoms: list[str] = []
+    for argument in integers:
+        for items in sources:
+            prices: Counter[int] = Counter()
+            for call in calls:
+                prices.update(_prices(call.args.get(argument), items.at(call)))
+            ordered = sorted(prices.items(), key=lambda price: (-price[1], price[0]))
+            atoms += [items.text.format(argument, k) for k, _ in ordered[:MAX_VALUES]]
+    return atoms
+
+
+def _prices(amount: object, lists: Sequence[object]) -> set[int]:
+    """The prices per item an amount is a whole multiple of, one a non-empty list."""
+    if isinstance(amount, bool) or not isinstance(amount, int) or amount <= 0:
+        return set()
+    return {amount // len(items) for items in lists if isinstance(items, list) and items and not amount % len(items)}
+
+
+def _field(value: object, name: str) -> object:
+    return value.get(name) if isinstance(value, dict) else None
+
+
 def arithmetic(atom: str) -> bool:
-    """An allowance (`allowances`): chosen only to refuse calls labelled 'refuse' that the other conditions
-    leave allowed, never kept from demonstrations alone (a count that happens to fit the logs is a correlate)."""
-    return bool(ARITHMETIC.match(atom))
+    """An allowance (`allowances`) or an amount priced per item (`scaled`): chosen only to separate calls
+    labelled 'refuse', never kept from demonstrations alone (a count that happens to fit the logs is a
+    correlate)."""
+    return bool(ARITHMETIC.match(atom) or SCALED.match(atom))
 
 
 def _moment(text: str | None) -> datetime | None:
