@@ -345,3 +345,29 @@ def test_decoding_and_scoring_warn_of_nothing(tiny: CodeModel) -> None:
         with scoped("warnings"):
             tiny.complete(PREFIX, SUFFIXES[:1], 2, Sampling(max_new_tokens=4), "line")
             tiny.score(PREFIX, ["a", "b c"])
+
+
+def test_rows_read_the_prefix_they_share_instead_of_copying_it(tiny: CodeModel,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The samples' rows hold only what follows the prompt prefix (the prefix's cache is read by all of them), and
+    sample and score exactly as rows holding their own copy of it would."""
+    prefix_tokens = len(tiny.tokenizer(PREFIX)["input_ids"])
+    sampling = Sampling(max_new_tokens=10, seed=5)
+    fresh = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
+    widths: list[int] = []
+    step = fresh._step
+
+    def measured(batch: Any, *args: Any) -> Any:
+        widths.append(batch.cache.layers[0].keys.shape[-2])
+        return step(batch, *args)
+
+    monkeypatch.setattr(fresh, "_step", measured)
+    shared = fresh.complete(PREFIX, SUFFIXES, 3, sampling, "statement")
+    scores = fresh.score(PREFIX, CONTINUATIONS)
+    assert widths and max(widths) < 64  # tails, padding and 10 tokens per row, against a prefix of hundreds
+    assert prefix_tokens > 200
+
+    monkeypatch.setattr("precond.engine.models.backend._head", lambda prefix: None)
+    copied = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
+    assert copied.complete(PREFIX, SUFFIXES, 3, sampling, "statement") == shared
+    assert copied.score(PREFIX, CONTINUATIONS) == pytest.approx(scores, abs=1e-4)

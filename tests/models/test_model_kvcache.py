@@ -3,9 +3,9 @@ from __future__ import annotations
 import copy
 
 import torch
-from transformers import DynamicLayer
+from transformers import DynamicCache, DynamicLayer
 
-from precond.engine.models.kvcache import GrowingLayer
+from precond.engine.models.kvcache import GrowingLayer, compact
 
 
 def _states(batch: int, length: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -37,3 +37,21 @@ def test_copies_do_not_share_storage() -> None:
     layer.update(*_states(1, 1, 2))
     assert not torch.equal(clone.keys, layer.keys)
     assert torch.equal(clone.keys[..., :10, :], layer.keys[..., :10, :])
+
+
+def test_a_layer_of_known_length_is_allocated_once_and_kept_without_spare_room() -> None:
+    layer = GrowingLayer(capacity=30)
+    layer.update(*_states(1, 10, 0))
+    buffer = layer.keys.untyped_storage().data_ptr()
+    layer.update(*_states(1, 20, 1))
+    assert layer.keys.untyped_storage().data_ptr() == buffer
+    assert layer.keys.untyped_storage().nbytes() == layer.keys.nbytes  # exactly 30 positions
+
+    grown = DynamicCache()
+    grown.layers = [GrowingLayer()]
+    grown.update(*_states(1, 10, 0), 0)
+    keys = grown.layers[0].keys.clone()
+    assert grown.layers[0].keys.untyped_storage().nbytes() > keys.nbytes  # spare room
+    compact(grown)
+    assert torch.equal(grown.layers[0].keys, keys)
+    assert grown.layers[0].keys.untyped_storage().nbytes() == keys.nbytes

@@ -3,13 +3,14 @@
 Every precondition prompt of a domain shares a long prefix (observation functions and a demonstration,
 ~700 tokens) and differs only in a short suffix (the action's `def` ending in `assert`). So:
 
-* the prefix goes through the model once; its key/value cache is copied for every row, never recomputed,
-  and kept between calls so that later calls with the same prefix (per-action calls, a dialog's next turn)
-  reuse it too: kept per tenant (`engine.models.prefixes`), so no tenant's work speeds up or reveals another's;
+* the prefix goes through the model once; its key/value cache is held once and read by every row (the rows
+  hold only what follows it: `attention.grouped_attention`'s `head`), never recomputed, and kept between calls
+  so that later calls with the same prefix (per-action calls, a dialog's next turn) reuse it too: kept per
+  tenant (`engine.models.prefixes`), so no tenant's work speeds up or reveals another's;
 * the n samples of a suffix, and the rows of several suffixes, are decoded as one batch, refilled from the
   queue as rows finish (continuous batching) so the batch never drains to a few slow stragglers;
-* the suffixes' tails are left-padded *between* the shared prefix and the tail, so every row ends at the
-  same column and one forward pass serves all of them (pads are masked out, positions are per row);
+* the suffixes' tails are left-padded after the shared prefix, so every row ends at the same column and one
+  forward pass serves all of them (pads are masked out, positions are per row);
 * rows stop independently (end of line or statement, EOS, token budget) and finished rows leave the batch.
 
 Prefix and suffix are tokenised jointly and split at the longest common token prefix: tokenising them apart
@@ -31,7 +32,7 @@ from typing import Any
 import torch
 
 from precond.engine.models.attention import use_grouped_attention
-from precond.engine.models.kvcache import GrowingLayer, growing_cache
+from precond.engine.models.kvcache import GrowingLayer, compact, growing_cache
 from precond.engine.models.loading import check_built, one_at_a_time
 from precond.engine.models.prefixes import Prefix, PrefixStore
 from precond.engine.models.stopping import StopRule, stop_index
@@ -99,13 +100,17 @@ class _Row:
 
 @dataclass
 class _Batch:
-    """Rows decoded together; `mask` covers every cache column, `positions` are each row's next position."""
+    """Rows decoded together; `mask` covers every column of `cache`, `positions` are each row's next position.
+
+    `head`: the prompt prefix's cache that every row continues, shared (`_head`); `cache` then holds only what
+    follows it in each row. None where each row's `cache` holds the prefix too."""
 
     rows: list[_Row]
     cache: Any
     logits: torch.Tensor
     mask: torch.Tensor
     positions: torch.Tensor
+    head: Any = None
 
 
 @dataclass
@@ -124,7 +129,7 @@ def _select(batch: _Batch, rows: Sequence[_Row], index: torch.Tensor, keep: bool
     """A new batch of `batch`'s rows at `index` (repeats allowed); `batch` is left as it was if `keep`."""
     cache = copy.deepcopy(batch.cache) if keep else batch.cache
     cache.batch_select_indices(index)
-    return _Batch(list(rows), cache, batch.logits[index], batch.mask[index], batch.positions[index])
+    return _Batch(list(rows), cache, batch.logits[index], batch.mask[index], batch.positions[index], batch.head)
 
 
 def _mergeable(cache: Any) -> bool:
@@ -132,33 +137,39 @@ def _mergeable(cache: Any) -> bool:
     return all(isinstance(layer, GrowingLayer) for layer in cache.layers)
 
 
-def _widen(tensor: torch.Tensor, width: int, after: int, dim: int) -> torch.Tensor:
-    """Insert zero (masked) columns after the shared prefix so that `tensor` spans `width` columns."""
+def _head(prefix: Prefix) -> Any:
+    """`prefix`'s cache for rows to share (`_Batch.head`), or None where each row must hold a copy: an empty
+    prefix, or layers other than full attention (a sliding window masks the prefix's columns per row)."""
+    return prefix.cache if prefix.tokens and _mergeable(prefix.cache) else None
+
+
+def _widen(tensor: torch.Tensor, width: int, dim: int) -> torch.Tensor:
+    """Insert zero (masked) columns before the rows' own so that `tensor` spans `width` columns."""
     missing = width - tensor.shape[dim]
     if missing == 0:
         return tensor
     shape = list(tensor.shape)
     shape[dim] = missing
-    head, tail = tensor.narrow(dim, 0, after), tensor.narrow(dim, after, tensor.shape[dim] - after)
-    return torch.cat([head, tensor.new_zeros(shape), tail], dim=dim)
+    return torch.cat([tensor.new_zeros(shape), tensor], dim=dim)
 
 
-def _merge(running: _Batch, joining: _Batch, shared: int) -> _Batch:
-    """One batch of both: the shorter rows get padding columns between the prefix and their tails.
+def _merge(running: _Batch, joining: _Batch) -> _Batch:
+    """One batch of both (rows continuing one shared `head`): the shorter rows get padding columns first.
 
-    Attention order is by column and positions are per row, so masked columns in the middle change nothing.
+    Attention order is by column and positions are per row, so masked columns after the prefix change nothing.
     """
     width = max(running.mask.shape[1], joining.mask.shape[1])
     for ours, theirs in zip(running.cache.layers, joining.cache.layers, strict=True):
         for name in ("keys", "values"):
-            merged = [_widen(getattr(layer, name), width, shared, dim=-2) for layer in (ours, theirs)]
+            merged = [_widen(getattr(layer, name), width, dim=-2) for layer in (ours, theirs)]
             setattr(ours, name, torch.cat(merged, dim=0))
     return _Batch(
         rows=running.rows + joining.rows,
         cache=running.cache,
         logits=torch.cat([running.logits, joining.logits]),
-        mask=torch.cat([_widen(b.mask, width, shared, dim=1) for b in (running, joining)]),
+        mask=torch.cat([_widen(b.mask, width, dim=1) for b in (running, joining)]),
         positions=torch.cat([running.positions, joining.positions]),
+        head=running.head,
     )
 
 
@@ -302,17 +313,20 @@ class CodeModel:
         if not inner:
             return [0.0] * size
         shared = len(prefix.tokens)
-        allowed = torch.cat([torch.ones(size, shared, dtype=torch.bool), tree.ancestor_mask()], dim=1)
+        head = _head(prefix)
+        columns = 0 if head is not None else shared  # the prefix's columns in the tree's own cache
+        allowed = torch.cat([torch.ones(size, columns, dtype=torch.bool), tree.ancestor_mask()], dim=1)
         dtype = next(self.model.parameters()).dtype
-        mask = torch.zeros(1, 1, size, shared + size, dtype=dtype, device=self.device)
+        mask = torch.zeros(1, 1, size, columns + size, dtype=dtype, device=self.device)
         mask.masked_fill_(~allowed.to(self.device)[None, None], torch.finfo(dtype).min)
         logits = self.model(
             input_ids=torch.tensor([tree.tokens], device=self.device),
             attention_mask=mask,
             position_ids=torch.tensor([[shared + d for d in tree.depths]], device=self.device),
-            cache=copy.deepcopy(prefix.cache),
+            cache=growing_cache(self.model.config) if head is not None else copy.deepcopy(prefix.cache),
             use_cache=True,
             logits_to_keep=torch.tensor(inner, device=self.device),
+            head=head,
         ).logits[0].float()
         logprobs = torch.log_softmax(logits, dim=-1)
         row = {node: k for k, node in enumerate(inner)}
@@ -322,7 +336,7 @@ class CodeModel:
         return list(self.tokenizer(text)["input_ids"])
 
     def _forward(self, input_ids: torch.Tensor, attention_mask: torch.Tensor, position_ids: torch.Tensor,
-                 cache: Any) -> torch.Tensor:
+                 cache: Any, head: Any) -> torch.Tensor:
         """Last-position logits only: the vocabulary projection is a quarter of a 0.5B model's weights."""
         out = self.model(
             input_ids=input_ids,
@@ -331,6 +345,7 @@ class CodeModel:
             cache=cache,
             use_cache=True,
             logits_to_keep=1,
+            head=head,
         )
         logits: torch.Tensor = out.logits[:, -1, :]
         return logits
@@ -343,12 +358,16 @@ class CodeModel:
         if kept is not None and kept.tokens == tokens:
             return kept
         reuse = shared // PREFILL_CHUNK * PREFILL_CHUNK
-        if reuse > 0 and kept is not None:
+        if reuse > 0 and kept is not None and _mergeable(kept.cache):  # the kept columns, into a cache of its size
+            cache = growing_cache(self.model.config, capacity=len(tokens))
+            for index, layer in enumerate(kept.cache.layers):
+                cache.update(layer.keys[..., :reuse, :], layer.values[..., :reuse, :], index)
+        elif reuse > 0 and kept is not None:
             cache = copy.deepcopy(kept.cache)
             if reuse < len(kept.tokens):
                 cache.crop(reuse - len(kept.tokens))
         else:
-            reuse, cache = 0, growing_cache(self.model.config)
+            reuse, cache = 0, growing_cache(self.model.config, capacity=len(tokens))
         for start in range(reuse, len(tokens), PREFILL_CHUNK):
             if should_stop is not None and should_stop():
                 raise GenerationCancelled()  # a long prompt's prefill takes seconds on a CPU
@@ -362,7 +381,7 @@ class CodeModel:
                 use_cache=True,
                 logits_to_keep=1,
             )
-        entry = Prefix(tokens=tokens, cache=cache)
+        entry = Prefix(tokens=tokens, cache=compact(cache))
         self._prefixes.put(scope, entry)
         return entry
 
@@ -388,7 +407,7 @@ class CodeModel:
             if pending and (batch is None or (free >= self._refill_at and _mergeable(batch.cache))):
                 taken = [pending.popleft() for _ in range(min(free, len(pending)))]
                 fresh, kept = self._start(taken, [tails[row.suffix] for row in taken], prefix, kept, bool(pending))
-                batch = fresh if batch is None else _merge(batch, fresh, len(prefix.tokens))
+                batch = fresh if batch is None else _merge(batch, fresh)
             if should_stop is not None and should_stop():
                 raise GenerationCancelled()
             assert batch is not None
@@ -396,7 +415,7 @@ class CodeModel:
 
     @property
     def _refill_at(self) -> int:
-        """Free slots worth a refill: each one costs a tail prefill and a copy of the batch's cache."""
+        """Free slots worth a refill: each one costs a tail prefill and a copy of the rows' own caches."""
         return max(1, self.max_batch // 4)
 
     def _start(
@@ -416,7 +435,6 @@ class CodeModel:
         """
         keys = [tuple(tail) for tail in tails]
         distinct = sorted(set(keys))
-        shared = len(prefix.tokens)
         reusable = kept is not None and _mergeable(kept.batch.cache)
         reused = [key for key in distinct if reusable and kept is not None and key in kept.keys]
         missing = [key for key in distinct if key not in reused]
@@ -427,22 +445,27 @@ class CodeModel:
             parts.append(_select(kept.batch, [], index))
         if missing:
             parts.append(self._prefill_tails(missing, prefix))
-        start = parts[0] if len(parts) == 1 else _merge(parts[0], parts[1], shared)
+        start = parts[0] if len(parts) == 1 else _merge(parts[0], parts[1])
         order = reused + missing
         source = torch.tensor([order.index(key) for key in keys], device=self.device)
         return _select(start, rows, source, keep), _Tails(order, start) if keep else None
 
     def _prefill_tails(self, tails: Sequence[Sequence[int]], prefix: Prefix) -> _Batch:
-        """One row per tail: the prefix's cache copied, the tails run in one forward pass, left-padded."""
+        """One row per tail, the tails run in one forward pass, left-padded, over the prefix's cache: shared by
+        the rows (`_head`), or copied into each where it cannot be."""
         shared = len(prefix.tokens)
-        ids, tail_mask = self._left_pad(tails)
-        mask = torch.cat([tail_mask.new_ones(len(tails), shared), tail_mask], dim=1)
-        positions = (shared + tail_mask.cumsum(1) - 1).clamp(min=shared)
-        cache = copy.deepcopy(prefix.cache)
-        if shared:
-            cache.batch_repeat_interleave(len(tails))
-        logits = self._forward(ids, mask, positions, cache)
-        return _Batch([], cache, logits, mask, positions[:, -1] + 1)
+        ids, mask = self._left_pad(tails)
+        positions = (shared + mask.cumsum(1) - 1).clamp(min=shared)
+        head = _head(prefix)
+        if head is not None:
+            cache = growing_cache(self.model.config)
+        else:
+            cache = copy.deepcopy(prefix.cache)
+            if shared:
+                cache.batch_repeat_interleave(len(tails))
+            mask = torch.cat([mask.new_ones(len(tails), shared), mask], dim=1)
+        logits = self._forward(ids, mask, positions, cache, head)
+        return _Batch([], cache, logits, mask, positions[:, -1] + 1, head)
 
     def _left_pad(self, tails: Sequence[Sequence[int]]) -> tuple[torch.Tensor, torch.Tensor]:
         pad = self.tokenizer.pad_token_id if self.tokenizer.pad_token_id is not None else 0
@@ -465,7 +488,8 @@ class CodeModel:
             batch.rows = [batch.rows[i] for i in keep]
             batch.mask, batch.positions, next_ids = batch.mask[index], batch.positions[index], next_ids[index]
         batch.mask = torch.cat([batch.mask, batch.mask.new_ones(len(keep), 1)], dim=1)
-        batch.logits = self._forward(next_ids[:, None], batch.mask, batch.positions[:, None], batch.cache)
+        batch.logits = self._forward(next_ids[:, None], batch.mask, batch.positions[:, None], batch.cache,
+                                     batch.head)
         batch.positions = batch.positions + 1
         return batch
 
