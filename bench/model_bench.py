@@ -14,7 +14,6 @@ the best of `--repeat` runs: on a shared machine the slowest runs measure the ne
 from __future__ import annotations
 
 import argparse
-import copy
 import functools
 import importlib.util
 import json
@@ -34,6 +33,7 @@ import torch
 
 from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
 from precond.engine.models.backend import choose_dtype
+from precond.engine.models.kvcache import growing_cache
 from precond.engine.models.prefixes import Prefix, PrefixStore
 from precond.engine.prompting import inference_prefix, inference_suffix
 from precond.engine.spec import parse_spec, resolve_actions
@@ -111,20 +111,21 @@ def backend_prefill(model: CodeModel, ids: list[int]) -> Prefix:
 
 
 def backend_decode(model: CodeModel, prefix: Prefix, batch: int, steps: int) -> None:
-    """`batch` rows continue the prefix for `steps` greedy tokens (a fixed amount of work: no stopping)."""
-    cache = copy.deepcopy(prefix.cache)
-    cache.batch_repeat_interleave(batch)
+    """`batch` rows continue the prefix for `steps` greedy tokens (a fixed amount of work: no stopping), as the
+    engine's rows do: the prefix's cache read by all of them (`head`), each row's own tokens in its own cache."""
+    cache = growing_cache(model.model.config)
     context = len(prefix.tokens)
     tokens = torch.full((batch, 1), prefix.tokens[-1], dtype=torch.long)
     with torch.inference_mode():
         for step in range(steps):
             out = model.model(
                 input_ids=tokens,
-                attention_mask=torch.ones(batch, context + step + 1, dtype=torch.long),
+                attention_mask=torch.ones(batch, step + 1, dtype=torch.long),
                 position_ids=torch.full((batch, 1), context + step),
-                past_key_values=cache,
+                cache=cache,
                 use_cache=True,
                 logits_to_keep=1,
+                head=prefix.cache,
             )
             tokens = out.logits[:, -1].argmax(-1, keepdim=True)
 
