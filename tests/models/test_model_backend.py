@@ -367,7 +367,18 @@ def test_rows_read_the_prefix_they_share_instead_of_copying_it(tiny: CodeModel,
     assert widths and max(widths) < 64  # tails, padding and 10 tokens per row, against a prefix of hundreds
     assert prefix_tokens > 200
 
-    monkeypatch.setattr("precond.engine.models.backend._head", lambda prefix: None)
+    monkeypatch.setattr(CodeModel, "_head", lambda self, prefix: None)
     copied = CodeModel(tiny.model, tiny.tokenizer, tiny.info, max_batch=4)
     assert copied.complete(PREFIX, SUFFIXES, 3, sampling, "statement") == shared
     assert copied.score(PREFIX, CONTINUATIONS) == pytest.approx(scores, abs=1e-4)
+
+
+def test_an_attention_that_reads_no_shared_prefix_gets_a_copy_per_row(tiny_model_dir: Path) -> None:
+    """Off CPU the model keeps transformers' attention, which knows nothing of a shared prefix: rows then hold
+    their own copy of it and decode as plain greedy decoding does."""
+    model = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", max_batch=4))
+    model.model.set_attn_implementation("eager")
+    expected = [[reference_greedy(model, PREFIX + suffix, 12, "line")] for suffix in SUFFIXES]
+    assert model.complete(PREFIX, SUFFIXES, 1, Sampling(temperature=0, max_new_tokens=12), "line") == expected
+    assert model.score(PREFIX, CONTINUATIONS) == pytest.approx(
+        [reference_score(model, PREFIX, text) for text in CONTINUATIONS], abs=1e-3)

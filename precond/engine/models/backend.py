@@ -31,6 +31,7 @@ from typing import Any
 
 import torch
 
+from precond.engine.models.attention import NAME as ATTENTION
 from precond.engine.models.attention import use_grouped_attention
 from precond.engine.models.kvcache import GrowingLayer, compact, growing_cache
 from precond.engine.models.loading import check_built, one_at_a_time
@@ -102,7 +103,7 @@ class _Row:
 class _Batch:
     """Rows decoded together; `mask` covers every column of `cache`, `positions` are each row's next position.
 
-    `head`: the prompt prefix's cache that every row continues, shared (`_head`); `cache` then holds only what
+    `head`: the prompt prefix's cache that every row continues, shared (`CodeModel._head`); `cache` then holds only what
     follows it in each row. None where each row's `cache` holds the prefix too."""
 
     rows: list[_Row]
@@ -135,12 +136,6 @@ def _select(batch: _Batch, rows: Sequence[_Row], index: torch.Tensor, keep: bool
 def _mergeable(cache: Any) -> bool:
     """Rows can only join a running batch where every layer is a plain full-attention cache."""
     return all(isinstance(layer, GrowingLayer) for layer in cache.layers)
-
-
-def _head(prefix: Prefix) -> Any:
-    """`prefix`'s cache for rows to share (`_Batch.head`), or None where each row must hold a copy: an empty
-    prefix, or layers other than full attention (a sliding window masks the prefix's columns per row)."""
-    return prefix.cache if prefix.tokens and _mergeable(prefix.cache) else None
 
 
 def _widen(tensor: torch.Tensor, width: int, dim: int) -> torch.Tensor:
@@ -313,7 +308,7 @@ class CodeModel:
         if not inner:
             return [0.0] * size
         shared = len(prefix.tokens)
-        head = _head(prefix)
+        head = self._head(prefix)
         columns = 0 if head is not None else shared  # the prefix's columns in the tree's own cache
         allowed = torch.cat([torch.ones(size, columns, dtype=torch.bool), tree.ancestor_mask()], dim=1)
         dtype = next(self.model.parameters()).dtype
@@ -331,6 +326,13 @@ class CodeModel:
         logprobs = torch.log_softmax(logits, dim=-1)
         row = {node: k for k, node in enumerate(inner)}
         return [float(logprobs[row[p], t]) if p >= 0 else 0.0 for p, t in zip(tree.parents, tree.tokens, strict=True)]
+
+    def _head(self, prefix: Prefix) -> Any:
+        """`prefix`'s cache for rows to share (`_Batch.head`), or None where each row must hold a copy: an empty
+        prefix, layers other than full attention (a sliding window masks the prefix's columns per row), or an
+        attention other than `grouped_attention` (off CPU), which would not read a `head`."""
+        shareable = self.model.config._attn_implementation == ATTENTION and _mergeable(prefix.cache)
+        return prefix.cache if prefix.tokens and shareable else None
 
     def _encode(self, text: str) -> list[int]:
         return list(self.tokenizer(text)["input_ids"])
@@ -456,7 +458,7 @@ class CodeModel:
         shared = len(prefix.tokens)
         ids, mask = self._left_pad(tails)
         positions = (shared + mask.cumsum(1) - 1).clamp(min=shared)
-        head = _head(prefix)
+        head = self._head(prefix)
         if head is not None:
             cache = growing_cache(self.model.config)
         else:
