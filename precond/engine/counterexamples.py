@@ -11,13 +11,16 @@ of conjunctions (`separate`) of the conditions already judged (the enumerator's,
 call to refuse and true at as many calls to allow as it can be, each term with as few conditions as the
 evidence needs (one, else two). Beside it the ranking's other rules stay only where they allow every call to
 allow, and an assumed one (a possible correlate) only where it refuses a labelled call: a refusal always has a
-counterexample or an established reason behind it. Nothing here runs untrusted code: the sandbox judged every
+counterexample or an established reason behind it. Last, for a tool spec, an allowance the policy states
+tightens the rule (`_allowance`: one k for every call; `_table`: a k by category, only where one k cannot
+separate the calls the rest leaves allowed). Nothing here runs untrusted code: the sandbox judged every
 condition at every labelled call (`Labelled.points` are its points).
 """
 
 from __future__ import annotations
 
 import ast
+import itertools
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
@@ -26,7 +29,16 @@ from precond.engine.evidence import OccurrenceIndex, gather
 from precond.engine.ranking import Candidate, Cluster
 from precond.engine.report import Ranked
 from precond.engine.spec import Spec
-from precond.engine.tool_conditions import allowance, arithmetic
+from precond.engine.tool_conditions import (
+    ALLOWANCES,
+    ARGUMENT_KEY,
+    MAX_CELLS,
+    MAX_KEYS,
+    allowance,
+    allowance_form,
+    arithmetic,
+    key,
+)
 from precond.sandbox.types import CandidateResult, Point, TraceResult
 from precond_client.schemas.api import Counterexamples, Decided
 from precond_client.schemas.errors import InvalidInput
@@ -206,19 +218,25 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     unshown = all(e.refuse for e in examples[:demonstrated])
     kept, notes = _kept(ranked, truth, positive, negative, unshown)
     remaining = negative & ~_refused_by(kept, truth, negative)
-    pool = {e: t for e, t in truth.items() if e in policy and allowance(e) < 0} if policy else truth
+    pool = {e: t for e, t in truth.items() if e in policy and allowance(e) < 0 and not ARGUMENT_KEY.match(e)
+            } if policy else truth
     # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule
     # from above: only the limits a tool's policy states are learned from the calls to refuse (`_limits`)
     required, learned = _smallest(pool, positive, remaining) if positive else (
         _limits(pool, negative, remaining) if policy else [], [])
+    table: Table | None = None
     if policy and (kept or required or learned):
         # an allowance only tightens a rule the other conditions give: alone it would open an action whose
         # labelled calls nothing else separates (one that stays refused, `options.unseen`)
         left = remaining & ~_refused_by(set(required), truth, remaining)
         if learned:
             left &= _held(learned, truth, (1 << len(examples)) - 1)
-        required += _allowance({e: t for e, t in truth.items() if e in policy and allowance(e) >= 0}, positive,
-                               negative, left)
+        flat = _allowance({e: t for e, t in truth.items() if e in policy and allowance(e) >= 0}, positive,
+                          negative, left)
+        # one allowance for every call, unless only one looked up by category separates the calls it leaves
+        table = _table({e: t for e, t in truth.items() if e in policy}, positive, left, (1 << len(examples)) - 1,
+                       flat) if positive and left & ~_refused_by(set(flat), truth, left) else None
+        required += [] if table else flat
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
     for e in required:
@@ -230,9 +248,18 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     results, evidence, verdicts = list(ranked.results), dict(ranked.evidence), dict(ranked.verdicts)
     decided = {**{e: d for e, d in ranked.decided.items() if e in kept}, **decided_required}
     reasons = {**ranked.reasons, **notes}
+    at_demos = {r.expression: r.satisfied for r in ranked.results}
+    added: list[tuple[str, int, int, str]] = []
+    """Rules made here: the text, where it holds at the demonstrations and at the examples, the reason."""
     if learned:
-        expression = _text(learned)
-        satisfied = _held(learned, {r.expression: r.satisfied for r in ranked.results}, (1 << len(demo_points)) - 1)
+        added.append((_text(learned), _held(learned, at_demos, (1 << len(demo_points)) - 1),
+                      _held(learned, truth, (1 << len(examples)) - 1),
+                      f"kept: separates the calls labelled 'refuse' from the calls to allow "
+                      f"({len(learned)} term{'s' if len(learned) > 1 else ''})"))
+    if table:
+        added.append((table.text, table.held(at_demos, (1 << len(demo_points)) - 1),
+                      table.held(truth, (1 << len(examples)) - 1), table.reason))
+    for expression, satisfied, held, reason in added:
         index = OccurrenceIndex.of(demo_points, occurrences)
         if expression not in {r.expression for r in results}:
             results.append(CandidateResult(expression, "valid", None, satisfied))
@@ -240,9 +267,8 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         verdicts[expression] = "held" if not index.mask & ~satisfied else "tolerated"
         chosen.append(Cluster((Candidate(expression, "enumerate", satisfied),)))
         decided[expression] = "established"
-        truth[expression] = _held(learned, truth, (1 << len(examples)) - 1)
-        reasons[expression] = (f"kept: separates the calls labelled 'refuse' from the calls to allow "
-                               f"({len(learned)} term{'s' if len(learned) > 1 else ''})")
+        truth[expression] = held
+        reasons[expression] = reason
     refuses, wrong = {}, {}
     for cluster in chosen:
         e = cluster.representative.expression
@@ -341,6 +367,120 @@ def _allowance(truth: Mapping[str, int], positive: int, negative: int, remaining
         if meets and (remaining & ~t).bit_count() > refused:
             best, refused = e, (remaining & ~t).bit_count()
     return [best] if best else []
+
+
+Category = tuple[str | None, str]
+"""A table's key (`tool_conditions.key`): the read it needs (None for an argument of the call), the reference."""
+
+
+@dataclass(frozen=True)
+class Table:
+    """An allowance looked up by one or two categories: per k other than the fallback's, the cells that get it
+    (each cell the conditions that place a call in it, `tool_conditions.key`); any other value the fallback."""
+
+    reads: tuple[str, ...]
+    groups: tuple[tuple[tuple[tuple[str, ...], ...], str], ...]
+    """(the cells, the allowance they get), the most generous first."""
+    fallback: str
+    text: str
+    reason: str
+
+    def held(self, values: Mapping[str, int], every: int) -> int:
+        """Where the table holds, from where each condition it is made of holds."""
+        inside = held = 0
+        for cells, allowed in self.groups:
+            member = 0
+            for cell in cells:
+                member |= _held([cell], values, every)
+            inside |= member
+            held |= member & values.get(allowed, 0)
+        held |= every & ~inside & values.get(self.fallback, 0)
+        return _held([self.reads], values, every) & held
+
+
+def _table(truth: Mapping[str, int], positive: int, remaining: int, every: int, flat: Sequence[str]
+           ) -> Table | None:
+    """The allowance looked up by one or two categories (an argument of the call, a field of a read it names:
+    "free bags by tier and cabin") that refuses more of the calls labelled 'refuse' the other conditions leave
+    allowed (`remaining`) than the flat allowance (`flat`, `_allowance`) does; None where none does. Each cell a
+    call to allow or a labelled call shows gets, of the ks consistent with every call to allow in it, the one
+    refusing the most of `remaining` there (then the fallback's, then the most generous); a cell no call shows,
+    and a value none of the reads or calls showed, gets the fallback: the flat allowance's k, else the smallest
+    k of the table (no unseen category gets more than every seen one). At most MAX_KEYS categories (the fewest
+    values first), MAX_CELLS cells a table; the fewer categories, then the shorter text, on a tie."""
+    forms: dict[str, dict[int, str]] = {}
+    categories: dict[Category, dict[str, str]] = {}
+    for e in truth:
+        if allowance(e) >= 0:
+            forms.setdefault(allowance_form(e), {})[allowance(e)] = e
+        found = key(e)
+        if found and (found[0] is None or found[0] in truth):
+            categories.setdefault(found[:2], {})[found[2]] = e
+    usable = sorted((c for c, values in categories.items() if len(values) >= 2),
+                    key=lambda c: (len(categories[c]), c[1]))[:MAX_KEYS]
+    refused = (remaining & ~truth[flat[0]]).bit_count() if flat else 0
+    best: tuple[tuple[int, int, int], Table] | None = None
+    for form, by_k in sorted(forms.items()):
+        fixed = allowance(flat[0]) if flat and allowance_form(flat[0]) == form else None
+        for chosen in [*itertools.combinations(usable, 1), *itertools.combinations(usable, 2)]:
+            cells = list(itertools.product(*(sorted(categories[c].items()) for c in chosen)))
+            table = _filled(truth, positive, remaining, every, by_k, fixed, chosen, cells) \
+                if len(cells) <= MAX_CELLS else None
+            if table is None:
+                continue
+            held = table.held(truth, every)
+            score = (-(remaining & ~held).bit_count(), len(chosen), len(table.text))
+            if not positive & ~held and -score[0] > refused and (best is None or score < best[0]):
+                best = (score, table)
+    return best[1] if best else None
+
+
+def _filled(truth: Mapping[str, int], positive: int, remaining: int, every: int, by_k: Mapping[int, str],
+            fixed: int | None, chosen: Sequence[Category], cells: Sequence[tuple[tuple[str, str], ...]]
+            ) -> Table | None:
+    """The table of one allowance's form over the categories `chosen` (`_table`); None where a cell's calls to
+    allow fit no one k, or every cell gets the fallback (the flat allowance)."""
+    ks: dict[tuple[tuple[str, str], ...], int] = {}
+    for cell in cells:
+        inside = _held([tuple(atom for _, atom in cell)], truth, every)
+        fits = [k for k in ALLOWANCES if k in by_k and not positive & inside & ~truth[by_k[k]]]
+        if not fits:
+            return None
+        if inside:
+            ks[cell] = max(fits, key=lambda k: ((remaining & inside & ~truth[by_k[k]]).bit_count(), k == fixed, k))
+    fallback = fixed if fixed is not None else min(ks.values(), default=-1)
+    if fallback not in by_k or all(k == fallback for k in ks.values()):
+        return None
+    reads = tuple(dict.fromkeys(read for read, _ in chosen if read))
+    refs = [ref for _, ref in chosen]
+    subject = refs[0] if len(refs) == 1 else f"({', '.join(refs)})"
+
+    def values(cell: tuple[tuple[str, str], ...]) -> object:
+        return cell[0][0] if len(cell) == 1 else tuple(value for value, _ in cell)
+
+    groups, terms, given = [], [], []
+    for k in sorted(set(ks.values()) - {fallback}, reverse=True):
+        members = [cell for cell in ks if ks[cell] == k]
+        listed = [values(cell) for cell in members]
+        test = f"{subject} == {listed[0]!r}" if len(listed) == 1 else f"{subject} in {tuple(listed)!r}"
+        groups.append((tuple(tuple(atom for _, atom in cell) for cell in members), by_k[k]))
+        terms.append(f"{test} and {by_k[k]}")
+        given += listed
+    terms.append(f"{subject} not in {tuple(given)!r} and {by_k[fallback]}")
+    text = " or ".join(terms)
+    if reads:
+        text = f"{' and '.join(reads)} and ({text})"
+    names = " and ".join(NAMED.sub(r"\1", ref) for ref in refs)
+    learned = ", ".join(f"{values(cell)!r}: {k}" for cell, k in sorted(ks.items()))
+    reason = (f"kept: an allowance per item by {names}, learned from the labelled calls ({learned}): refuses calls "
+              f"labelled 'refuse' that one allowance for every call does not; a {names} no labelled or "
+              f"demonstrated call shows gets {fallback}, "
+              + ("the allowance every call to allow meets" if fixed is not None else "the smallest of the table"))
+    return Table(reads, tuple(groups), by_k[fallback], text, reason)
+
+
+NAMED = re.compile(r"^self\.results\['\w+'\]\[\w+\]\['(\w+)'\]$")
+"""A read's field named by its own name (`tier`)."""
 
 
 def _has_or(expression: str) -> bool:

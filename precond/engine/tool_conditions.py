@@ -26,7 +26,9 @@ so this module adds, for an action whose parameter names the key of an earlier t
   (0..3) per item (`nonfree_baggages == max(0, total_baggages - 3 * len(passengers))`: bags beyond the free
   ones are charged, the others not); and an integer argument priced per item of a list, the call's own or one
   of what was read (`any(amount == 100 * len(self.results['get_reservation_details'][x]['passengers']) for x in
-  self.results['get_reservation_details'])`: "$100 times the number of passengers" of a reservation read).
+  self.results['get_reservation_details'])`: "$100 times the number of passengers" of a reservation read);
+  and an argument's few values (`cabin in ('economy',)`), the cells of a table of allowances by category, the k
+  of each cell learned from labelled calls (`counterexamples`: free bags by tier and cabin).
   These only separate labelled calls (`arithmetic`, `counterexamples`).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
@@ -416,6 +418,7 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
     atoms += kinds(facts, action, params)
     atoms += allowances(facts, action, params)
     atoms += scaled(facts, action, params)
+    atoms += keys(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
 
 
@@ -505,6 +508,46 @@ def allowances(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
             for k in ALLOWANCES for a, b in itertools.permutations(integers, 2) for n in lists]
 
 
+MAX_KEYS = 4
+"""Categories an allowance's table is looked up by (`keys`), at most: a table keyed by one or two of them."""
+MAX_CELLS = 9
+"""Cells of a table (the values of its one or two categories), at most."""
+ARGUMENT_KEY = re.compile(r"^\w+ in \('[^'\\]*',\)$")
+"""An argument's category (`keys`): a one-value tuple, which no other condition of the enumerator's writes and a
+code model hardly does, so the ranking can leave it out (`arithmetic`) without leaving out anything else."""
+READ_KEY = re.compile(r"^(\w+ in self\.results\['\w+'\]) and (self\.results\['\w+'\]\[\w+\]\['\w+'\]) == ('[^'\\]*')$")
+
+
+def keys(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """`cabin in ('economy',)`: an argument that takes a few strings (2 to MAX_VALUES) at the seen calls of an action
+    with allowances, each value a cell of a table of allowances ("free bags by tier and cabin"; the tier is a field
+    of a read the call names, `_Builder.fields` proposes it). Not an argument naming a read's result (an id is
+    no category). Like the arithmetic it keys, chosen only to separate labelled calls (`arithmetic`)."""
+    calls = facts.seen.get(action, [])
+    if not allowances(facts, action, params):
+        return []
+    ids = set(facts.key_param.values())
+    atoms: list[str] = []
+    for param in params:
+        values = [c.args.get(param) for c in calls]
+        if param in ids or not all(isinstance(v, str) for v in values) or _ordered(values):  # type: ignore[arg-type]
+            continue
+        found = sorted({v for v in values if isinstance(v, str)})
+        if 2 <= len(found) <= MAX_VALUES:
+            atoms += [f"{param} in {(v,)!r}" for v in found if ARGUMENT_KEY.match(f"{param} in {(v,)!r}")]
+    return atoms
+
+
+def key(atom: str) -> tuple[str | None, str, str] | None:
+    """A cell of a category (`keys`, or a read's field `_Builder.fields` proposes): the read it needs (None for an
+    argument), the category, the value; None for any other condition."""
+    if ARGUMENT_KEY.match(atom):
+        name, _, value = atom.partition(" in ")
+        return None, name, str(ast.literal_eval(value)[0])
+    match = READ_KEY.match(atom)
+    return (match.group(1), match.group(2), str(ast.literal_eval(match.group(3)))) if match else None
+
+
 def _own_lists(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
     """The list arguments of what the call brings (passengers), not of references to what was read (a flight some
     search listed, a payment method among the profile's): what an allowance or a price counts per item."""
@@ -530,6 +573,12 @@ def allowance(atom: str) -> int:
     """The k of an allowance (`allowances`), -1 for any other condition."""
     match = ARITHMETIC.match(atom)
     return int(match.group(1)) if match else -1
+
+
+def allowance_form(atom: str) -> str:
+    """An allowance with `{}` for its k: the allowances of one form differ only by k."""
+    match = ARITHMETIC.match(atom)
+    return f"{atom[:match.start(1)]}{{}}{atom[match.end(1):]}" if match else atom
 
 
 def _integer(value: object) -> bool:
@@ -604,10 +653,10 @@ def _field(value: object, name: str) -> object:
 
 
 def arithmetic(atom: str) -> bool:
-    """An allowance (`allowances`) or an amount priced per item (`scaled`): chosen only to separate calls
-    labelled 'refuse', never kept from demonstrations alone (a count that happens to fit the logs is a
-    correlate)."""
-    return bool(ARITHMETIC.match(atom) or SCALED.match(atom))
+    """An allowance (`allowances`), an amount priced per item (`scaled`) or an argument's category an allowance's
+    table is keyed by (`keys`): chosen only to separate calls labelled 'refuse', never kept from demonstrations
+    alone (a count that happens to fit the logs is a correlate, and so is the one cabin the logs show)."""
+    return bool(ARITHMETIC.match(atom) or SCALED.match(atom) or ARGUMENT_KEY.match(atom))
 
 
 def _moment(text: str | None) -> datetime | None:
