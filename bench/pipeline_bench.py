@@ -36,13 +36,27 @@ from precond.engine.models.stopping import StopRule, stop_index  # noqa: E402
 from precond.engine.settings import ModelSettings, SandboxSettings  # noqa: E402
 from precond.evaluation.report import cpu_model  # noqa: E402
 from precond.evaluation.settings import data_path  # noqa: E402
-from precond_client.schemas.api import InferRequest, ModelInfo, NextActionRequest  # noqa: E402
+from precond_client.schemas.api import (  # noqa: E402
+    InferRequest,
+    ModelInfo,
+    NextActionMode,
+    NextActionOptions,
+    NextActionRequest,
+)
 
 logger = logging.getLogger("pipeline_bench")
 
+NEXT_MODES: tuple[NextActionMode, ...] = ("constrained", "sample")
+"""Next-action modes timed: the default (the model scores every allowed call) and the paper's Algorithm 1 (a greedy
+line, verified), the one llama.cpp can run (`LlamaCppModel`)."""
+
 
 class LlamaCppModel:
-    """`CodeModel.complete` on llama.cpp: rows one after another, each reusing the prompt's evaluated tokens."""
+    """`CodeModel.complete` on llama.cpp: rows one after another, each reusing the prompt's evaluated tokens.
+    It has no `score` (llama-cpp-python keeps one position's logits unless it keeps every position's, 5 GB at
+    this context), so its next actions run the paper's sampling mode only."""
+
+    known_calls: tuple[str, ...] = ()
 
     def __init__(self, gguf: Path, threads: int, n_ctx: int = 8192) -> None:
         import llama_cpp
@@ -111,24 +125,31 @@ def run(runtime: str, dtype: str, quant: str, threads: int, name: str, turns: in
             load_peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
             infer_s, inferred = timed(lambda: engine.infer(InferRequest(spec=data["spec_program"],
                                                                         demonstrations=demos)))
-            latencies = []
-            for history in histories(data, turns):
-                request = NextActionRequest(spec=data["spec_program"], preconditions=inferred.preconditions,
-                                            demonstrations=demos[:1], history=history)
-                start = time.perf_counter()
-                engine.next_action(request)
-                latencies.append(time.perf_counter() - start)
+            latencies: dict[str, list[float]] = {}
+            for mode in NEXT_MODES if runtime == "backend" else NEXT_MODES[1:]:
+                for history in histories(data, turns):
+                    request = NextActionRequest(spec=data["spec_program"], preconditions=inferred.preconditions,
+                                                demonstrations=demos[:1], history=history,
+                                                options=NextActionOptions(mode=mode))
+                    start = time.perf_counter()
+                    engine.next_action(request)
+                    latencies.setdefault(mode, []).append(time.perf_counter() - start)
     return {
         "runtime": runtime, "dtype": getattr(engine.model().info, "dtype", dtype),
         "quant": getattr(engine.model().info, "quant", quant), "threads": threads,
         "domain": name, "load_s": round(load_s, 1), "infer_s": round(infer_s, 1),
         "infer_generate_s": inferred.stats.seconds.get("generate"),
-        "next_action_p50_s": round(statistics.median(latencies), 2),
-        "next_action_p95_s": round(sorted(latencies)[max(0, round(0.95 * len(latencies)) - 1)], 2),
-        "requests": len(latencies),
+        **{f"next_action_{mode}_{name}_s": value for mode, times in latencies.items()
+           for name, value in percentiles(times).items()},
+        "requests": turns,
         "load_peak_rss_mb": load_peak,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024,
     }
+
+
+def percentiles(times: Sequence[float]) -> dict[str, float]:
+    return {"p50": round(statistics.median(times), 2),
+            "p95": round(sorted(times)[max(0, round(0.95 * len(times)) - 1)], 2)}
 
 
 def timed(action: Callable[[], Any]) -> tuple[float, Any]:

@@ -335,6 +335,20 @@ def test_kept_prefixes_are_bounded_in_tokens_least_recently_used_first() -> None
     assert store.closest("c", (1, 2, 3, 4)) == (None, 0)  # never another scope's entry
 
 
+def test_a_kept_prefix_that_a_new_one_extends_goes() -> None:
+    """A dialog's next turn extends its last prompt: the store keeps the longer one only, in that scope."""
+    store = PrefixStore(max_tokens=100)
+    store.put("a", Prefix(tokens=(1, 2, 3)))
+    store.put("b", Prefix(tokens=(1, 2, 3)))
+    store.put("a", Prefix(tokens=(1, 2, 4)))
+    store.put("a", Prefix(tokens=(1, 2, 3, 4, 5)))
+    assert store.closest("a", (1, 2, 3))[0] == Prefix(tokens=(1, 2, 3, 4, 5))
+    assert store.closest("a", (1, 2, 4)) == (Prefix(tokens=(1, 2, 4)), 3)  # not extended: kept
+    assert store.closest("b", (1, 2, 3)) == (Prefix(tokens=(1, 2, 3)), 3)  # another scope's: kept
+    store.put("a", Prefix(tokens=(1, 2)))  # shorter than a kept one: kept too (an exact hit costs nothing)
+    assert store.closest("a", (1, 2)) == (Prefix(tokens=(1, 2)), 2)
+
+
 def test_decoding_and_scoring_warn_of_nothing(tiny: CodeModel) -> None:
     """Every `precond infer` printed transformers' FutureWarning about `past_key_values`: the cache is passed
     the way the installed transformers wants it (prefill, decode and the scoring tree)."""

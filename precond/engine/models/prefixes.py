@@ -43,6 +43,10 @@ class PrefixStore:
         """This scope's entry sharing the longest token prefix with `tokens`, and that length."""
         best, length = None, 0
         with self._lock:
+            exact = self._entries.get((scope, tokens))
+            if exact is not None:
+                self._entries.move_to_end((scope, tokens))
+                return exact, len(tokens)
             for (owner, kept), entry in self._entries.items():
                 if owner != scope:
                     continue
@@ -54,8 +58,15 @@ class PrefixStore:
         return best, length
 
     def put(self, scope: str, entry: Prefix) -> None:
-        """Keep `entry`, evicting least recently used entries (of any scope) beyond the token bound."""
+        """Keep `entry`, evicting least recently used entries (of any scope) beyond the token bound.
+
+        An entry of the scope that `entry` extends goes at once: every lookup it answered, `entry` answers at
+        least as far (a dialog's next turn extends the last one's prompt, and kept both would hold the shared
+        part twice), and a repeat of the shorter prompt recomputes at most its last partial chunk."""
         with self._lock:
+            for owner, kept in list(self._entries):
+                if owner == scope and len(kept) < len(entry.tokens) and entry.tokens[: len(kept)] == kept:
+                    del self._entries[(owner, kept)]
             self._entries[(scope, entry.tokens)] = entry
             self._entries.move_to_end((scope, entry.tokens))
             while len(self._entries) > 1 and sum(len(t) for _, t in self._entries) > self.max_tokens:
