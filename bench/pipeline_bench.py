@@ -9,7 +9,7 @@ backend (a second backend would be worth its upkeep only if it won by a wide mar
 
 Each configuration runs in a fresh process, one after another; take timings with nothing else running.
 
-    python bench/pipeline_bench.py [--domain Restaurants_1] [--turns 20] [--threads 2] [--json f]
+    python bench/pipeline_bench.py [--domain Restaurants_1] [--turns 20] [--threads 2] [--runtimes backend] [--json f]
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ from precond_client.schemas.api import (  # noqa: E402
 )
 
 logger = logging.getLogger("pipeline_bench")
+
+RUNTIMES = ("backend", "llama_cpp")
 
 NEXT_MODES: tuple[NextActionMode, ...] = ("constrained", "sample")
 """Next-action modes timed: the default (the model scores every allowed call) and the paper's Algorithm 1 (a greedy
@@ -167,6 +169,8 @@ def main() -> None:
     parser.add_argument("--quants", nargs="+", default=["auto"], help="MODEL_QUANT values, each beside each dtype "
                         "(`none int8` or `none,int8`)")
     parser.add_argument("--rounds", type=int, default=1, help="every configuration this many times, interleaved")
+    parser.add_argument("--runtimes", nargs="+", choices=RUNTIMES, default=list(RUNTIMES),
+                        help="which runtimes get a row (llama_cpp only where llama_cpp is importable)")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -179,8 +183,11 @@ def main() -> None:
 
     threads = str(args.threads)
     rows = [run_child(["backend", dtype, quant, threads, args.domain, str(args.turns)], __file__, threads)
-            for _ in range(args.rounds) for dtype in args.dtypes for quant in split_values(args.quants)]
-    if importlib.util.find_spec("llama_cpp") is not None:
+            for _ in range(args.rounds) for dtype in args.dtypes for quant in split_values(args.quants)
+            if "backend" in args.runtimes]
+    if "llama_cpp" not in args.runtimes:
+        logger.info("llama.cpp: skipped (--runtimes)")
+    elif importlib.util.find_spec("llama_cpp") is not None:
         rows.append(run_child(["llama_cpp", "-", "-", threads, args.domain, str(args.turns)], __file__, threads))
     else:
         logger.info("llama.cpp: skipped (llama_cpp is not importable)")
