@@ -7,7 +7,15 @@ import pytest
 import torch
 
 from precond.engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
-from precond.engine.models.backend import PREFILL_CHUNK, CodeModel, choose_dtype, cpu_dtype, cpu_flags
+from precond.engine.models.backend import (
+    PREFILL_CHUNK,
+    WIDE_ROWS,
+    CodeModel,
+    choose_dtype,
+    cpu_dtype,
+    cpu_flags,
+    sample_next,
+)
 from precond.engine.models.prefixes import Prefix, PrefixStore
 from precond.engine.models.stopping import StopRule, statement_end, stop_index
 from precond.engine.scope import scoped
@@ -396,3 +404,14 @@ def test_an_attention_that_reads_no_shared_prefix_gets_a_copy_per_row(tiny_model
     assert model.complete(PREFIX, SUFFIXES, 1, Sampling(temperature=0, max_new_tokens=12), "line") == expected
     assert model.score(PREFIX, CONTINUATIONS) == pytest.approx(
         [reference_score(model, PREFIX, text) for text in CONTINUATIONS], abs=1e-3)
+
+
+@pytest.mark.parametrize("top_p", [1.0, 0.9])
+def test_a_rows_sampled_token_does_not_depend_on_the_rows_widened_with_it(top_p: float) -> None:
+    generator = torch.Generator().manual_seed(0)
+    logits = (torch.randn(3 * WIDE_ROWS + 1, 512, generator=generator) * 3).to(torch.bfloat16)
+    uniforms = torch.rand(logits.shape[0], generator=generator)
+    sampling = Sampling(temperature=0.8, top_p=top_p)
+    together = sample_next(logits, sampling, uniforms)
+    alone = [int(sample_next(logits[i : i + 1], sampling, uniforms[i : i + 1])) for i in range(logits.shape[0])]
+    assert together.tolist() == alone

@@ -88,3 +88,30 @@ def test_an_int8_model_keeps_the_full_models_choices(tiny_model_dir: Path, monke
     assert small_scores == pytest.approx(full_scores, rel=0.05)
     texts = small.complete(PREFIX, SUFFIXES, 2, Sampling(max_new_tokens=8), "line")
     assert [len(t) for t in texts] == [2, 2]
+
+
+def _resident_kb(path: Path) -> int:
+    """Resident kB of this process's mappings of `path` (/proc/self/smaps)."""
+    total, inside = 0, False
+    for line in Path("/proc/self/smaps").read_text().splitlines():
+        if "-" in line.split(" ", 1)[0]:
+            inside = line.endswith(str(path))
+        elif inside and line.startswith("Rss:"):
+            total += int(line.split()[1])
+    return total
+
+
+@pytest.mark.skipif(not Path("/proc/self/smaps").is_file(), reason="reads Linux's /proc/self/smaps")
+def test_a_mapped_embedding_looks_up_the_same_rows_and_leaves_none_resident(tmp_path: Path) -> None:
+    rows = torch.randint(-127, 128, (2048, 512), dtype=torch.int8)
+    path = tmp_path / "rows.bin"
+    path.write_bytes(rows.numpy().tobytes())
+    mapped = torch.from_file(str(path), shared=False, size=rows.numel(), dtype=torch.int8).view(rows.shape)
+    scales = torch.rand(rows.shape[0])
+    ids = torch.tensor([[3, 700, 2047, 3], [0, 1500, 9, 1024]])
+    expected = Int8Embedding(rows, scales, torch.bfloat16)(ids)
+    assert int(mapped.sum()) == int(rows.sum()) and _resident_kb(path) >= rows.numel() // 1024
+    embedding = Int8Embedding(mapped, scales, torch.bfloat16, mapped=True)
+    assert torch.equal(embedding(ids), expected)
+    assert _resident_kb(path) == 0
+    assert torch.equal(embedding(ids), expected)  # mapped again from the file

@@ -176,13 +176,13 @@ def build(source: Path, target: Path, dtype: torch.dtype) -> None:
     (target / MANIFEST).write_text(json.dumps(manifest))
 
 
-def _read(target: Path, source_name: str) -> dict[str, torch.Tensor] | None:
-    """The file's tensors, read into the process's own memory while hashed; None where it is not exactly what
-    its manifest says (another source or format, a changed or truncated file).
+def _read(target: Path, source_name: str) -> tuple[dict[str, torch.Tensor], frozenset[str]] | None:
+    """The file's tensors, read into the process's own memory while hashed, and the names of those mapped instead;
+    None where it is not exactly what its manifest says (another source or format, a changed or truncated file).
 
     An embedding not shared with the vocabulary projection is the exception: hashed like the rest, then mapped
     from the file, so only the rows a prompt looks up become resident (136 MB of the embedded model's 633 MB
-    that a decode step never reads whole)."""
+    that a decode step never reads whole), and only while it looks them up (`quant.Int8Embedding`)."""
     path = target / WEIGHTS
     try:
         manifest = json.loads((target / MANIFEST).read_text())
@@ -228,7 +228,7 @@ def _read(target: Path, source_name: str) -> dict[str, torch.Tensor] | None:
         whole = torch.from_file(str(path), shared=False, size=path.stat().st_size, dtype=torch.uint8)
         for name, (offset, length, shape) in mapped.items():
             tensors[name] = whole[offset : offset + length].view(torch.int8).view(shape)
-    return tensors
+    return tensors, frozenset(mapped)
 
 
 def _hash_span(stream: Any, length: int, digest: Any) -> bool:
@@ -242,8 +242,9 @@ def _hash_span(stream: Any, length: int, digest: Any) -> bool:
     return True
 
 
-def _assemble(directory: Path, tensors: dict[str, torch.Tensor], dtype: torch.dtype) -> Any:
-    """The model of `directory`'s config, its modules made on `meta` and given the int8 file's tensors."""
+def _assemble(directory: Path, tensors: dict[str, torch.Tensor], mapped: frozenset[str], dtype: torch.dtype) -> Any:
+    """The model of `directory`'s config, its modules made on `meta` and given the int8 file's tensors (`mapped`:
+    the names of those that map the file)."""
     from transformers import AutoConfig, AutoModelForCausalLM, GenerationConfig
 
     config = AutoConfig.from_pretrained(directory)
@@ -257,7 +258,8 @@ def _assemble(directory: Path, tensors: dict[str, torch.Tensor], dtype: torch.dt
         if isinstance(module, nn.Linear):
             layers[name] = Int8Linear(qweight, scales, None, transposed=name == plan.transposed)
         else:
-            layers[name] = Int8Embedding(qweight, scales, dtype, getattr(module, "padding_idx", None))
+            layers[name] = Int8Embedding(qweight, scales, dtype, getattr(module, "padding_idx", None),
+                                         mapped=f"{name}.qweight" in mapped)
     if plan.tied:
         shared = layers[plan.embedding]
         assert isinstance(shared, Int8Embedding)
@@ -289,15 +291,15 @@ def load(source: Path, cache_dir: Path, key: str, dtype: torch.dtype) -> tuple[A
     """The int8 model of `source` (full-width weights of cache key `key`) and where its int8 copy is; the copy
     is built first where it is missing or does not verify."""
     target = cache_dir / f"{key}-int8v{FORMAT}"
-    tensors = _read(target, source.name) if target.is_dir() else None
-    if tensors is None:
+    read = _read(target, source.name) if target.is_dir() else None
+    if read is None:
         if target.exists():
             logger.warning("the int8 weights in %s do not match their manifest: building them again", target)
         _build_into(source, target, dtype)
-        tensors = _read(target, source.name)
-        if tensors is None:
+        read = _read(target, source.name)
+        if read is None:
             raise ModelStoreError(f"the int8 weights just written to {target} do not read back")
-    return _assemble(target, tensors, dtype), target
+    return _assemble(target, *read, dtype), target
 
 
 def _build_into(source: Path, target: Path, dtype: torch.dtype) -> None:
