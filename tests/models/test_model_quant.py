@@ -115,3 +115,14 @@ def test_a_mapped_embedding_looks_up_the_same_rows_and_leaves_none_resident(tmp_
     assert torch.equal(embedding(ids), expected)
     assert _resident_kb(path) == 0
     assert torch.equal(embedding(ids), expected)  # mapped again from the file
+
+
+def test_an_int8_layer_multiplies_exactly_and_rounds_once_per_scale() -> None:
+    generator = torch.Generator().manual_seed(0)
+    linear = nn.Linear(64, 300, bias=True)
+    layer = Int8Linear.of(linear, transposed=False)
+    x = torch.randn(5, 64, generator=generator)
+    row_scales = x.abs().amax(dim=1, keepdim=True).clamp(min=1e-12) / 127.0
+    exact = torch.round(x / row_scales).long() @ layer.qweight.long().t()  # no int32 wrap-around or reordering
+    expected = exact.float() * row_scales * layer.scales + linear.bias.detach()
+    assert torch.equal(layer(x), expected)
