@@ -160,9 +160,10 @@ class Int8Embedding(nn.Module):
     vocabulary projection's (`Int8Linear.qweight`, same layout and scales): one copy for both.
 
     `mapped`: the rows are a read-only mapping of the int8 file (`int8cache`). Each lookup then unmaps the
-    pages it made resident (`unmap_pages`): the kernel maps 16 pages around every page a lookup touches, so a
-    domain's prompts kept 23 MB of the embedded model's 136 MB embedding in the process's resident memory
-    for good. The pages stay in the page cache, and the next lookup maps them again (a minor fault per row)."""
+    pages it made resident (`unmap_pages`): the kernel also maps the cached pages around each one a lookup
+    touches (fault-around), so a domain's prompts kept 23 MB of the embedded model's 136 MB embedding in the
+    process's resident memory for good. The pages stay in the page cache, and the next lookup maps them again
+    (a minor fault per row)."""
 
     def __init__(self, qweight: torch.Tensor, scales: torch.Tensor, dtype: torch.dtype,
                  padding_idx: int | None = None, mapped: bool = False) -> None:
