@@ -16,8 +16,10 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
-MODEL_QUEUES = ("precond:queue:model", "precond:queue:train")
-"""precond.jobs.queue.keys.MODEL_QUEUES, spelt out here (tests/deploy checks that they agree)."""
+SERVING_QUEUE = "precond:queue:model"
+"""precond.jobs.queue.keys.MODEL_QUEUE, spelt out here (tests/deploy checks that they agree): a worker reading it
+loads the model; one reading only the training queue never does (each training loads its own, in a process of
+its own), so it is ready without it."""
 
 
 def gateway() -> bool:
@@ -46,7 +48,7 @@ def not_ready(beat: dict[str, Any]) -> str | None:
     if beat.get("sandbox") == "unavailable":
         reason = beat.get("sandbox_error")
         return f"the sandbox cannot confine untrusted code here, so this worker takes no job: {reason}"
-    if set(MODEL_QUEUES) & set(beat.get("queues", [])) and not beat.get("model_loaded"):
+    if SERVING_QUEUE in beat.get("queues", []) and not beat.get("model_loaded"):
         return f"the model is not loaded ({beat.get('model_error') or 'still loading'})"
     return None
 

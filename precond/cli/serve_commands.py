@@ -15,7 +15,7 @@ from precond.worker.settings import get_worker_settings
 def serve(
     port: Annotated[int | None, typer.Option(help="Gateway port [PORT, default 8000].")] = None,
     host: Annotated[str, typer.Option(help="Gateway bind address.")] = "127.0.0.1",
-    workers: Annotated[int, typer.Option(min=1, help="Worker processes (each serves both queues).")] = 1,
+    workers: Annotated[int, typer.Option(min=1, help="Worker processes (each reads every queue).")] = 1,
     data_dir: Annotated[
         Path, typer.Option(help="Data dir of the private queue redis-server, if one is started.")
     ] = Path("var/redis"),
@@ -89,13 +89,36 @@ def worker(
     check_concurrency: Annotated[
         int | None, typer.Option(min=1, help="check-actions jobs at once [PRECOND_CHECK_CONCURRENCY].")
     ] = None,
+    queues: Annotated[
+        str | None, typer.Option(help="Comma list of the queues to read [PRECOND_WORKER_QUEUES, default all].",
+                                 show_default=False),
+    ] = None,
 ) -> None:
-    """Run one worker process: loads the model, heartbeats, runs model and check jobs from Redis."""
+    """Run one worker process: loads the model (when it reads the model queue), heartbeats, runs the jobs of its
+    queues from Redis."""
     from precond.worker.runner import run
+    from precond.worker.settings import queue_names
 
-    overrides = {"worker_concurrency": concurrency, "check_concurrency": check_concurrency}
+    overrides: dict[str, object] = {"worker_concurrency": concurrency, "check_concurrency": check_concurrency}
+    if queues is not None:
+        try:
+            overrides["worker_queues"] = ",".join(queue_names(queues))
+        except ValueError as exc:
+            typer.echo(f"error: --queues: {exc}", err=True)
+            raise typer.Exit(2) from None
     settings = get_worker_settings().model_copy(update={k: v for k, v in overrides.items() if v is not None})
     run(settings)
+
+
+def prepare_model() -> None:
+    """Convert the configured model (`MODEL_*`) into MODEL_CACHE_DIR, with its int8 copy where MODEL_QUANT picks
+    int8, and exit: a serving pod's init container runs it, so that the worker's memory limit holds the served
+    model, not the one-time conversion (a full-width copy)."""
+    from precond.engine.models.backend import serving_weights
+    from precond.engine.settings import ModelSettings
+
+    info = serving_weights(ModelSettings()).info
+    typer.echo(f"{info.name} ready: {info.dtype}, quant {info.quant} ({info.quant_reason or info.dtype_reason})")
 
 
 def sandbox_check() -> None:
@@ -110,4 +133,5 @@ def sandbox_check() -> None:
 def register(app: typer.Typer) -> None:
     app.command()(serve)
     app.command()(worker)
+    app.command("prepare-model")(prepare_model)
     app.command("sandbox-check")(sandbox_check)

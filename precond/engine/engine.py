@@ -172,6 +172,12 @@ class Engine:
     def model_loaded(self) -> bool:
         return self._model is not None
 
+    @property
+    def trains(self) -> bool:
+        """Whether a code model to train policies on is configured (a worker trains them in a process of its own,
+        precond/worker/training_process.py, with the same settings)."""
+        return self._weights is not None
+
     def model(self, cancelled: Callable[[], bool] = _never) -> CodeModel:
         """Load once, on first use; concurrent first uses wait for the same load, each stopping its wait when
         its job is cancelled (a job taken while the worker still loads its model is cancelled at once)."""

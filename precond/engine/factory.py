@@ -34,9 +34,12 @@ def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
         model = load_code_model(ModelSettings(), adapter)
         return model if wrap_model is None else wrap_model(model)
 
-    def weights() -> Weights:
-        from precond.engine.models.backend import load_weights
+    return Engine(sandbox, load, training_weights)
 
-        return load_weights(ModelSettings())
 
-    return Engine(sandbox, load, weights)
+def training_weights() -> Weights:
+    """A fresh, trainable full-width copy of the configured model (`MODEL_*` settings): what a policy training
+    loads, in the engine or in a worker's training process."""
+    from precond.engine.models.backend import load_weights
+
+    return load_weights(ModelSettings())

@@ -190,10 +190,9 @@ async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_
     loop = asyncio.get_running_loop()
     reporter = ProgressReporter(ctx["redis"], job_id, kind, loop, settings.result_ttl_s)
     stop = threading.Event()
-    allowance = settings.training_max_memory_mb * 1024 * 1024 if KINDS[kind].stores_adapter else 0
     future = loop.run_in_executor(
         None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,
-        job.tenant, partial(guard.running, job_id, allowance), warm,
+        job.tenant, partial(guard.running, job_id), warm,
     )
     try:
         return await asyncio.shield(future)

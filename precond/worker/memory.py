@@ -32,16 +32,6 @@ def resident_bytes() -> int:
         return int(statm.read().split()[1]) * _PAGE
 
 
-def give_back_freed() -> None:
-    """Return freed heap to the OS (glibc's `malloc_trim`; nothing elsewhere). A policy training frees about a
-    gigabyte that glibc would otherwise keep in its arenas, and the worker's resident size is what machines are
-    sized by (measured: 3,874 MB after a training, 2,914 MB after this, against 2,851 MB before it)."""
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        return
-
-
 def _thread_cpu_ticks(native_id: int) -> int:
     try:
         with open(f"/proc/self/task/{native_id}/stat", "rb") as stat:
@@ -58,7 +48,6 @@ class _Run:
     native_id: int
     resident_at_start: int
     cpu_ticks: int
-    allowance: int = 0
     stopped_at: int | None = None
 
 
@@ -77,13 +66,11 @@ class MemoryGuard:
         self._stop.set()
 
     @contextmanager
-    def running(self, job_id: str, allowance: int = 0) -> Iterator[None]:
-        """Around a job's engine work, in the thread that does it; a stop for memory becomes ResourceLimit.
-        `allowance`: bytes this job may grow the worker by beyond the bound (a policy training loads its own
-        trainable copy of the model), added to the bound while it runs."""
+    def running(self, job_id: str) -> Iterator[None]:
+        """Around a job's engine work, in the thread that does it; a stop for memory becomes ResourceLimit. (A
+        policy training grows a process of its own, bounded there: precond/worker/training_process.py.)"""
         native_id = threading.get_native_id()
-        run = _Run(job_id, threading.get_ident(), native_id, resident_bytes(), _thread_cpu_ticks(native_id),
-                   allowance)
+        run = _Run(job_id, threading.get_ident(), native_id, resident_bytes(), _thread_cpu_ticks(native_id))
         with self._lock:
             self._runs[run.ident] = run
         try:
@@ -124,8 +111,7 @@ class MemoryGuard:
             busiest = max(runs, key=lambda run: spent[run.ident] - run.cpu_ticks)
             for run in runs:
                 run.cpu_ticks = spent[run.ident]
-            bound = self.max_growth_bytes + sum(run.allowance for run in runs)
-            if resident - min(run.resident_at_start for run in runs) <= bound:
+            if resident - min(run.resident_at_start for run in runs) <= self.max_growth_bytes:
                 return
             busiest.stopped_at = resident
         log.error("job %s grew the worker to %d MiB: stopping it", busiest.job_id, resident // (1024 * 1024))

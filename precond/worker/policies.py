@@ -1,12 +1,13 @@
 """Trained policies in the worker: a training job's adapter stored as the tenant's, and the engine of the
 adapter a next action names.
 
-A training writes its adapter into a scratch directory of this process (mode 0700, one per job, removed when
-the job ends however it ends); the worker then stores the weights and what trained them in the queue Redis
-(`precond/jobs/policy_adapters.py`) under the job's tenant. A next action naming `adapter:<id>@<n>` is
-answered by an engine whose model is the served model with that adapter beside the projections it changes,
-unmerged (`engine.models.backend.with_adapter`): the adapter is read under the job's tenant, never under
-anything the payload says, so one tenant's job cannot reach another tenant's adapter even with its id.
+A training (in a child process, `training_process`) writes its adapter into a scratch directory of this process
+(mode 0700, one per job, removed when the job ends however it ends); the worker then stores the weights and what
+trained them in the queue Redis (`precond/jobs/policy_adapters.py`) under the job's tenant. A next action naming
+`adapter:<id>@<n>` is answered by an engine whose model is the served model with that adapter beside the
+projections it changes, unmerged (`engine.models.backend.with_adapter`): the adapter is read under the job's
+tenant, never under anything the payload says, so one tenant's job cannot reach another tenant's adapter even with
+its id.
 """
 
 from __future__ import annotations
@@ -29,8 +30,9 @@ from precond.engine.engine import Engine
 from precond.jobs import policy_adapters, tenant_store
 from precond.jobs.queue.payloads import TrainPolicyJob
 from precond.jobs.records import Outcome
-from precond.worker.memory import give_back_freed
-from precond_client.schemas.errors import Conflict, InvalidInput, NotFound
+from precond.worker import training_process
+from precond.worker.settings import get_worker_settings
+from precond_client.schemas.errors import Conflict, InvalidInput, ModelUnavailable, NotFound
 from precond_client.schemas.training import PolicyAdapter, TrainPolicyResult
 
 ProgressFn = Callable[[str, int, int], None]
@@ -53,14 +55,16 @@ def scratch_of(job: TrainPolicyJob) -> Path:
 
 
 def train(engine: Engine, job: TrainPolicyJob, progress: ProgressFn, cancelled: CancelledFn) -> TrainPolicyResult:
-    """What trained the adapter, which is left in `scratch_of(job)` for `store`."""
+    """What trained the adapter, which is left in `scratch_of(job)` for `store`. The training runs in a process
+    of its own (`training_process`), bounded by PRECOND_TRAINING_MAX_MEMORY_MB: the worker never holds the
+    trainable copy of the model."""
+    if not engine.trains:
+        raise ModelUnavailable("no code model is configured for this worker")
     scratch = scratch_of(job)
     shutil.rmtree(scratch, ignore_errors=True)  # a run of this job before a restart of this process
     scratch.mkdir(mode=0o700)
-    try:
-        return engine.train_policy(job.request, scratch / "adapter", progress, cancelled)
-    finally:
-        give_back_freed()
+    bound = get_worker_settings().training_max_memory_mb * 1024 * 1024
+    return training_process.train(job.request, scratch / "adapter", progress, cancelled, bound)
 
 
 def discard(body: dict[str, Any]) -> None:

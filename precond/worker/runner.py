@@ -265,12 +265,12 @@ class WorkerProcess:
         return Redis.from_url(dsn, socket_connect_timeout=2, socket_timeout=5)
 
 
-def run(settings: WorkerSettings, queues: list[str] | None = None) -> None:
+def run(settings: WorkerSettings) -> None:
     logs.configure()
     pack_with_hiredis()
     check_out_without_read()
     send_without_task()
-    uvloop.run(WorkerProcess(settings, queues or list(QUEUES)).run())
+    uvloop.run(WorkerProcess(settings, settings.queues).run())
 
 
 if __name__ == "__main__":

@@ -4,9 +4,21 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from precond.jobs.queue.keys import MODEL_QUEUE, QUEUES, TRAIN_QUEUE
 from precond.jobs.settings import QueueSettings
+
+
+def queue_names(value: str) -> list[str]:
+    """The queues a comma list names, each once, in the list's order; ValueError naming the first unknown one."""
+    names = list(dict.fromkeys(name.strip() for name in value.split(",") if name.strip()))
+    unknown = [name for name in names if name not in QUEUES]
+    if unknown:
+        raise ValueError(f"PRECOND_WORKER_QUEUES: no queue is named {unknown[0]!r}; the queues are {', '.join(QUEUES)}")
+    if not names:
+        raise ValueError(f"PRECOND_WORKER_QUEUES names no queue; the queues are {', '.join(QUEUES)}")
+    return names
 
 
 class WorkerSettings(QueueSettings):
@@ -31,13 +43,21 @@ class WorkerSettings(QueueSettings):
         "model's size (the first model job loads it).",
     )
     training_max_memory_mb: int = Field(
-        default=4096, ge=0,
-        description="What a policy training job may grow the worker's memory by beyond PRECOND_JOB_MAX_MEMORY_MB: it "
-        "loads its own trainable copy of the model (the embedded one: ~2 GB in float32) and backpropagates "
-        "through it (bench/train_policy_bench.py measured a peak of 3.9 GB for a whole training process).",
+        default=4096, ge=64,
+        description="Largest resident size of a policy training's process: a worker trains in a child process of "
+        "its own (it loads a trainable float32 copy of the model, ~2 GB for the embedded one, and "
+        "backpropagates through it), never in the worker itself; a child above this is killed and the job fails "
+        "(`resource_limit`, 422). The worker's own bound stays PRECOND_JOB_MAX_MEMORY_MB.",
     )
     job_max_tries: int = Field(
         default=3, ge=1, description="Runs of a job before it fails (worker deaths count)."
+    )
+    worker_queues: str = Field(
+        default=",".join(QUEUES),
+        description=f"The queues this worker reads, a comma list of {', '.join(f'`{q}`' for q in QUEUES)} "
+        f"(`precond worker --queues`). A worker without `{MODEL_QUEUE}` never loads the code model itself: one that "
+        f"reads only `{TRAIN_QUEUE}` trains policies, each in a process of its own "
+        "(PRECOND_TRAINING_MAX_MEMORY_MB), and the others stay small (docs/deploy.md splits them so).",
     )
     worker_concurrency: int = Field(
         default=1,
@@ -77,6 +97,16 @@ class WorkerSettings(QueueSettings):
     preload_model: bool = Field(
         default=True, description="Load the model when the worker starts (else lazily)."
     )
+
+    @field_validator("worker_queues")
+    @classmethod
+    def _known_queues(cls, value: str) -> str:
+        return ",".join(queue_names(value))
+
+    @property
+    def queues(self) -> list[str]:
+        """The queues this worker reads (`PRECOND_WORKER_QUEUES`)."""
+        return self.worker_queues.split(",")
 
     @model_validator(mode="after")
     def _ttl_outlives_a_beat(self) -> WorkerSettings:

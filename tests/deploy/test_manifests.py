@@ -24,7 +24,8 @@ from network_policy import Pod, can_connect
 from precond.cli.main import app as cli_app
 from precond.gateway.routes import health
 from precond.gateway.server import gateway_args
-from precond.jobs.queue.keys import MODEL_QUEUES, QUEUES
+from precond.jobs.queue.keys import MODEL_QUEUE, QUEUES, TRAIN_QUEUE
+from precond.worker.settings import WorkerSettings, queue_names
 
 KUBERNETES_VERSION = "1.32.0"
 """The oldest Kubernetes these manifests are checked against (autoscaling/v2, policy/v1 and
@@ -36,6 +37,8 @@ CRD_SCHEMAS = {
 }
 NAMESPACE = "precond"
 IMAGE_USER = 10001
+WORKERS = ("precond-worker", "precond-trainer")
+"""The serving workers (every queue but the training one) and the training workers."""
 
 
 def target_id(path: Path) -> str:
@@ -153,9 +156,12 @@ def test_the_gateway_runs_as_every_other_start_does(rendered: list[Resource]) ->
         "/health", "/ready"} <= routes
 
 
-def test_the_worker_runs_as_compose_does_and_its_probes_are_the_images(rendered: list[Resource]) -> None:
-    worker = container(rendered, "Deployment", "precond-worker")
-    assert worker["command"] == compose()["worker"]["command"] == ["precond", "worker"]
+@pytest.mark.parametrize(("deployment", "service"), [("precond-worker", "worker"), ("precond-trainer", "trainer")])
+def test_the_worker_runs_as_compose_does_and_its_probes_are_the_images(rendered: list[Resource], deployment: str,
+                                                                        service: str) -> None:
+    worker = container(rendered, "Deployment", deployment)
+    assert worker["command"] == compose()[service]["command"] == ["precond", "worker"]
+    assert env_of(worker)["PRECOND_WORKER_QUEUES"] == compose()[service]["environment"]["PRECOND_WORKER_QUEUES"]
     assert "worker" in {command.name or command.callback.__name__ for command in cli_app.registered_commands}
     assert re.search(r"^COPY docker docker$", (ROOT / "Dockerfile").read_text(), flags=re.MULTILINE)
     healthcheck = (ROOT / "docker" / "healthcheck.py").read_text()
@@ -169,14 +175,14 @@ def test_the_worker_runs_as_compose_does_and_its_probes_are_the_images(rendered:
 def test_the_pods_run_as_the_images_user() -> None:
     uid = re.search(r"useradd .*--uid (\d+) precond", (ROOT / "Dockerfile").read_text())
     assert uid and int(uid.group(1)) == IMAGE_USER
-    for name in ("precond-gateway", "precond-worker"):
+    for name in ("precond-gateway", *WORKERS):
         assert pod_spec(base(), "Deployment", name)["securityContext"]["runAsUser"] == IMAGE_USER
 
 
 def test_gateways_and_workers_read_one_environment(rendered: list[Resource]) -> None:
     """MODEL_* settings are part of every cache key: both sides read them from one ConfigMap, as compose
     gives both one environment block, and a container sets none of its own."""
-    for name in ("precond-gateway", "precond-worker"):
+    for name in ("precond-gateway", *WORKERS):
         spec = container(rendered, "Deployment", name)
         assert spec["envFrom"] == [{"configMapRef": {"name": "precond-config"}}]
         assert not [e for e in spec.get("env", []) if e["name"].upper().startswith("MODEL_")]
@@ -194,28 +200,77 @@ def test_gateways_and_workers_read_one_environment(rendered: list[Resource]) -> 
 # ---- scaling ----------------------------------------------------------------------------------------------
 
 
-def test_workers_scale_on_exactly_the_queues_the_code_uses(rendered: list[Resource]) -> None:
+def env_of(spec: dict[str, Any]) -> dict[str, str]:
+    return {e["name"]: e["value"] for e in spec.get("env", [])}
+
+
+def test_workers_scale_on_exactly_the_queues_they_read(rendered: list[Resource]) -> None:
+    """Serving and training workers split the queues the code uses, and each scales on the ones it reads."""
+    read = {name: queue_names(env_of(container(rendered, "Deployment", name))["PRECOND_WORKER_QUEUES"])
+            for name in WORKERS}
+    assert read["precond-trainer"] == [TRAIN_QUEUE] and sorted(read["precond-worker"] + [TRAIN_QUEUE]) == sorted(QUEUES)
+    for name in WORKERS:
+        scaled = named(rendered, "ScaledObject", name)
+        assert scaled["spec"]["scaleTargetRef"]["name"] == name
+        triggers = scaled["spec"]["triggers"]
+        assert {t["type"] for t in triggers} == {"redis"}
+        assert sorted(t["metadata"]["listName"] for t in triggers) == sorted(read[name])
+        assert "replicas" not in named(rendered, "Deployment", name)["spec"], "KEDA owns it"
     scaled = named(rendered, "ScaledObject", "precond-worker")
-    assert scaled["spec"]["scaleTargetRef"]["name"] == "precond-worker"
-    triggers = scaled["spec"]["triggers"]
-    assert {t["type"] for t in triggers} == {"redis"}
-    assert sorted(t["metadata"]["listName"] for t in triggers) == sorted(QUEUES)
+    assert scaled["spec"]["minReplicaCount"] >= 1, "the gateways' /ready needs a serving worker"
     namespace = scaled["metadata"]["namespace"]
-    for trigger in triggers:
+    for trigger in [t for name in WORKERS for t in named(rendered, "ScaledObject", name)["spec"]["triggers"]]:
         # KEDA's operator resolves the address from its own namespace: it must name the Service's
         assert trigger["metadata"]["address"] == f"precond-redis.{namespace}.svc:6379"
         assert int(trigger["metadata"]["listLength"]) >= 1
         auth = named(rendered, "TriggerAuthentication", trigger["authenticationRef"]["name"])
         assert auth["spec"]["secretTargetRef"] == [
             {"parameter": "password", "name": "precond-secrets", "key": "redis-password"}]
-    assert scaled["spec"]["minReplicaCount"] >= 1, "the gateways' /ready needs a worker"
-    assert "replicas" not in named(rendered, "Deployment", "precond-worker")["spec"], "KEDA owns it"
+
+
+MIB = 1024 * 1024
+SERVING_PEAK_BYTES = 1_020_000_000
+"""A serving worker's peak with the embedded model in int8 over an inference (docs/model-speed.md)."""
+
+
+def quantity(value: str) -> int:
+    """Bytes of a Kubernetes or compose memory quantity (`1280Mi`, `5Gi`, `5G`, `1280M`)."""
+    number, unit = re.fullmatch(r"(\d+)([KMG]i?)", value).groups()  # type: ignore[union-attr]
+    return int(number) * {"K": 10**3, "M": 10**6, "G": 10**9, "Ki": 2**10, "Mi": 2**20, "Gi": 2**30}[unit]
+
+
+def test_serving_workers_stay_small_and_training_workers_hold_a_training(rendered: list[Resource]) -> None:
+    """A serving worker never trains, so its limit is the model's serving peak and the growth its job bound lets
+    a job add (at most ~1.3 GB); a training worker's limit holds a training's process up to its own bound."""
+    serving = container(rendered, "Deployment", "precond-worker")
+    limit = quantity(serving["resources"]["limits"]["memory"])
+    job_bound = int(env_of(serving)["PRECOND_JOB_MAX_MEMORY_MB"]) * MIB
+    assert SERVING_PEAK_BYTES + job_bound <= limit
+    trainer = container(rendered, "Deployment", "precond-trainer")
+    training_bound = WorkerSettings.model_fields["training_max_memory_mb"].default * MIB
+    assert training_bound < quantity(trainer["resources"]["limits"]["memory"])
+    assert quantity(trainer["resources"]["requests"]["memory"]) >= 3_715_000_000  # a training's measured peak
+    base_limit = container(base(), "Deployment", "precond-worker")["resources"]["limits"]["memory"]
+    assert quantity(base_limit) <= 1_350_000_000
+
+
+def test_a_serving_pod_converts_the_model_before_its_worker_starts(rendered: list[Resource]) -> None:
+    """The one-time conversion holds a full-width copy: an init container does it under its own limit, into
+    the volume the worker reads, with the worker's environment."""
+    spec = pod_spec(rendered, "Deployment", "precond-worker")
+    [init] = spec["initContainers"]
+    assert init["command"] == ["precond", "prepare-model"]
+    assert "prepare-model" in {command.name for command in cli_app.registered_commands}
+    assert init["envFrom"] == spec["containers"][0]["envFrom"] and init["image"] == spec["containers"][0]["image"]
+    config = named(rendered, "ConfigMap", "precond-config")["data"]
+    assert {m["mountPath"] for m in init["volumeMounts"]} == {"/tmp", config["MODEL_CACHE_DIR"]}
+    assert quantity(init["resources"]["limits"]["memory"]) > 4_362 * MIB  # a first start's measured peak
 
 
 def test_the_worker_healthcheck_knows_which_queues_need_the_model() -> None:
     text = (ROOT / "docker" / "healthcheck.py").read_text()
-    spelt = re.search(r"^MODEL_QUEUES = (\(.*\))$", text, flags=re.MULTILINE)
-    assert spelt and tuple(eval(spelt.group(1))) == MODEL_QUEUES
+    spelt = re.search(r"^SERVING_QUEUE = (\".*\")$", text, flags=re.MULTILINE)
+    assert spelt and eval(spelt.group(1)) == MODEL_QUEUE
 
 
 def test_gateways_scale_on_cpu(rendered: list[Resource]) -> None:
@@ -230,7 +285,7 @@ def test_gateways_scale_on_cpu(rendered: list[Resource]) -> None:
 
 def test_gateways_and_workers_have_disruption_budgets(rendered: list[Resource]) -> None:
     budgets = [r for r in rendered if r["kind"] == "PodDisruptionBudget"]
-    for name in ("precond-gateway", "precond-worker"):
+    for name in ("precond-gateway", *WORKERS):
         labels = named(rendered, "Deployment", name)["spec"]["template"]["metadata"]["labels"]
         assert any(b["spec"]["selector"]["matchLabels"].items() <= labels.items() for b in budgets), name
 
@@ -253,15 +308,21 @@ def test_every_container_is_non_root_read_only_and_without_capabilities(rendered
                 limits, requests = one["resources"]["limits"], one["resources"]["requests"]
                 assert limits["memory"] and requests["memory"] and requests["cpu"]
                 assert one["livenessProbe"] and one["readinessProbe"]
+            for one in spec.get("initContainers", []):
+                context = one["securityContext"]
+                assert context["allowPrivilegeEscalation"] is False and context["readOnlyRootFilesystem"] is True
+                assert context["capabilities"] == {"drop": ["ALL"]} and context.get("privileged") is False
+                assert one["resources"]["limits"]["memory"] and one["resources"]["requests"]["memory"]
 
 
-def test_the_worker_never_runs_unconfined_and_writes_only_its_volumes(rendered: list[Resource]) -> None:
-    worker = container(rendered, "Deployment", "precond-worker")
+@pytest.mark.parametrize("name", WORKERS)
+def test_the_worker_never_runs_unconfined_and_writes_only_its_volumes(rendered: list[Resource], name: str) -> None:
+    worker = container(rendered, "Deployment", name)
     assert {"name": "SANDBOX_ALLOW_UNCONFINED", "value": "false"} in worker["env"]
     writable = {m["mountPath"] for m in worker["volumeMounts"] if not m.get("readOnly")}
     config = named(rendered, "ConfigMap", "precond-config")["data"]
     assert writable == {"/tmp", config["MODEL_CACHE_DIR"]}
-    volumes = {v["name"]: v for v in pod_spec(rendered, "Deployment", "precond-worker")["volumes"]}
+    volumes = {v["name"]: v for v in pod_spec(rendered, "Deployment", name)["volumes"]}
     for mount in worker["volumeMounts"]:
         if not mount.get("readOnly"):
             assert volumes[mount["name"]]["emptyDir"]["sizeLimit"], mount
@@ -276,8 +337,8 @@ def mounted_secret_keys(spec: dict[str, Any]) -> set[str]:
 def test_each_pod_mounts_only_the_secrets_it_reads(rendered: list[Resource]) -> None:
     assert mounted_secret_keys(pod_spec(rendered, "Deployment", "precond-gateway")) == {
         "redis-password", "precond-secret", "api-keys.jsonl"}
-    assert mounted_secret_keys(pod_spec(rendered, "Deployment", "precond-worker")) == {
-        "redis-password", "precond-secret"}
+    for name in WORKERS:
+        assert mounted_secret_keys(pod_spec(rendered, "Deployment", name)) == {"redis-password", "precond-secret"}
     for kind, name in (("StatefulSet", "precond-redis"), ("Deployment", "precond-redis-cache")):
         assert mounted_secret_keys(pod_spec(rendered, kind, name)) == {"redis-password"}
 
@@ -313,12 +374,12 @@ def pods(rendered: list[Resource]) -> dict[str, Pod]:
 def test_only_gateways_and_workers_reach_redis_and_nothing_reaches_a_worker(rendered: list[Resource]) -> None:
     policies = [r for r in rendered if r["kind"] == "NetworkPolicy"]
     everyone = pods(rendered)
-    assert {"gateway", "worker", "queue-redis", "cache-redis"} <= set(everyone)
+    assert {"gateway", "worker", "trainer", "queue-redis", "cache-redis"} <= set(everyone)
     allowed = {(source, destination, port) for source in everyone for destination in everyone
                for port in (6379, 8000, 9999) if source != destination
-               and destination in ("gateway", "worker", "queue-redis", "cache-redis")
+               and destination in ("gateway", "worker", "trainer", "queue-redis", "cache-redis")
                and can_connect(policies, everyone[source], everyone[destination], port)}
-    servers = {(s, d, 6379) for s in ("gateway", "worker") for d in ("queue-redis", "cache-redis")}
+    servers = {(s, d, 6379) for s in ("gateway", "worker", "trainer") for d in ("queue-redis", "cache-redis")}
     # pods of other namespaces call the gateways; this namespace's other pods (and the workers) are denied
     # every egress but what a policy names
     callers = {("other namespace", "gateway", 8000), ("keda", "gateway", 8000)}

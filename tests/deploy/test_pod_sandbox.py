@@ -147,6 +147,7 @@ def password_redis(tmp_path: Path) -> Iterator[RedisServer]:
     ({"sandbox": "confined", "model_loaded": False}, True, False, "the model is not loaded (still loading)"),
     ({"sandbox": "confined", "model_loaded": True}, True, True, ""),
     ({"sandbox": "confined", "model_loaded": False, "queues": ["precond:queue:check"]}, True, True, ""),
+    ({"sandbox": "confined", "model_loaded": False, "queues": ["precond:queue:train"]}, True, True, ""),
 ])
 def test_the_worker_probes_read_its_heartbeat(password_redis: RedisServer, beat: dict[str, Any] | None,
                                                alive: bool, ready: bool, says: str) -> None:

@@ -15,6 +15,8 @@ import yaml
 
 from precond.cli import export
 from precond.gateway.server import GATEWAY_ARGS
+from precond.jobs.queue.keys import QUEUES, TRAIN_QUEUE
+from precond.worker.settings import WorkerSettings, queue_names
 from precond_client.schemas.api import CheckRequest, InferRequest, NextActionRequest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -83,22 +85,47 @@ def _command(service: dict[str, Any]) -> str:
 def test_compose_invariants() -> None:
     services = _compose()["services"]
     assert "--appendonly yes" in _command(services["redis"])
+    one_shots = ("keys", "model")  # the secrets, the model's conversion: their dependents wait for them to finish
     for name, service in services.items():
-        if name == "keys":  # the one-shot that writes the secrets: its dependents wait for it to finish
+        if name in one_shots:
             assert service["restart"] == "no"
             continue
         assert "healthcheck" in service, name
         for dependency_name, dependency in service.get("depends_on", {}).items():
-            expected = "service_completed_successfully" if dependency_name == "keys" else "service_healthy"
+            expected = "service_completed_successfully" if dependency_name in one_shots else "service_healthy"
             assert dependency["condition"] == expected, name
-    for worker in ("worker", "worker-gpu"):
+    for worker in ("worker", "trainer", "worker-gpu"):
+        assert services[worker]["depends_on"]["model"] == {"condition": "service_completed_successfully"}
+    assert services["model"]["command"] == ["precond", "prepare-model"]
+    assert services["model"]["environment"] == services["gateway"]["environment"]
+    for worker in ("worker", "trainer", "worker-gpu"):
         assert "model-cache:/models" in services[worker]["volumes"]
+        env, shared = services[worker]["environment"], services["gateway"]["environment"]
+        assert shared.items() <= env.items(), worker  # MODEL_* are cache keys: one environment
+        assert all(name.startswith("PRECOND_") for name in set(env) - set(shared)), worker
     assert services["gateway"]["ports"] == ["8000:8000"]
     assert services["gateway"]["command"][1:1 + len(GATEWAY_ARGS)] == list(GATEWAY_ARGS)  # as every other start
     assert services["gateway"]["command"][-2:] == ["--workers", "${PRECOND_GATEWAY_PROCESSES:-1}"]
-    assert services["gateway"]["environment"] == services["worker"]["environment"]  # MODEL_* are cache keys
     devices = services["worker-gpu"]["deploy"]["resources"]["reservations"]["devices"]
     assert devices[0]["capabilities"] == ["gpu"] and services["worker-gpu"]["profiles"] == ["gpu"]
+
+
+def test_compose_splits_serving_and_training_workers() -> None:
+    """The serving worker reads every queue but the training one and stays small; the trainer reads only the
+    training queue, with room for a training's process; the GPU worker reads every queue."""
+    services = _compose()["services"]
+    serving = queue_names(services["worker"]["environment"]["PRECOND_WORKER_QUEUES"])
+    assert queue_names(services["trainer"]["environment"]["PRECOND_WORKER_QUEUES"]) == [TRAIN_QUEUE]
+    assert sorted([*serving, TRAIN_QUEUE]) == sorted(QUEUES)
+    assert "PRECOND_WORKER_QUEUES" not in services["worker-gpu"]["environment"]
+    limit = services["worker"]["deploy"]["resources"]["limits"]["memory"]
+    default = re.fullmatch(r"\$\{PRECOND_WORKER_MEMORY:-(\d+)M\}", limit)
+    assert default and int(default.group(1)) * 10**6 <= 1_300_000_000
+    job_bound = int(services["worker"]["environment"]["PRECOND_JOB_MAX_MEMORY_MB"])
+    assert 1_020_000_000 + job_bound * 2**20 <= int(default.group(1)) * 10**6  # the serving peak, and a job's growth
+    trainer = re.fullmatch(r"(\d+)G", services["trainer"]["deploy"]["resources"]["limits"]["memory"])
+    training_bound = WorkerSettings.model_fields["training_max_memory_mb"].default * 2**20
+    assert trainer and int(trainer.group(1)) * 10**9 > training_bound + 500_000_000  # and the worker beside it
 
 
 def test_dockerfile_installs_with_the_tested_script() -> None:

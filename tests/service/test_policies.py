@@ -157,7 +157,26 @@ def test_bad_requests_are_refused_naming_the_field(acme: httpx.Client) -> None:
     assert acme.get("/policies").json()["adapters"] == []
 
 
-def test_a_cancelled_training_stores_nothing(stack: Stack, acme: httpx.Client) -> None:
+def trainings(worker: int) -> set[int]:
+    """The worker's child processes that train (the others are its sandbox's servers)."""
+    found = set()
+    for entry in Path("/proc").iterdir():
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            command = (entry / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if parent == worker and b"precond.worker.training_process" in command:
+            found.add(int(entry.name))
+    return found
+
+
+def test_a_training_runs_in_a_child_of_the_worker_and_a_cancelled_one_stores_nothing(
+    stack: Stack, acme: httpx.Client
+) -> None:
+    """The worker never holds the trainable model: the training runs in a process of its own, which a
+    cancellation ends."""
+    [worker] = stack.worker_pids()
     started = acme.post("/policies", json=training(steps=300, demos=DEMOS), params={"wait": 0})
     assert started.status_code == 202, started.text
     job = started.json()["id"]
@@ -165,8 +184,11 @@ def test_a_cancelled_training_stores_nothing(stack: Stack, acme: httpx.Client) -
     while acme.get(f"/jobs/{job}").json()["progress"]["phase"] != "train":
         assert time.monotonic() < deadline, "the training never started"
         time.sleep(0.05)
+    children = trainings(worker)
+    assert len(children) == 1 and worker not in children
     assert acme.delete(f"/jobs/{job}").json()["status"] == "cancelled"
     time.sleep(1)
+    assert not trainings(worker) and not any(Path(f"/proc/{pid}").exists() for pid in children)
     assert acme.get("/policies").json() == {"adapters": [], "bytes": 0}
     assert not stack.redis.client().keys("precond:policy:*")
 

@@ -54,27 +54,3 @@ def test_a_memory_error_of_the_jobs_own_is_not_taken_for_the_guards() -> None:
     guard = MemoryGuard(150 * 1024 * 1024)
     with pytest.raises(MemoryError), guard.running("own"):
         raise MemoryError
-
-
-def test_a_training_may_grow_by_its_allowance_and_no_further() -> None:
-    """A policy training loads its own copy of the model: it runs with an allowance on top of the bound, and
-    is still stopped past both."""
-    guard = MemoryGuard(50 * 1024 * 1024)
-    guard.start()
-
-    def grow(mib: int, allowance: int) -> str | ResourceLimit:
-        try:
-            with guard.running("training", allowance * 1024 * 1024):
-                hoard = bytearray(mib * 1024 * 1024)
-                hoard[::4096] = b"x" * len(hoard[::4096])  # touch every page: resident, not just reserved
-                time.sleep(0.5)  # ten samples of the guard
-                del hoard
-            return "finished"
-        except ResourceLimit as exc:
-            return exc
-
-    try:
-        assert grow(150, allowance=300) == "finished"
-        assert isinstance(grow(600, allowance=300), ResourceLimit)
-    finally:
-        guard.stop()
