@@ -54,7 +54,7 @@ def train(request: TrainPolicyRequest, out: Path, progress: ProgressFn, cancelle
                              stdout=subprocess.PIPE, close_fds=True)
     try:
         assert child.stdin is not None and child.stdout is not None
-        with child.stdin:
+        with contextlib.suppress(BrokenPipeError), child.stdin:  # a child dead at once: its end says why
             child.stdin.write(json.dumps({"request": request.model_dump(mode="json"), "out": str(out)}).encode())
         for message in _messages(child, child.stdout, cancelled, max_resident_bytes):
             if "progress" in message:
@@ -148,13 +148,13 @@ def _die_with_parent(parent: int) -> None:
 def _child(parent: int) -> None:
     """The child's side: read the job, train through the engine's path of loading weights, answer on the
     original stdout (everything else printed goes to stderr, the worker's log)."""
+    _die_with_parent(parent)
+    answers = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)  # before the model code is imported: nothing but `send` writes to the worker's pipe
+
     from precond.engine.factory import training_weights
     from precond.engine.spec import parse_spec
     from precond.engine.training import train_policy
-
-    _die_with_parent(parent)
-    answers = os.fdopen(os.dup(1), "w", buffering=1)
-    os.dup2(2, 1)
 
     def send(**message: Any) -> None:
         answers.write(json.dumps(message) + "\n")

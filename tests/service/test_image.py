@@ -24,6 +24,7 @@ ENTRY_POINTS = (
     "precond.gateway.app",  # the gateway (uvicorn precond.gateway.app:create_app)
     "precond.cli.supervisor",  # `precond serve` imports it when it starts
     "precond.worker.runner",  # `precond worker`
+    "precond.worker.training_process",  # a worker's policy training (`python -m`)
     "precond.engine.factory",  # `precond infer|check` in-process
     "precond_client",  # `precond infer --server URL`
 )

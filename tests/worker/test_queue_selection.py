@@ -1,6 +1,7 @@
 """A worker reads the queues `PRECOND_WORKER_QUEUES` (or `precond worker --queues`) names, and no other: a training
 worker reads only the training queue, trains there (in its training's own process) and never loads the code
-model itself; a name that is no queue is refused naming the setting and the name."""
+model itself; a name that is no queue is refused naming the setting and the name. `precond prepare-model`, what a
+serving pod runs before its worker, converts the model and exits."""
 
 from __future__ import annotations
 
