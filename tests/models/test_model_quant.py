@@ -43,12 +43,26 @@ def test_auto_quantizes_only_where_the_cpu_has_int8_dot_products(
 
 def test_explicit_settings_are_followed_or_refused_naming_the_setting_and_the_flag() -> None:
     assert choose_quant("none", CPU, VNNI) == ("none", "MODEL_QUANT=none")
-    assert choose_quant("int8", CPU, frozenset({"avx2"})) == ("int8", "MODEL_QUANT=int8")
+    assert choose_quant("int8", CPU, VNNI) == ("int8", "MODEL_QUANT=int8")
     with pytest.raises(QuantUnavailable, match=r"MODEL_QUANT=int8 cannot run here: cpu without avx2"):
         choose_quant("int8", CPU, frozenset({"sse4_2"}))
     with pytest.raises(QuantUnavailable, match=r"MODEL_QUANT=int8 cannot run here: .* runs on cuda"):
         choose_quant("int8", torch.device("cuda"), VNNI)
     assert choose_quant("auto", torch.device("cuda"), VNNI)[0] == "none"
+
+
+def test_int8_asked_for_on_a_cpu_without_int8_dot_products_runs_and_says_it_is_slow(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Emulated int8 products are many times slower than float32 (bench/kernel_bench.py on an AVX2 EPYC): the
+    explicit setting is followed, for its memory, never silently: the reason every answer carries and a warning
+    name the missing flags."""
+    with caplog.at_level("WARNING", logger="precond.engine.models.quant"):
+        quant, reason = choose_quant("int8", CPU, frozenset({"avx2", "fma"}))
+    assert quant == "int8"
+    assert reason == ("MODEL_QUANT=int8 on a cpu without amx_int8/avx512_vnni/avx_vnni: int8 products are "
+                      "emulated, slower than full-width weights here")
+    assert [record.getMessage() for record in caplog.records] == [reason]
 
 
 def test_a_worker_asked_for_int8_on_a_cpu_without_it_fails_its_load(

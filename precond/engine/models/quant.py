@@ -56,13 +56,18 @@ def choose_quant(name: str, device: torch.device, flags: frozenset[str] | None) 
     if name == "none":
         return "none", "MODEL_QUANT=none"
     missing = _missing(device, flags)
+    native = [flag for flag in CPU_INT8_FLAGS if flags is not None and flag in flags]
     if name == "int8":
         if missing:
             raise QuantUnavailable(f"MODEL_QUANT=int8 cannot run here: {missing}; set MODEL_QUANT=none or auto")
-        return "int8", "MODEL_QUANT=int8"
+        if native:
+            return "int8", "MODEL_QUANT=int8"
+        reason = (f"MODEL_QUANT=int8 on a cpu without {'/'.join(CPU_INT8_FLAGS)}: int8 products are emulated, "
+                  "slower than full-width weights here")
+        logger.warning(reason)
+        return "int8", reason
     if missing:
         return "none", f"no int8 weights: {missing}"
-    native = [flag for flag in CPU_INT8_FLAGS if flags is not None and flag in flags]
     if not native:
         return "none", f"no int8 weights: cpu without {'/'.join(CPU_INT8_FLAGS)}"
     return "int8", f"int8 weights: cpu with {native[0]}"
