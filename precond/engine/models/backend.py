@@ -651,21 +651,27 @@ def serving_weights(settings: ModelSettings) -> Weights:
     int8 weights of a GGUF (the embedded model's too) come from their own cache (`engine.models.int8cache`),
     built from the full-width one once: the process never holds the full-width model (peak resident memory
     is the int8 model's). A Hugging Face directory is loaded full-width and quantized in place.
-    Raises QuantUnavailable, naming the setting and the missing CPU feature, where `int8` cannot run here."""
+    Raises QuantUnavailable, naming the setting and the missing CPU feature, where `int8` cannot run here, and
+    ModelTooLarge, before any weight is read, where this process's memory limit cannot hold the model
+    (`engine.models.memory_fit`)."""
     from transformers import AutoTokenizer
 
     from precond.engine.models import int8cache
+    from precond.engine.models.memory_fit import check_serving_memory
     from precond.engine.models.quant import choose_quant, quantize, release_heap
 
     torch.set_num_threads(settings.threads)
     device = resolve_device(settings.device)
-    quant, quant_reason = choose_quant(settings.quant, device, cpu_flags())
+    flags = cpu_flags()
+    quant, quant_reason = choose_quant(settings.quant, device, flags)
+    dtype, reason = choose_dtype(settings.dtype, device)
+    if device.type == "cpu":
+        check_serving_memory(settings, flags, (dtype, reason), (quant, quant_reason))
     if quant != "int8":
         if settings.quant == "auto":
             logger.info("%s: weights stay full-width", quant_reason)
         weights = load_weights(settings)
     else:
-        dtype, reason = choose_dtype(settings.dtype, device)
         with one_at_a_time():
             directory, name, sha256 = _weights_dir(settings, _dtype_name(dtype))
         if sha256 is None:

@@ -55,7 +55,7 @@ def choose_quant(name: str, device: torch.device, flags: frozenset[str] | None) 
         raise QuantUnavailable(f"MODEL_QUANT={name!r} is not one of {', '.join(QUANTS)}")
     if name == "none":
         return "none", "MODEL_QUANT=none"
-    missing = _missing(device, flags)
+    missing = int8_missing(device, flags)
     native = [flag for flag in CPU_INT8_FLAGS if flags is not None and flag in flags]
     if name == "int8":
         if missing:
@@ -73,7 +73,7 @@ def choose_quant(name: str, device: torch.device, flags: frozenset[str] | None) 
     return "int8", f"int8 weights: cpu with {native[0]}"
 
 
-def _missing(device: torch.device, flags: frozenset[str] | None) -> str:
+def int8_missing(device: torch.device, flags: frozenset[str] | None) -> str:
     """Why this machine cannot run the int8 kernels, or '' when it can."""
     if device.type != "cpu":
         return f"int8 weights are CPU kernels and the model runs on {device.type}"

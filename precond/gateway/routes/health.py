@@ -49,8 +49,10 @@ async def ready(services: ServicesDep) -> dict[str, object]:
         )
     loaded = sum(w.model_loaded for w in usable)
     if not loaded:
+        failed = [w.model_error for w in usable if w.model_error]
+        why = f": {failed[0]}" if failed else ""  # a refused load says why (a memory limit, a missing file)
         raise ServiceError(
-            503, f"no worker with a loaded model ({len(workers)} live)", headers={"Retry-After": "5"}
+            503, f"no worker with a loaded model ({len(workers)} live){why}", headers={"Retry-After": "5"}
         )
     unconfined = sum(w.sandbox == "unconfined" for w in usable)
     return {"status": "ready", "workers": len(workers), "model_loaded": loaded, "sandbox_unconfined": unconfined}
