@@ -1,6 +1,6 @@
 """A serving worker whose memory limit cannot hold its model refuses to load it, before reading a weight, and says
-why (its heartbeat's `model_error`, the gateways' /ready) instead of being killed by the kernel part-way and
-restarted in a loop; it stays up and runs what needs no model."""
+why (its heartbeat's `model_error`, the gateways' /ready) instead of running while the kernel evicts its weights
+or kills it; it stays up and runs what needs no model."""
 
 from __future__ import annotations
 
