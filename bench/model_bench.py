@@ -100,7 +100,7 @@ def prompt_text(tokens: int, count: Callable[[str], list[int]]) -> str:
 
 def cold(model: CodeModel) -> None:
     """Forget every kept prefix: each run pays its own prefill."""
-    model._prefixes = PrefixStore(model._prefixes.max_tokens)
+    model._prefixes = PrefixStore(model._prefixes.max_bytes)
 
 
 def backend_prefill(model: CodeModel, ids: list[int]) -> Prefix:

@@ -13,8 +13,9 @@ from __future__ import annotations
 import os
 from dataclasses import fields, replace
 from pathlib import Path
+from typing import Any
 
-from pydantic import AliasChoices, Field, field_validator
+from pydantic import AliasChoices, Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from precond.sandbox import Sandbox
@@ -22,6 +23,10 @@ from precond.sandbox.types import Limits
 
 EMBEDDED = "embedded"
 QUANT_CHOICES = ("auto", "none", "int8")
+PREFIX_CACHE_MB = 32
+"""The default bound on kept prompt prefixes: with the embedded model in its default settings a worker that fills
+it stays under 1 GB resident (docs/model-speed.md, bench/prefix_memory_bench.py)."""
+RETIRED_PREFIX_VARIABLE = "MODEL_PREFIX_CACHE_TOKENS"
 
 
 def default_cache_dir() -> Path:
@@ -67,12 +72,25 @@ class ModelSettings(BaseSettings):
         "`$XDG_CACHE_HOME/precond` (`~/.cache/precond`).",
     )
     max_batch: int = Field(default=32, ge=1, description="Most sequences decoded in one forward pass.")
-    prefix_cache_tokens: int = Field(
-        default=32_768, ge=0,
-        description="Prompt prefixes whose key/value caches are kept for reuse, in tokens over all tenants (each "
-        "tenant reuses only its own; about 12 KB per token for the embedded 0.5B model in bfloat16, twice that in "
-        "float32; least recently used first).",
+    prefix_cache_mb: int = Field(
+        default=PREFIX_CACHE_MB, ge=0,
+        description="MiB of key/value caches of prompt prefixes kept for reuse, over all tenants (each tenant reuses "
+        "only its own; least recently used first; one prompt larger than the bound is kept alone). A token of the "
+        "embedded 0.5B model holds 12 KB in bfloat16, 24 KB in float32, so the default keeps 1-2 next-action "
+        "prompts in bfloat16 and about one in float32. docs/model-speed.md has what a serving worker holds.",
     )
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_token_bound(cls, data: Any) -> Any:
+        """The bound was once set in tokens; a deployment still setting that would otherwise run with the
+        default bound unawares (unknown variables are ignored)."""
+        given = isinstance(data, dict) and any(key.lower() == "prefix_cache_tokens" for key in data)
+        if given or any(name.upper() == RETIRED_PREFIX_VARIABLE for name in os.environ):
+            raise ValueError(f"{RETIRED_PREFIX_VARIABLE} is no longer read: the bound on kept prompt prefixes is "
+                             "set in MiB by MODEL_PREFIX_CACHE_MB (a token costs 12 KB of the embedded model's "
+                             "keys and values in bfloat16, 24 KB in float32)")
+        return data
 
     @field_validator("quant")
     @classmethod

@@ -40,7 +40,7 @@ CancelledFn = Callable[[], bool]
 ADAPTED_ENGINES = 16
 """Adapted models a worker keeps warm: each shares every weight of the served model and holds only its adapter,
 unmerged (~2 MB for the embedded model at rank 8, `backend.with_adapter`), so 16 cost ~35 MB; their kept prompt
-prefixes count against the served model's one bound (`MODEL_PREFIX_CACHE_TOKENS`). A next action of another
+prefixes count against the served model's one bound (`MODEL_PREFIX_CACHE_MB`). A next action of another
 adapter builds its own (a read of the adapter) in the least recently used one's place."""
 
 

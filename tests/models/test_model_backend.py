@@ -5,6 +5,8 @@ from typing import Any
 
 import pytest
 import torch
+from pydantic import ValidationError
+from transformers import DynamicCache
 
 from precond.engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
 from precond.engine.models.backend import (
@@ -332,29 +334,77 @@ def test_scores_are_scoped_too(tiny: CodeModel) -> None:
     assert other.prefilled >= len(tiny.tokenizer(PREFIX)["input_ids"]) - 1
 
 
-def test_kept_prefixes_are_bounded_in_tokens_least_recently_used_first() -> None:
-    store = PrefixStore(max_tokens=10)
-    store.put("a", Prefix(tokens=(1, 2, 3, 4)))
-    store.put("b", Prefix(tokens=(1, 2, 3, 5)))
+def kept(tokens: tuple[int, ...], width: int = 4, dtype: torch.dtype = torch.bfloat16, layers: int = 2) -> Prefix:
+    """A prefix whose cache holds `layers` layers of keys and values of `width` numbers per token."""
+    shape = (1, 1, len(tokens), width)
+    cache = DynamicCache()
+    for index in range(layers):
+        cache.update(torch.zeros(shape, dtype=dtype), torch.zeros(shape, dtype=dtype), index)
+    return Prefix(tokens=tokens, cache=cache)
+
+
+def test_kept_prefixes_are_bounded_in_bytes_least_recently_used_first() -> None:
+    entry = kept((1, 2, 3, 4))  # 2 layers x keys and values x 4 tokens x 4 numbers x 2 bytes
+    assert PrefixStore.size(entry) == 128
+    store = PrefixStore(max_bytes=300)
+    store.put("a", entry)
+    store.put("b", kept((1, 2, 3, 5)))
+    assert store.held_bytes == 256
     assert store.closest("a", (1, 2, 3, 4, 9))[1] == 4  # a's own entry, now the most recent
-    store.put("c", Prefix(tokens=(7, 7, 7, 7)))  # 12 tokens > 10: b's entry, the least recent, goes
+    store.put("c", kept((7, 7, 7, 7)))  # 384 bytes > 300: b's entry, the least recent, goes
     assert store.scopes() == {"a", "c"}
+    assert store.held_bytes == 256
     assert store.closest("b", (1, 2, 3, 5)) == (None, 0)
     assert store.closest("c", (1, 2, 3, 4)) == (None, 0)  # never another scope's entry
 
 
+def test_a_float32_prefix_counts_twice_a_bfloat16_one_of_its_length() -> None:
+    """The bound is memory: the same tokens cost twice as much where the model runs in float32."""
+    store = PrefixStore(max_bytes=300)
+    store.put("a", kept((1, 2, 3, 4), dtype=torch.bfloat16))
+    store.put("b", kept((1, 2, 3, 4), dtype=torch.bfloat16))
+    assert store.scopes() == {"a", "b"}
+    store.put("c", kept((1, 2, 3, 4), dtype=torch.float32))  # 256 bytes: both bfloat16 entries go
+    assert store.scopes() == {"c"}
+    assert store.held_bytes == 256 == 2 * PrefixStore.size(kept((1, 2, 3, 4)))
+
+
+def test_a_prefix_larger_than_the_bound_is_kept_alone() -> None:
+    """A prompt longer than the bound is still reused by its dialog's next turn (the bound is exceeded by one
+    prompt at most), and it pushes every other entry out."""
+    store = PrefixStore(max_bytes=100)
+    store.put("a", kept((1, 2)))
+    store.put("b", kept((5, 6, 7, 8, 9)))
+    assert store.scopes() == {"b"}
+    assert store.closest("b", (5, 6, 7, 8, 9))[1] == 5
+    assert store.held_bytes == 160
+
+
 def test_a_kept_prefix_that_a_new_one_extends_goes() -> None:
     """A dialog's next turn extends its last prompt: the store keeps the longer one only, in that scope."""
-    store = PrefixStore(max_tokens=100)
-    store.put("a", Prefix(tokens=(1, 2, 3)))
-    store.put("b", Prefix(tokens=(1, 2, 3)))
-    store.put("a", Prefix(tokens=(1, 2, 4)))
-    store.put("a", Prefix(tokens=(1, 2, 3, 4, 5)))
-    assert store.closest("a", (1, 2, 3))[0] == Prefix(tokens=(1, 2, 3, 4, 5))
-    assert store.closest("a", (1, 2, 4)) == (Prefix(tokens=(1, 2, 4)), 3)  # not extended: kept
-    assert store.closest("b", (1, 2, 3)) == (Prefix(tokens=(1, 2, 3)), 3)  # another scope's: kept
-    store.put("a", Prefix(tokens=(1, 2)))  # shorter than a kept one: kept too (an exact hit costs nothing)
-    assert store.closest("a", (1, 2)) == (Prefix(tokens=(1, 2)), 2)
+    store = PrefixStore(max_bytes=10_000)
+    first, other, sibling, longer = kept((1, 2, 3)), kept((1, 2, 3)), kept((1, 2, 4)), kept((1, 2, 3, 4, 5))
+    store.put("a", first)
+    store.put("b", other)
+    store.put("a", sibling)
+    store.put("a", longer)
+    assert store.closest("a", (1, 2, 3))[0] is longer
+    assert store.closest("a", (1, 2, 4)) == (sibling, 3)  # not extended: kept
+    assert store.closest("b", (1, 2, 3)) == (other, 3)  # another scope's: kept
+    assert store.held_bytes == sum(PrefixStore.size(p) for p in (other, sibling, longer))
+    shorter = kept((1, 2))
+    store.put("a", shorter)  # shorter than a kept one: kept too (an exact hit costs nothing)
+    assert store.closest("a", (1, 2)) == (shorter, 2)
+
+
+def test_the_token_bound_of_older_versions_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A deployment still setting the bound in tokens would otherwise run with the default bound unawares."""
+    monkeypatch.setenv("MODEL_PREFIX_CACHE_TOKENS", "4096")
+    with pytest.raises(ValidationError, match=r"MODEL_PREFIX_CACHE_TOKENS.*MODEL_PREFIX_CACHE_MB"):
+        ModelSettings()
+    monkeypatch.delenv("MODEL_PREFIX_CACHE_TOKENS")
+    monkeypatch.setenv("MODEL_PREFIX_CACHE_MB", "8")
+    assert ModelSettings().prefix_cache_mb == 8
 
 
 def test_decoding_and_scoring_warn_of_nothing(tiny: CodeModel) -> None:

@@ -46,13 +46,15 @@ from precond.engine.models.store import (
 )
 from precond.engine.models.tree import TokenTree, groups
 from precond.engine.scope import current as current_scope
-from precond.engine.settings import EMBEDDED, ModelSettings
+from precond.engine.settings import EMBEDDED, PREFIX_CACHE_MB, ModelSettings
 from precond_client.schemas.api import ModelInfo
 from precond_client.schemas.errors import Cancelled
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["CodeModel", "GenerationCancelled", "Sampling", "StopRule", "load_code_model"]
+
+MIB = 1 << 20
 
 PREFILL_CHUNK = 128
 """The prefix is run in chunks at these fixed boundaries, so the cache a call reuses is bit-identical to the
@@ -216,7 +218,7 @@ class CodeModel:
     """A causal code model behind `complete`; one call at a time (the cache it keeps is not shareable)."""
 
     def __init__(self, model: Any, tokenizer: Any, info: ModelInfo, max_batch: int = 32,
-                 prefix_tokens: int = 32_768, known_calls: tuple[str, ...] = (),
+                 prefix_bytes: int = PREFIX_CACHE_MB * MIB, known_calls: tuple[str, ...] = (),
                  prefixes: PrefixStore | None = None) -> None:
         self.model = model
         self.known_calls = known_calls
@@ -224,10 +226,10 @@ class CodeModel:
         self.tokenizer = tokenizer
         self.info = info
         self.max_batch = max_batch
-        self.prefix_tokens = prefix_tokens
+        self.prefix_bytes = prefix_bytes
         self.device = next(model.parameters()).device
         self._stop_ids = self._end_token_ids()
-        self._prefixes = PrefixStore(prefix_tokens) if prefixes is None else prefixes
+        self._prefixes = PrefixStore(prefix_bytes) if prefixes is None else prefixes
         """Shared with the adapted copies of this model (`with_adapter`), whose entries are their own
         (`_scope`): one bound on the memory of all kept prefixes."""
         self._lock = threading.Lock()
@@ -753,7 +755,7 @@ def load_code_model(settings: ModelSettings, adapter: Path | None = None) -> Cod
     logger.info("loaded %s on %s (%s; %s)%s", info.name, info.device, info.dtype_reason, info.quant_reason,
                 f", policy adapter {info.adapter}" if info.adapter else "")
     return CodeModel(model, weights.tokenizer, info, max_batch=settings.max_batch,
-                     prefix_tokens=settings.prefix_cache_tokens, known_calls=calls)
+                     prefix_bytes=settings.prefix_cache_mb * MIB, known_calls=calls)
 
 
 class LoraLinear(torch.nn.Module):
@@ -777,7 +779,7 @@ def with_adapter(base: CodeModel, directory: Path) -> CodeModel:
     every weight of `base` is shared, full-width or int8, and stays exactly as it was. So a warm adapter costs its
     own tensors (rank x (in + out) per projection: ~2 MB for the embedded model at rank 8 in bfloat16) and a copy
     of the module tree, and building it is a read of the adapter (no merge). Its prompt prefixes live in `base`'s
-    store, keyed by tenant and adapter, within the one token bound."""
+    store, keyed by tenant and adapter, within the one byte bound."""
     from precond.engine.models.adapters import lora_weights
 
     dtype = next(base.model.parameters()).dtype
@@ -792,5 +794,5 @@ def with_adapter(base: CodeModel, directory: Path) -> CodeModel:
         setattr(owner, child, LoraLinear(getattr(owner, child), lora.a.to(dtype), lora.b.to(dtype)))
     model.eval()
     return CodeModel(model, base.tokenizer, base.info.model_copy(update={"adapter": name}),
-                     max_batch=base.max_batch, prefix_tokens=base.prefix_tokens, known_calls=tuple(trained.calls),
+                     max_batch=base.max_batch, prefix_bytes=base.prefix_bytes, known_calls=tuple(trained.calls),
                      prefixes=base._prefixes)

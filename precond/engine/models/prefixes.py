@@ -5,7 +5,11 @@ Keeping a prefix's cache is what makes the next call with the same spec and demo
 next turn re-runs only what is new). Shared across tenants it would be a side channel: a request that
 reuses another tenant's cached prefix answers measurably faster, which tells the caller that somebody sent
 that text recently (the prompt-caching attack). So entries are looked up only within the scope that made
-them; scopes share only the bound on memory, counted in tokens, least recently used first.
+them; scopes share only the bound on memory, least recently used first.
+
+The bound is counted in the bytes of the kept keys and values, not in tokens: what a token costs depends on the
+dtype the model runs in (12,288 bytes for the embedded 0.5B model in bfloat16, twice that in float32, which
+`MODEL_DTYPE=auto` picks on CPUs without bf16 dot products), and a worker is sized by memory.
 """
 
 from __future__ import annotations
@@ -33,11 +37,22 @@ def common_length(a: tuple[int, ...], b: tuple[int, ...]) -> int:
 
 
 class PrefixStore:
-    def __init__(self, max_tokens: int) -> None:
-        self.max_tokens = max_tokens
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
         self._entries: OrderedDict[tuple[str, tuple[int, ...]], Prefix] = OrderedDict()
+        self._sizes: dict[tuple[str, tuple[int, ...]], int] = {}
+        """Each entry's bytes, counted once when it is kept (a kept cache is only read, never grown)."""
+        self.held_bytes = 0
         self._lock = threading.Lock()
         """The base model and its adapted copies share a store, and may run in two job threads at once."""
+
+    @staticmethod
+    def size(entry: Prefix) -> int:
+        """The bytes of `entry`'s keys and values over all its layers, in whatever dtype they are held."""
+        if entry.cache is None:
+            return 0
+        return sum(int(layer.keys.nbytes) + int(layer.values.nbytes) for layer in entry.cache.layers
+                   if layer.keys is not None and layer.values is not None)
 
     def closest(self, scope: str, tokens: tuple[int, ...]) -> tuple[Prefix | None, int]:
         """This scope's entry sharing the longest token prefix with `tokens`, and that length."""
@@ -58,19 +73,30 @@ class PrefixStore:
         return best, length
 
     def put(self, scope: str, entry: Prefix) -> None:
-        """Keep `entry`, evicting least recently used entries (of any scope) beyond the token bound.
+        """Keep `entry`, evicting least recently used entries (of any scope) beyond the byte bound. An entry
+        larger than the whole bound is kept alone: its dialog's next turn still reuses it, so the store exceeds
+        the bound by one prompt at most.
 
         An entry of the scope that `entry` extends goes at once: every lookup it answered, `entry` answers at
         least as far (a dialog's next turn extends the last one's prompt, and kept both would hold the shared
         part twice), and a repeat of the shorter prompt recomputes at most its last partial chunk."""
+        size = self.size(entry)
         with self._lock:
             for owner, kept in list(self._entries):
                 if owner == scope and len(kept) < len(entry.tokens) and entry.tokens[: len(kept)] == kept:
-                    del self._entries[(owner, kept)]
-            self._entries[(scope, entry.tokens)] = entry
-            self._entries.move_to_end((scope, entry.tokens))
-            while len(self._entries) > 1 and sum(len(t) for _, t in self._entries) > self.max_tokens:
-                self._entries.popitem(last=False)
+                    self._drop((owner, kept))
+            key = (scope, entry.tokens)
+            if key in self._entries:
+                self._drop(key)
+            self._entries[key] = entry
+            self._sizes[key] = size
+            self.held_bytes += size
+            while len(self._entries) > 1 and self.held_bytes > self.max_bytes:
+                self._drop(next(iter(self._entries)))
+
+    def _drop(self, key: tuple[str, tuple[int, ...]]) -> None:
+        del self._entries[key]
+        self.held_bytes -= self._sizes.pop(key)
 
     def scopes(self) -> set[str]:
         with self._lock:
