@@ -126,6 +126,19 @@ def test_the_estimate_plus_the_margin_fits_or_is_refused() -> None:
         check_fits(need, MemoryLimit(need.total + MARGIN - 1, source), "float32", "", "int8", "", None)
 
 
+def test_the_kept_prefixes_bound_counts_in_the_estimate() -> None:
+    """A full store of kept prompt prefixes is resident too: a limit that holds the model alone but not the model
+    and `MODEL_PREFIX_CACHE_MB` is refused, and lowering that bound is offered."""
+    bare = estimate(memory_fit.EMBEDDED_WEIGHTS, torch.float32, "int8", quantized_from_file=True)
+    full = estimate(memory_fit.EMBEDDED_WEIGHTS, torch.float32, "int8", quantized_from_file=True, prefixes=256 * MIB)
+    assert full.total == bare.total + 256 * MIB
+    limit = MemoryLimit(bare.total + MARGIN + 64 * MIB, Path("memory.max"))
+    with pytest.raises(ModelTooLarge) as caught:
+        check_fits(full, limit, "float32", "", "int8", "", None)
+    assert "256 MiB of kept prompt prefixes (MODEL_PREFIX_CACHE_MB)" in str(caught.value)
+    assert "lower MODEL_PREFIX_CACHE_MB to at most 64" in str(caught.value)
+
+
 def test_the_serving_load_is_refused_before_any_weight_is_read(
     tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -131,19 +131,21 @@ class Estimate:
     weights: int
     bytes_per_weight: int
     overhead: int
+    prefixes: int = 0
+    """The bound on kept prompt prefixes (`MODEL_PREFIX_CACHE_MB`): a busy worker fills it, and it stays."""
 
     @property
     def total(self) -> int:
-        return self.weights * self.bytes_per_weight + self.overhead
+        return self.weights * self.bytes_per_weight + self.overhead + self.prefixes
 
 
-def estimate(weights: int, dtype: torch.dtype, quant: str, quantized_from_file: bool) -> Estimate:
-    """Resident bytes of the served model. int8 read from its own cache (`quantized_from_file`: a GGUF's, the
-    embedded model's) holds one byte a weight; a Hugging Face directory is quantized after a full-width load, so
-    its peak is the full-width model's."""
+def estimate(weights: int, dtype: torch.dtype, quant: str, quantized_from_file: bool, prefixes: int = 0) -> Estimate:
+    """Resident bytes of the served model with its kept prefixes full. int8 read from its own cache
+    (`quantized_from_file`: a GGUF's, the embedded model's) holds one byte a weight; a Hugging Face directory is
+    quantized after a full-width load, so its peak is the full-width model's."""
     if quant == "int8" and quantized_from_file:
-        return Estimate(weights, 1, OVERHEAD["int8"])
-    return Estimate(weights, dtype.itemsize, OVERHEAD["none"])
+        return Estimate(weights, 1, OVERHEAD["int8"], prefixes)
+    return Estimate(weights, dtype.itemsize, OVERHEAD["none"], prefixes)
 
 
 def check_fits(
@@ -168,11 +170,15 @@ def check_fits(
         ways.append("run on a CPU with avx512_vnni, avx_vnni or amx_int8 (MODEL_QUANT=auto then loads int8 weights)")
     if int8_instead is not None and int8_instead.total + MARGIN <= limit.bytes:
         ways.append(f"set MODEL_QUANT=int8 (~{_mib(int8_instead.total)}; slower where int8 products are emulated)")
+    room = limit.bytes - (need.total - need.prefixes + MARGIN)
+    if need.prefixes and room >= 0:
+        ways.append(f"lower MODEL_PREFIX_CACHE_MB to at most {room // MIB} (fewer prompts kept for reuse)")
     raise ModelTooLarge(
         "the model would not fit this process's memory limit, so it is not loaded (the kernel would evict and "
         f"re-read its weights at every step, or kill the process): {need.weights:,} weights in {dtype} "
         f"({dtype_reason}), quant {quant} ({quant_reason}) "
-        f"need ~{_mib(need.total)} resident ({need.bytes_per_weight} bytes a weight + {_mib(need.overhead)}) "
+        f"need ~{_mib(need.total)} resident ({need.bytes_per_weight} bytes a weight + {_mib(need.overhead)} + "
+        f"{_mib(need.prefixes)} of kept prompt prefixes (MODEL_PREFIX_CACHE_MB)) "
         f"plus {_mib(MARGIN)} of room, over the limit of {_mib(limit.bytes)} ({limit.source}); " + "; or ".join(ways)
     )
 
@@ -185,8 +191,10 @@ def check_serving_memory(
     weights, from_file = served_weights(settings.path)
     if not weights:
         return
-    need = estimate(weights, dtype[0], quant[0], from_file)
-    int8_instead = estimate(weights, dtype[0], "int8", from_file) if quant[0] != "int8" and _int8_runs(flags) else None
+    prefixes = settings.prefix_cache_mb * MIB
+    need = estimate(weights, dtype[0], quant[0], from_file, prefixes)
+    int8_instead = (estimate(weights, dtype[0], "int8", from_file, prefixes)
+                    if quant[0] != "int8" and _int8_runs(flags) else None)
     check_fits(need, memory_limit(), str(dtype[0]).removeprefix("torch."), dtype[1], quant[0], quant[1], int8_instead)
 
 
