@@ -281,6 +281,14 @@ def run_child(argv: list[str], script: str = __file__, threads: str | None = Non
     return result
 
 
+def report_rows(rows: list[dict[str, Any]], path: Path | None) -> None:
+    """Print the rows with the machine they ran on, and keep them at `path` when given."""
+    report = {"cpu": cpu_model(), "cores": os.cpu_count(), "rows": rows}
+    if path:
+        path.write_text(json.dumps(report, indent=2))
+    print(json.dumps(report, indent=2))
+
+
 def split_values(values: list[str]) -> list[str]:
     """`--quants none int8` and `--quants none,int8` alike."""
     return [value for given in values for value in given.split(",") if value]

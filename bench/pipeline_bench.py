@@ -18,7 +18,6 @@ import argparse
 import importlib.util
 import json
 import logging
-import os
 import resource
 import statistics
 import sys
@@ -34,7 +33,6 @@ sys.path.insert(0, str(ROOT))  # `bench.model_bench` when run as `python bench/p
 from precond.engine.engine import Engine  # noqa: E402
 from precond.engine.models.stopping import StopRule, stop_index  # noqa: E402
 from precond.engine.settings import ModelSettings, SandboxSettings  # noqa: E402
-from precond.evaluation.report import cpu_model  # noqa: E402
 from precond.evaluation.settings import data_path  # noqa: E402
 from precond_client.schemas.api import (  # noqa: E402
     InferRequest,
@@ -179,7 +177,7 @@ def main() -> None:
         print(json.dumps(run(runtime, dtype, quant, int(threads), name, int(turns))))
         return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    from bench.model_bench import run_child, split_values
+    from bench.model_bench import report_rows, run_child, split_values
 
     threads = str(args.threads)
     rows = [run_child(["backend", dtype, quant, threads, args.domain, str(args.turns)], __file__, threads)
@@ -191,10 +189,7 @@ def main() -> None:
         rows.append(run_child(["llama_cpp", "-", "-", threads, args.domain, str(args.turns)], __file__, threads))
     else:
         logger.info("llama.cpp: skipped (llama_cpp is not importable)")
-    report = {"cpu": cpu_model(), "cores": os.cpu_count(), "rows": rows}
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=2))
-    print(json.dumps(report, indent=2))
+    report_rows(rows, args.json)
 
 
 if __name__ == "__main__":

@@ -30,7 +30,6 @@ from bench.pipeline_bench import domain, histories  # noqa: E402
 from precond.engine.engine import Engine  # noqa: E402
 from precond.engine.scope import scoped  # noqa: E402
 from precond.engine.settings import ModelSettings, SandboxSettings  # noqa: E402
-from precond.evaluation.report import cpu_model  # noqa: E402
 from precond_client.schemas.api import NextActionRequest  # noqa: E402
 
 logger = logging.getLogger("prefix_memory_bench")
@@ -170,16 +169,13 @@ def main() -> None:
                              Path(progress) if progress else None)))
         return
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    from bench.model_bench import run_child
+    from bench.model_bench import report_rows, run_child
 
     threads = str(args.threads)
     rows = [run_child([str(bound), ",".join(args.domains), str(args.tenants), str(args.after), threads, args.quant,
                        str(args.progress.with_name(f"{bound}.{args.progress.name}")) if args.progress else ""],
                       __file__, threads) for bound in args.bounds_mb]
-    report = {"cpu": cpu_model(), "cores": os.cpu_count(), "rows": rows}
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=2))
-    print(json.dumps(report, indent=2))
+    report_rows(rows, args.json)
 
 
 if __name__ == "__main__":
