@@ -68,10 +68,13 @@ def test_model_info(embedded: CodeModel) -> None:
 
 
 def test_int8_and_full_width_weights_greedily_write_the_same_assertions(embedded: CodeModel) -> None:
-    """The accuracy check in small (docs/model-speed.md has the evaluation): the greedy rules of two actions."""
-    other = "none" if embedded.info.quant == "int8" else "int8"
+    """The accuracy check in small of the int8 weights `auto` serves (docs/model-speed.md has the evaluation): the
+    greedy rules of two actions, against full width in the same dtype. Where `auto` keeps full width (no int8 dot
+    products: emulated int8 is slower there, and only an explicit setting runs it) there is no default to check."""
+    if embedded.info.quant != "int8":
+        pytest.skip(f"int8 weights are not what this machine serves: {embedded.info.quant_reason}")
     try:
-        second = load_code_model(ModelSettings(device="cpu", threads=1, quant=other, cache_dir=embedded_cache_dir()))
+        second = load_code_model(ModelSettings(device="cpu", threads=1, quant="none", cache_dir=embedded_cache_dir()))
     except QuantUnavailable as exc:
         pytest.skip(str(exc))
     suffixes = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert"]
