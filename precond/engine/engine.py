@@ -84,7 +84,6 @@ from precond_client.schemas.errors import (
     ResourceLimit,
     SandboxFailure,
 )
-from precond_client.schemas.training import TrainPolicyRequest, TrainPolicyResult
 
 if TYPE_CHECKING:
     from precond.engine.models import CodeModel
@@ -193,16 +192,6 @@ class Engine:
             self._lock.release()
 
     # ---- trained policies (behaviour cloning) ------------------------------------------------------
-    def train_policy(self, request: TrainPolicyRequest, out: Path, progress: ProgressFn = _no_progress,
-                     cancelled: Callable[[], bool] = _never) -> TrainPolicyResult:
-        """Fine-tune a fresh copy of the base model on the request (precond/engine/training.py); the adapter is written
-        to `out`, whole or not at all."""
-        from precond.engine.training import train_policy
-
-        if self._weights is None:
-            raise ModelUnavailable("no code model is configured for this worker")
-        return train_policy(self._weights, parse_spec(request.spec), request, out, progress, cancelled)
-
     def with_policy(self, adapter: Path, policy: str | None) -> Engine:
         """An engine on the same sandbox whose model is this one's with the adapter at `adapter` beside the weights
         it changes, unmerged (`backend.with_adapter`); it answers next actions naming `policy` (None: naming none,
