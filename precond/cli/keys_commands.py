@@ -44,6 +44,9 @@ def create(
     file: KeysFile = None,
     expires_days: Annotated[int | None, typer.Option(min=1, help="Days until the key stops working.")] = None,
     if_none: Annotated[bool, typer.Option(help="Only if the file holds no usable key yet (first start).")] = False,
+    operator: Annotated[bool, typer.Option(
+        help="The key also reads why the service is not ready (/ready, /health): an operator's, not a tenant's."
+    )] = False,
 ) -> None:
     """Make a key and print it once; only its hash is stored."""
     if not tenant.strip() or len(tenant) > 100:
@@ -57,7 +60,7 @@ def create(
     key_id, key = new_key()
     now = datetime.now(UTC)
     expires = None if expires_days is None else (now + timedelta(days=expires_days)).isoformat()
-    records.append(KeyRecord(key_id, tenant, digest(key), now.isoformat(), expires))
+    records.append(KeyRecord(key_id, tenant, digest(key), now.isoformat(), expires, operator=operator))
     write_records(path, records)
     typer.echo(f"API key {key_id} for tenant {tenant!r} (shown once, keep it secret):\n\n    {key}\n")
     typer.echo(f"Use it as:  curl -H 'Authorization: Bearer {key}' http://HOST:8000/check-actions ...")
@@ -68,7 +71,8 @@ def list_keys(file: KeysFile = None) -> None:
     """The keys' ids, tenants and state (never the keys)."""
     for r in _records(_path(file)):
         state = "revoked" if r.revoked else f"expires {r.expires}" if r.expires else "active"
-        typer.echo(f"{r.id}\t{r.tenant}\tcreated {r.created}\t{state}")
+        role = "\toperator" if r.operator else ""
+        typer.echo(f"{r.id}\t{r.tenant}\tcreated {r.created}\t{state}{role}")
 
 
 @keys.command()

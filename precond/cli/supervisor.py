@@ -8,6 +8,7 @@ standard library is used (and the gateway's command line), so starting the tree 
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
 import secrets
@@ -24,6 +25,7 @@ from types import FrameType
 from urllib.parse import urlsplit
 
 from precond.gateway.server import gateway_args
+from precond.jobs.lifetime import die_with_parent
 from precond.worker.settings import WorkerSettings
 
 log = logging.getLogger("precond.serve")
@@ -43,7 +45,8 @@ class Child:
     def start(self, env: dict[str, str]) -> None:
         log.info("starting %s: %s", self.name, " ".join(self.argv))
         self.process = subprocess.Popen(  # its own process group: what it starts is stopped with it
-            self.argv, env=env, stdin=None if self.stdin is None else subprocess.PIPE, start_new_session=True
+            self.argv, env=env, stdin=None if self.stdin is None else subprocess.PIPE, start_new_session=True,
+            preexec_fn=functools.partial(die_with_parent, os.getpid()),  # and it ends with `precond serve`
         )
         if self.stdin is not None and self.process.stdin is not None:
             self.process.stdin.write(self.stdin)

@@ -75,9 +75,21 @@ class ModelSettings(BaseSettings):
     prefix_cache_mb: int = Field(
         default=PREFIX_CACHE_MB, ge=0,
         description="MiB of key/value caches of prompt prefixes kept for reuse, over all tenants (each tenant reuses "
-        "only its own; least recently used first; one prompt larger than the bound is kept alone). A token of the "
+        "only its own, and evicts only its own, least recently used first; one prompt larger than the bound is kept "
+        "alone where no other tenant holds any). A token of the "
         "embedded 0.5B model holds 12 KB in bfloat16, 24 KB in float32, so the default keeps 1-2 next-action "
         "prompts in bfloat16 and about one in float32. docs/model-speed.md has what a serving worker holds.",
+    )
+    prefix_cache_tenant_mb: int | None = Field(
+        default=None, ge=0,
+        description="MiB of kept prompt prefixes one tenant may hold (unset: MODEL_PREFIX_CACHE_MB). A tenant's "
+        "prompt evicts only that tenant's own entries; where the others leave no room it is not kept. With more "
+        "tenants than MODEL_PREFIX_CACHE_MB / this, a busy tenant can find the store full: size the two together.",
+    )
+    prefix_cache_idle_s: float = Field(
+        default=600.0, gt=0,
+        description="Seconds a kept prompt prefix stays unused before it goes, so the memory of a tenant that "
+        "stopped comes back by time, never by another tenant's request.",
     )
 
     @model_validator(mode="before")

@@ -31,6 +31,8 @@ class KeyRecord:
     created: str
     expires: str | None = None
     revoked: bool = False
+    operator: bool = False
+    """An operator's key also reads what the open routes tell nobody else: why the service is not ready."""
 
     def expired(self, now: datetime) -> bool:
         return self.expires is not None and datetime.fromisoformat(self.expires) <= now
@@ -100,6 +102,10 @@ class KeyStore:
 
     def tenant(self, key: str) -> str:
         """The key's tenant, or a 401 that says what is wrong with the key."""
+        return self.record(key).tenant
+
+    def record(self, key: str) -> KeyRecord:
+        """The key's record if it is usable, else a 401 that says what is wrong with the key."""
         try:
             self.refresh()
         except OSError:
@@ -111,7 +117,7 @@ class KeyStore:
             raise unauthorized(f"API key {record.id} was revoked")
         if record.expired(datetime.now(UTC)):
             raise unauthorized(f"API key {record.id} expired at {record.expires}")
-        return record.tenant
+        return record
 
 
 def unauthorized(message: str) -> ServiceError:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import multiprocessing
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -30,6 +31,7 @@ from precond.gateway.set_store import SetStore
 from precond.gateway.settings import GatewaySettings, get_gateway_settings
 from precond.gateway.worker_view import WorkerView
 from precond.jobs.cache import ResultCache
+from precond.jobs.lifetime import die_with_parent
 from precond.jobs.redis_checkout import check_out_without_read
 from precond.jobs.redis_packing import pack_with_hiredis
 from precond.jobs.redis_sending import send_without_task
@@ -55,6 +57,9 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         # starts (and answers 503) while Redis is down.
         secret = settings.secret_bytes()
         keys = key_store(settings)
+        spawner = multiprocessing.parent_process()
+        if spawner is not None and spawner.pid is not None:  # one of uvicorn's `--workers`: it ends with
+            die_with_parent(spawner.pid)  # uvicorn's supervisor, however that ends
         dsn = settings.redis_dsn
         redis = ArqRedis(ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
         cache_redis: Redis[bytes] = redis

@@ -23,6 +23,7 @@ from concurrent.futures.process import BrokenProcessPool
 from typing import Any, TypeVar
 
 from precond.convert.openai import call_lines, structured_history
+from precond.jobs.lifetime import die_with_parent
 from precond.programs import checks
 
 log = logging.getLogger("precond.gateway")
@@ -154,9 +155,11 @@ def labelled_run(spec: str, history: str | Sequence[Mapping[str, Any]], call: st
 CHECK_NICENESS = 10
 
 
-def _yield_to_the_gateway() -> None:
+def _start_check_process(gateway: int) -> None:
     """A check process runs below the gateway's priority: parsing one tenant's megabytes must not take the CPU
-    from the event loop that answers everyone else (and `/health`) on a machine with few cores."""
+    from the event loop that answers everyone else (and `/health`) on a machine with few cores. It ends with its
+    gateway, however the gateway ends (precond/jobs/lifetime.py)."""
+    die_with_parent(gateway)
     os.nice(CHECK_NICENESS)
 
 
@@ -169,7 +172,7 @@ class CheckPool:
     def _start(self) -> ProcessPoolExecutor:
         # spawn: a fresh interpreter that imports only this module, never a fork of the gateway's threads
         return ProcessPoolExecutor(self.processes, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_yield_to_the_gateway)
+                                   initializer=_start_check_process, initargs=(os.getpid(),))
 
     async def run(self, tag: str, chars: int, function: Callable[..., T], *args: Any) -> T:
         """`function(*args)` on the loop when the request is small (`chars`: its cost in characters of program

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
 from typing import Final
 
@@ -18,6 +19,8 @@ from redis.exceptions import RedisError
 from precond.jobs.queue.heartbeats import live_workers
 
 UNKNOWN: Final = "unknown"
+UNCONFINED: Final = "unconfined"
+log = logging.getLogger("precond.gateway")
 
 
 class WorkerView:
@@ -27,7 +30,8 @@ class WorkerView:
         self._reading: asyncio.Task[None] | None = None
 
     async def sandbox(self, wait_s: float) -> str:
-        """"confined", "UNCONFINED on ..." or "unknown" (no heartbeat read within `wait_s`)."""
+        """"confined", "unconfined" or "unknown" (no heartbeat read within `wait_s`): a code anybody may read;
+        which workers run unconfined goes to the log."""
         if time.monotonic() - self._at < self._max_age_s:
             return self._value
         if self._reading is None or self._reading.done():
@@ -43,8 +47,9 @@ class WorkerView:
             self._value = UNKNOWN
         else:
             unconfined = [w.id for w in workers if w.sandbox == "unconfined"]
-            self._value = (f"UNCONFINED on {', '.join(unconfined)} (SANDBOX_ALLOW_UNCONFINED: development only)"
-                           if unconfined else "confined")
+            if unconfined and self._value != UNCONFINED:
+                log.error("UNCONFINED on %s (SANDBOX_ALLOW_UNCONFINED: development only)", ", ".join(unconfined))
+            self._value = UNCONFINED if unconfined else "confined"
         self._at = time.monotonic()
 
     def close(self) -> None:

@@ -16,7 +16,6 @@ a worker that dies leaves no training running, and the queue hands the job to an
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import json
 import os
 import select
@@ -28,6 +27,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
+from precond.jobs.lifetime import die_with_parent
 from precond_client.schemas import errors
 from precond_client.schemas.errors import Cancelled, PrecondError, ResourceLimit
 from precond_client.schemas.training import TrainPolicyRequest, TrainPolicyResult
@@ -38,7 +38,6 @@ PERIOD_S = 0.05
 EXIT_WAIT_S = 10.0
 """How long a child whose output closed without an answer may take to exit before it is killed."""
 _PAGE = os.sysconf("SC_PAGE_SIZE")
-_PR_SET_PDEATHSIG = 1
 
 
 class TrainingCrashed(RuntimeError):
@@ -137,10 +136,7 @@ def _end(child: subprocess.Popen[bytes]) -> None:
 def _die_with_parent(parent: int) -> None:
     """The kernel kills this process when the thread that started it ends (a worker that dies); one whose parent
     is already gone exits now."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() != parent:
-        sys.exit(1)
+    die_with_parent(parent)
     with contextlib.suppress(OSError), open("/proc/self/oom_score_adj", "w") as adj:
         adj.write("1000")  # under memory pressure the kernel kills the training before its worker
 

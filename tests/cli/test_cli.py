@@ -100,6 +100,20 @@ def test_infer_takes_prior_rules_from_files_and_names_them(tmp_path: Path) -> No
     assert refused.returncode == 2 and "--prior-rules" in refused.stderr and "broken.json" in refused.stderr
 
 
+def test_an_operator_key_is_marked_in_the_file_and_the_list(tmp_path: Path) -> None:
+    from precond.gateway.api_keys import read_records
+
+    keys = tmp_path / "keys.jsonl"
+    for extra in ([], ["--operator"]):
+        made = subprocess.run([sys.executable, "-m", "precond.cli", "keys", "create", "--tenant", "ops", "--file",
+                               str(keys), *extra], capture_output=True, text=True, timeout=60, cwd=ROOT)
+        assert made.returncode == 0, made.stderr
+    assert [r.operator for r in read_records(keys)] == [False, True]
+    listed = subprocess.run([sys.executable, "-m", "precond.cli", "keys", "list", "--file", str(keys)],
+                            capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert [line.endswith("\toperator") for line in listed.stdout.splitlines()] == [False, True]
+
+
 def test_check_reads_standard_input() -> None:
     request = json.loads((EXAMPLES / "check-actions.json").read_text())
     request["calls"].append("system.GOODBYE()")  # no precondition given for GOODBYE: allowed
@@ -199,6 +213,53 @@ def test_serve_starts_its_own_redis_beside_an_open_one_and_prints_one_line_when_
         process.wait(60)
         if squatter is not None:
             squatter.stop()
+
+
+@pytest.mark.stack
+def test_what_serve_started_ends_with_it_even_when_it_is_killed(tmp_path: Path, tiny_model_dir: Path) -> None:
+    """SIGKILL leaves no process a chance to stop what it started: a gateway killed so leaves no check process,
+    and a `precond serve` killed so leaves no Redis, gateway, worker, check process or resource tracker."""
+    from precond.stack.local import free_port, make_stack, wait_until
+
+    stack = make_stack(tmp_path, tiny_model_dir)
+    stack.redis.stop()
+    env = {k: v for k, v in stack.env.items() if k not in ("REDIS_URL", "PRECOND_REDIS_PASSWORD_FILE")}
+    port = free_port()
+    process = subprocess.Popen([sys.executable, "-m", "precond.cli", "serve", "--port", str(port), "--data-dir",
+                                str(tmp_path / "redis")], env=env, cwd=ROOT, stdout=subprocess.PIPE,
+                               stderr=subprocess.DEVNULL, text=True)
+    guard = threading.Timer(240, process.kill)
+    guard.start()
+    try:
+        assert process.stdout is not None
+        assert next((out for out in process.stdout if out.startswith("precond: ready")), "")
+        body = json.loads((EXAMPLES / "check-actions.json").read_text())
+        body["history"] += "# " + "x" * 20_000 + "\n"  # large: read in the gateway's pool of processes
+        url = f"http://127.0.0.1:{port}/check-actions"
+        assert httpx.post(url, timeout=60, json=body).status_code == 200
+        tree = _descendants(process.pid)
+        gateway = next(pid for pid, what in tree.items() if "uvicorn" in what)
+        pool = _descendants(gateway)
+        assert any("spawn_main" in what for what in pool.values()), pool
+        os.kill(gateway, signal.SIGKILL)
+        wait_until(lambda: not any(_alive(pid) for pid in pool), 15, "the killed gateway's check processes to end")
+        wait_until(lambda: _answers(url, body), 60, "the restarted gateway")
+        tree = _descendants(process.pid)
+        assert any("redis-server" in what for what in tree.values()), tree
+        process.kill()
+        process.wait(10)
+        wait_until(lambda: not any(_alive(pid) for pid in tree), 15, "what serve started to end")
+    finally:
+        guard.cancel()
+        process.kill()
+        process.wait(10)
+
+
+def _answers(url: str, body: dict[str, object]) -> bool:
+    try:
+        return httpx.post(url, timeout=30, json=body).status_code == 200
+    except httpx.HTTPError:
+        return False
 
 
 def _descendants(root: int) -> dict[int, str]:

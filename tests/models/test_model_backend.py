@@ -343,41 +343,69 @@ def kept(tokens: tuple[int, ...], width: int = 4, dtype: torch.dtype = torch.bfl
     return Prefix(tokens=tokens, cache=cache)
 
 
-def test_kept_prefixes_are_bounded_in_bytes_least_recently_used_first() -> None:
+def test_kept_prefixes_are_bounded_in_bytes_and_a_tenant_evicts_only_its_own() -> None:
     entry = kept((1, 2, 3, 4))  # 2 layers x keys and values x 4 tokens x 4 numbers x 2 bytes
     assert PrefixStore.size(entry) == 128
     store = PrefixStore(max_bytes=300)
     store.put("a", entry)
     store.put("b", kept((1, 2, 3, 5)))
     assert store.held_bytes == 256
-    assert store.closest("a", (1, 2, 3, 4, 9))[1] == 4  # a's own entry, now the most recent
-    store.put("c", kept((7, 7, 7, 7)))  # 384 bytes > 300: b's entry, the least recent, goes
-    assert store.scopes() == {"a", "c"}
-    assert store.held_bytes == 256
-    assert store.closest("b", (1, 2, 3, 5)) == (None, 0)
+    assert store.closest("a", (1, 2, 3, 4, 9))[1] == 4  # a's own entry
+    store.put("c", kept((7, 7, 7, 7)))  # 384 bytes > 300: a and b keep theirs, c's is not kept
+    assert store.scopes() == {"a", "b"}
+    assert store.closest("c", (7, 7, 7, 7)) == (None, 0)
     assert store.closest("c", (1, 2, 3, 4)) == (None, 0)  # never another scope's entry
+    store.put("b", kept((8, 8, 8, 8)))  # b makes room from its own entries only
+    assert store.scopes() == {"a", "b"} and store.closest("b", (1, 2, 3, 5)) == (None, 0)
+    assert store.held_bytes == 256
+
+
+def test_a_tenant_is_held_to_its_own_bound_adapters_included() -> None:
+    store = PrefixStore(max_bytes=10_000, tenant_bytes=300)
+    store.put("a", kept((1, 1, 1, 1)))
+    store.put("a\0policy", kept((2, 2, 2, 2)))  # a trained policy's prompts count against its tenant
+    store.put("b", kept((3, 3, 3, 3)))
+    store.put("a", kept((4, 4, 4, 4)))  # 3 x 128 > 300 for a: a's least recent goes, b's stays
+    assert store.scopes() == {"a", "a\0policy", "b"}
+    assert store.closest("a", (1, 1, 1, 1)) == (None, 0)
+    assert store.held_bytes == 384
 
 
 def test_a_float32_prefix_counts_twice_a_bfloat16_one_of_its_length() -> None:
     """The bound is memory: the same tokens cost twice as much where the model runs in float32."""
     store = PrefixStore(max_bytes=300)
     store.put("a", kept((1, 2, 3, 4), dtype=torch.bfloat16))
-    store.put("b", kept((1, 2, 3, 4), dtype=torch.bfloat16))
-    assert store.scopes() == {"a", "b"}
-    store.put("c", kept((1, 2, 3, 4), dtype=torch.float32))  # 256 bytes: both bfloat16 entries go
-    assert store.scopes() == {"c"}
+    store.put("c", kept((1, 2, 3, 4), dtype=torch.float32))  # 256 bytes: no room beside a's 128
+    assert store.scopes() == {"a"}
+    store.put("a", kept((5, 6, 7, 8), dtype=torch.float32))  # a's own bfloat16 entry makes room
+    assert store.scopes() == {"a"}
     assert store.held_bytes == 256 == 2 * PrefixStore.size(kept((1, 2, 3, 4)))
 
 
-def test_a_prefix_larger_than_the_bound_is_kept_alone() -> None:
-    """A prompt longer than the bound is still reused by its dialog's next turn (the bound is exceeded by one
-    prompt at most), and it pushes every other entry out."""
+def test_a_prefix_larger_than_the_bound_evicts_nobody_elses() -> None:
+    """A prompt longer than the bound is kept alone where nobody else holds an entry (its dialog's next turn
+    still reuses it); beside another tenant's entries it is not kept, and theirs stay."""
     store = PrefixStore(max_bytes=100)
     store.put("a", kept((1, 2)))
     store.put("b", kept((5, 6, 7, 8, 9)))
-    assert store.scopes() == {"b"}
-    assert store.closest("b", (5, 6, 7, 8, 9))[1] == 5
-    assert store.held_bytes == 160
+    assert store.scopes() == {"a"}
+    alone = PrefixStore(max_bytes=100)
+    alone.put("b", kept((5, 6, 7, 8, 9)))
+    assert alone.closest("b", (5, 6, 7, 8, 9))[1] == 5
+    assert alone.held_bytes == 160
+
+
+def test_an_unused_prefix_goes_after_the_idle_time() -> None:
+    """The memory of a tenant that stopped comes back by time, never by another tenant's request."""
+    now = [0.0]
+    store = PrefixStore(max_bytes=300, idle_s=60, clock=lambda: now[0])
+    store.put("a", kept((1, 2, 3, 4)))
+    store.put("b", kept((5, 6, 7, 8)))
+    now[0] = 50.0
+    assert store.closest("b", (5, 6, 7, 8))[1] == 4  # used: b's entry stays fresh
+    now[0] = 70.0
+    store.put("c", kept((9, 9, 9, 9)))  # a's, unused for 70 s, went: room for c
+    assert store.scopes() == {"b", "c"}
 
 
 def test_a_kept_prefix_that_a_new_one_extends_goes() -> None:

@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from precond.gateway.api_keys import KeyRecord, digest, new_key, read_records, write_records
-from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_QUEUE, JobId, tenant_tag
+from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_QUEUE, JobId, tenant_tag, worker_key
 from precond.stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
 
 SECRET = b"stack-secret-for-tests"
@@ -197,3 +197,29 @@ def test_an_answer_over_the_response_bound_is_refused_with_its_size(small_answer
         error = answer.json()["error"]
         assert error["type"] == "response_too_large" and "PRECOND_MAX_RESPONSE_BYTES (1,024)" in error["message"]
         assert client.post("/check-actions", json=check_body(calls[0]), params={"wait": 30}).status_code == 200
+
+
+def test_ready_tells_anybody_a_reason_code_and_only_an_operator_the_details(
+    stack: Stack, keys_file: Path, keys: dict[str, str]
+) -> None:
+    """/ready answers without a key, so what it says is public: a worker's exception (its model directory, a
+    memory limit, the CPU) reaches an operator's key and the log, never a tenant or a stranger."""
+    _, operator = make_key(keys_file, "ops", operator=True)
+    beat = ('{"id": "w-ready", "host": "h", "pid": 1, "queues": ["q"], "model_loaded": false, '
+            '"sandbox": "unavailable", "sandbox_error": "missing CAP_SETUID in /srv/secret/models"}')
+    redis = stack.redis.client()
+    redis.set(worker_key("w-ready"), beat, px=60_000)
+    try:
+        for key in (None, keys["acme"], "pk_not-a-key"):
+            with client_for(stack, key) as client:
+                answer = client.get("/ready")
+            assert answer.status_code == 503 and answer.json()["error"]["type"] == "sandbox_unavailable"
+            assert "CAP_SETUID" not in answer.text and "/srv/secret" not in answer.text, answer.text
+        with client_for(stack, operator) as client:
+            answer = client.get("/ready")
+        assert answer.status_code == 503 and answer.json()["error"]["type"] == "sandbox_unavailable"
+        assert "missing CAP_SETUID in /srv/secret/models" in answer.json()["error"]["message"]
+    finally:
+        redis.delete(worker_key("w-ready"))
+    with client_for(stack, None) as client:
+        assert client.get("/ready").json()["error"]["type"] == "no_worker"

@@ -754,8 +754,10 @@ def load_code_model(settings: ModelSettings, adapter: Path | None = None) -> Cod
         use_grouped_attention(model)
     logger.info("loaded %s on %s (%s; %s)%s", info.name, info.device, info.dtype_reason, info.quant_reason,
                 f", policy adapter {info.adapter}" if info.adapter else "")
+    tenant_mb = settings.prefix_cache_mb if settings.prefix_cache_tenant_mb is None else settings.prefix_cache_tenant_mb
+    prefixes = PrefixStore(settings.prefix_cache_mb * MIB, tenant_mb * MIB, settings.prefix_cache_idle_s)
     return CodeModel(model, weights.tokenizer, info, max_batch=settings.max_batch,
-                     prefix_bytes=settings.prefix_cache_mb * MIB, known_calls=calls)
+                     prefix_bytes=settings.prefix_cache_mb * MIB, known_calls=calls, prefixes=prefixes)
 
 
 class LoraLinear(torch.nn.Module):

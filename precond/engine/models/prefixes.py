@@ -5,7 +5,8 @@ Keeping a prefix's cache is what makes the next call with the same spec and demo
 next turn re-runs only what is new). Shared across tenants it would be a side channel: a request that
 reuses another tenant's cached prefix answers measurably faster, which tells the caller that somebody sent
 that text recently (the prompt-caching attack). So entries are looked up only within the scope that made
-them; scopes share only the bound on memory, least recently used first.
+them, and one tenant's entries are evicted only by that tenant (or by time): tenants share the memory's bound,
+never each other's entries.
 
 The bound is counted in the bytes of the kept keys and values, not in tokens: what a token costs depends on the
 dtype the model runs in (12,288 bytes for the embedded 0.5B model in bfloat16, twice that in float32, which
@@ -15,7 +16,9 @@ dtype the model runs in (12,288 bytes for the embedded 0.5B model in bfloat16, t
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -36,13 +39,32 @@ def common_length(a: tuple[int, ...], b: tuple[int, ...]) -> int:
     return n
 
 
+def tenant_of(scope: str) -> str:
+    """A scope is a tenant, or a tenant and a trained policy's adapter (`tenant\0adapter`): both count against
+    that tenant's bound."""
+    return scope.split("\0", 1)[0]
+
+
 class PrefixStore:
-    def __init__(self, max_bytes: int) -> None:
+    """Kept prefixes within two bounds: `max_bytes` over all tenants (what a worker is sized for) and
+    `tenant_bytes` for each tenant. A tenant's new entry evicts only that tenant's own entries; when the rest of
+    the store leaves no room it is not kept, so no tenant's prompt ever evicts another's (which would slow the
+    other down and tell the first that somebody else was active). An entry unused for `idle_s` goes, so memory a
+    tenant stopped using comes back without anybody's request taking it. One entry larger than a bound is kept
+    alone, in a store nobody else holds anything in: a single dialog's next turn still reuses a long prompt."""
+
+    def __init__(self, max_bytes: int, tenant_bytes: int | None = None, idle_s: float = 600.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.max_bytes = max_bytes
+        self.tenant_bytes = max_bytes if tenant_bytes is None else tenant_bytes
+        self.idle_s = idle_s
+        self._clock = clock
         self._entries: OrderedDict[tuple[str, tuple[int, ...]], Prefix] = OrderedDict()
         self._sizes: dict[tuple[str, tuple[int, ...]], int] = {}
         """Each entry's bytes, counted once when it is kept (a kept cache is only read, never grown)."""
+        self._used: dict[tuple[str, tuple[int, ...]], float] = {}
         self.held_bytes = 0
+        self._held_by: dict[str, int] = {}
         self._lock = threading.Lock()
         """The base model and its adapted copies share a store, and may run in two job threads at once."""
 
@@ -58,9 +80,10 @@ class PrefixStore:
         """This scope's entry sharing the longest token prefix with `tokens`, and that length."""
         best, length = None, 0
         with self._lock:
+            self._expire()
             exact = self._entries.get((scope, tokens))
             if exact is not None:
-                self._entries.move_to_end((scope, tokens))
+                self._touch((scope, tokens))
                 return exact, len(tokens)
             for (owner, kept), entry in self._entries.items():
                 if owner != scope:
@@ -69,34 +92,65 @@ class PrefixStore:
                 if shared > length:
                     best, length = entry, shared
             if best is not None:
-                self._entries.move_to_end((scope, best.tokens))
+                self._touch((scope, best.tokens))
         return best, length
 
     def put(self, scope: str, entry: Prefix) -> None:
-        """Keep `entry`, evicting least recently used entries (of any scope) beyond the byte bound. An entry
-        larger than the whole bound is kept alone: its dialog's next turn still reuses it, so the store exceeds
-        the bound by one prompt at most.
+        """Keep `entry` if it fits: first this tenant's own least recently used entries go, down to its bound and
+        to the store's; other tenants' entries never do.
 
         An entry of the scope that `entry` extends goes at once: every lookup it answered, `entry` answers at
         least as far (a dialog's next turn extends the last one's prompt, and kept both would hold the shared
         part twice), and a repeat of the shorter prompt recomputes at most its last partial chunk."""
-        size = self.size(entry)
+        size, tenant = self.size(entry), tenant_of(scope)
         with self._lock:
+            self._expire()
             for owner, kept in list(self._entries):
                 if owner == scope and len(kept) < len(entry.tokens) and entry.tokens[: len(kept)] == kept:
                     self._drop((owner, kept))
             key = (scope, entry.tokens)
             if key in self._entries:
                 self._drop(key)
-            self._entries[key] = entry
-            self._sizes[key] = size
-            self.held_bytes += size
-            while len(self._entries) > 1 and self.held_bytes > self.max_bytes:
-                self._drop(next(iter(self._entries)))
+            self._evict_own(tenant, lambda: self._held_by.get(tenant, 0) + size > self.tenant_bytes)
+            self._evict_own(tenant, lambda: self.held_bytes + size > self.max_bytes)
+            fits = size <= self.tenant_bytes and self.held_bytes + size <= self.max_bytes
+            if fits or self.held_bytes == 0:
+                self._entries[key] = entry
+                self._sizes[key] = size
+                self._held_by[tenant] = self._held_by.get(tenant, 0) + size
+                self.held_bytes += size
+                self._used[key] = self._clock()
+
+    def _evict_own(self, tenant: str, over: Callable[[], bool]) -> None:
+        """Drop `tenant`'s least recently used entries while `over()` holds and it has any left."""
+        while over():
+            own = next((key for key in self._entries if tenant_of(key[0]) == tenant), None)
+            if own is None:
+                return
+            self._drop(own)
+
+    def _touch(self, key: tuple[str, tuple[int, ...]]) -> None:
+        self._entries.move_to_end(key)
+        self._used[key] = self._clock()
+
+    def _expire(self) -> None:
+        """Entries unused for `idle_s` go (least recently used first, so the scan stops at the first fresh one)."""
+        cutoff = self._clock() - self.idle_s
+        while self._entries:
+            oldest = next(iter(self._entries))
+            if self._used[oldest] > cutoff:
+                return
+            self._drop(oldest)
 
     def _drop(self, key: tuple[str, tuple[int, ...]]) -> None:
         del self._entries[key]
-        self.held_bytes -= self._sizes.pop(key)
+        del self._used[key]
+        size = self._sizes.pop(key)
+        self.held_bytes -= size
+        tenant = tenant_of(key[0])
+        self._held_by[tenant] -= size
+        if not self._held_by[tenant]:
+            del self._held_by[tenant]
 
     def scopes(self) -> set[str]:
         with self._lock:
