@@ -6,7 +6,8 @@ and never import each other; the engine knows nothing of queues or HTTP; the san
 standard library only. The client (`precond_client`) imports no service layer; the reading of an OpenAI agent's
 messages (`precond_client.openai_log`), which the converter and the client's embedded guard share, and the guard's
 rule interpreter (`precond_client.rule_interpreter`, with what it charges: `precond_client.rule_work`) use the
-standard library only and import nothing else of the project. Layers are named by their module path below the distribution's packages.
+standard library only and import nothing else of the project. Layers are named by their module path below the
+distribution's packages.
 """
 
 from __future__ import annotations
