@@ -15,11 +15,18 @@ comparisons (`is`/`is not` only against None, True or False, whose identity is t
 comprehensions with one `for` over a value (`{(f['flight_number'], f['date']) for f in flights}`,
 `all(f['date'] >= '2024-05-15' for f in ...)`). A new form of the learner is one entry.
 
-Work is bounded twice, since the history a rule reads grows with the conversation and a set is the tenant's own
-text: a rule nests at most MAX_NESTING comprehensions (more is refused when the set is loaded, `OutsideGrammar`),
-and one call's rules together take at most `Frame.budget` steps (an item of a comprehension is one; a comparison
-or `in` with a collection costs its size). A call whose rules run past it is refused, never allowed
-(`WorkExceeded` is raised like any error of a rule, and the guard refuses a call whose rule raised).
+Comprehensions keep Python 3's scoping: each run of one has its own variable (a `Cell`), which what it makes
+reads, later too (a generator made in a list comprehension sees the variable's last value, as a closure does); a
+generator evaluates its iterable when it is made, the rest as it is consumed; nothing leaks into the next rule.
+
+Work is bounded, since the history a rule reads grows with the conversation, a tool's result is whatever the tool
+(or whoever feeds it) returned, and a set is the tenant's own text. When a rule is compiled: at most MAX_DEPTH
+expressions nested, MAX_NESTING comprehensions (one in another's iterable counts as inside it), integer constants
+of at most MAX_INT_BITS bits (`OutsideGrammar` otherwise). At a call, the call's rules together take at most
+`Frame.budget` steps, each charged before the work it pays for (`rule_work` says what costs what). A call whose
+rules run past it is refused, never allowed (`WorkExceeded` is raised like any error of a rule, and the guard
+refuses a call whose rule raised). `constant_work` evaluates the parts of a rule that read nothing of the state
+when a set is stored, so that a rule that runs past the budget at every call is refused there.
 
 A table (`Shape.kind == "table"`) is a `defaultdict(dict)` in the spec (`defaultdict(list)` where `Shape.lists`):
 reading a key it lacks inserts an empty dictionary (list), which a later rule of the same call sees (`key in
@@ -31,9 +38,31 @@ from __future__ import annotations
 
 import ast
 import operator
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
+
+from precond_client.rule_work import (
+    CONTAINER_TYPES,
+    MAX_INT_BITS,
+    MAX_STEPS,
+    Cell,
+    Frame,
+    SetBuilder,
+    WorkExceeded,
+    alike_of,
+    arithmetic_cost,
+    call_cost,
+    charge_key,
+    compare_cost,
+    membership_cost,
+    too_large,
+    weigh,
+    weighed,
+)
+
+__all__ = ["FORMS", "FUNCTIONS", "LISTS", "MAX_DEPTH", "MAX_INT_BITS", "MAX_NESTING", "MAX_STEPS", "TABLE", "VALUE",
+           "Frame", "OutsideGrammar", "Scope", "Shape", "WorkExceeded", "compile_rule", "constant_work"]
 
 Kind = Literal["value", "table", "object"]
 
@@ -58,40 +87,12 @@ class OutsideGrammar(ValueError):
     """A rule the interpreter does not evaluate: the message names the part and the reason."""
 
 
-MAX_NESTING = 2
-"""Comprehensions inside comprehensions: the learner writes one (`all(x['date'] >= ... for x in ...)`); each
-level multiplies the work by the length of what it iterates."""
-MAX_STEPS = 200_000
-"""Steps one call's rules may take: a rule linear in a long conversation's results uses a few thousand."""
-COLLECTIONS = (list, tuple, set, frozenset, dict)
-SIZED = (*COLLECTIONS, str)
-
-
-class WorkExceeded(RuntimeError):
-    """A call's rules ran past their step budget: the call is refused, with this as the reason."""
-
-
-class Frame:
-    """One call's evaluation: the state, the arguments by position, the keys its rules inserted into tables, and
-    the steps left of its budget."""
-
-    __slots__ = ("args", "bound", "budget", "inserted", "state")
-
-    def __init__(self, state: object, args: Sequence[Any], budget: int = MAX_STEPS) -> None:
-        self.state = state
-        self.args = args
-        self.inserted: set[tuple[str, Any]] | None = None
-        self.bound: dict[str, Any] = {}
-        """The comprehensions' variables, while one runs."""
-        self.budget = budget
-
-    def charge(self, steps: int) -> None:
-        self.budget -= steps
-        if self.budget < 0:
-            raise WorkExceeded(f"the rules took more than their budget of steps ({MAX_STEPS:,} a call): "
-                               "refused, not judged")
-
-
+MAX_NESTING = 3
+"""Comprehensions inside comprehensions, one in another's iterable included: the learner writes one
+(`all(x['date'] >= ... for x in ...)`); each level in an element multiplies the work by what it iterates."""
+MAX_DEPTH = 100
+"""Expressions (AST nodes) inside expressions: a node is evaluated by calling its operands', so this bounds the
+stack a rule takes in the agent's process; the learner's rules nest about ten."""
 Evaluate = Callable[[Frame], Any]
 Compiled = tuple[Shape, Evaluate]
 
@@ -103,9 +104,11 @@ class Scope:
     self_shape: Shape
     params: tuple[str, ...]
     bound: tuple[str, ...] = ()
-    """Variables of the comprehensions around the node (`x` in `all(x['date'] >= ... for x in flights)`)."""
+    """Variables of the comprehensions around the node (`x` in `all(x['date'] >= ... for x in flights)`), the
+    innermost last."""
     nesting: int = 0
-    """Comprehensions around the node."""
+    """Comprehensions around the node (an iterable is inside its comprehension)."""
+    max_nesting: int = MAX_NESTING
 
 
 FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any, "max": max, "min": min}
@@ -130,16 +133,47 @@ def compile_rule(text: str, scope: Scope) -> Evaluate:
     of the forms above (or does not parse)."""
     try:
         tree = ast.parse(text, mode="eval")
-        shape, evaluate = _compile(tree.body, scope)
-    except OutsideGrammar:
-        raise
     except SyntaxError as exc:
         raise OutsideGrammar(f"not an expression: {exc.msg}") from None
     except (RecursionError, MemoryError, ValueError) as exc:
         raise OutsideGrammar(f"cannot be read: {type(exc).__name__}") from None
+    return _compile_rule(tree.body, scope)
+
+
+def _compile_rule(node: ast.expr, scope: Scope) -> Evaluate:
+    """`compile_rule` of a parsed expression: its own evaluation charged the expressions it holds."""
+    if _depth(node) > MAX_DEPTH:
+        raise OutsideGrammar(f"{_text(node)}: more than {MAX_DEPTH} expressions nested")
+    try:
+        shape, evaluate = _compile(node, scope)
+    except (RecursionError, MemoryError, ValueError) as exc:
+        if isinstance(exc, OutsideGrammar):
+            raise
+        raise OutsideGrammar(f"cannot be read: {type(exc).__name__}") from None
     if shape.kind != "value":
-        raise OutsideGrammar(f"{_text(tree.body)} is the state's {shape.kind}, not a value")
-    return evaluate
+        raise OutsideGrammar(f"{_text(node)} is the state's {shape.kind}, not a value")
+    steps = _nodes([node])
+
+    def rule(frame: Frame) -> Any:
+        frame.charge(steps)
+        return evaluate(frame)
+
+    return rule
+
+
+def _depth(node: ast.AST) -> int:
+    deepest, stack = 0, [(node, 1)]
+    while stack:
+        current, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if depth <= MAX_DEPTH:
+            stack.extend((child, depth + 1) for child in ast.iter_child_nodes(current))
+    return deepest
+
+
+def _nodes(nodes: Iterable[ast.AST]) -> int:
+    """The expressions a node evaluates (each a step, whatever it does in constant time)."""
+    return sum(isinstance(n, ast.expr) for node in nodes for n in ast.walk(node))
 
 
 def _compile(node: ast.expr, scope: Scope) -> Compiled:
@@ -167,14 +201,27 @@ def _constant(node: ast.expr, scope: Scope) -> Compiled:
     value = node.value
     if not (value is None or isinstance(value, bool | int | float | str)):
         raise OutsideGrammar(f"{_text(node)}: a {type(value).__name__} constant")
+    if type(value) is int and value.bit_length() > MAX_INT_BITS:
+        raise OutsideGrammar(f"{_text(node)}: an integer of more than {MAX_INT_BITS:,} bits")
     return VALUE, lambda frame: value
 
 
 def _name(node: ast.expr, scope: Scope) -> Compiled:
     assert isinstance(node, ast.Name)
     if node.id in scope.bound:
-        name = node.id
-        return VALUE, lambda frame: frame.bound[name]
+        hops = scope.bound[::-1].index(node.id)  # the innermost comprehension that binds it
+        if hops == 0:
+            return VALUE, lambda frame: frame.env.value
+        if hops == 1:
+            return VALUE, lambda frame: frame.env.outer.value
+
+        def read(frame: Frame) -> Any:
+            cell = frame.env
+            for _ in range(hops):
+                cell = cell.outer  # type: ignore[union-attr]
+            return cell.value  # type: ignore[union-attr]
+
+        return VALUE, read
     if node.id == "self":
         return scope.self_shape, lambda frame: frame.state
     if node.id in scope.params:
@@ -204,26 +251,35 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
 
         def read(frame: Frame) -> Any:
             table, wanted = container(frame), key(frame)
+            charge_key(wanted, frame)
             try:
                 return table[wanted]
             except KeyError:
-                if frame.inserted is None:
-                    frame.inserted = set()
-                frame.inserted.add((path, wanted))  # what the defaultdict inserts, for this call only
+                frame.remember(path, wanted)  # what the defaultdict inserts, for this call only
                 return empty()
 
         return VALUE, read
     if shape.kind != "value":
         raise OutsideGrammar(f"{_text(node)}: the state's {shape.kind} is not subscripted")
-    return VALUE, lambda frame: container(frame)[key(frame)]
+
+    def item(frame: Frame) -> Any:
+        value, wanted = container(frame), key(frame)
+        charge_key(wanted, frame)
+        return value[wanted]
+
+    return VALUE, item
 
 
-def _charged(test: Callable[[Any, Any], Any]) -> Callable[[Any, Any, Frame], Any]:
-    """The comparison, its cost charged first: a collection's size (`==` and `in` walk it), else one step."""
+def _charged(op: ast.cmpop) -> Callable[[Any, Any, Frame], Any]:
+    """The comparison, its cost charged first (`rule_work.compare_cost`, `membership_cost`; `is` is one step)."""
+    test = COMPARE[type(op)]
+    if isinstance(op, ast.Is | ast.IsNot):
+        return lambda left, right, frame: test(left, right)
+    cost = (membership_cost if isinstance(op, ast.In | ast.NotIn)
+            else compare_cost(sized=isinstance(op, ast.Eq | ast.NotEq)))
 
     def compare(left: Any, right: Any, frame: Frame) -> Any:
-        frame.charge(1 + (len(left) if isinstance(left, COLLECTIONS) else 0)
-                     + (len(right) if isinstance(right, COLLECTIONS) else 0))
+        frame.charge(cost(left, right, frame))
         return test(left, right)
 
     return compare
@@ -233,7 +289,8 @@ def _contains(path: str, table: Evaluate, negated: bool) -> Callable[[Any, Frame
     """`x in table` as the spec's defaultdict answers it after this call's rules read it."""
 
     def contains(item: Any, frame: Frame) -> bool:
-        found = item in table(frame) or (frame.inserted is not None and (path, item) in frame.inserted)
+        frame.charge(weigh(item, frame))
+        found = item in table(frame) or frame.remembers(path, item)
         return not found if negated else found
 
     return contains
@@ -254,7 +311,7 @@ def _compare(node: ast.expr, scope: Scope) -> Compiled:
         if isinstance(op, ast.Is | ast.IsNot) and not (isinstance(right, ast.Constant) and any(
                 right.value is s for s in SINGLETONS)):
             raise OutsideGrammar(f"{_text(node)}: `is` compares with None, True or False only")
-        steps.append((evaluate, _charged(COMPARE[type(op)])))
+        steps.append((evaluate, _charged(op)))
     if len(steps) == 1:
         (right_value, test), = steps
         if right_value is None:
@@ -305,16 +362,18 @@ def _unary(node: ast.expr, scope: Scope) -> Compiled:
     if apply is None:
         raise OutsideGrammar(f"{_text(node)}: the operator {type(node.op).__name__}")
     operand = _value(node.operand, scope)
-    return VALUE, lambda frame: apply(operand(frame))
 
+    def unary(frame: Frame) -> Any:
+        value = operand(frame)
+        if type(value) is int:  # negation copies it
+            frame.charge(weigh(value, frame))
+        return apply(value)
 
-def _size(value: Any) -> int:
-    return len(value) if isinstance(value, SIZED) else 0
+    return VALUE, unary
 
 
 def _bin_op(node: ast.expr, scope: Scope) -> Compiled:
-    """`a + b`, `a - b`, `a * b` as Python answers them; what a sequence would become (`[0] * n`, `s + s`) is
-    charged before it is built."""
+    """`a + b`, `a - b`, `a * b` as Python answers them, charged first (`rule_work.arithmetic_cost`)."""
     assert isinstance(node, ast.BinOp)
     apply = ARITHMETIC.get(type(node.op))
     if apply is None:
@@ -324,12 +383,13 @@ def _bin_op(node: ast.expr, scope: Scope) -> Compiled:
 
     def arithmetic(frame: Frame) -> Any:
         a, b = left(frame), right(frame)
-        built = _size(a) + _size(b)
-        if repeats and built:
-            times = b if _size(a) else a
-            built = built * times if isinstance(times, int) and not isinstance(times, bool) and times > 0 else built
-        frame.charge(1 + built)
-        return apply(a, b)
+        frame.charge(arithmetic_cost(a, b, repeats, frame))
+        result = apply(a, b)
+        if type(result) is int and result.bit_length() > MAX_INT_BITS:
+            raise too_large()
+        if type(result) is set and alike_of(a, frame) > 1:  # a difference holds the values of `a` that hash alike
+            frame.alike[id(result)] = (result, alike_of(a, frame))
+        return result
 
     return VALUE, arithmetic
 
@@ -340,10 +400,13 @@ def _call(node: ast.expr, scope: Scope) -> Compiled:
     if function is None or node.keywords or any(isinstance(a, ast.Starred) for a in node.args):
         raise OutsideGrammar(f"{_text(node)}: calls {', '.join(FUNCTIONS)} only, with plain arguments")
     args = [_value(a, scope) for a in node.args]
+    compares = function is max or function is min
 
     def call(frame: Frame) -> Any:
         values = [a(frame) for a in args]
-        frame.charge(1 + (sum(_size(v) for v in values) if function is not len else 0))  # max, min walk them
+        frame.charge(call_cost(function, values, frame))
+        if compares and len(values) == 1 and type(values[0]) not in CONTAINER_TYPES and type(values[0]) is not str:
+            return function(weighed(values[0], frame))  # a generator's items: charged as they come
         return function(*values)
 
     return VALUE, call
@@ -355,46 +418,143 @@ def _tuple(node: ast.expr, scope: Scope) -> Compiled:
     return VALUE, lambda frame: tuple(part(frame) for part in parts)
 
 
+_SKIP = object()
+"""An item a comprehension's `if` leaves out."""
+
+
 def _comprehension(node: ast.expr, scope: Scope) -> Compiled:
     """`[e for x in xs if c]`, `{...}`, `(... for ...)`: one `for` over a value, a plain variable, any `if`s.
-    A generator is lazy, as Python's is: `all(...)` stops at the first false item, raising only where it would."""
+    As in Python 3, `xs` is evaluated (and iterated from) when the comprehension is made, in the scope around it;
+    each run has its own variable; a generator runs its body as it is consumed, so `all(...)` stops at the first
+    false item, raising only where Python would. An item costs the expressions its body holds."""
     assert isinstance(node, ast.ListComp | ast.SetComp | ast.GeneratorExp)
     if len(node.generators) != 1:
         raise OutsideGrammar(f"{_text(node)}: one `for` only")
-    if scope.nesting >= MAX_NESTING:
-        raise OutsideGrammar(f"{_text(node)}: more than {MAX_NESTING} comprehensions nested (each multiplies the work)")
+    if scope.nesting >= scope.max_nesting:
+        raise OutsideGrammar(f"{_text(node)}: more than {scope.max_nesting} comprehensions nested (each multiplies "
+                             "the work)")
     generator = node.generators[0]
     target = generator.target
     if not isinstance(target, ast.Name) or generator.is_async or target.id == "self":
         raise OutsideGrammar(f"{_text(node)}: the variable must be a plain name")
-    iterate = _value(generator.iter, scope)
-    inner = Scope(scope.self_shape, scope.params, (*scope.bound, target.id), scope.nesting + 1)
+    around = replace(scope, nesting=scope.nesting + 1)
+    iterate = _value(generator.iter, around)
+    inner = replace(around, bound=(*scope.bound, target.id))
     element = _value(node.elt, inner)
     tests = [_value(test, inner) for test in generator.ifs]
-    name = target.id
+    per_item = 1 + _nodes([node.elt, *generator.ifs])
 
-    def items(frame: Frame) -> Any:
-        before = frame.bound.get(name, _UNBOUND)
+    def body(frame: Frame) -> Any:
+        for test in tests:
+            if not test(frame):
+                return _SKIP
+        return element(frame)
+
+    def run(frame: Frame, keep: Callable[[Any], None]) -> None:
+        iterator = iter(iterate(frame))
+        cell = Cell(frame.env)
+        outer, frame.env = frame.env, cell
         try:
-            for item in iterate(frame):
-                frame.charge(1)
-                frame.bound[name] = item
-                if all(test(frame) for test in tests):
-                    yield element(frame)
+            for item in iterator:
+                frame.charge(per_item)
+                cell.value = item
+                value = body(frame)
+                if value is not _SKIP:
+                    keep(value)
         finally:
-            if before is _UNBOUND:
-                frame.bound.pop(name, None)
-            else:
-                frame.bound[name] = before
+            frame.env = outer
 
     if isinstance(node, ast.ListComp):
-        return VALUE, lambda frame: list(items(frame))
+        def listed(frame: Frame) -> list[Any]:
+            made: list[Any] = []
+            run(frame, made.append)
+            return made
+        return VALUE, listed
     if isinstance(node, ast.SetComp):
-        return VALUE, lambda frame: set(items(frame))
-    return VALUE, items
+        def setted(frame: Frame) -> set[Any]:
+            builder = SetBuilder(frame)
+            run(frame, builder.add)
+            return builder.build()
+        return VALUE, setted
+    return VALUE, lambda frame: _lazy(frame, Cell(frame.env), iter(iterate(frame)), per_item, body)
 
 
-_UNBOUND = object()
+def _lazy(frame: Frame, cell: Cell, iterator: Iterator[Any], per_item: int, body: Evaluate) -> Iterator[Any]:
+    """A generator expression's items: its own variable bound, the body evaluated in its scope, whichever
+    comprehension consumes it."""
+    for item in iterator:
+        frame.charge(per_item)
+        cell.value = item
+        outer, frame.env = frame.env, cell
+        try:
+            value = body(frame)
+        finally:
+            frame.env = outer
+        if value is not _SKIP:
+            yield value
+
+
+def constant_work(text: str, frame: Frame) -> str | None:
+    """Why a rule is refused when a set is stored: a part of it that reads nothing of the state or the call
+    (`len([v * v for v in (0xff,)]) == 1`) takes the guard past its budget (`frame`'s, shared by the set's
+    rules) at every call. Each such part is evaluated here, as the guard would, within that budget; None when
+    all are within it, raise (the verdicts say so) or are outside the grammar (the guard does not embed the set)."""
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except (SyntaxError, ValueError, RecursionError, MemoryError):
+        return None  # the static check names it
+    if _depth(tree.body) > MAX_DEPTH:
+        return None
+    for part in _closed(tree.body):
+        try:
+            evaluate = _compile_rule(part, Scope(VALUE, (), max_nesting=MAX_DEPTH))
+        except OutsideGrammar:
+            continue
+        try:
+            evaluate(frame)
+        except WorkExceeded as exc:
+            return f"{_text(part)} reads nothing of the state or the call, and {exc}"
+        except Exception:  # a part that raises makes the rule raise at every call: a verdict, as the service's
+            continue
+    return None
+
+
+def _closed(node: ast.expr) -> Iterator[ast.expr]:
+    """The largest parts of an expression that name no variable from outside them (only constants and their own
+    comprehensions' variables) and do some work (a comprehension, arithmetic, a call)."""
+    if not _free(node):
+        if any(isinstance(n, ast.BinOp | ast.Call | ast.ListComp | ast.SetComp | ast.GeneratorExp)
+               for n in ast.walk(node)):
+            yield node
+        return
+    for child in ast.iter_child_nodes(node):
+        if isinstance(child, ast.expr):
+            yield from _closed(child)
+        elif isinstance(child, ast.comprehension):
+            for part in (child.iter, *child.ifs):
+                yield from _closed(part)
+
+
+def _free(node: ast.AST) -> set[str]:
+    """The names an expression reads from outside it (a called builtin's name aside)."""
+    if isinstance(node, ast.Name):
+        return {node.id}
+    if isinstance(node, ast.ListComp | ast.SetComp | ast.GeneratorExp | ast.DictComp):
+        inside: set[str] = set()
+        outside: set[str] = set()
+        for generator in node.generators:
+            outside |= _free(generator.iter)
+            inside |= set().union(*(_free(test) for test in generator.ifs)) | _free(generator.target)
+        body = [node.key, node.value] if isinstance(node, ast.DictComp) else [node.elt]
+        inside |= set().union(*(_free(part) for part in body))
+        bound = {n.id for g in node.generators for n in ast.walk(g.target) if isinstance(n, ast.Name)}
+        return outside | (inside - bound)
+    names: set[str] = set()
+    for child in ast.iter_child_nodes(node):
+        if isinstance(node, ast.Call) and child is node.func and isinstance(child, ast.Name) and child.id in FUNCTIONS:
+            continue
+        names |= _free(child)
+    return names
 
 
 FORMS: dict[type[ast.expr], Callable[[ast.expr, Scope], Compiled]] = {

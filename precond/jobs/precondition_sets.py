@@ -18,7 +18,11 @@ from pydantic import TypeAdapter, ValidationError
 from precond.jobs import tenant_store
 from precond.programs import checks
 from precond.programs.checks import normal as normal  # re-exported: the sets code compares rules by it
+from precond_client.rule_interpreter import Frame, constant_work
 from precond_client.schemas.api import CandidateReport, Preconditions, PreconditionSet, RuleEvidence
+
+RULE_CHARS = 200
+"""A rule named in a refusal is cut to this many characters."""
 
 
 def tenant_bytes_message(max_tenant_bytes: int) -> str:
@@ -99,6 +103,30 @@ def over_bounds(rules: Mapping[str, Sequence[str]]) -> str | None:
             return f"{limits['actual_length']} actions would have rules, over the {limits['max_length']} a set may have"
         return f"preconditions.{'.'.join(map(str, where))}: {error['msg']}"
     return None
+
+
+def check_set(spec: str, preconditions: Mapping[str, Sequence[str]], demonstrations: Sequence[str]) -> None:
+    """A version's static check (`checks.check_set`), then what its rules cost the embedded guard regardless of
+    the state (`check_rule_work`); raises ProgramProblem. One call, for the gateway's check pool."""
+    checks.check_set(spec, preconditions, demonstrations)
+    check_rule_work(preconditions)
+
+
+def check_rule_work(preconditions: Mapping[str, Sequence[str]]) -> None:
+    """A rule whose parts that read nothing of the state take the embedded guard past its budget (nested
+    squarings of a constant) would be refused at every call, after burning the agent's CPU up to the bound: it is
+    refused here instead, naming the rule and the bound. The parts are evaluated by the guard's own interpreter
+    within one budget for the whole set (`rule_interpreter.constant_work`), so the check costs at most that."""
+    frame = Frame(None, ())
+    for action, rules in preconditions.items():
+        for index, rule in enumerate(rules):
+            problem = constant_work(rule, frame)
+            if problem is not None:
+                field = f"preconditions.{action}[{index}]"
+                shown = rule if len(rule) <= RULE_CHARS else rule[:RULE_CHARS - 3] + "..."
+                message = (f"{field}: the rule {shown!r} takes the embedded guard past its bounds at every call: "
+                           f"{problem}")
+                raise checks.ProgramProblem(checks.Problem(checks.WORK_BUDGET, field, message))
 
 
 def union(stored: Sequence[str], new: Sequence[str]) -> list[str]:

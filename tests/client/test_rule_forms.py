@@ -77,7 +77,7 @@ def test_a_comprehension_variable_is_bound_only_inside_it() -> None:
         compile_rule("[x for x in flights for y in flights]", scope)
     frame = Frame(State({}), [FLIGHTS])
     assert compile_rule("[x['date'] for x in flights]", scope)(frame) == ["2024-05-20", "2024-05-21"]
-    assert frame.bound == {}
+    assert frame.env is None
 
 
 def test_what_arithmetic_would_build_is_charged_before_it_is_built() -> None:

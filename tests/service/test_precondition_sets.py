@@ -30,7 +30,7 @@ EVENTS = [
 @pytest.fixture(scope="module")
 def keys(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, str]]:
     path = tmp_path_factory.mktemp("keys") / "keys.jsonl"
-    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella", "stark", "wayne")
+    tenants = ("acme", "globex", "small", "initech", "hooli", "umbrella", "stark", "wayne", "cyberdyne")
     return path, {tenant: make_key(path, tenant)[1] for tenant in tenants}
 
 
@@ -227,6 +227,31 @@ def test_edits_past_an_actions_rule_bound_are_a_422_naming_it(stack: Stack, keys
         assert _ok(client.get(f"/precondition-sets/{made['id']}"))["latest"] == 1
         body = {"precondition_set": made["id"], "history": check_body()["history"], "calls": check_body()["calls"]}
         assert client.post("/check-actions", json=body, params={"wait": 30}).status_code == 200
+
+
+def test_a_rule_that_takes_the_embedded_guard_past_its_bounds_is_a_422_naming_it_and_the_bound(
+        stack: Stack, keys: tuple[Path, dict[str, str]]) -> None:
+    """26 nested squarings of a constant (533 characters): refused when a set is made with it, or an edit adds
+    it, before anything is stored or queued."""
+    squarings = "[v0*v0 for v0 in (0xff,)]"
+    for level in range(1, 26):
+        squarings = f"[v{level}*v{level} for v{level} in {squarings}]"
+    rule = f"len({squarings}) == 1"
+    with client_for(stack, keys[1]["cyberdyne"]) as client:
+        made = client.post("/precondition-sets", json={"spec": SPEC, "demonstrations": DEMOS,
+                                                       "preconditions": {"SYSTEM.REQUEST": [rule]}})
+        assert made.status_code == 422, made.text[:300]
+        error = made.json()["error"]
+        assert error["field"] == "preconditions.SYSTEM.REQUEST[0]" and error["type"] == "work_budget", error
+        assert "len([v25*v25 for v25 in" in error["message"] and "262,144 bits" in error["message"], error
+        kept = _ok(client.post("/precondition-sets", json={
+            "spec": SPEC, "demonstrations": DEMOS,
+            "preconditions": {"SYSTEM.REQUEST": ["slot != ''"]}}), 201)
+        edit = client.post(f"/precondition-sets/{kept['id']}/versions",
+                           json={"edits": [{"op": "add", "action": "SYSTEM.REQUEST", "rule": rule}]})
+        assert edit.status_code == 422 and edit.json()["error"]["field"] == "edits", edit.text[:300]
+        assert "262,144 bits" in edit.json()["error"]["message"] and _ok(
+            client.get(f"/precondition-sets/{kept['id']}"))["latest"] == 1
 
 
 def test_a_structured_history_judges_like_its_program(acme: httpx.Client) -> None:

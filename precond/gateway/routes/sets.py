@@ -18,7 +18,7 @@ from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.routes.operations import ERRORS, Wait, answer, with_prior_sets
 from precond.gateway.set_store import Report, apply_edits, blocking_message, new_id, not_found, version_of
 from precond.gateway.submission import submit_job
-from precond.jobs.precondition_sets import normal, set_warnings, union
+from precond.jobs.precondition_sets import check_set, normal, set_warnings, union
 from precond.jobs.queue.payloads import ReinferJob, ValidateRequest
 from precond.programs import checks
 from precond_client.schemas.api import (
@@ -248,11 +248,12 @@ async def _latest(services: Services, tag: str, set_id: str, base_version: int |
 
 async def _static_check(services: Services, caller: Caller, spec: str, rules: dict[str, list[str]],
                         demonstrations: list[str], field: str | None = None) -> dict[str, list[str]]:
-    """Parsed, never run: the spec, every rule (known action, one expression) and the demonstrations; after the
-    size bound (413 before any parse), in the check pool when large (parsing holds the event loop)."""
+    """Parsed, never run: the spec, every rule (known action, one expression, within the embedded guard's bounds
+    whatever the state: `precondition_sets.check_rule_work`) and the demonstrations; after the size bound (413
+    before any parse), in the check pool when large (parsing holds the event loop)."""
     chars = len(spec) + sum(map(len, demonstrations)) + sum(len(r) for rs in rules.values() for r in rs)
     services.sets.refuse_oversized(chars)
-    problem = await services.checks.run(caller.tag, chars, offload.problem_of, checks.check_set, spec,
+    problem = await services.checks.run(caller.tag, chars, offload.problem_of, check_set, spec,
                                         rules, demonstrations)
     if problem is not None:
         raise ServiceError(422, problem.message, problem.type, field=field or problem.field)
