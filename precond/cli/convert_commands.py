@@ -113,6 +113,8 @@ def openai(
                                                 show_default=False)] = None,
 ) -> None:
     """Tool-calling agent logs → a spec from the tool schemas, one program per trajectory, an infer request."""
+    if guard is not None and not _tool_names(guard):
+        _fail("--guard: names no tool (leave it out to guard every tool)")
     try:
         converted = openai_converter.convert(load_json(trajectories), load_json(tools), str(trajectories),
                                              str(tools), _tool_names(writes), _tool_names(guard))

@@ -45,6 +45,8 @@ def test_every_tool_is_guarded_and_writes_only_say_what_changes_state(tmp_path: 
     assert (tmp_path / "b" / "spec.py").read_text() == spec  # the guarded choice does not change the spec
     done = convert("cards", tmp_path / "c", "--guard", "get_card_details,open_vault")
     assert done.returncode == 2 and "guarded tool 'open_vault' is not among the tools" in done.stderr
+    done = convert("cards", tmp_path / "d", "--guard", " , ")
+    assert done.returncode == 2 and "--guard: names no tool" in done.stderr
 
 
 def test_labels_by_run_index_in_a_plain_list_of_conversations(tmp_path: Path) -> None:
