@@ -3,8 +3,9 @@
     python bench/labels_bench.py [--data ../shared/data/tau-airline] [--json out.json]
 
 Each step is the command a team would run, timed whole (start-up included), one after the other:
-`precond convert openai --min-reward 1 --labels` (the 53 successful runs as demonstrations, the 133 labelled
-calls of the 120 runs as counterexamples), `precond infer` on that request (model-free: `enumerate`, with
+`precond convert openai --min-reward 1 --labels --guard <the six state-changing tools>` (the 53 successful runs
+as demonstrations, the 133 labelled calls of the 120 runs as counterexamples; the labels are of those tools, and
+the figures in docs were taken so), `precond infer` on that request (model-free: `enumerate`, with
 policy.md's `now`), then `precond check --batch` on the 133 labelled calls (each the program before it and its
 line) with the rules just inferred. Prints the seconds of each, the CPU and the load average before and after.
 """
@@ -25,7 +26,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from precond.evaluation.tools import NOW, load  # noqa: E402
+from precond.evaluation.tools import NOW, WRITES, load  # noqa: E402
 
 CLI = [sys.executable, "-m", "precond.cli"]
 
@@ -71,7 +72,7 @@ def main() -> None:
         work = Path(name)
         results["convert_s"] = timed([*CLI, "convert", "openai", str(data / "trajectories.json"), "--tools",
                                       str(data / "tools.json"), "--out", str(work), "--min-reward", "1",
-                                      "--labels", str(data / "labels.json")])
+                                      "--labels", str(data / "labels.json"), "--guard", ",".join(WRITES)])
         request = json.loads((work / "request.json").read_text(encoding="utf-8"))
         request["options"] = {"generators": ["enumerate"], "now": NOW, "candidates": "none"}
         (work / "request.json").write_text(json.dumps(request), encoding="utf-8")

@@ -18,7 +18,7 @@ from precond.convert import sgd as sgd_converter
 from precond.convert.shape import ConvertError, load_json
 from precond.programs import checks
 from precond_client.openai_log import MAX_SEEN
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas.api import MAX_COUNTEREXAMPLE_RUNS, MAX_LABELLED_CALLS, InferRequest
 
 app = typer.Typer(help="Convert dialog data (SGD files, JSON event logs) to a spec, programs and a request.",
                   no_args_is_help=True)
@@ -85,6 +85,10 @@ def events(
         typer.echo(program)
 
 
+def _tool_names(value: str | None) -> set[str] | None:
+    return None if value is None else {w.strip() for w in value.split(",") if w.strip()}
+
+
 @app.command("openai")
 def openai(
     trajectories: Annotated[Path, typer.Argument(metavar="TRAJECTORIES.json", help="OpenAI chat messages: one "
@@ -92,24 +96,31 @@ def openai(
                                                  "{\"traj\": [...]} records.")],
     tools: Annotated[Path, typer.Option(help="The tools' OpenAI function schemas (a JSON list).")],
     out: Annotated[Path, typer.Option(help="Directory for spec.py, demos/<n>.py and request.json.")],
-    writes: Annotated[str | None, typer.Option(help="Comma-separated state-changing tools, the actions request.json "
-                                               "asks rules for (default: tools named book_, cancel_, update_, "
+    writes: Annotated[str | None, typer.Option("--writes", "--state-changing", help="Comma-separated tools that "
+                                               "change state: their results go to `self.changes`, a read's to "
+                                               "`self.results` (default: tools named book_, cancel_, update_, "
                                                "send_, ...).", show_default=False)] = None,
+    guard: Annotated[str | None, typer.Option(help="Comma-separated tools to infer rules for, request.json's "
+                                              "actions (default: every tool, reads included).",
+                                              show_default=False)] = None,
     min_reward: Annotated[float | None, typer.Option(help="Only records with at least this reward go into "
                                                      "request.json (tau-bench: 1 = the run succeeded).",
                                                      show_default=False)] = None,
     demos: Annotated[int, typer.Option(min=1, max=200, help="How many trajectories go into request.json.")] = 200,
-    labels: Annotated[Path | None, typer.Option(help="Labelled calls ({task_id, trial, message_index, tool, allowed} "
-                                                "records): request.json's counterexamples.",
+    labels: Annotated[Path | None, typer.Option(help="Labelled calls ({run, message_index, tool, allowed} or "
+                                                "{task_id, trial, message_index, tool, allowed} records): "
+                                                "request.json's counterexamples, with the labels the calls carry.",
                                                 show_default=False)] = None,
 ) -> None:
     """Tool-calling agent logs → a spec from the tool schemas, one program per trajectory, an infer request."""
-    chosen = None if writes is None else {w.strip() for w in writes.split(",") if w.strip()}
+    if guard is not None and not _tool_names(guard):
+        _fail("--guard: names no tool (leave it out to guard every tool)")
     try:
         converted = openai_converter.convert(load_json(trajectories), load_json(tools), str(trajectories),
-                                             str(tools), chosen)
-        read = [] if labels is None else labels_reader.read_labels(load_json(labels), str(labels),
-                                                                    {t.name for t in converted.tools})
+                                             str(tools), _tool_names(writes), _tool_names(guard))
+        read = labels_reader.on_calls(converted) + ([] if labels is None else labels_reader.read_labels(
+            load_json(labels), str(labels), {t.name for t in converted.tools},
+            [t.name for t in converted.trajectories]))
     except ConvertError as exc:
         _fail(str(exc))
     (out / "demos").mkdir(parents=True, exist_ok=True)
@@ -118,24 +129,41 @@ def openai(
         name = re.sub(r"[^A-Za-z0-9_.-]", "_", trajectory.name)
         (out / "demos" / f"{name}.py").write_text(trajectory.program, encoding="utf-8")
     kept = [t for t in converted.trajectories
-            if min_reward is None or (t.reward is not None and t.reward >= min_reward)]
-    chosen_programs = [t.program for t in kept][:demos]
-    actions = [f"AGENT.{w}" for w in sorted(converted.writes)] or None
+            if min_reward is None or (t.reward is not None and t.reward >= min_reward)][:demos]
     try:
-        runs = labels_reader.counterexamples(converted, read, kept[:demos])
+        counted = labels_reader.counted(converted, read, kept)
+        body = _request(converted.spec, [t.program for t in kept],
+                        [f"AGENT.{w}" for w in sorted(converted.guarded)] or None, counted.runs)
     except ConvertError as exc:
         _fail(str(exc))
-    (out / "request.json").write_text(_request(converted.spec, chosen_programs, actions, runs), encoding="utf-8")
-    counted = [c["verdict"] for run in runs for c in run["calls"]]
-    typer.echo(f"{len(converted.trajectories)} trajectories → {out}/demos/, {len(chosen_programs)} in "
-               f"{out}/request.json (actions: {', '.join(sorted(converted.writes)) or 'all'}); "
-               f"{converted.without_writes} without a state-changing call"
-               + (f"; labelled calls: {counted.count('refuse')} to refuse, {counted.count('allow')} to allow, "
-                  f"in {len(runs)} runs" if labels is not None else "")
-               + (f"; {left} labels of tools that are not actions left out"
-                  if (left := labels_reader.skipped(converted, read)) else "")
-               + (f"; in {past} trajectories a read tool listed more than {MAX_SEEN} records: `self.seen` keeps "
-                  "the last of them" if (past := converted.past_seen) else ""), err=True)
+    except ValidationError as exc:
+        _fail(f"{out / 'request.json'}: {_first_error(exc)}")
+    (out / "request.json").write_text(body, encoding="utf-8")
+    typer.echo(_openai_summary(converted, len(kept), out, counted if read else None), err=True)
+
+
+def _first_error(exc: ValidationError) -> str:
+    """The request's first problem, naming its field (`counterexamples`, `demonstrations[3]`)."""
+    error = exc.errors()[0]
+    field = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in error["loc"]).lstrip(".")
+    return f"{field}: {error['msg']}"
+
+
+def _openai_summary(converted: openai_converter.Converted, demos: int, out: Path,
+                    counted: labels_reader.Counted | None) -> str:
+    calls = [c["verdict"] for run in counted.runs for c in run["calls"]] if counted else []
+    left = (f"; {counted.runs_left_out} labelled runs ({counted.calls_left_out} calls) left out: a request takes "
+            f"at most {MAX_COUNTEREXAMPLE_RUNS} runs of at most {MAX_LABELLED_CALLS} labelled calls, those that carry "
+            "a refusal first" if counted and counted.calls_left_out else "")
+    return (f"{len(converted.trajectories)} trajectories → {out}/demos/, {demos} in {out}/request.json (actions: "
+            f"{', '.join(sorted(converted.guarded))}; state-changing: {', '.join(sorted(converted.writes)) or 'none'}"
+            f"); {converted.without_writes} without a state-changing call"
+            + (f"; labelled calls: {calls.count('refuse')} to refuse, {calls.count('allow')} to allow, in "
+               f"{len(counted.runs)} runs" if counted else "") + left
+            + (f"; {counted.skipped} labels of tools that are not actions left out" if counted and counted.skipped
+               else "")
+            + (f"; in {past} trajectories a read tool listed more than {MAX_SEEN} records: `self.seen` keeps "
+               "the last of them" if (past := converted.past_seen) else ""))
 
 
 @app.command("programs")

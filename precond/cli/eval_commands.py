@@ -251,11 +251,18 @@ def tools(
                                          "and judged on the other half, both ways, with and without the labels "
                                          "as counterexamples; per direction, tool, policy rule and what each "
                                          "refusal rests on (precond/evaluation/tools_labels.py).")] = False,
+    domain: Annotated[Path | None, typer.Option("--domain", help="Score a domain you wrote instead: tools.json, "
+                                                "trajectories.json, labels and a test set (test.json, "
+                                                "test_verdicts.json; precond/evaluation/tools_domain.py).",
+                                                show_default=False)] = None,
 ) -> None:
     """Guard tool calls: rules from the successful airline runs, judged on every state-changing call."""
     from precond.evaluation.tools import CONFIGS, GuardConfig, run
     from precond.evaluation.tools_report import write_tools_section
 
+    if domain is not None:
+        _score_domain(domain, cache_dir)
+        return
     (data,) = _data([data] if data else None, "tau-airline")
     if labels:
         from precond.evaluation import tools_labels
@@ -279,6 +286,20 @@ def tools(
     path = store.put(result, "results", "tools")
     write_tools_section(store, REPORT)
     typer.echo(f"chosen: {result['chosen']}; results: {path}; section written into {REPORT}")
+
+
+def _score_domain(domain: Path, cache_dir: Path) -> None:
+    from precond.evaluation import tools_domain
+
+    missing = [n for n in ("tools.json", "trajectories.json", "test.json", "test_verdicts.json")
+               if not (domain / n).is_file()]
+    if missing:
+        typer.echo(f"error: {domain / missing[0]}: no such file (a domain has tools.json, trajectories.json, "
+                   "test.json and test_verdicts.json)", err=True)
+        raise typer.Exit(2)
+    scored = tools_domain.run(_engine(False), domain, typer.echo)
+    path = JsonCache(cache_dir).put(scored, "results", f"tools-domain-{domain.resolve().name}")
+    typer.echo(tools_domain.table(scored) + f"\nresults: {path}")
 
 
 class _PolicyEngines:

@@ -38,6 +38,17 @@ from precond_client.openai_log import (
 )
 
 
+@dataclass(frozen=True)
+class CallLabel:
+    """A label a log carries on the tool call itself (`"label": "refuse"` in an assistant's `tool_calls` entry)."""
+
+    message: int
+    position: int
+    """Which call of that message (a message may make several)."""
+    allowed: bool
+    where: str
+
+
 @dataclass
 class Trajectory:
     name: str
@@ -46,6 +57,7 @@ class Trajectory:
     reward: float | None = None
     messages: list[int] = field(default_factory=list)
     """The index of the message that made each call (labels name calls so)."""
+    labels: list[CallLabel] = field(default_factory=list)
 
 
 @dataclass
@@ -53,7 +65,11 @@ class Converted:
     spec: str
     tools: list[Tool]
     writes: set[str]
+    """The state-changing tools: their results go to `self.changes`, a read's to `self.results`."""
     trajectories: list[Trajectory] = field(default_factory=list)
+    guarded: set[str] = field(default_factory=set)
+    """The tools rules are inferred for (the request's actions): every tool unless told otherwise. A read is
+    guarded as a write is (reading another customer's order breaks a policy too)."""
 
     @property
     def without_writes(self) -> int:
@@ -208,18 +224,44 @@ def _record_name(record: dict[str, Any], index: int) -> str:
 
 
 def convert(data: Any, tools_data: Any, source: str = "trajectories", tools_source: str = "tools",
-            writes: set[str] | None = None) -> Converted:
-    """Parsed trajectories and tool schemas → the spec and one program per trajectory."""
+            writes: set[str] | None = None, guarded: set[str] | None = None) -> Converted:
+    """Parsed trajectories and tool schemas → the spec and one program per trajectory. `writes`: the
+    state-changing tools (default: named like writes, `writes_of`); `guarded`: the tools to infer rules for
+    (default: all of them)."""
     tools = read_tools(tools_data, tools_source)
+    names = {t.name for t in tools}
     chosen = writes_of(tools) if writes is None else writes
-    unknown = sorted(chosen - {t.name for t in tools})
-    if unknown:
-        raise _fail(tools_source, f"state-changing tool {unknown[0]!r} is not among the tools")
-    converted = Converted(spec_program(tools, chosen), tools, chosen)
+    for what, given in (("state-changing", chosen), ("guarded", guarded or set())):
+        unknown = sorted(given - names)
+        if unknown:
+            raise _fail(tools_source, f"{what} tool {unknown[0]!r} is not among the tools")
+    converted = Converted(spec_program(tools, chosen), tools, chosen, guarded=set(names if guarded is None
+                                                                                    else guarded))
     for name, messages, where, reward in _runs(data, source):
         renderer = render(messages, tools, where)
-        converted.trajectories.append(Trajectory(name, renderer.program(), renderer.calls, reward, renderer.messages))
+        converted.trajectories.append(Trajectory(name, renderer.program(), renderer.calls, reward, renderer.messages,
+                                                 _call_labels(messages, where)))
     return converted
+
+
+CALL_LABELS = {"refuse": False, "allow": True}
+
+
+def _call_labels(messages: list[Any], where: str) -> list[CallLabel]:
+    """The labels the calls carry (`"label": "refuse"` or `"allow"` beside `function`); any other value is
+    refused naming it: a label read wrong would be a silently weaker guard. The messages were read already."""
+    found = []
+    for index, message in enumerate(messages):
+        calls = (message.get("tool_calls") or []) if message.get("role") == "assistant" else []
+        for position, call in enumerate(calls):
+            if not isinstance(call, dict) or "label" not in call:
+                continue
+            at = f"{where}[{index}].tool_calls[{position}].label"
+            allowed = CALL_LABELS.get(call["label"]) if isinstance(call["label"], str) else None
+            if allowed is None:
+                raise _fail(at, f"expected 'refuse' or 'allow', found {call['label']!r}")
+            found.append(CallLabel(index, position, allowed, at))
+    return found
 
 
 # ---- inside the API: histories and calls of a check or next-action request ---------------------------------

@@ -58,10 +58,10 @@ def test_the_same_call_labelled_both_ways_names_both_records(tmp_path: Path) -> 
     assert "[3]: labels the same history and call as" in done.stderr and "[0] the other way" in done.stderr
 
 
-def test_labels_of_tools_that_are_not_actions_are_left_out_and_counted(tmp_path: Path) -> None:
+def test_labels_of_tools_that_are_not_guarded_are_left_out_and_counted(tmp_path: Path) -> None:
     (tmp_path / "labels.json").write_text(json.dumps(LABELS))
     done = precond("convert", "openai", str(TAU / "trajectories.json"), "--tools", str(TAU / "tools.json"),
-                   "--out", str(tmp_path / "out"), "--writes", "cancel_reservation",
+                   "--out", str(tmp_path / "out"), "--guard", "cancel_reservation",
                    "--labels", str(tmp_path / "labels.json"))
     assert done.returncode == 0, done.stderr
     assert "labelled calls: 1 to refuse, 1 to allow" in done.stderr and "1 labels of tools that are not actions" \
