@@ -11,7 +11,6 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from arq.connections import ArqRedis
 from fastapi import FastAPI
 from redis.asyncio import ConnectionPool, Redis
 
@@ -56,7 +55,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         secret = settings.secret_bytes()
         keys = key_store(settings)
         dsn = settings.redis_dsn
-        redis = ArqRedis(ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
+        redis: Redis[bytes] = Redis(
+            connection_pool=ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
         cache_redis: Redis[bytes] = redis
         if settings.cache_redis_dsn != dsn:  # the cache Redis, which may evict; the queue Redis never does
             cache_redis = Redis(

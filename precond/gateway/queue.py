@@ -13,7 +13,7 @@ import contextlib
 import time
 from typing import Any
 
-from arq.connections import ArqRedis
+from redis.asyncio import Redis
 
 from precond.gateway.completions import Completions, Watch
 from precond.gateway.errors import bounded
@@ -37,7 +37,7 @@ SAFETY_POLL_S = 1.0
 
 class JobQueue:
     def __init__(
-        self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int, tenant_max_jobs: int,
+        self, redis: Redis[bytes], cache: ResultCache, completions: Completions, max_jobs: int, tenant_max_jobs: int,
         result_ttl_s: int = 3600,
     ) -> None:
         self.redis = redis
