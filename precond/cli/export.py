@@ -1,6 +1,7 @@
-"""Generated artefacts checked into the repo: openapi/openapi.json and docs/configuration.md.
+"""Generated artefacts checked into the repo: openapi/openapi.json, openapi/queue-records.schema.json (the queue's
+records between gateway and worker) and docs/configuration.md.
 
-    python -m precond.cli.export          # rewrite both
+    python -m precond.cli.export          # rewrite all three
 A test regenerates them in memory and fails when the committed files have drifted from the code.
 """
 
@@ -11,17 +12,20 @@ from pathlib import Path
 from typing import Any
 
 from pydantic.fields import FieldInfo
+from pydantic.json_schema import models_json_schema
 from pydantic_settings import BaseSettings
 
 from precond.engine.settings import ModelSettings, SandboxSettings
 from precond.evaluation.settings import DataSettings
 from precond.gateway.app import create_app
 from precond.gateway.settings import GatewaySettings
+from precond.jobs.queue.payloads import RECORD_VERSION, RECORDS
 from precond.jobs.settings import QueueSettings
 from precond.worker.settings import WorkerSettings
 
 ROOT = Path(__file__).resolve().parents[2]
 OPENAPI = ROOT / "openapi" / "openapi.json"
+QUEUE_RECORDS = ROOT / "openapi" / "queue-records.schema.json"
 CONFIGURATION = ROOT / "docs" / "configuration.md"
 
 SECTIONS: tuple[tuple[str, type[BaseSettings], str], ...] = (
@@ -41,6 +45,15 @@ SECTIONS: tuple[tuple[str, type[BaseSettings], str], ...] = (
 
 def openapi_text() -> str:
     return json.dumps(create_app(GatewaySettings()).openapi(), indent=2, sort_keys=True) + "\n"
+
+
+def queue_records_text() -> str:
+    """The JSON Schema of every record gateway and workers write to the queue Redis (precond/jobs/queue/payloads.py),
+    each under its model's name in `$defs`."""
+    _, schema = models_json_schema([(model, "validation") for model in RECORDS],
+                                   title=f"precondition-service queue records, version {RECORD_VERSION}")
+    schema = {"$schema": "https://json-schema.org/draft/2020-12/schema", **schema}
+    return json.dumps(schema, indent=2, sort_keys=True) + "\n"
 
 
 def env_names(cls: type[BaseSettings], name: str) -> list[str]:
@@ -103,6 +116,7 @@ def configuration_text() -> str:
 
 def main() -> None:
     OPENAPI.write_text(openapi_text())
+    QUEUE_RECORDS.write_text(queue_records_text())
     CONFIGURATION.write_text(configuration_text())
 
 

@@ -12,7 +12,6 @@ import multiprocessing
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from arq.connections import ArqRedis
 from fastapi import FastAPI
 from redis.asyncio import ConnectionPool, Redis
 
@@ -61,7 +60,8 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         if spawner is not None and spawner.pid is not None:  # one of uvicorn's `--workers`: it ends with
             die_with_parent(spawner.pid)  # uvicorn's supervisor, however that ends
         dsn = settings.redis_dsn
-        redis = ArqRedis(ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
+        redis: Redis[bytes] = Redis(
+            connection_pool=ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
         cache_redis: Redis[bytes] = redis
         if settings.cache_redis_dsn != dsn:  # the cache Redis, which may evict; the queue Redis never does
             cache_redis = Redis(

@@ -5,8 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from arq.connections import ArqRedis
 from fastapi import Depends, Request
+from redis.asyncio import Redis
 
 from precond.gateway.api_keys import KeyStore
 from precond.gateway.offload import CheckPool
@@ -22,7 +22,7 @@ from precond.jobs.cache import ResultCache
 @dataclass(frozen=True)
 class Services:
     settings: GatewaySettings
-    redis: ArqRedis
+    redis: Redis[bytes]
     cache: ResultCache
     queue: JobQueue
     metrics: Metrics

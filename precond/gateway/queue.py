@@ -13,9 +13,7 @@ import contextlib
 import time
 from typing import Any
 
-from arq.connections import ArqRedis
-from arq.jobs import Job, JobResult
-from arq.worker import JobExecutionFailed
+from redis.asyncio import Redis
 
 from precond.gateway.completions import Completions, Watch
 from precond.gateway.errors import bounded
@@ -23,8 +21,14 @@ from precond.jobs.cache import ResultCache
 from precond.jobs.queue import steps
 from precond.jobs.queue.keys import IN_PROGRESS_PREFIX, RESULT_PREFIX, JobId, progress_key
 from precond.jobs.queue.kinds import KINDS, queue_for, queues_of
-from precond.jobs.queue.payloads import cancelled_end, decode_end, encode_job
-from precond.jobs.records import Outcome, parse_progress
+from precond.jobs.queue.payloads import (
+    EndRecord,
+    RecordError,
+    cancelled_end,
+    decode_end,
+    decode_progress,
+    encode_job,
+)
 from precond_client.schemas.api import ErrorInfo, JobProgress, JobStatus
 
 SAFETY_POLL_S = 1.0
@@ -33,7 +37,7 @@ SAFETY_POLL_S = 1.0
 
 class JobQueue:
     def __init__(
-        self, redis: ArqRedis, cache: ResultCache, completions: Completions, max_jobs: int, tenant_max_jobs: int,
+        self, redis: Redis[bytes], cache: ResultCache, completions: Completions, max_jobs: int, tenant_max_jobs: int,
         result_ttl_s: int = 3600,
     ) -> None:
         self.redis = redis
@@ -42,9 +46,6 @@ class JobQueue:
         self.max_jobs = max_jobs
         self.tenant_max_jobs = tenant_max_jobs
         self.result_ttl_s = result_ttl_s
-
-    def _job(self, job: JobId, queue: str) -> Job:
-        return Job(job.value, self.redis, _queue_name=queue)
 
     async def _queue_of(self, job: JobId) -> str:
         """The queue holding the job (an inference goes to one of two, by cost); its kind's default when
@@ -71,7 +72,7 @@ class JobQueue:
         queue = queue_for(job.kind, body)
         with self.completions.watch(job.value) as watch:  # before the enqueue: its notice cannot come first
             enqueued = await self._enqueue(job, body, cache_key, queue)
-            if not enqueued and await self._last_run_unusable(self._job(job, queue)):
+            if not enqueued and await self._last_run_unusable(job):
                 await steps.reopen(self.redis, job.value)
                 enqueued = await self._enqueue(job, body, cache_key, queue)
             return await self._wait(job, timeout_s, poll_s, watch, read_first=not enqueued)
@@ -84,9 +85,14 @@ class JobQueue:
                                       self.completions.channel)
         return await steps.submit(self.redis, submission, self.max_jobs, self.tenant_max_jobs)
 
-    async def _last_run_unusable(self, job: Job) -> bool:
-        info = await job.result_info()
-        return info is not None and _is_internal(info)
+    async def _last_run_unusable(self, job: JobId) -> bool:
+        raw = await self.redis.get(RESULT_PREFIX + job.value)
+        if raw is None:
+            return False
+        try:
+            return _is_internal(decode_end(raw))
+        except RecordError:
+            return True  # not an end this service wrote: run the job again
 
     async def status(self, job: JobId) -> JobStatus | None:
         """The job's state, read in one round trip once its queue is known (result, progress and the in-progress
@@ -100,7 +106,7 @@ class JobQueue:
             raw_result, raw_progress, in_progress, score = await pipe.execute()
         if raw_result:
             return _ended(job, raw_result, raw_progress)
-        progress = parse_progress(raw_progress)
+        progress = decode_progress(raw_progress)
         if not in_progress and score is None:
             cached = await self.cache.get(job.value)
             if cached is None:
@@ -142,11 +148,11 @@ class JobQueue:
     async def cancel(self, job: JobId, confirm_s: float) -> JobStatus | None:
         """Cancel a queued or running job; the answer says `cancelled` once it took effect.
 
-        A queued job is taken out of its queue here, at once (a busy worker would see arq's abort mark only
-        when it next starts a job). A running one gets arq's abort: the worker cancels it, the engine stops at
-        its next check (between decode steps, and every sandbox call is interrupted), and arq records it;
-        this waits up to `confirm_s` for that. Only existing unfinished jobs are marked: an abort mark for an
-        unknown id would stay in arq's abort set and kill the next job that gets this id (arq#485).
+        A queued job is taken out of its queue here, at once (a busy worker would see the abort mark only
+        when it next starts a job). A running one is marked for abort: the worker cancels it, the engine stops
+        at its next check (between decode steps, and every sandbox call is interrupted), and its end is stored
+        as cancelled; this waits up to `confirm_s` for that. Only existing unfinished jobs are marked: an abort
+        mark for an unknown id would stay in the abort set and kill the next job that gets this id (arq#485).
         """
         status = await self.status(job)
         if status is None or status.status not in ("queued", "running"):
@@ -155,20 +161,25 @@ class JobQueue:
         if status.status == "queued" and await self._cancel_queued(job, queue):
             return await self.status(job)
         await steps.mark_abort(self.redis, queue, job.value, int(time.time() * 1000))
-        with contextlib.suppress(TimeoutError):
-            await self._job(job, queue).abort(timeout=confirm_s, poll_delay=min(0.1, confirm_s / 4))
-        return await self.status(job)
+        deadline = time.monotonic() + confirm_s
+        while status is not None and status.status in ("queued", "running") and time.monotonic() < deadline:
+            await asyncio.sleep(min(0.1, confirm_s / 4))
+            status = await self.status(job)
+        return status
 
     async def _cancel_queued(self, job: JobId, queue: str) -> bool:
-        cancelled = cancelled_end(job.value, queue, job.kind, int(time.time() * 1000))
-        assert cancelled is not None  # a CancelledError always serialises
+        cancelled = cancelled_end(job.value, queue, int(time.time() * 1000))
         return await steps.cancel_queued(self.redis, queue, job.value, cancelled, self.result_ttl_s * 1000)
 
 
 def _ended(job: JobId, raw_result: bytes, raw_progress: bytes | None) -> JobStatus:
-    """A job's state from its stored end (arq's result) and progress, as read back or as its notice carried it."""
-    progress = parse_progress(raw_progress or None)
-    state, result, error = _state(decode_end(raw_result))
+    """A job's state from its stored end and progress, as read back or as its notice carried it."""
+    progress = decode_progress(raw_progress)
+    try:
+        state, result, error = _state(decode_end(raw_result))
+    except RecordError as exc:
+        state, result, error = "failed", None, bounded(ErrorInfo(
+            type="internal", message=f"the job's stored end is not a record this service reads: {exc}"))
     done = _done(progress) if state == "succeeded" else progress
     return JobStatus(id=job.value, kind=job.kind, status=state, progress=done, result=result, error=error)
 
@@ -182,24 +193,24 @@ def _done(progress: JobProgress) -> JobProgress:
 NOT_REUSABLE = frozenset({"internal", "resource_limit", "sandbox_failure"})
 
 
-def _is_internal(info: JobResult) -> bool:
+def _is_internal(end: EndRecord) -> bool:
     """Cancelled or crashed runs, and runs stopped by a sandbox limit or a sandbox failure, say nothing
     final about the request, so they must not stand in for its result: the next identical request runs."""
-    if not info.success:
+    if end.outcome is None:
         return True
-    error = Outcome.from_arq(info.result).error
-    return error is not None and error.type in NOT_REUSABLE
+    return end.outcome.error is not None and end.outcome.error.type in NOT_REUSABLE
 
 
-def _state(info: JobResult) -> tuple[Any, dict[str, Any] | None, ErrorInfo | None]:
-    """arq's stored result as (state, result, error): workers return outcomes, arq stores their exceptions."""
-    if info.success:
-        outcome = Outcome.from_arq(info.result)
+def _state(end: EndRecord) -> tuple[Any, dict[str, Any] | None, ErrorInfo | None]:
+    """A stored end as (state, result, error): an outcome the job returned, or why it ended without one."""
+    if end.outcome is not None:
+        outcome = end.outcome
         return outcome.status, outcome.result, None if outcome.error is None else bounded(outcome.error)
-    if isinstance(info.result, asyncio.CancelledError):
+    assert end.failure is not None  # an end has one or the other (EndRecord)
+    if end.failure.reason == "cancelled":
         return "cancelled", None, ErrorInfo(type="cancelled", message="the job was cancelled")
-    if isinstance(info.result, JobExecutionFailed) and "retries exceeded" in str(info.result):
+    if end.failure.reason == "retries_exceeded":
         return "failed", None, ErrorInfo(type="internal", message=(
-            f"the job was started {info.job_try - 1} times (PRECOND_JOB_MAX_TRIES) and its worker never finished "
+            f"the job was started {end.job_try - 1} times (PRECOND_JOB_MAX_TRIES) and its worker never finished "
             "it (it died or was stopped each time); it is not run again"))
-    return "failed", None, bounded(ErrorInfo(type="internal", message=f"job failed: {info.result!r}"))
+    return "failed", None, bounded(ErrorInfo(type="internal", message=f"job failed: {end.failure.message}"))

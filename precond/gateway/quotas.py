@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Final
 
-from arq.connections import ArqRedis
+from redis.asyncio import Redis
 from redis.exceptions import OutOfMemoryError  # type: ignore[attr-defined]  # types-redis predates it
 
 from precond.gateway.caller import Caller
@@ -136,7 +136,7 @@ def _remember(blocked: dict[str, float], who: str, until: float, now: float) -> 
 
 
 class Quotas:
-    def __init__(self, redis: ArqRedis, rate_per_s: float, burst: int, max_jobs: int, auth: AuthLimit) -> None:
+    def __init__(self, redis: Redis[bytes], rate_per_s: float, burst: int, max_jobs: int, auth: AuthLimit) -> None:
         self.redis, self.rate_per_s, self.burst, self.max_jobs, self.auth = redis, rate_per_s, burst, max_jobs, auth
         self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
         self._empty: dict[str, float] = {}  # tenant tag -> until its rate bucket has a token again

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
 
-from arq.connections import ArqRedis
+from redis.asyncio import Redis
 
 from precond.gateway.errors import ServiceError
 from precond.jobs import tenant_store
@@ -96,7 +96,7 @@ class ParsedVersions:
 
 
 class SetStore:
-    def __init__(self, redis: ArqRedis, max_sets: int, max_versions: int, max_bytes: int,
+    def __init__(self, redis: Redis[bytes], max_sets: int, max_versions: int, max_bytes: int,
                  max_tenant_bytes: int) -> None:
         self.redis, self.max_sets, self.max_versions, self.max_bytes = redis, max_sets, max_versions, max_bytes
         self.max_tenant_bytes = max_tenant_bytes

@@ -1,8 +1,7 @@
-"""What a worker writes and the gateway reads back, typed on both sides: outcomes, progress and stats.
+"""What a worker writes and the gateway reads back beside a job's end: progress and stats.
 
-* `Outcome`: what a job returns to arq (stored as plain JSON-able data, so nothing but this module has to
-  agree on its shape); the gateway turns it into a `JobStatus`.
-* Progress: `JobProgress` (the API's own shape) as JSON under `progress_key(job id)`.
+* Progress: a `ProgressRecord` (the API's `JobProgress`, versioned: precond/jobs/queue/payloads.py) as JSON under
+  `progress_key(job id)`.
 * Stats: the workers' counters in one Redis hash (`STATS_KEY`), named by the functions here and read back
   into a `StatsSnapshot` for /metrics.
 """
@@ -10,49 +9,22 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
-from pydantic import BaseModel
 from redis.asyncio import Redis
 
 from precond.jobs.queue.keys import STATS_KEY, JobId, progress_key
-from precond_client.schemas.api import ErrorInfo, JobKind, JobProgress
-from precond_client.schemas.errors import PrecondError
+from precond.jobs.queue.payloads import encode_progress
+from precond_client.schemas.api import JobKind, JobProgress
 
 OutcomeState = Literal["succeeded", "failed"]
-
-
-class Outcome(BaseModel):
-    """A finished run: the response body, or the engine's user-facing error (an input error is an outcome
-    too, the client's: 422, not a crash)."""
-
-    status: OutcomeState
-    result: dict[str, Any] | None = None
-    error: ErrorInfo | None = None
-
-    def to_arq(self) -> dict[str, Any]:
-        return self.model_dump(mode="json")
-
-    @classmethod
-    def from_arq(cls, stored: Any) -> Outcome:
-        return cls.model_validate(stored)
-
-    @classmethod
-    def failed(cls, exc: PrecondError) -> Outcome:
-        """The outcome of a job the engine (or its store) refused: the error's type, message and field."""
-        return cls(status="failed", error=ErrorInfo(type=exc.kind, message=exc.message, field=exc.field))
 
 
 # ---- progress -------------------------------------------------------------------------------------------
 
 
 async def write_progress(redis: Redis[bytes], job_id: str, progress: JobProgress, ttl_s: int) -> None:
-    await redis.set(progress_key(job_id), progress.model_dump_json(), ex=ttl_s)
-
-
-def parse_progress(raw: bytes | None) -> JobProgress:
-    """A job's progress as stored at `progress_key` (the gateway reads it in one round trip with the rest)."""
-    return JobProgress() if raw is None else JobProgress.model_validate_json(raw)
+    await redis.set(progress_key(job_id), encode_progress(progress), ex=ttl_s)
 
 
 # ---- stats ----------------------------------------------------------------------------------------------

@@ -118,14 +118,14 @@ def summary_ms(values: list[float]) -> dict[str, float]:
 
 
 def arq_job_tries(client: redis.Redis[bytes], job_ids: list[str]) -> dict[str, int]:
-    """arq's own count of how often each finished job was started (its stored result's `job_try`)."""
-    from arq.jobs import deserialize_result
+    """The queue's own count of how often each finished job was started (its stored end's `job_try`)."""
+    from precond.jobs.queue.payloads import decode_end
 
     tries: dict[str, int] = {}
     for job_id in job_ids:
         raw = client.get(f"arq:result:{job_id}")
         if raw is not None:
-            tries[job_id] = deserialize_result(raw).job_try
+            tries[job_id] = decode_end(raw).job_try
     return tries
 
 

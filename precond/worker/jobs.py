@@ -25,8 +25,8 @@ from precond.engine.scope import scoped
 from precond.jobs.cache import ResultCache
 from precond.jobs.queue.keys import JobId, is_shared
 from precond.jobs.queue.kinds import KINDS
-from precond.jobs.queue.payloads import ReinferJob
-from precond.jobs.records import Outcome, job_counts, record_phase, write_progress
+from precond.jobs.queue.payloads import Outcome, ReinferJob
+from precond.jobs.records import job_counts, record_phase, write_progress
 from precond.worker import policies
 from precond.worker.memory import MemoryGuard
 from precond.worker.queue_worker import JobEnd
@@ -164,7 +164,7 @@ async def run_operation(
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
     cache: ResultCache = ctx["cache"]
     writes = () if outcome.result is None else (cache.put(cache_key or job.value, outcome.result),)
-    return JobEnd(outcome.to_arq(), job_counts(kind, outcome.status, sandbox_limit), writes)
+    return JobEnd(outcome, job_counts(kind, outcome.status, sandbox_limit), writes)
 
 
 async def _engine_for(ctx: dict[str, Any], tag: str, kind: JobKind, body: dict[str, Any]

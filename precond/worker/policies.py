@@ -28,8 +28,7 @@ from pydantic import ValidationError
 
 from precond.engine.engine import Engine
 from precond.jobs import policy_adapters, tenant_store
-from precond.jobs.queue.payloads import TrainPolicyJob
-from precond.jobs.records import Outcome
+from precond.jobs.queue.payloads import Outcome, TrainPolicyJob
 from precond.worker import training_process
 from precond.worker.settings import get_worker_settings
 from precond_client.schemas.errors import Conflict, InvalidInput, ModelUnavailable, NotFound

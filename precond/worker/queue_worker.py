@@ -18,17 +18,26 @@ from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from arq.jobs import SerializationError, deserialize_job_raw
-from arq.worker import JobExecutionFailed
 from redis.asyncio import Redis
 from redis.asyncio.client import PubSub
 from redis.exceptions import RedisError
 
 from precond.jobs.queue import steps
 from precond.jobs.queue.keys import JobId, wake_channel
-from precond.jobs.queue.payloads import encode_end
+from precond.jobs.queue.payloads import (
+    MAX_REASON_CHARS,
+    RECORD_VERSION,
+    EndRecord,
+    Failure,
+    JobRecord,
+    Outcome,
+    RecordError,
+    decode_job,
+    encode_end,
+)
 from precond.jobs.queue.steps import Claim, Taken
 from precond.jobs.records import queue_time_counts
+from precond_client.schemas.api import JobKind
 
 log = logging.getLogger("precond.worker")
 NOTICE_WAIT_S = 1.0
@@ -44,10 +53,11 @@ IN_PROGRESS_EXTRA_S = 10
 
 @dataclass(frozen=True)
 class JobEnd:
-    """What a job function returns to its worker: `stored`, the outcome arq keeps as the job's result; `counts`,
-    stats to add (jobs/records.py); `writes`, what goes out with the end (the result cache, on its own Redis)."""
+    """What a job function returns to its worker: `outcome`, stored as the job's end (None for a run that
+    returned none); `counts`, stats to add (jobs/records.py); `writes`, what goes out with the end (the result
+    cache, on its own Redis)."""
 
-    stored: dict[str, Any]
+    outcome: Outcome | None = None
     counts: dict[str, float] = field(default_factory=dict)
     writes: tuple[Awaitable[Any], ...] = ()
 
@@ -67,7 +77,8 @@ class Claims(Protocol):
     def close(self, job_id: str, token: str, recorded: bool) -> None: ...
 
 
-Operation = Callable[..., Coroutine[Any, Any, JobEnd]]
+Operation = Callable[[dict[str, Any], JobKind, dict[str, Any], str], Coroutine[Any, Any, JobEnd]]
+"""The job function: `(ctx, kind, body, cache_key)` of a job's record."""
 
 
 @dataclass(frozen=True)
@@ -110,9 +121,9 @@ class QueueWorker:
     otherwise (the worker process then starts another, precond/worker/runner.py); `close` waits for the ends of
     the runs it cancelled and closes its connections."""
 
-    def __init__(self, functions: dict[str, Operation], settings: RunSettings, redis_url: str, claims: Claims,
+    def __init__(self, operation: Operation, settings: RunSettings, redis_url: str, claims: Claims,
                  ctx: dict[str, Any] | None = None) -> None:
-        self.functions, self.settings, self.claims = functions, settings, claims
+        self.operation, self.settings, self.claims = operation, settings, claims
         self.queue_name = settings.queue
         self.pool: Redis[bytes] = Redis.from_url(redis_url, socket_connect_timeout=1)
         self.ctx = {**(ctx or {}), "redis": self.pool}
@@ -223,44 +234,43 @@ class QueueWorker:
     async def _run(self, taken: Taken, claim: Claim) -> bool:
         """The job's function under its timeout, then `_finish`. A run that cannot start (expired, unreadable,
         aborted before it started, out of tries) ends failed. Returns whether other jobs wait in the queue."""
-        start_ms, job_id = int(time.time() * 1000), taken.id
-        job = _Job(job_id, taken, start_ms)
+        job = _Job(taken.id, taken, int(time.time() * 1000))
         refused = self._refusal(job)
-        if refused is not None or job.identity is None:
-            return await self._finish(job, claim, True, job.result(self.queue_name, False, refused), JobEnd({}))
-        function = self.functions[job.name]
+        if refused is not None or job.identity is None or job.record is None:
+            return await self._finish(job, claim, True, job.end(self.queue_name, refused), JobEnd())
+        record, job_id = job.record, job.id
         ctx = {**self.ctx, "job": job.identity, "job_try": taken.job_try, "score": taken.score, "claim": claim.token}
-        waited = queue_time_counts(job.identity, (start_ms - job.enqueue_ms) / 1000) if taken.job_try == 1 else {}
-        self.job_tasks[job_id] = task = asyncio.get_running_loop().create_task(function(ctx, *job.args, **job.kwargs))
+        waited = queue_time_counts(job.identity, (job.start_ms - record.enqueued_ms) / 1000) \
+            if taken.job_try == 1 else {}
+        self.job_tasks[job_id] = task = asyncio.get_running_loop().create_task(
+            self.operation(ctx, record.kind, record.body, record.cache_key))
         try:
             end: JobEnd = await asyncio.wait_for(task, self.settings.timeout_s)
         except (Exception, asyncio.CancelledError) as exc:
             finished = self._finished(job_id, exc)
-            return await self._finish(job, claim, finished,
-                                      job.result(self.queue_name, False, exc) if finished else None,
-                                      JobEnd({}, waited))
+            return await self._finish(job, claim, finished, job.end(self.queue_name, _failure(exc)) if finished
+                                      else None, JobEnd(None, waited))
         finally:
             del self.job_tasks[job_id]
-        return await self._finish(job, claim, True, job.result(self.queue_name, True, end.stored),
-                                  JobEnd(end.stored, {**end.counts, **waited}, end.writes))
+        return await self._finish(job, claim, True, job.end(self.queue_name, end.outcome),
+                                  JobEnd(end.outcome, {**end.counts, **waited}, end.writes))
 
-    def _refusal(self, job: _Job) -> BaseException | None:
-        """Why a taken job must end without running; None when it runs."""
+    def _refusal(self, job: _Job) -> Failure | None:
+        """Why a taken job must end without running; None when it runs. A record that fails its schema (or is
+        of another version) is refused unread: nothing in it runs."""
         if job.identity is None:
-            return JobExecutionFailed(f"not a job id of this service: {job.id[:120]!r}")
+            return _refused(f"not a job id of this service: {job.id[:120]!r}")
         if job.taken.job is None:
-            return JobExecutionFailed("job expired")
+            return _refused("job expired")
         try:
             job.read()
-        except SerializationError as exc:
-            log.exception("deserializing job %s failed", job.id)
-            return exc
+        except RecordError as exc:
+            log.error("job %s: its record is refused: %s", job.id, exc)
+            return _refused(f"the job's record is refused: {exc}")
         if job.taken.aborted:
-            return asyncio.CancelledError()
-        if job.name not in self.functions:
-            return JobExecutionFailed(f"function {job.name!r} not found")
+            return Failure(reason="cancelled", message="the job was cancelled")
         if job.taken.job_try > self.settings.max_tries:
-            return JobExecutionFailed(f"max {self.settings.max_tries} retries exceeded")
+            return Failure(reason="retries_exceeded", message=f"max {self.settings.max_tries} retries exceeded")
         return None
 
     def _finished(self, job_id: str, exc: BaseException) -> bool:
@@ -336,24 +346,41 @@ class QueueWorker:
 
 
 class _Job:
-    """A taken job as its run reads it: its bytes, decoded once."""
+    """A taken job as its run reads it: its record, decoded once."""
 
     def __init__(self, job_id: str, taken: Taken, start_ms: int) -> None:
         self.id, self.taken, self.start_ms = job_id, taken, start_ms
         self.identity = JobId.read(job_id)
         """The job's kind and tenant, read once here; None for an id this service never hands out."""
-        self.name, self.enqueue_ms = "<unknown>", 0
-        self.args: tuple[Any, ...] = ()
-        self.kwargs: dict[str, Any] = {}
+        self.record: JobRecord | None = None
 
     def read(self) -> None:
-        assert self.taken.job is not None
-        self.name, self.args, self.kwargs, _, self.enqueue_ms = deserialize_job_raw(self.taken.job)
+        """The job's record; RecordError for bytes that are not one, or one of another kind than its id's
+        (its queue, its tenant's bounds and its cache scope were chosen by the id)."""
+        assert self.taken.job is not None and self.identity is not None
+        record = decode_job(self.taken.job)
+        if record.kind != self.identity.kind:
+            raise RecordError(f"a {record.kind!r} record under a {self.identity.kind!r} job id")
+        self.record = record
 
-    def result(self, queue: str, success: bool, result: Any) -> bytes | None:
-        """The stored end of this run."""
-        return encode_end(self.id, queue, (self.name, self.args, self.enqueue_ms), self.taken.job_try, success,
-                          result, self.start_ms, int(time.time() * 1000))
+    def end(self, queue: str, how: Outcome | Failure | None) -> bytes:
+        """The stored end of this run: the outcome it returned, or why it ended without one."""
+        outcome, failure = (how, None) if isinstance(how, Outcome) else (None, how)
+        return encode_end(EndRecord(
+            version=RECORD_VERSION, job_id=self.id[:200], queue=queue, job_try=self.taken.job_try,
+            enqueued_ms=self.record.enqueued_ms if self.record else 0, start_ms=self.start_ms,
+            finish_ms=int(time.time() * 1000), outcome=outcome, failure=failure))
+
+
+def _refused(message: str) -> Failure:
+    return Failure(reason="refused", message=message[:MAX_REASON_CHARS])
+
+
+def _failure(exc: BaseException) -> Failure:
+    """How a run that raised ended: cancelled by an abort, or crashed (its error, a timeout)."""
+    if isinstance(exc, asyncio.CancelledError):
+        return Failure(reason="cancelled", message="the job was cancelled")
+    return Failure(reason="crashed", message=repr(exc)[:MAX_REASON_CHARS])
 
 
 async def _unstoppable(writes: asyncio.Future[list[Any]]) -> list[Any]:

@@ -35,7 +35,6 @@ from precond.jobs.cache import ResultCache
 from precond.jobs.queue.heartbeats import Heartbeat, beat, new_claim
 from precond.jobs.queue.keys import (
     CHECK_QUEUE,
-    JOB_FUNCTION,
     MODEL_QUEUE,
     MODEL_QUEUES,
     QUEUES,
@@ -181,7 +180,7 @@ class WorkerProcess:
         )
         ctx = {"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory,
                "policies": self.policies}
-        return QueueWorker({JOB_FUNCTION: run_operation}, settings, s.redis_dsn, self.claims, ctx)
+        return QueueWorker(run_operation, settings, s.redis_dsn, self.claims, ctx)
 
     async def _serve(self, queue: str, engine: Engine) -> None:
         """Run a queue worker on `queue` until drained, starting a new one after each Redis outage."""

@@ -1,7 +1,7 @@
 """The queue's contract (precond/jobs/queue/) step by step against a redis-server of the test's own: a job is
 submitted, taken, finished; another is submitted and cancelled while queued; a third is taken by a worker that then
 dies and is handed back by a live worker's beat, taken again, and finished on its second try. Each step is checked
-by what the other side reads: the gateway's view of a job (its keys), a worker's take, arq's own `Job` reader."""
+by what the other side reads: the gateway's view of a job (its keys and its stored end), a worker's take."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import asyncio
 from typing import Any
 
 import pytest
-from arq.jobs import Job
 from redis.asyncio import Redis
 
 from precond.jobs.queue import keys, steps
@@ -24,7 +23,15 @@ from precond.jobs.queue.keys import (
     tenant_jobs_key,
 )
 from precond.jobs.queue.notices import notice_channel, read_notice
-from precond.jobs.queue.payloads import cancelled_end, decode_end, encode_end, encode_job
+from precond.jobs.queue.payloads import (
+    RECORD_VERSION,
+    EndRecord,
+    Outcome,
+    cancelled_end,
+    decode_end,
+    encode_end,
+    encode_job,
+)
 from precond.stack.local import RedisServer
 
 TAG = "0123456789abcdef"
@@ -54,9 +61,10 @@ async def take(redis: Redis[bytes], by: steps.Claim) -> steps.Taken:
     return taken
 
 
-async def finish(redis: Redis[bytes], taken: steps.Taken, by: steps.Claim, result: Any) -> int:
-    stored = encode_end(taken.id, CHECK_QUEUE, ("run_operation", ("check", {}, taken.id), 0), taken.job_try, True,
-                        result, 1, 2)
+async def finish(redis: Redis[bytes], taken: steps.Taken, by: steps.Claim, result: dict[str, Any]) -> int:
+    stored = encode_end(EndRecord(version=RECORD_VERSION, job_id=taken.id, queue=CHECK_QUEUE, job_try=taken.job_try,
+                                  enqueued_ms=0, start_ms=1, finish_ms=2,
+                                  outcome=Outcome(status="succeeded", result=result)))
     return await steps.finish(redis, steps.Finish(CHECK_QUEUE, taken.id, by.token, True, stored, 60_000,
                                                   {"jobs:check:succeeded": 1.0}))
 
@@ -86,22 +94,22 @@ def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server
 
         # finish: stored, its keys and claim gone, its waiter told with the end it carries
         assert await finish(redis, taken, worker, {"verdict": "ok"}) == 0
-        info = await Job(first, redis, _queue_name=CHECK_QUEUE).result_info()  # type: ignore[arg-type]
-        assert info is not None and info.success and info.result == {"verdict": "ok"}
+        end = decode_end(await redis.get(RESULT_PREFIX + first) or b"")
+        assert end.outcome is not None and end.outcome.result == {"verdict": "ok"}
         assert not await redis.exists(JOB_PREFIX + first, IN_PROGRESS_PREFIX + first)
         assert not await redis.hexists(RUNNING_KEY, first)
         noticed = await next_notice(notices)
-        assert noticed[0] == first and noticed[2] is not None and decode_end(noticed[2]).result == {"verdict": "ok"}
+        assert noticed[0] == first and noticed[2] is not None and decode_end(noticed[2]) == end
         assert not await submit(redis, first, 1)  # its stored end answers an identical request
 
         # cancel while queued: out of the queue, stored as cancelled, guarded against a take, its waiter told
         assert await submit(redis, second, 2)
-        cancelled = cancelled_end(second, CHECK_QUEUE, "check", 5)
-        assert cancelled is not None
+        cancelled = cancelled_end(second, CHECK_QUEUE, 5)
         assert await steps.cancel_queued(redis, CHECK_QUEUE, second, cancelled, 60_000)
         assert not await steps.cancel_queued(redis, CHECK_QUEUE, second, cancelled, 60_000)
         assert await redis.zscore(CHECK_QUEUE, second) is None
-        assert isinstance(decode_end(await redis.get(RESULT_PREFIX + second) or b"").result, asyncio.CancelledError)
+        failure = decode_end(await redis.get(RESULT_PREFIX + second) or b"").failure
+        assert failure is not None and failure.reason == "cancelled"
         assert (await next_notice(notices))[0] == second
         await steps.reopen(redis, second)  # a new request for it runs it again
         assert await submit(redis, second, 2)
@@ -120,8 +128,8 @@ def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server
         retaken = await take(redis, live)
         assert (retaken.id, retaken.job_try) == (third, 2)
         await finish(redis, retaken, live, {"verdict": "ok"})
-        info = await Job(third, redis, _queue_name=CHECK_QUEUE).result_info()  # type: ignore[arg-type]
-        assert info is not None and info.success and info.job_try == 2
+        end = decode_end(await redis.get(RESULT_PREFIX + third) or b"")
+        assert end.outcome is not None and end.job_try == 2
         await notices.aclose()  # type: ignore[attr-defined]
 
     redis_server.run(scenario)

@@ -35,6 +35,12 @@ def test_openapi_file_matches_app() -> None:
     )
 
 
+def test_queue_records_schema_matches_the_models() -> None:
+    assert (ROOT / "openapi" / "queue-records.schema.json").read_text() == export.queue_records_text(), (
+        "run python -m precond.cli.export"
+    )
+
+
 def test_configuration_doc_matches_settings() -> None:
     assert (ROOT / "docs" / "configuration.md").read_text() == export.configuration_text(), (
         "python -m precond.cli.export"

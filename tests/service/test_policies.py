@@ -6,20 +6,18 @@ the plumbing and the refusals (the quality is docs/results.md's)."""
 
 from __future__ import annotations
 
-import asyncio
 import time
 from collections.abc import Iterator
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import httpx
 import pytest
-from arq.connections import RedisSettings, create_pool
 
 from precond.jobs.queue import keys as job_keys
-from precond.jobs.queue.keys import JOB_FUNCTION, MODEL_QUEUE, tenant_tag
-from precond.stack.local import DEMOS, SPEC, Stack, example, make_stack, serving
+from precond.jobs.queue.keys import JOB_PREFIX, MODEL_QUEUE, RESULT_PREFIX, tenant_tag, wake_channel
+from precond.jobs.queue.payloads import decode_end, encode_job
+from precond.stack.local import DEMOS, SPEC, Stack, example, make_stack, serving, wait_until
 from tests.service.test_tenants import SECRET, make_key
 
 pytestmark = pytest.mark.timeout(600)
@@ -119,20 +117,14 @@ def test_a_forged_job_cannot_reach_another_tenants_adapter(stack: Stack, acme: h
         globex = tenant_tag(SECRET, "globex")
         job_id = job_keys.job_id("next-action", body, None, SECRET, globex)
 
-        async def forge() -> Any:
-            settings = replace(RedisSettings.from_dsn(stack.env["REDIS_URL"]), password="stack-redis-password")
-            pool = await create_pool(settings)
-            try:
-                job = await pool.enqueue_job(JOB_FUNCTION, "next-action", body, None, _job_id=job_id,
-                                             _queue_name=MODEL_QUEUE)
-                assert job is not None
-                return await job.result(timeout=120)
-            finally:
-                await pool.aclose()
-
-        outcome = asyncio.run(forge())
-        assert outcome["status"] == "failed", outcome
-        assert outcome["error"]["type"] == "not_found" and outcome["error"]["field"] == "options.policy"
+        redis = stack.redis.client()
+        redis.set(JOB_PREFIX + job_id, encode_job("next-action", body, job_id, 1), px=600_000)
+        redis.zadd(MODEL_QUEUE, {job_id: 1})
+        redis.publish(wake_channel(MODEL_QUEUE), b"1")
+        wait_until(lambda: redis.exists(RESULT_PREFIX + job_id), 120, "the forged job's end")
+        outcome = decode_end(redis.get(RESULT_PREFIX + job_id) or b"").outcome
+        assert outcome is not None and outcome.status == "failed" and outcome.error is not None, outcome
+        assert outcome.error.type == "not_found" and outcome.error.field == "options.policy"
     finally:
         acme.delete(f"/policies/{adapter['id']}")
 

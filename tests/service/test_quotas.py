@@ -8,8 +8,7 @@ import time
 from datetime import datetime, tzinfo
 
 import pytest
-from arq.connections import ArqRedis
-from redis.asyncio import ConnectionPool
+from redis.asyncio import ConnectionPool, Redis
 
 from precond.gateway import quotas as quotas_module
 from precond.gateway.caller import Caller
@@ -18,7 +17,7 @@ from precond.stack.local import RedisServer
 
 
 def _quotas(server: RedisServer, rate: float, burst: int) -> Quotas:
-    redis = ArqRedis(ConnectionPool.from_url(server.url))
+    redis: Redis[bytes] = Redis(connection_pool=ConnectionPool.from_url(server.url))
     return Quotas(redis, rate, burst, max_jobs=4, auth=AuthLimit(failures_per_s=1, burst=2))
 
 

@@ -9,8 +9,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from arq.jobs import deserialize_result
 
+from precond.jobs.queue.payloads import decode_end
 from precond.stack.local import Stack, check_body, heavy_infer_body, make_stack, serving, wait_until
 
 HANG_GUARD_S = 300
@@ -57,7 +57,7 @@ def test_job_of_a_killed_worker_completes_on_another(own_stack: Stack) -> None:
         )
         result = client.get(location).json()["result"]
         assert result["stats"]["total"]["valid"] > 0 and "SYSTEM.GOODBYE" in result["preconditions"]
-        assert deserialize_result(redis.get(f"arq:result:{job_id}")).job_try == 2  # type: ignore[arg-type]
+        assert decode_end(redis.get(f"arq:result:{job_id}")).job_try == 2  # type: ignore[arg-type]
         assert redis.hlen("precond:running") == 0  # no claim left behind
 
 

@@ -1,20 +1,19 @@
 """The queue worker's loop (precond/worker/queue_worker.py) against a real redis-server: a job is claimed with its
 in-progress key in one step, ends with its stored end, the counts, the claim's release and the notice in one step,
 and every way a run ends (expired, aborted before it started, out of tries, timed out, cancelled by a shutdown)
-ends as arq's records say it."""
+ends as its stored end record says."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Awaitable, Callable
+import json
+import pickle
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
 
 import pytest
-from arq.connections import ArqRedis
-from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, retry_key_prefix
-from arq.jobs import Job, JobStatus, deserialize_result
-from arq.worker import JobExecutionFailed
+from arq.constants import abort_jobs_ss, in_progress_key_prefix, job_key_prefix, result_key_prefix, retry_key_prefix
 from redis.asyncio import Redis
 from redis.exceptions import RedisError
 
@@ -22,13 +21,13 @@ from precond.jobs.queue import keys, steps
 from precond.jobs.queue.heartbeats import Heartbeat, beat
 from precond.jobs.queue.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
 from precond.jobs.queue.notices import notice_channel, read_notice, waiters_key
+from precond.jobs.queue.payloads import EndRecord, Outcome, decode_end, encode_job
 from precond.stack.local import RedisServer
 from precond.worker import queue_worker
 from precond.worker.queue_worker import JobEnd, QueueWorker, RunSettings
 from precond.worker.runner import RunClaims
 
 QUEUE = "test:queue"
-FUNCTION = "operation"
 TAG = "0123456789abcdef"
 
 
@@ -40,11 +39,22 @@ def heartbeat() -> Heartbeat:
     return Heartbeat(id="w1", host="h", pid=1, queues=[QUEUE], model_loaded=False)
 
 
-Operation = Callable[..., Awaitable[JobEnd]]
+Operation = Callable[[dict[str, Any], int], Coroutine[Any, Any, JobEnd]]
+"""A test's job function: the worker's, given the `n` of the job's body."""
+
+
+def done(n: int) -> Outcome:
+    return Outcome(status="succeeded", result={"n": n})
 
 
 async def answer(ctx: dict[str, Any], n: int) -> JobEnd:
-    return JobEnd({"n": n}, {"jobs:test:succeeded": 1.0})
+    return JobEnd(done(n), {"jobs:test:succeeded": 1.0})
+
+
+async def enqueue(plain: Redis[bytes], job: str, n: int) -> None:
+    """A check job whose body is `{"n": n}`, queued as the gateway's submission queues it (due at once)."""
+    await plain.set(job_key_prefix + job, encode_job("check", {"n": n}, job, 1), px=60_000)
+    await plain.zadd(QUEUE, {job: 1})
 
 
 def long_run(started: asyncio.Event) -> Operation:
@@ -52,19 +62,17 @@ def long_run(started: asyncio.Event) -> Operation:
     async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
         started.set()
         await asyncio.sleep(30)
-        return JobEnd({"n": n})
+        return JobEnd(done(n))
 
     return operation
 
 
-def run(redis_server: RedisServer, scenario: Callable[[ArqRedis, Redis[bytes]], Awaitable[None]]) -> None:
+def run(redis_server: RedisServer, scenario: Callable[[Redis[bytes]], Awaitable[None]]) -> None:
     async def main() -> None:
-        arq_redis = ArqRedis.from_url(redis_server.url)
         plain: Redis[bytes] = Redis.from_url(redis_server.url)
         try:
-            await scenario(arq_redis, plain)
+            await scenario(plain)
         finally:
-            await arq_redis.aclose()  # type: ignore[attr-defined]
             await plain.aclose()  # type: ignore[attr-defined]
 
     asyncio.run(main())
@@ -76,7 +84,8 @@ async def worker(redis_server: RedisServer, operation: Operation = answer, timeo
     claims = claims or RunClaims("w1", heartbeat, 5.0)
     settings = RunSettings(QUEUE, max_jobs=2, tenant_slots=2, timeout_s=timeout_s, keep_result_s=60,
                            max_tries=max_tries, idle_poll_s=idle_poll_s)
-    queue_worker = QueueWorker({FUNCTION: operation}, settings, redis_server.url, claims)
+    queue_worker = QueueWorker(lambda ctx, kind, body, cache_key: operation(ctx, body["n"]), settings,
+                               redis_server.url, claims)
     task = asyncio.create_task(queue_worker.run())
     try:
         yield queue_worker
@@ -89,34 +98,33 @@ async def worker(redis_server: RedisServer, operation: Operation = answer, timeo
             await queue_worker.close()
 
 
-async def result_of(redis: ArqRedis, job: str, timeout_s: float = 10) -> Any:
-    info = await Job(job, redis, _queue_name=QUEUE).result_info()
+async def result_of(plain: Redis[bytes], job: str, timeout_s: float = 10) -> EndRecord:
+    """The job's stored end, once there is one."""
     deadline = asyncio.get_running_loop().time() + timeout_s
-    while info is None:
+    while (raw := await plain.get(result_key_prefix + job)) is None:
         assert asyncio.get_running_loop().time() < deadline, f"{job} never ended"
         await asyncio.sleep(0.02)
-        info = await Job(job, redis, _queue_name=QUEUE).result_info()
-    return info
+    return decode_end(raw)
 
 
 def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: RedisServer) -> None:
     seen: dict[str, Any] = {}
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:  # what holds while the job runs
             seen["claim"] = await plain.hget(RUNNING_KEY, ctx["job"].value)
             seen["heartbeat"] = await plain.get(worker_key("w1"))
             seen["in_progress"] = await plain.exists(in_progress_key_prefix + ctx["job"].value)
-            return JobEnd({"n": n}, {"jobs:test:succeeded": 1.0})
+            return JobEnd(done(n), {"jobs:test:succeeded": 1.0})
 
         job = job_id(1)
         notices = plain.pubsub()
         await notices.subscribe(notice_channel("gateway-1"))
-        await redis.enqueue_job(FUNCTION, 7, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 7)
         await plain.sadd(waiters_key(job), notice_channel("gateway-1"))  # as the gateway's submission does
         async with worker(redis_server, operation):
-            info = await result_of(redis, job)
-        assert info.success and info.result == {"n": 7} and info.job_try == 1
+            info = await result_of(plain, job)
+        assert info.outcome == done(7) and info.job_try == 1
         assert seen["claim"].decode().startswith("w1|") and seen["in_progress"] == 1
         beat_written = Heartbeat.model_validate_json(seen["heartbeat"])
         assert beat_written.id == "w1" and beat_written.jobs_started == 1  # the run it claims counted already
@@ -131,7 +139,7 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
         assert [m["type"] for m in messages if m] == ["subscribe", "message"], messages
         noticed, progress, end = read_notice(messages[1]["data"])  # the end as stored, carried
         assert noticed == job and progress == b"" and end is not None
-        assert deserialize_result(end).result == {"n": 7}
+        assert decode_end(end) == info
         assert not await plain.exists(waiters_key(job))  # told once, then forgotten
         await notices.aclose()  # type: ignore[attr-defined]
 
@@ -143,15 +151,15 @@ def test_a_finish_releases_its_own_runs_claim_only(redis_server: RedisServer) ->
     claim when the earlier run's end is recorded."""
     claims = RunClaims("w1", heartbeat, 5.0)
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
             await plain.hset(RUNNING_KEY, ctx["job"].value, "w2|later")
-            return JobEnd({"n": n})
+            return JobEnd(done(n))
 
         job = job_id(2)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         async with worker(redis_server, operation, claims=claims):
-            await result_of(redis, job)
+            await result_of(plain, job)
         assert await plain.hget(RUNNING_KEY, job) == b"w2|later"
         assert claims.live == {} and claims.dropped == set()
 
@@ -159,16 +167,16 @@ def test_a_finish_releases_its_own_runs_claim_only(redis_server: RedisServer) ->
 
 
 @pytest.mark.parametrize("how", ["expired", "aborted", "out of tries"])
-def test_a_job_that_must_not_run_ends_failed_as_arq_ends_it(redis_server: RedisServer, how: str) -> None:
+def test_a_job_that_must_not_run_ends_failed_with_the_reason(redis_server: RedisServer, how: str) -> None:
     ran: list[int] = []
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
             ran.append(n)
-            return JobEnd({"n": n})
+            return JobEnd(done(n))
 
         job = job_id(3)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         if how == "expired":
             await plain.delete(job_key_prefix + job)
         elif how == "aborted":
@@ -176,14 +184,47 @@ def test_a_job_that_must_not_run_ends_failed_as_arq_ends_it(redis_server: RedisS
         else:
             await plain.set(retry_key_prefix + job, 3)
         async with worker(redis_server, operation):
-            info = await result_of(redis, job)
-        assert not info.success and ran == []
-        if how == "aborted":
-            assert isinstance(info.result, asyncio.CancelledError)
-        else:
-            expected = "job expired" if how == "expired" else "max 3 retries exceeded"
-            assert isinstance(info.result, JobExecutionFailed) and str(info.result) == expected
+            info = await result_of(plain, job)
+        assert info.outcome is None and info.failure is not None and ran == []
+        reason, message = {"expired": ("refused", "job expired"), "aborted": ("cancelled", "the job was cancelled"),
+                           "out of tries": ("retries_exceeded", "max 3 retries exceeded")}[how]
+        assert (info.failure.reason, info.failure.message) == (reason, message)
         assert await plain.zscore(QUEUE, job) is None and not await plain.hexists(RUNNING_KEY, job)
+
+    run(redis_server, scenario)
+
+
+NOT_RECORDS = {
+    "a pickle": pickle.dumps({"t": 1, "f": "run_operation", "a": ("check", {"n": 1}, "x"), "k": {}}),
+    "not json": b"\x80\x05}",
+    "another version": json.dumps({"version": 2, "kind": "check", "body": {"n": 1}, "cache_key": "x",
+                                   "enqueued_ms": 1}).encode(),
+    "a field of none": json.dumps({"version": 1, "kind": "check", "body": {"n": 1}, "cache_key": "x",
+                                   "enqueued_ms": 1, "function": "os.system"}).encode(),
+    "another kind than its id's": json.dumps({"version": 1, "kind": "train-policy", "body": {"n": 1},
+                                              "cache_key": "x", "enqueued_ms": 1}).encode(),
+}
+
+
+@pytest.mark.parametrize("what", sorted(NOT_RECORDS))
+def test_a_job_whose_record_fails_its_schema_ends_failed_unrun_and_the_worker_goes_on(
+        redis_server: RedisServer, what: str) -> None:
+    ran: list[int] = []
+
+    async def scenario(plain: Redis[bytes]) -> None:
+        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+            ran.append(n)
+            return JobEnd(done(n))
+
+        bad, good = job_id(30), job_id(31)
+        await plain.set(job_key_prefix + bad, NOT_RECORDS[what])
+        await plain.zadd(QUEUE, {bad: 1})
+        async with worker(redis_server, operation):
+            info = await result_of(plain, bad)
+            await enqueue(plain, good, 2)
+            assert (await result_of(plain, good)).outcome == done(2)  # the worker goes on
+        assert info.failure is not None and info.failure.reason == "refused" and ran == [2]
+        assert info.failure.message.startswith("the job's record is refused:"), info.failure.message
 
     run(redis_server, scenario)
 
@@ -192,27 +233,27 @@ def test_a_job_whose_id_names_no_tenant_ends_failed_without_running(redis_server
     """Its tenant would own what it stores and whose cache scope it runs in: there is no fallback for it."""
     ran: list[int] = []
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
             ran.append(n)
-            return JobEnd({"n": n})
+            return JobEnd(done(n))
 
-        await redis.enqueue_job(FUNCTION, 1, _job_id="check-nobody", _queue_name=QUEUE)
+        await enqueue(plain, "check-nobody", 1)
         async with worker(redis_server, operation):
-            info = await result_of(redis, "check-nobody")
-        assert not info.success and ran == []
-        assert isinstance(info.result, JobExecutionFailed) and "not a job id of this service" in str(info.result)
+            info = await result_of(plain, "check-nobody")
+        assert info.failure is not None and ran == []
+        assert info.failure.reason == "refused" and "not a job id of this service" in info.failure.message
 
     run(redis_server, scenario)
 
 
 def test_a_run_past_its_timeout_ends_failed(redis_server: RedisServer) -> None:
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         job = job_id(4)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         async with worker(redis_server, long_run(asyncio.Event()), timeout_s=0.2):
-            info = await result_of(redis, job)
-        assert not info.success and isinstance(info.result, TimeoutError)
+            info = await result_of(plain, job)
+        assert info.failure is not None and (info.failure.reason, info.failure.message) == ("crashed", "TimeoutError()")
 
     run(redis_server, scenario)
 
@@ -220,19 +261,19 @@ def test_a_run_past_its_timeout_ends_failed(redis_server: RedisServer) -> None:
 def test_a_run_a_shutdown_cancels_goes_back_to_its_queue(redis_server: RedisServer) -> None:
     started = asyncio.Event()
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         job = job_id(5)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         async with worker(redis_server, long_run(started)):
             await asyncio.wait_for(started.wait(), 10)
         # cancelled by the shutdown: queued again, runnable at once, its try counted, no result, no claim
-        assert await Job(job, redis, _queue_name=QUEUE).status() == JobStatus.queued
+        assert await plain.zscore(QUEUE, job) is not None and not await plain.exists(result_key_prefix + job)
         assert not await plain.exists(in_progress_key_prefix + job)
         assert await plain.get(retry_key_prefix + job) == b"1"
         assert not await plain.hexists(RUNNING_KEY, job)
         async with worker(redis_server):
-            info = await result_of(redis, job)
-        assert info.success and info.job_try == 2
+            info = await result_of(plain, job)
+        assert info.outcome is not None and info.job_try == 2
 
     run(redis_server, scenario)
 
@@ -242,13 +283,13 @@ def test_a_run_whose_end_redis_refused_is_handed_back_by_the_next_beat(redis_ser
     and the worker's next beat hands the job back to the queue."""
     claims = RunClaims("w1", heartbeat, 5.0)
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
             await plain.config_set("maxmemory", 1)  # noeviction refuses every write from here
-            return JobEnd({"n": n})
+            return JobEnd(done(n))
 
         job = job_id(6)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         async with worker(redis_server, operation, claims=claims):
             deadline = asyncio.get_running_loop().time() + 10
             while not claims.dropped:
@@ -259,7 +300,7 @@ def test_a_run_whose_end_redis_refused_is_handed_back_by_the_next_beat(redis_ser
         released = await beat(plain, heartbeat(), 5.0, dropped=set(claims.dropped))
         assert released == [job] and not await plain.exists(in_progress_key_prefix + job)
         async with worker(redis_server):
-            assert (await result_of(redis, job)).success
+            assert (await result_of(plain, job)).outcome is not None
 
     run(redis_server, scenario)
 
@@ -267,7 +308,7 @@ def test_a_run_whose_end_redis_refused_is_handed_back_by_the_next_beat(redis_ser
 TAKE = steps.Take(QUEUE, "w1", read_limit=4, in_progress_ms=300_000)
 
 
-async def take(redis: ArqRedis, claim: steps.Claim | None, skip: list[str]) -> Any:
+async def take(redis: Redis[bytes], claim: steps.Claim | None, skip: list[str]) -> Any:
     return await steps.take(redis, TAKE, 2**45, claim, skip)
 
 
@@ -276,18 +317,18 @@ def test_a_take_whose_answer_was_lost_is_handed_back_by_the_next_beat(redis_serv
     job its claim names, yet the next beat hands that job back."""
     claims = RunClaims("w1", heartbeat, 5.0)
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         job = job_id(8)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         claim = claims.open()
-        assert (await take(redis, claim, []))[1] is not None  # answer "lost"
+        assert (await take(plain, claim, []))[1] is not None  # answer "lost"
         claims.lost(claim.token)
         assert await plain.exists(in_progress_key_prefix + job)
         released = await beat(plain, heartbeat(), 5.0, dropped=set(claims.dropped))
         assert released == [job] and not await plain.hexists(RUNNING_KEY, job)
         async with worker(redis_server):
-            info = await result_of(redis, job)
-        assert info.success and info.job_try == 2  # the lost take counted as a try, as arq counts one
+            info = await result_of(plain, job)
+        assert info.outcome is not None and info.job_try == 2  # the lost take counted as a try, as every start counts
 
     run(redis_server, scenario)
 
@@ -295,21 +336,21 @@ def test_a_take_whose_answer_was_lost_is_handed_back_by_the_next_beat(redis_serv
 def test_the_next_job_taken_skips_tenants_at_their_share_and_jobs_already_started(redis_server: RedisServer) -> None:
     claims = RunClaims("w1", heartbeat, 5.0)
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         busy, other = "aaaaaaaaaaaaaaaa", "bbbbbbbbbbbbbbbb"
         first, second, third = job_id(9, busy), job_id(10, busy), job_id(11, other)
         for score, job in enumerate((first, second, third), start=1):  # fair scores, ascending
-            await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+            await enqueue(plain, job, 1)
             await plain.zadd(QUEUE, {job: score})
-        _, taken, more = await take(redis, claims.open(), [])
+        _, taken, more = await take(plain, claims.open(), [])
         assert taken is not None and taken.id == first and more
-        _, taken, _ = await take(redis, claims.open(), [busy])  # `busy` at its share: `other` next
+        _, taken, _ = await take(plain, claims.open(), [busy])  # `busy` at its share: `other` next
         assert taken is not None and taken.id == third
-        _, taken, _ = await take(redis, claims.open(), [])  # the started ones stay queued, untaken
+        _, taken, _ = await take(plain, claims.open(), [])  # the started ones stay queued, untaken
         assert taken is not None and taken.id == second
-        assert (await take(redis, claims.open(), []))[1] is None
+        assert (await take(plain, claims.open(), []))[1] is None
         await plain.zadd(abort_jobs_ss, {second: 1})
-        assert (await take(redis, None, [])) == ([second.encode()], None, False)  # marks, no take
+        assert (await take(plain, None, [])) == ([second.encode()], None, False)  # marks, no take
 
     run(redis_server, scenario)
 
@@ -317,14 +358,14 @@ def test_the_next_job_taken_skips_tenants_at_their_share_and_jobs_already_starte
 def test_a_running_job_marked_for_abort_is_cancelled_and_ends_so(redis_server: RedisServer) -> None:
     started = asyncio.Event()
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         job = job_id(12)
-        await redis.enqueue_job(FUNCTION, 1, _job_id=job, _queue_name=QUEUE)
+        await enqueue(plain, job, 1)
         async with worker(redis_server, long_run(started)):
             await asyncio.wait_for(started.wait(), 10)
-            assert await Job(job, redis, _queue_name=QUEUE).abort(timeout=10)  # arq's abort, as the gateway's
-            info = await result_of(redis, job)
-        assert not info.success and isinstance(info.result, asyncio.CancelledError)
+            await steps.mark_abort(plain, QUEUE, job, 1)  # as the gateway's cancel marks a running job
+            info = await result_of(plain, job)
+        assert info.failure is not None and info.failure.reason == "cancelled"
         assert await plain.zscore(abort_jobs_ss, job) is None
 
     run(redis_server, scenario)
@@ -337,17 +378,17 @@ def test_a_worker_whose_wake_channel_dropped_subscribes_again(redis_server: Redi
     monkeypatch.setattr(queue_worker, "SAFETY_POLL_S", 60.0)
     monkeypatch.setattr(queue_worker, "RESUBSCRIBE_S", 0.1)
 
-    async def scenario(redis: ArqRedis, plain: Redis[bytes]) -> None:
+    async def scenario(plain: Redis[bytes]) -> None:
         async with worker(redis_server, idle_poll_s=60.0) as running:
             await wait_for(lambda: running.subscribed)
             await plain.execute_command("CLIENT", "KILL", "TYPE", "pubsub")
             await wait_for(lambda: not running.subscribed)
             await wait_for(lambda: running.subscribed)
             job = job_id(13)
-            await redis.enqueue_job(FUNCTION, 4, _job_id=job, _queue_name=QUEUE)
+            await enqueue(plain, job, 4)
             await plain.publish(wake_channel(QUEUE), b"1")  # as the gateway's submission does
-            info = await result_of(redis, job, timeout_s=20)
-        assert info.success and info.result == {"n": 4}
+            info = await result_of(plain, job, timeout_s=20)
+        assert info.outcome == done(4)
 
     run(redis_server, scenario)
 

@@ -7,11 +7,13 @@ a dead worker's jobs (`heartbeats`) are defined here and nowhere else; the gatew
 the worker's loop (precond/worker/queue_worker.py) only call them. No queue library's worker runs, and no
 library's private method is overridden or called.
 
-arq remains for its storage format, through its public names only: the key layout (`arq.constants`) and the job
-and result records (`arq.jobs.serialize_job`, `serialize_result` and their readers), so that arq's `Job` reads a
-job's state and results stored by earlier versions stay readable. Why one script per step: a check's work takes
-a millisecond, and the round trips around it were most of its latency (one script each for take and finish
-instead of seven round trips, one for submit instead of eight). Every script is atomic, so any number of gateway
-processes and workers share one Redis without a lock. tests/jobs/test_queue_contract.py runs a job through
-submit → take → finish → cancel → hand-back against a real redis-server.
+arq remains for its key layout only (`arq.constants`, its public names). The records under those keys (a job, its
+progress, its end) are the project's own: JSON validated by versioned pydantic models (`payloads`), whose JSON
+Schema is openapi/queue-records.schema.json; a record that fails it ends its job failed, unread.
+
+Why one script per step: a check's work takes a millisecond, and the round trips around it were most of its
+latency (one script each for take and finish instead of seven round trips, one for submit instead of eight).
+Every script is atomic, so any number of gateway processes and workers share one Redis without a lock.
+tests/jobs/test_queue_contract.py runs a job through submit → take → finish → cancel → hand-back against a real
+redis-server.
 """

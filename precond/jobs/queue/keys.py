@@ -34,7 +34,6 @@ holds the model queue's slot and other tenants' next actions go on beside it."""
 QUEUES: Final = (MODEL_QUEUE, MODEL_FREE_QUEUE, CHECK_QUEUE, TRAIN_QUEUE)
 MODEL_QUEUES: Final = (MODEL_QUEUE, TRAIN_QUEUE)
 """The queues whose jobs need the code model."""
-JOB_FUNCTION: Final = "run_operation"
 STATS_KEY: Final = f"{PREFIX}:stats"
 WORKER_PREFIX: Final = f"{PREFIX}:worker:"
 WORKERS_PATTERN: Final = f"{WORKER_PREFIX}*"
@@ -46,9 +45,9 @@ WAKE_PREFIX: Final = f"{PREFIX}:wake:"
 STATE_TTL_S: Final = 7 * 24 * 3600
 """Lifetime of a tenant's job set and of a queue's fair scores once untouched."""
 
-# A job's own keys keep arq's layout (`arq.constants`, its public names), so that results stored before this
-# layout was the project's own stay readable and `arq.jobs.Job` reads them: the job's bytes, its in-progress
-# mark (a worker runs it, or a cancellation guards it), its stored end, its try count, and the abort marks.
+# A job's own keys keep arq's layout (`arq.constants`, its public names), where the queue's first releases kept
+# them: the job's record, its in-progress mark (a worker runs it, or a cancellation guards it), its stored end,
+# its try count, and the abort marks. The records under them are the project's own (payloads.py), not arq's.
 JOB_PREFIX: Final[str] = arq_layout.job_key_prefix
 IN_PROGRESS_PREFIX: Final[str] = arq_layout.in_progress_key_prefix
 RESULT_PREFIX: Final[str] = arq_layout.result_key_prefix
