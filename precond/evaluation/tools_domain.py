@@ -108,8 +108,11 @@ def run(engine: Any, domain: Path, progress: Callable[[str], None]) -> dict[str,
         started = time.perf_counter()
         inferred = engine.infer(infer_request(train, given))
         infer_s = time.perf_counter() - started
-        out[mode] = {**summary(judge_test(engine, test, verdicts, inferred)), "rules": inferred.preconditions,
-                     "infer_s": round(infer_s, 2)}
+        judged = judge_test(engine, test, verdicts, inferred)
+        out[mode] = {**summary(judged), "rules": inferred.preconditions, "infer_s": round(infer_s, 2),
+                     "misjudged": [{"run": v["run"], "tool": j.tool, "allowed": j.allowed, "rule": rule,
+                                    "reason": j.reason} for (j, rule), v in zip(judged, verdicts, strict=True)
+                                   if j.refused == j.allowed]}
         total = out[mode]["total"]
         progress(f"{domain.name} {mode}: unsafe {total['unsafe_allowed']}/{total['labelled_refused']}, "
                  f"over-refused {total['over_refused']}/{total['labelled_allowed']} (infer {infer_s:.1f} s)")

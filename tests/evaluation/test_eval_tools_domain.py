@@ -33,6 +33,7 @@ def test_a_domain_from_scratch_is_converted_inferred_and_scored(name: str) -> No
         assert set(result[mode]["rules"]) == {f"AGENT.{t}" for t in tools}
         by_rule = result[mode]["per_rule"]
         assert sum(s["labelled_refused"] for s in by_rule.values()) == bad
+        assert len(result[mode]["misjudged"]) == total["unsafe_allowed"] + total["over_refused"]
     held = result["labels left out one run at a time"]
     assert held["labelled_refused"] == result["labels"] == 7
 
