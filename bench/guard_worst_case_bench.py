@@ -97,7 +97,7 @@ def outcome(verdict: Any) -> str:
     if verdict.allowed:
         return "allowed"
     if verdict.error:
-        return "refused: " + verdict.error.rpartition(" raised ")[2].split(":")[0]
+        return "refused: " + str(verdict.error).rpartition(" raised ")[2].split(":")[0]
     return "refused"
 
 
@@ -134,10 +134,9 @@ def main() -> None:
     args = parser.parse_args()
     records = json.loads((TAU / "trajectories.json").read_text())
     spec = convert(records, json.loads((TAU / "tools.json").read_text())).spec
-    results = {"cpu": cpu(), "python": platform.python_version(),
-               "budget_steps": MAX_STEPS, "cases": run(spec, args.repeat)}
-    worst = max(c.get("check_cpu_ms", 0.0) for c in results["cases"].values())
-    results["worst_check_cpu_ms"] = worst
+    cases = run(spec, args.repeat)
+    results = {"cpu": cpu(), "python": platform.python_version(), "budget_steps": MAX_STEPS, "cases": cases,
+               "worst_check_cpu_ms": max(c.get("check_cpu_ms", 0.0) for c in cases.values())}
     print(json.dumps(results, indent=1))
     if args.json:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
