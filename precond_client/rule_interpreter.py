@@ -251,7 +251,8 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
 
         def read(frame: Frame) -> Any:
             table, wanted = container(frame), key(frame)
-            charge_key(wanted, frame)
+            if type(wanted) is not str:  # a string's hash is kept with it
+                charge_key(wanted, frame)
             try:
                 return table[wanted]
             except KeyError:
@@ -264,7 +265,8 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
 
     def item(frame: Frame) -> Any:
         value, wanted = container(frame), key(frame)
-        charge_key(wanted, frame)
+        if type(wanted) is not str:  # a string's hash is kept with it
+            charge_key(wanted, frame)
         return value[wanted]
 
     return VALUE, item

@@ -114,24 +114,23 @@ def weigh(value: Any, frame: Frame) -> int:
         return 1 + int(value.bit_length()) // BITS_PER_STEP
     if kind not in CONTAINER_TYPES:
         return 1
-    limit, total, stack = frame.budget, 0, [value]
+    limit, total, stack = frame.budget, 1, [value]
     while stack and total <= limit:
-        item = stack.pop()
-        kind = type(item)
-        total += 1
-        if kind is str:
-            total += len(item) // CHARS_PER_STEP
-        elif kind is int:
-            total += item.bit_length() // BITS_PER_STEP
-        elif kind in CONTAINER_TYPES:
-            size = 2 * len(item) if kind is dict else len(item)
-            if total + size > limit:
-                return total + size
-            stack.extend(item)
-            if kind is dict:
-                stack.extend(item.values())
-            elif kind in SET_TYPES and alike_of(item, frame) > 1:
-                total += (alike_of(item, frame) - 1) * weigh(tuple(item), frame)
+        container = stack.pop()
+        items = [*container, *container.values()] if type(container) is dict else container
+        total += len(items)
+        if total > limit:
+            return total
+        for item in items:
+            kind = type(item)
+            if kind is str:
+                total += len(item) // CHARS_PER_STEP
+            elif kind is int:
+                total += item.bit_length() // BITS_PER_STEP
+            elif kind in CONTAINER_TYPES:
+                stack.append(item)
+        if type(container) in SET_TYPES and alike_of(container, frame) > 1:
+            total += (alike_of(container, frame) - 1) * weigh(tuple(container), frame)
     return total
 
 
@@ -169,11 +168,10 @@ def membership_cost(item: Any, container: Any, frame: Frame) -> int:
 
 
 def charge_key(key: Any, frame: Frame) -> None:
-    """A subscript's key is hashed (a dictionary) or read (a list): a tuple, a long string or a large integer
-    costs its size."""
+    """A subscript's key other than a string (whose hash is computed once and kept with it) is hashed (a
+    dictionary) or read (a list): a tuple or a large integer costs its size."""
     kind = type(key)
-    if kind is tuple or (kind is str and len(key) > CHARS_PER_STEP) or (
-            kind is int and key.bit_length() > BITS_PER_STEP):
+    if kind is tuple or (kind is int and key.bit_length() > BITS_PER_STEP):
         frame.charge(weigh(key, frame))
 
 

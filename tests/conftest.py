@@ -19,6 +19,12 @@ directly or through another fixture, is marked `stack` and runs in the test comm
 starts processes itself says so with `@pytest.mark.stack`."""
 
 
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption("--guard-cases", type=int, default=150,
+                     help="generated rules and states the embedded guard is compared with Python on "
+                          "(tests/client/test_guard_generated_rules.py)")
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if STACK_FIXTURES & set(getattr(item, "fixturenames", ())):
