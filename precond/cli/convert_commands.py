@@ -89,7 +89,8 @@ def events(
 def openai(
     trajectories: Annotated[Path, typer.Argument(metavar="TRAJECTORIES.json", help="OpenAI chat messages: one "
                                                  "trajectory (a list of messages), a list of them, or tau-bench's "
-                                                 "{\"traj\": [...]} records.")],
+                                                 "{\"traj\": [...]} records; or a folder of files of one "
+                                                 "trajectory each (`precond mcp`'s sessions/).")],
     tools: Annotated[Path, typer.Option(help="The tools' OpenAI function schemas (a JSON list).")],
     out: Annotated[Path, typer.Option(help="Directory for spec.py, demos/<n>.py and request.json.")],
     writes: Annotated[str | None, typer.Option(help="Comma-separated state-changing tools, the actions request.json "
@@ -105,13 +106,14 @@ def openai(
 ) -> None:
     """Tool-calling agent logs → a spec from the tool schemas, one program per trajectory, an infer request."""
     chosen = None if writes is None else {w.strip() for w in writes.split(",") if w.strip()}
+    files: list[Path] = []
     try:
-        converted = openai_converter.convert(load_json(trajectories), load_json(tools), str(trajectories),
-                                             str(tools), chosen)
+        data, files = _trajectories(trajectories)
+        converted = openai_converter.convert(data, load_json(tools), str(trajectories), str(tools), chosen)
         read = [] if labels is None else labels_reader.read_labels(load_json(labels), str(labels),
                                                                     {t.name for t in converted.tools})
     except ConvertError as exc:
-        _fail(str(exc))
+        _fail(_in_file(str(exc), str(trajectories), files))
     (out / "demos").mkdir(parents=True, exist_ok=True)
     (out / "spec.py").write_text(converted.spec, encoding="utf-8")
     for trajectory in converted.trajectories:
@@ -136,6 +138,25 @@ def openai(
                   if (left := labels_reader.skipped(converted, read)) else "")
                + (f"; in {past} trajectories a read tool listed more than {MAX_SEEN} records: `self.seen` keeps "
                   "the last of them" if (past := converted.past_seen) else ""), err=True)
+
+
+def _trajectories(path: Path) -> tuple[Any, list[Path]]:
+    """A file's trajectories; or a folder's `*.json` files in name order, one trajectory each (a list of messages
+    or a `{"traj": [...]}` record: what `precond mcp` records per session), and the files."""
+    if not path.is_dir():
+        return load_json(path), []
+    files = sorted(path.glob("*.json"))
+    if not files:
+        raise ConvertError(f"{path}: no *.json files in the folder")
+    return [load_json(file) for file in files], files
+
+
+def _in_file(message: str, source: str, files: list[Path]) -> str:
+    """An error at `FOLDER: [3]...` said at the file it is in (the folder's fourth)."""
+    found = re.match(re.escape(source) + r": \[(\d+)\]", message)
+    if not files or found is None or int(found[1]) >= len(files):
+        return message
+    return f"{files[int(found[1])]}: {message[found.end():].lstrip('.: ')}"
 
 
 @app.command("programs")

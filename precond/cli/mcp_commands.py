@@ -117,9 +117,15 @@ def _run(upstreams: list[str], mode: str, log: Path, http: int | None, timeout: 
     try:
         anyio.run(serve, settings, make)
     except* StartError as group:
-        _fail("; ".join(str(e) for e in group.exceptions))
+        _fail("; ".join(str(e) for e in _leaves(group)))
     except* OSError as group:
-        _fail(f"--log {log}: {group.exceptions[0]}")
+        _fail(f"--log {log}: {_leaves(group)[0]}")
+
+
+def _leaves(group: BaseExceptionGroup[Any]) -> list[BaseException]:
+    """The exceptions of a group of task groups' groups (each transport nests its own)."""
+    return [leaf for e in group.exceptions
+            for leaf in (_leaves(e) if isinstance(e, BaseExceptionGroup) else [e])]
 
 
 def label(

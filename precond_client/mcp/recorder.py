@@ -50,7 +50,8 @@ class Recording:
         safe = re.sub(r"[^A-Za-z0-9_.-]", "_", name)[:100]
         path = folder / f"{safe}.json"
         head = json.dumps({"task_id": name, "trial": 0}).encode()[:-1] + b', "traj": ['
-        path.write_bytes(head + CLOSE)
+        with open(path, "xb", opener=_private) as handle:  # a name never reused: a record is never overwritten
+            handle.write(head + CLOSE)
         return cls(name, path, max_bytes, len(head) + len(CLOSE))
 
     def call(self, tool: str, arguments: dict[str, Any]) -> tuple[str, dict[str, Any]]:
@@ -98,7 +99,7 @@ class CallLog:
 
     def __init__(self, folder: Path) -> None:
         self.path = folder / "calls.jsonl"
-        self.handle = self.path.open("a", encoding="utf-8")
+        self.handle = open(self.path, "a", encoding="utf-8", opener=_private)  # noqa: SIM115 (closed by close)
 
     def write(self, entry: dict[str, Any]) -> None:
         self.handle.write(json.dumps(entry, ensure_ascii=False) + "\n")
@@ -106,6 +107,10 @@ class CallLog:
 
     def close(self) -> None:
         self.handle.close()
+
+
+def _private(path: str, flags: int) -> int:
+    return os.open(path, flags, 0o600)
 
 
 def prepare(folder: Path) -> Path:

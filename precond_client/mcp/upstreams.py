@@ -15,12 +15,15 @@ from contextlib import AsyncExitStack
 from dataclasses import dataclass, field
 from typing import Any
 
+import anyio
 from mcp import ClientSession, StdioServerParameters, stdio_client
 from mcp import types as mcp_types
 from mcp.client.streamable_http import streamable_http_client
 from mcp.shared.exceptions import MCPError
 from pydantic import ValidationError
 
+START_SECONDS = 120.0
+"""Time an upstream has to start, initialize and list its tools (a Python server's imports take seconds)."""
 MAX_TOOL_PAGES = 100
 """`tools/list` pages read from one upstream: a server that keeps answering with a cursor is cut off, said."""
 
@@ -38,6 +41,8 @@ class Upstream:
     target: str
     """As given to `--upstream`: a command line or a URL; how errors name it."""
     session: ClientSession
+    timeout: float
+    """Seconds a call may take before the client is told the upstream did not answer."""
     tools: list[mcp_types.Tool] = field(default_factory=list)
     gone: str | None = None
     """Why it no longer answers (its connection closed): later calls fail at once with it."""
@@ -48,7 +53,8 @@ def is_url(target: str) -> bool:
 
 
 async def connect(stack: AsyncExitStack, target: str, timeout: float) -> Upstream:
-    """Start (or reach) one upstream, initialize it and list its tools; `StartError` naming it if it cannot."""
+    """Start (or reach) one upstream, initialize it and list its tools; `StartError` naming it if it cannot.
+    `timeout`: the seconds each later call may take."""
     try:
         if is_url(target):
             read, write = await stack.enter_async_context(streamable_http_client(target))
@@ -58,12 +64,15 @@ async def connect(stack: AsyncExitStack, target: str, timeout: float) -> Upstrea
                 raise StartError("--upstream: an empty command")
             params = StdioServerParameters(command=argv[0], args=argv[1:])
             read, write = await stack.enter_async_context(stdio_client(params, errlog=sys.stderr))
-        session = await stack.enter_async_context(ClientSession(read, write, read_timeout_seconds=timeout))
-        await session.initialize()
-        upstream = Upstream(target, session)
-        upstream.tools = await _list_tools(session)
+        session = await stack.enter_async_context(ClientSession(read, write))
+        upstream = Upstream(target, session, timeout)
+        with anyio.fail_after(START_SECONDS):
+            await session.initialize()
+            upstream.tools = await _list_tools(session)
     except StartError:
         raise
+    except TimeoutError:
+        raise StartError(f"upstream {target!r} did not start: no tools listed within {START_SECONDS:.0f} s") from None
     except Exception as exc:  # any way a process or a URL can fail to become an MCP server
         raise StartError(f"upstream {target!r} did not start: {_said(exc)}") from None
     return upstream
@@ -99,12 +108,15 @@ async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_
     if upstream.gone is not None:
         raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}")
     try:
-        return await upstream.session.call_tool(name, arguments)
+        return await upstream.session.call_tool(name, arguments, read_timeout_seconds=upstream.timeout)
     except MCPError as exc:
         if exc.code == mcp_types.CONNECTION_CLOSED:
             upstream.gone = _said(exc)
-        reason = "did not answer in time" if exc.code == mcp_types.REQUEST_TIMEOUT else "answered an error"
-        raise UpstreamFailure(f"upstream {upstream.target!r} {reason}: {_said(exc)}") from None
+            raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}") from None
+        if exc.code == mcp_types.REQUEST_TIMEOUT:
+            raise UpstreamFailure(f"upstream {upstream.target!r} did not answer within {upstream.timeout:g} s "
+                                  "(--timeout)") from None
+        raise UpstreamFailure(f"upstream {upstream.target!r} answered an error: {_said(exc)}") from None
     except (ValidationError, RuntimeError) as exc:
         raise UpstreamFailure(f"upstream {upstream.target!r} answered a malformed result: {_said(exc)}") from None
     except Exception as exc:  # a broken pipe or a closed stream: the upstream is gone
