@@ -108,12 +108,14 @@ class Proxy:
             self._record(session, asked, call_id, name, text)
             self._log(entry, started, outcome="refused")
             return _error(text)
+        forwarded = time.perf_counter()
         try:
             result = await call(upstream, name, arguments)
         except UpstreamFailure as exc:
             self._record(session, asked, call_id, name, f"Error: {exc}")
             self._log(entry, started, outcome="upstream failed", reason=str(exc))
             raise MCPError(mcp_types.INTERNAL_ERROR, str(exc)) from None
+        entry["upstream_ms"] = round((time.perf_counter() - forwarded) * 1000, 3)
         self._record(session, asked, call_id, name, result_text(result))
         self._log(entry, started, outcome="error" if result.is_error else "ok")
         return result

@@ -83,9 +83,11 @@ class Recording:
 
     def _append(self, encoded: bytes) -> None:
         separator = b"\n" if self.messages == 0 else b",\n"
-        with self.path.open("r+b") as handle:
-            handle.seek(self.size - len(CLOSE))
-            handle.write(separator + encoded + CLOSE)
+        descriptor = os.open(self.path, os.O_WRONLY)
+        try:
+            os.pwrite(descriptor, separator + encoded + CLOSE, self.size - len(CLOSE))
+        finally:
+            os.close(descriptor)
         self.size += len(separator) + len(encoded)
         self.messages += 1
 

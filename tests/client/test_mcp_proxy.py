@@ -21,6 +21,8 @@ from mcp.client.streamable_http import streamable_http_client
 from mcp.shared.exceptions import MCPError
 
 from precond.engine.factory import build_engine
+from precond.stack.keyed import KeyedStack
+from precond_client import Client
 from precond_client.guard import Guard
 from precond_client.mcp.tools import spec_for, writes_of_rules
 from precond_client.schemas.api import InferRequest
@@ -242,6 +244,26 @@ def test_enforce_and_shadow_give_the_embedded_guards_verdicts_on_the_same_histor
             assert line["verdict"]["violations"] == expected.violations
             assert line["verdict"]["call"] == expected.call
     assert call_lines(shadow_log)[0]["verdict"]["allowed"] is False
+
+
+def test_a_stored_set_is_judged_by_the_service(learned: tuple[Path, Path], keyed: KeyedStack,
+                                               tmp_path: Path) -> None:
+    """`--set ps_...@n --server URL`: each call a `/check-actions` of the session's messages (`ServiceGuard`)."""
+    log, _ = learned
+    spec = spec_for(json.loads((log / "tools.json").read_text()), writes_of_rules(REFUND_RULES))
+    with Client(keyed.url, api_key=keyed.keys["guard"]) as service:
+        reference = service.create_set({"spec": spec, "preconditions": REFUND_RULES}).reference
+    args = proxy_args(tmp_path / "log", "--mode", "enforce", "--set", reference, "--server", keyed.url,
+                      "--api-key", keyed.keys["guard"])
+
+    async def run() -> list[Any]:
+        async with stdio_proxy(args) as session:
+            return await play(session, CARELESS[:3])
+
+    results = asyncio.run(run())
+    assert [r.is_error for r in results] == [True, False, False]
+    assert f"the precondition guard ({reference}) refused agent.refund_order('A300', 90)" in texts(results[0])
+    assert [line["verdict"]["allowed"] for line in call_lines(tmp_path / "log")] == [False, True, True]
 
 
 def test_a_labelled_call_becomes_a_counterexample_of_the_next_version(learned: tuple[Path, Path],
