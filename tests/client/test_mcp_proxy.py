@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import AsyncIterator, Iterator, Sequence
 from contextlib import asynccontextmanager, contextmanager
@@ -352,3 +355,71 @@ def test_rules_for_tools_the_upstreams_lack_are_refused_at_start(tmp_path: Path)
     result = precond("mcp", "--upstream", DESK, "--log", str(tmp_path / "log"), "--mode", "enforce",
                      "--rules", str(rules))
     assert result.returncode == 2 and "AGENT.delete_everything: not a tool of the spec" in result.stderr
+
+
+SERVE = """
+import json, sys
+from pathlib import Path
+import anyio
+from precond_client.guard import Guard
+from precond_client.mcp.serve import Settings, serve
+from precond_client.mcp.tools import spec_for, writes_of_rules
+rules = json.loads(Path(sys.argv[3]).read_text())
+anyio.run(serve, Settings([sys.argv[1]], "enforce", Path(sys.argv[2])),
+          lambda schemas: Guard(spec_for(schemas, writes_of_rules(rules)), rules))
+"""
+"""The proxy as `precond mcp --mode enforce --rules` makes it, with the light client alone (no service code)."""
+
+
+@pytest.fixture()
+def open_folder() -> Iterator[Path]:
+    """A folder any user can write to (pytest's own are private to root, which nobody cannot cross)."""
+    folder = Path(tempfile.mkdtemp(prefix="precond-mcp-"))
+    folder.chmod(0o777)
+    try:
+        yield folder
+    finally:
+        shutil.rmtree(folder)
+
+
+@pytest.mark.parametrize("user", ["root", "nobody"])
+def test_hostile_arguments_and_results_are_data_and_the_log_is_private_as_root_or_not(
+        user: str, open_folder: Path) -> None:
+    """Code in a call's arguments and in an upstream's answer (the desk's error repeats the order id) is recorded
+    and judged as data: nothing runs, the refused call never reaches the desk, and only the proxy's user can
+    read what it recorded (folder 0700, files 0600: the kernel enforces it)."""
+    if user == "nobody" and os.geteuid() != 0:
+        pytest.skip("already not root: the root case ran as this user")
+    tmp_path = open_folder
+    canary = tmp_path / "pwned"
+    touch = f"__import__('pathlib').Path({str(canary)!r}).touch()"
+    rules = tmp_path / "rules.json"
+    rules.write_text(json.dumps(REFUND_RULES))
+    rules.chmod(0o644)
+    log = tmp_path / "log"
+    prefix = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"] if user == "nobody" else []
+    port = free_port()  # the desk on streamable HTTP, served by this test's user: the proxy's user only calls it
+    desk = serving([str(ROOT / "examples" / "mcp" / "refund_desk.py"), "--http", str(port)], port)
+    hostile = f"'); {touch}; ('"
+
+    async def run(url: str) -> list[Any]:
+        args = [*prefix, sys.executable, "-c", SERVE, url, str(log), str(rules)]
+        params = StdioServerParameters(command=args[0], args=args[1:], cwd=str(tmp_path),
+                                       env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+        async with stdio_client(params) as (read, write), ClientSession(read, write) as session:
+            await session.initialize()
+            return await play(session, [("refund_order", {"order_id": hostile, "amount": 1}),
+                                        ("get_order", {"order_id": hostile}),
+                                        ("refund_order", {"order_id": hostile, "amount": 1})])
+
+    with desk as url:
+        refused, read, refunded = asyncio.run(run(url))
+    assert refused.is_error and "The tool did not run" in texts(refused)
+    assert read.is_error and hostile in texts(read)  # the desk's own error, repeating the id
+    assert refunded.is_error and "The tool did not run" in texts(refunded)  # a failed read is no read
+    assert not canary.exists()
+    [record] = records(log)
+    assert json.loads(record["traj"][2]["tool_calls"][0]["function"]["arguments"])["order_id"] == hostile
+    made = [log, log / "sessions", *(log / "sessions").iterdir(), log / "calls.jsonl", log / "tools.json"]
+    assert all(path.stat().st_mode & 0o077 == 0 for path in made)
+    assert {path.stat().st_uid for path in made} == {os.geteuid() if user == "root" else 65534}
