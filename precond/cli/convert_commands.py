@@ -93,7 +93,8 @@ def _tool_names(value: str | None) -> set[str] | None:
 def openai(
     trajectories: Annotated[Path, typer.Argument(metavar="TRAJECTORIES.json", help="OpenAI chat messages: one "
                                                  "trajectory (a list of messages), a list of them, or tau-bench's "
-                                                 "{\"traj\": [...]} records.")],
+                                                 "{\"traj\": [...]} records; or a folder of files of one "
+                                                 "trajectory each (`precond mcp`'s sessions/).")],
     tools: Annotated[Path, typer.Option(help="The tools' OpenAI function schemas (a JSON list).")],
     out: Annotated[Path, typer.Option(help="Directory for spec.py, demos/<n>.py and request.json.")],
     writes: Annotated[str | None, typer.Option("--writes", "--state-changing", help="Comma-separated tools that "
@@ -115,14 +116,16 @@ def openai(
     """Tool-calling agent logs → a spec from the tool schemas, one program per trajectory, an infer request."""
     if guard is not None and not _tool_names(guard):
         _fail("--guard: names no tool (leave it out to guard every tool)")
+    files: list[Path] = []
     try:
-        converted = openai_converter.convert(load_json(trajectories), load_json(tools), str(trajectories),
-                                             str(tools), _tool_names(writes), _tool_names(guard))
+        data, files = _trajectories(trajectories)
+        converted = openai_converter.convert(data, load_json(tools), str(trajectories), str(tools),
+                                             _tool_names(writes), _tool_names(guard))
         read = labels_reader.on_calls(converted) + ([] if labels is None else labels_reader.read_labels(
             load_json(labels), str(labels), {t.name for t in converted.tools},
             [t.name for t in converted.trajectories]))
     except ConvertError as exc:
-        _fail(str(exc))
+        _fail(_in_file(str(exc), str(trajectories), files))
     (out / "demos").mkdir(parents=True, exist_ok=True)
     (out / "spec.py").write_text(converted.spec, encoding="utf-8")
     for trajectory in converted.trajectories:
@@ -164,6 +167,25 @@ def _openai_summary(converted: openai_converter.Converted, demos: int, out: Path
                else "")
             + (f"; in {past} trajectories a read tool listed more than {MAX_SEEN} records: `self.seen` keeps "
                "the last of them" if (past := converted.past_seen) else ""))
+
+
+def _trajectories(path: Path) -> tuple[Any, list[Path]]:
+    """A file's trajectories; or a folder's `*.json` files in name order, one trajectory each (a list of messages
+    or a `{"traj": [...]}` record: what `precond mcp` records per session), and the files."""
+    if not path.is_dir():
+        return load_json(path), []
+    files = sorted(path.glob("*.json"))
+    if not files:
+        raise ConvertError(f"{path}: no *.json files in the folder")
+    return [load_json(file) for file in files], files
+
+
+def _in_file(message: str, source: str, files: list[Path]) -> str:
+    """An error at `FOLDER: [3]...` said at the file it is in (the folder's fourth)."""
+    found = re.match(re.escape(source) + r": \[(\d+)\]", message)
+    if not files or found is None or int(found[1]) >= len(files):
+        return message
+    return f"{files[int(found[1])]}: {message[found.end():].lstrip('.: ')}"
 
 
 @app.command("programs")

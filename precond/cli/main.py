@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import typer
 
-from precond.cli import convert_commands, engine_commands, eval_commands, keys_commands, serve_commands
+from precond.cli import (
+    convert_commands,
+    engine_commands,
+    eval_commands,
+    keys_commands,
+    mcp_commands,
+    serve_commands,
+)
 
 app = typer.Typer(
     help="Precondition reasoning as a service: infer verified preconditions, pick verified next actions.",
@@ -16,3 +23,4 @@ serve_commands.register(app)
 eval_commands.register(app)
 keys_commands.register(app)
 convert_commands.register(app)
+mcp_commands.register(app)

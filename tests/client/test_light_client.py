@@ -1,7 +1,7 @@
-"""The light client distribution (clients/python): its wheel holds `precond_client` (its schemas and the agent
-adapters included) only and depends on httpx and pydantic only (the adapters' frameworks are extras); installed
-alone in a fresh virtual environment (no system site packages), it imports without torch, fastapi or redis and
-works against a real stack, its embedded guard included."""
+"""The light client distribution (clients/python): its wheel holds `precond_client` (its schemas, the agent
+adapters and the MCP proxy included) only and depends on httpx and pydantic only (the adapters' frameworks and the
+MCP SDK are extras); installed alone in a fresh virtual environment (no system site packages), it imports without
+torch, fastapi or redis and works against a real stack, its embedded guard included."""
 
 from __future__ import annotations
 
@@ -45,14 +45,14 @@ def test_the_wheel_holds_the_client_and_its_schemas_and_needs_httpx_and_pydantic
     packages = {name.split("/")[0] for name in names if not name.split("/")[0].endswith(".dist-info")}
     assert packages == {"precond_client"}
     expected = {f"precond_client/{p.name}" for p in (ROOT / "precond_client").glob("*.py")}
-    for package in ("schemas", "adapters"):
+    for package in ("schemas", "adapters", "mcp"):
         expected |= {f"precond_client/{package}/{p.name}" for p in (ROOT / "precond_client" / package).glob("*.py")}
     assert {n for n in names if n.endswith(".py")} == expected
     assert headers["Name"] == "precond-client"
     requires = sorted(headers.get_all("Requires-Dist") or [])
     base = [r for r in requires if "extra ==" not in r]
     assert [r.split(">")[0].split("=")[0].strip() for r in base] == ["httpx", "pydantic"], requires
-    assert sorted(headers.get_all("Provides-Extra") or []) == ["langchain", "langgraph", "openai-agents"]
+    assert sorted(headers.get_all("Provides-Extra") or []) == ["langchain", "langgraph", "mcp", "openai-agents"]
 
 
 USE = """

@@ -1,0 +1,165 @@
+"""The proxy's MCP server (the SDK's low-level `Server`): the upstreams' tools listed unchanged, and each
+`tools/call` recorded, judged (`enforce`, `shadow`) and forwarded to the upstream that has the tool.
+
+Per MCP session (streamable HTTP's `mcp-session-id`; the one connection on stdio) the proxy keeps a recording
+(`recorder.Recording`) and a guard session fed the same messages, so a call is judged on exactly the history the
+recorded session shows before it. The calls of one session are served one at a time: the record pairs each
+result with the call before it, as an agent's log does.
+
+- `record`: forward and record.
+- `enforce`: judge first; a refused call never reaches the upstream and comes back as a tool error
+  (`isError`) saying which rule did not hold and what would make it hold (`guard.refusal`), recorded as that
+  error, as an agent's log records a refused call.
+- `shadow`: judge and log the verdict, forward every call.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import anyio
+from mcp import types as mcp_types
+from mcp.server import Server, ServerRequestContext
+from mcp.shared.exceptions import MCPError
+
+from precond_client.errors import PrecondError
+from precond_client.guard import GuardSession, Judge, refusal
+from precond_client.mcp.recorder import CallLog, LogFull, Recording, session_name
+from precond_client.mcp.upstreams import Upstream, UpstreamFailure, call, routes
+from precond_client.schemas.api import CallVerdict
+
+Mode = Literal["record", "enforce", "shadow"]
+MAX_SESSIONS = 1000
+"""Sessions kept in memory (the oldest forgotten first; its record stays on disk)."""
+STDIO = "stdio"
+
+
+@dataclass
+class Session:
+    recording: Recording
+    guard: GuardSession | None
+    lock: anyio.Lock = field(default_factory=anyio.Lock)
+
+
+class Proxy:
+    def __init__(self, upstreams: list[Upstream], mode: Mode, judge: Judge | None, sessions: Path,
+                 calls: CallLog, max_log_bytes: int) -> None:
+        self.routes = routes(upstreams)
+        self.mode = mode
+        self.judge = judge
+        self.folder = sessions
+        self.calls = calls
+        self.max_log_bytes = max_log_bytes
+        self.sessions: OrderedDict[str, Session] = OrderedDict()
+        self.tools = [tool for upstream in upstreams for tool in upstream.tools]
+
+    def server(self) -> Server[Any]:
+        server: Server[Any] = Server("precond-mcp", on_list_tools=self.list_tools, on_call_tool=self.call_tool)
+        server.middleware = []  # no tracing span per message: the proxy's added latency is its budget
+        return server
+
+    async def list_tools(self, ctx: ServerRequestContext[Any], params: mcp_types.PaginatedRequestParams | None
+                         ) -> mcp_types.ListToolsResult:
+        return mcp_types.ListToolsResult(tools=self.tools)
+
+    def session(self, ctx: ServerRequestContext[Any]) -> Session:
+        request = ctx.request
+        headers = getattr(request, "headers", None)
+        key = (headers.get("mcp-session-id") if headers is not None else None) or STDIO
+        found = self.sessions.get(key)
+        if found is None:
+            name = session_name() if key == STDIO else f"{session_name()}-{key}"
+            guard = self.judge.session() if self.judge is not None and self.mode != "record" else None
+            found = self.sessions[key] = Session(Recording.start(self.folder, name, self.max_log_bytes), guard)
+            while len(self.sessions) > MAX_SESSIONS:
+                self.sessions.popitem(last=False)
+        return found
+
+    async def call_tool(self, ctx: ServerRequestContext[Any], params: mcp_types.CallToolRequestParams
+                        ) -> mcp_types.CallToolResult:
+        upstream = self.routes.get(params.name)
+        if upstream is None:
+            raise MCPError(mcp_types.INVALID_PARAMS, f"no tool {params.name[:100]!r} in the upstreams")
+        session = self.session(ctx)
+        async with session.lock:
+            return await self._serve(session, upstream, params.name, dict(params.arguments or {}))
+
+    async def _serve(self, session: Session, upstream: Upstream, name: str, arguments: dict[str, Any]
+                     ) -> mcp_types.CallToolResult:
+        started = time.perf_counter()
+        entry: dict[str, Any] = {"session": session.recording.name, "tool": name, "upstream": upstream.target,
+                                 "mode": self.mode}
+        try:
+            call_id, asked = session.recording.call(name, arguments)
+        except LogFull as exc:
+            self._log(entry, started, outcome="refused: log full", reason=str(exc))
+            return _error(f"Error: precond mcp did not make the call {name}: {exc}")
+        entry["call"] = call_id
+        verdict = await self._judge(session, name, arguments)
+        if verdict is not None:
+            entry["verdict"] = _verdict_entry(verdict)
+        if verdict is not None and not verdict.allowed and self.mode == "enforce":
+            text = refusal(verdict, self.judge.name if self.judge else "")
+            self._record(session, asked, call_id, name, text)
+            self._log(entry, started, outcome="refused")
+            return _error(text)
+        forwarded = time.perf_counter()
+        try:
+            result = await call(upstream, name, arguments)
+        except UpstreamFailure as exc:
+            self._record(session, asked, call_id, name, f"Error: {exc}")
+            self._log(entry, started, outcome="upstream failed", reason=str(exc))
+            raise MCPError(mcp_types.INTERNAL_ERROR, str(exc)) from None
+        entry["upstream_ms"] = round((time.perf_counter() - forwarded) * 1000, 3)
+        self._record(session, asked, call_id, name, result_text(result))
+        self._log(entry, started, outcome="error" if result.is_error else "ok")
+        return result
+
+    async def _judge(self, session: Session, name: str, arguments: dict[str, Any]) -> CallVerdict | None:
+        if session.guard is None:
+            return None
+        try:
+            return await session.guard.acheck(name, arguments)
+        except PrecondError as exc:  # the service's guard answers errors as verdicts; anything else fails closed
+            return CallVerdict.model_construct(call=name, allowed=False, violations=[], decided={},
+                                               error=f"not judged: {exc.message}")
+
+    def _record(self, session: Session, asked: dict[str, Any], call_id: str, name: str, content: str) -> None:
+        told = session.recording.result(call_id, name, content)
+        if session.guard is not None:
+            try:
+                session.guard.add(asked)
+                session.guard.add(told)
+            except PrecondError:
+                pass  # the guard session keeps why: its later calls are judged unreadable (refused)
+
+    def _log(self, entry: dict[str, Any], started: float, **said: Any) -> None:
+        entry.update(said, ms=round((time.perf_counter() - started) * 1000, 3))
+        self.calls.write(entry)
+
+
+def result_text(result: mcp_types.CallToolResult) -> str:
+    """A result as the agent's log would hold it: its text blocks (another block by its type); an error's text
+    starts with "Error", which is how the converter and the guard tell a failed call."""
+    parts = [b.text if isinstance(b, mcp_types.TextContent) else f"[{b.type}]" for b in result.content]
+    text = "".join(parts)
+    if not parts and result.structured_content is not None:
+        text = json.dumps(result.structured_content)
+    if result.is_error and not text.lstrip().lower().startswith("error"):
+        text = f"Error: {text}"
+    return text
+
+
+def _error(text: str) -> mcp_types.CallToolResult:
+    return mcp_types.CallToolResult(content=[mcp_types.TextContent(text=text)], is_error=True)
+
+
+def _verdict_entry(verdict: CallVerdict) -> dict[str, Any]:
+    return {"allowed": verdict.allowed, "call": verdict.call, "violations": list(verdict.violations),
+            "error": verdict.error, "rule_status": verdict.rule_status}
+

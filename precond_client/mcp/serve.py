@@ -1,0 +1,67 @@
+"""`precond mcp`: the upstreams started (or reached), their tools checked and written to `tools.json`, the
+judge made for those tools, and the proxy served on stdio or on streamable HTTP on 127.0.0.1 (the SDK's
+transports), until its client goes (stdio) or it is stopped (HTTP)."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Sequence
+from contextlib import AsyncExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from mcp.server.stdio import stdio_server
+
+from precond_client.guard import Judge
+from precond_client.mcp.proxy import Mode, Proxy
+from precond_client.mcp.recorder import CallLog, prepare
+from precond_client.mcp.tools import function_schema
+from precond_client.mcp.upstreams import StartError, connect
+
+MakeJudge = Callable[[Sequence[dict[str, Any]]], Judge | None]
+"""The upstreams' tools (OpenAI function schemas) → the judge of their calls (None in `record`)."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    upstreams: Sequence[str]
+    mode: Mode
+    log: Path
+    http: int | None = None
+    timeout: float = 30.0
+    """Seconds an upstream has to answer a call (or to start) before the client is told it did not."""
+    max_log_bytes: int = 8 * 1024 * 1024
+
+
+async def serve(settings: Settings, make_judge: MakeJudge) -> None:
+    """Serve until the client (stdio) or a signal (HTTP) ends it; `StartError` when it cannot start."""
+    sessions = prepare(settings.log)
+    async with AsyncExitStack() as stack:
+        upstreams = [await connect(stack, target, settings.timeout) for target in settings.upstreams]
+        schemas = [function_schema(tool) for upstream in upstreams for tool in upstream.tools]
+        judge = make_judge(schemas)
+        calls = CallLog(settings.log)
+        stack.callback(calls.close)
+        proxy = Proxy(upstreams, settings.mode, judge, sessions, calls, settings.max_log_bytes)
+        _write_private(settings.log / "tools.json", json.dumps(schemas, indent=2) + "\n")
+        server = proxy.server()
+        if settings.http is None:
+            async with stdio_server() as (read, write):
+                await server.run(read, write, server.create_initialization_options())
+            return
+        import uvicorn
+
+        app = server.streamable_http_app(host="127.0.0.1")
+        config = uvicorn.Config(app, host="127.0.0.1", port=settings.http, log_level="warning", lifespan="on")
+        await uvicorn.Server(config).serve()
+
+
+def _write_private(path: Path, text: str) -> None:
+    descriptor = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(descriptor, "w", encoding="utf-8") as handle:
+        handle.write(text)
+
+
+__all__ = ["MakeJudge", "Settings", "StartError", "serve"]

@@ -1,0 +1,133 @@
+"""The MCP servers the proxy fronts, reached with the SDK's own client: a `ClientSession` over `stdio_client` (a
+command) or `streamable_http_client` (an `http(s)://` URL). Each tool is routed to the one upstream that lists it;
+a name two upstreams list is refused at start, naming both, since a call could not say which one it meant.
+
+A call that fails on the upstream's side (it died, it did not answer within the timeout, it answered something
+that is not a `CallToolResult`) raises `UpstreamFailure` naming the upstream: the proxy answers the client with an
+MCP error and stays up for the other calls and upstreams.
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from contextlib import AsyncExitStack
+from dataclasses import dataclass, field
+from typing import Any
+
+import anyio
+from mcp import ClientSession, StdioServerParameters, stdio_client
+from mcp import types as mcp_types
+from mcp.client.streamable_http import streamable_http_client
+from mcp.shared.exceptions import MCPError
+from pydantic import ValidationError
+
+START_SECONDS = 120.0
+"""Time an upstream has to start, initialize and list its tools (a Python server's imports take seconds)."""
+MAX_TOOL_PAGES = 100
+"""`tools/list` pages read from one upstream: a server that keeps answering with a cursor is cut off, said."""
+
+
+class UpstreamFailure(Exception):
+    """An upstream that could not serve a call: the message names it and says what went wrong."""
+
+
+class StartError(ValueError):
+    """The proxy cannot start as asked (an upstream that does not start, a tool name two upstreams list)."""
+
+
+@dataclass
+class Upstream:
+    target: str
+    """As given to `--upstream`: a command line or a URL; how errors name it."""
+    session: ClientSession
+    timeout: float
+    """Seconds a call may take before the client is told the upstream did not answer."""
+    tools: list[mcp_types.Tool] = field(default_factory=list)
+    gone: str | None = None
+    """Why it no longer answers (its connection closed): later calls fail at once with it."""
+
+
+def is_url(target: str) -> bool:
+    return target.startswith(("http://", "https://"))
+
+
+async def connect(stack: AsyncExitStack, target: str, timeout: float) -> Upstream:
+    """Start (or reach) one upstream, initialize it and list its tools; `StartError` naming it if it cannot.
+    `timeout`: the seconds each later call may take."""
+    try:
+        if is_url(target):
+            read, write = await stack.enter_async_context(streamable_http_client(target))
+        else:
+            argv = shlex.split(target)
+            if not argv:
+                raise StartError("--upstream: an empty command")
+            params = StdioServerParameters(command=argv[0], args=argv[1:])
+            read, write = await stack.enter_async_context(stdio_client(params, errlog=sys.stderr))
+        session = await stack.enter_async_context(ClientSession(read, write))
+        upstream = Upstream(target, session, timeout)
+        with anyio.fail_after(START_SECONDS):
+            await session.initialize()
+            upstream.tools = await _list_tools(session)
+    except StartError:
+        raise
+    except TimeoutError:
+        raise StartError(f"upstream {target!r} did not start: no tools listed within {START_SECONDS:.0f} s") from None
+    except Exception as exc:  # any way a process or a URL can fail to become an MCP server
+        raise StartError(f"upstream {target!r} did not start: {_said(exc)}") from None
+    return upstream
+
+
+async def _list_tools(session: ClientSession) -> list[mcp_types.Tool]:
+    tools: list[mcp_types.Tool] = []
+    cursor: str | None = None
+    for _ in range(MAX_TOOL_PAGES):
+        page = await session.list_tools(params=mcp_types.PaginatedRequestParams(cursor=cursor) if cursor else None)
+        tools += page.tools
+        cursor = page.next_cursor
+        if not cursor:
+            return tools
+    raise StartError(f"tools/list answered more than {MAX_TOOL_PAGES} pages")
+
+
+def routes(upstreams: list[Upstream]) -> dict[str, Upstream]:
+    """Tool name → its upstream; a name listed by two upstreams is a `StartError` naming both."""
+    routed: dict[str, Upstream] = {}
+    for upstream in upstreams:
+        for tool in upstream.tools:
+            other = routed.setdefault(tool.name, upstream)
+            if other is not upstream:
+                raise StartError(f"tool {tool.name!r} is listed by two upstreams, {other.target!r} and "
+                                 f"{upstream.target!r}: a call could not say which one it means")
+    return routed
+
+
+async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_types.CallToolResult:
+    """The upstream's result, or `UpstreamFailure` naming it. An MCP error the upstream answers (an unknown tool,
+    bad arguments) is its own word and passes as it is, named. The request is sent as it is (`send_request`, not
+    `call_tool`): the result is parsed as a `CallToolResult` but not checked against the tool's output schema,
+    which the client behind the proxy does with the schema it listed (it costs about 1 ms a call)."""
+    if upstream.gone is not None:
+        raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}")
+    try:
+        request = mcp_types.CallToolRequest(params=mcp_types.CallToolRequestParams(name=name, arguments=arguments))
+        return await upstream.session.send_request(request, mcp_types.CallToolResult,
+                                                   request_read_timeout_seconds=upstream.timeout)
+    except MCPError as exc:
+        if exc.code == mcp_types.CONNECTION_CLOSED:
+            upstream.gone = _said(exc)
+            raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}") from None
+        if exc.code == mcp_types.REQUEST_TIMEOUT:
+            raise UpstreamFailure(f"upstream {upstream.target!r} did not answer within {upstream.timeout:g} s "
+                                  "(--timeout)") from None
+        raise UpstreamFailure(f"upstream {upstream.target!r} answered an error: {_said(exc)}") from None
+    except ValidationError as exc:
+        raise UpstreamFailure(f"upstream {upstream.target!r} answered a malformed result: {_said(exc)}") from None
+    except Exception as exc:  # a broken pipe or a closed stream: the upstream is gone
+        upstream.gone = _said(exc)
+        raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}") from None
+
+
+def _said(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= 300 else text[:297] + "..."
