@@ -166,11 +166,12 @@ class Queued(NamedTuple):
 
 def screened_check(spec: str, preconditions: Mapping[str, Sequence[str]], decided: Mapping[str, Mapping[str, str]],
                    history: str | Sequence[Mapping[str, Any]], calls: Sequence[str | Mapping[str, Any]], tag: str,
-                   max_chars: int) -> Judged | Queued | checks.Problem:
+                   max_chars: int, interpret: bool = True) -> Judged | Queued | checks.Problem:
     """All the gateway does to a check before it answers or queues it, in one trip to the pool: the history and
     the calls rendered to program text (`rendered`, `rendered_calls`), the static screen (`checks.check_check`:
     the worker does not repeat it), and the answer itself where no caller text is code to run
-    (`interpreted.judged`); `tag`: the caller's, under which what is read is remembered."""
+    (`interpreted.judged`), unless `interpret` is off; `tag`: the caller's, under which what is read is
+    remembered."""
     program = history if isinstance(history, str) else rendered(spec, history, tag, max_chars)
     if isinstance(program, checks.Problem):
         return program
@@ -180,6 +181,8 @@ def screened_check(spec: str, preconditions: Mapping[str, Sequence[str]], decide
     problem = problem_of(checks.check_check, spec, preconditions, program, lines, tag)
     if problem is not None:
         return problem
+    if not interpret:
+        return Queued(program, lines)
     from precond.gateway import interpreted  # here, not at the top: a pool process imports it on its first check
 
     try:

@@ -51,7 +51,8 @@ def test_a_tool_call_checks_spec_is_read_off_the_loop_or_once_per_tenant(monkeyp
     pool = CheckPool(1, 1)
 
     async def render(tag: str, body: CheckRequest) -> list[str]:
-        outcome = await screened_check(SimpleNamespace(checks=pool), tag, body)  # type: ignore[arg-type]
+        services = SimpleNamespace(checks=pool, settings=SimpleNamespace(interpret_checks=True))
+        outcome = await screened_check(services, tag, body)  # type: ignore[arg-type]
         assert isinstance(outcome, offload.Queued), outcome
         return outcome.lines
 

@@ -137,7 +137,8 @@ async def screened_check(services: Services, tag: str,
     calls = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
     chars = _check_chars(body.spec_text(), history, calls)
     return await services.checks.run(tag, chars, offload.screened_check, body.spec_text(), body.preconditions,
-                                     body.decided, history, calls, tag, MAX_SOURCE_CHARS)
+                                     body.decided, history, calls, tag, MAX_SOURCE_CHARS,
+                                     services.settings.interpret_checks)
 
 
 def _check_chars(spec: str, history: str | list[Any], calls: list[str | dict[str, Any]]) -> int:
