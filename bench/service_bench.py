@@ -262,7 +262,8 @@ def interleaved_checks(stacks: list[tuple[str, dict[str, str]]], check: dict[str
 
 
 def fairness(base: str, check: dict[str, Any], keys: dict[str, str], args: argparse.Namespace) -> dict[str, Any]:
-    """The quiet tenant's latency alone, then behind `args.flood` queued jobs of the other tenant."""
+    """The quiet tenant's latency alone, then behind `args.flood` queued jobs of the other tenant (checks that
+    take the queue: `check` is the sandbox row's body)."""
     def quiet(tag: str) -> dict[str, float]:
         bodies = [{**check, "calls": [f"system.REQUEST('{tag}_{i}')"]} for i in range(args.fair_n + 2)]
         return latencies(base, "/check-actions", bodies, warmup=2, key=keys["quiet"])
@@ -382,6 +383,21 @@ def cache_hits_wrk(base: str, body_file: Path, tmp: Path, args: argparse.Namespa
     return result
 
 
+def interpreter_throughput_wrk(base: str, check: dict[str, Any], tmp: Path, args: argparse.Namespace,
+                               key: str) -> dict[str, Any]:
+    """Checks the gateway judges itself, each with a new call, `wrk -t{threads} -c{connections}`: requests/s."""
+    pre, post = json.dumps({**check, "calls": [f"system.REQUEST('{CALL}')"]}).split(CALL)
+    script = tmp / "interpreter.lua"
+    script.write_text(WRK_SEQUENTIAL_LUA.format(pre=pre, post=post, key=key))
+    argv = ["wrk", f"-t{args.threads}", f"-c{args.connections}", f"-d{args.duration}s", "-s", str(script), base,
+            "--", f"throughput{time.time()}"]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    rate = next(float(line.split()[1]) for line in out.splitlines() if line.startswith("Requests/sec:"))
+    errors = next((line.split()[1] for line in out.splitlines() if line.startswith("errors ")), "?")
+    return {"tool": f"wrk -t{args.threads} -c{args.connections} -d{args.duration}s", "requests_per_s": rate,
+            "errors": errors}
+
+
 def _ms(text: str) -> float:
     for unit, factor in (("ms", 1.0), ("us", 0.001), ("s", 1000.0)):
         if text.endswith(unit):
@@ -483,14 +499,19 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
     if args.next_n > 0:
         bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
         results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
-    # cache hits: the first check-actions body is cached by now.
+    # cache hits: a check that takes the queue, cached after its first answer (one the gateway judges itself is
+    # never cached: judging it costs less than reading the cache)
     body_file = tmp / "body.json"
-    body_file.write_text(json.dumps({**check, "calls": ["system.REQUEST('slot_0')"]}))
+    body_file.write_text(json.dumps({**sandboxed(check), "calls": ["system.REQUEST('slot_0')"]}))
+    with httpx.Client(base_url=base, timeout=300, headers=auth(key)) as client:
+        timed_post(client, "/check-actions", json.loads(body_file.read_text()))
+    if shutil.which("wrk"):
+        results["interpreter_throughput"] = interpreter_throughput_wrk(base, check, tmp, args, key)
     if shutil.which("wrk"):
         results["cache_hit"] = cache_hits_wrk(base, body_file, tmp, args, key)
     else:
         results["cache_hit"] = cache_hits_httpx(base, json.loads(body_file.read_text()), args, key)
-    results["fairness"] = fairness(base, check, keys, args)
+    results["fairness"] = fairness(base, sandboxed(check), keys, args)
     results["redis_commands"] = redis_commands_per_check(base, tmp, check, key)
     results["load_average"] = os.getloadavg()
 
@@ -498,7 +519,7 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
 def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
     """(row label, cell) pairs of one checkout's results."""
     hit = results["cache_hit"]
-    rows = [("cache hit, check-actions (" + hit["tool"] + ")",
+    rows = [("cache hit, check-actions, queue path (" + hit["tool"] + ")",
              f"{hit['requests_per_s']:.0f} req/s, p50 {hit['p50_ms']:.1f} ms, p99 {hit.get('p99_ms', 0):.1f} ms")]
     for key, label in (("check_actions_uncached", "check-actions, uncached"),
                        ("stored_set_40_events", "check-actions, stored set, 40 events, uncached"),
@@ -512,6 +533,10 @@ def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
         how = "interleaved" if results.get("interleaved") and key != "next_action_uncached" else "sequential"
         rows.append((f"{label} (n={r['n']} {how})", f"p50 {r['p50_ms']:.2f} ms, p95 {r['p95_ms']:.2f} ms, "
                                                    f"p99 {r['p99_ms']:.2f} ms"))
+    if "interpreter_throughput" in results:
+        r = results["interpreter_throughput"]
+        rows.append((f"check-actions judged in the gateway, a new call each ({r['tool']})",
+                     f"{r['requests_per_s']:.0f} req/s ({r['errors']} errors)"))
     fair = results["fairness"]
     for key, label in (("quiet_alone", "quiet tenant, alone"), ("quiet_during_flood", "quiet tenant, flooded")):
         r = fair[key]

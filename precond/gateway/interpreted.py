@@ -21,7 +21,6 @@ action that is not a stub) returns None: the check takes the queue and the sandb
 from __future__ import annotations
 
 import ast
-import copy
 from collections import OrderedDict, defaultdict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -37,6 +36,10 @@ JUDGED_BY = "interpreter"
 REMEMBERED_SETS = 64
 """Compiled sets kept per process (the spec, its rules and labels, per tenant): a tenant's checks repeat them."""
 LITERALS = (str, int, float, bool, type(None))
+REMEMBERED_HISTORIES = 16
+REMEMBERED_HISTORY_CHARS = 16_000
+History = tuple[dict[str, tuple[str, SimpleNamespace]], str | None]
+"""The objects a history made (name → class and state), and where it first broke a rule."""
 
 
 def _false() -> bool:
@@ -60,12 +63,11 @@ class _Method:
     def apply(self, receiver: SimpleNamespace, args: Sequence[Any]) -> None:
         if self.stub:
             return
-        bound = dict(zip(self.params, args, strict=True))
-        value = bound[self.from_param] if self.from_param is not None else self.value
+        value = args[self.params.index(self.from_param)] if self.from_param is not None else self.value
         if self.key is None:
             setattr(receiver, self.attribute, value)
         else:
-            getattr(receiver, self.attribute)[bound[self.key]] = value
+            getattr(receiver, self.attribute)[args[self.params.index(self.key)]] = value
 
 
 def _self_attribute(node: ast.expr) -> str | None:
@@ -132,6 +134,7 @@ class SGDSet:
         self.decided = {action: dict(labels) for action, labels in decided.items()}
         self.rules = {action: [(text, self._compile(action, text)) for text in rules]
                       for action, rules in preconditions.items()}
+        self.histories: OrderedDict[str, History | None] = OrderedDict()
 
     def _compile(self, action: str, text: str) -> Evaluate:
         cls, _, name = action.partition(".")
@@ -143,7 +146,7 @@ class SGDSet:
     def judge(self, history: str, calls: Sequence[str]) -> dict[str, Any] | None:
         """The worker's answer (`CheckResponse` as JSON), or None when the history or a call is not one of the
         forms read here."""
-        read = self._history(history)
+        read = self._remembered_history(history)
         if read is None:
             return None
         objects, violation = read
@@ -153,10 +156,23 @@ class SGDSet:
         results = [self._verdict(text, objects, p) for text, p in zip(calls, parsed, strict=True) if p is not None]
         return {"results": results, "history_violation": violation, "judged_by": JUDGED_BY}
 
+    def _remembered_history(self, history: str) -> History | None:
+        """`_history`, remembered for the last REMEMBERED_HISTORIES histories up to REMEMBERED_HISTORY_CHARS: an
+        agent checks several calls after one history (the objects are never changed: each call copies them)."""
+        if len(history) > REMEMBERED_HISTORY_CHARS:
+            return self._history(history)
+        if history in self.histories:
+            self.histories.move_to_end(history)
+            return self.histories[history]
+        read = self.histories[history] = self._history(history)
+        if len(self.histories) > REMEMBERED_HISTORIES:
+            self.histories.popitem(last=False)
+        return read
+
     def _new(self, cls: str, given: Any) -> SimpleNamespace:
         return SimpleNamespace(**{a: make(given) for a, make in self.initial[cls].items()})
 
-    def _history(self, history: str) -> tuple[dict[str, tuple[str, SimpleNamespace]], str | None] | None:
+    def _history(self, history: str) -> History | None:
         """The objects after the history, and where it first broke a rule. Judged as the sandbox judges it: on
         a second run of its own (`child.check._first_broken`), where what a rule reads of a table stays read,
         while the calls are judged after a run the rules never touched."""
@@ -215,7 +231,7 @@ class SGDSet:
                  parsed: tuple[str, str, str, tuple[Any, ...]]) -> dict[str, Any]:
         target, cls, name, args = parsed
         action = f"{cls}.{name}"
-        receiver = copy.deepcopy(dict(objects))[target][1]  # its own copy, as the sandbox's unit has
+        receiver = _copied(objects)[target][1]  # its own copy, as the sandbox's unit has
         frame = Frame(receiver, args)
         violations: list[str] = []
         errors: list[str] = []
@@ -244,6 +260,21 @@ class SGDSet:
     def _is_method(self, action: str) -> bool:
         cls, _, name = action.partition(".")
         return name in self.methods.get(cls, {})
+
+
+def _copied(objects: Mapping[str, tuple[str, SimpleNamespace]]) -> dict[str, tuple[str, SimpleNamespace]]:
+    """A copy of the objects as `copy.deepcopy` makes it, at a tenth of its cost: the state holds only constants,
+    tables of constants (copied), and the objects themselves (each copied once, so `system.user is user` holds)."""
+    made: dict[int, SimpleNamespace] = {}
+
+    def copied(found: SimpleNamespace) -> SimpleNamespace:
+        if id(found) not in made:
+            made[id(found)] = SimpleNamespace(**{
+                name: copied(value) if isinstance(value, SimpleNamespace) else
+                value.copy() if isinstance(value, dict) else value for name, value in vars(found).items()})
+        return made[id(found)]
+
+    return {name: (cls, copied(found)) for name, (cls, found) in objects.items()}
 
 
 def _tables(cls: ast.ClassDef) -> set[str]:

@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from precond.engine import engine as engine_module
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.evaluation import tools
@@ -176,3 +177,17 @@ def test_the_development_tau_calls(engine: Engine, domain: str) -> None:
     seen: Counter[str] = Counter()
     check_tau(engine, data, CLAUSE if domain == "tau-airline" else {}, False, seen)
     assert seen["allowed"] or seen["refused"], seen
+
+
+def test_the_worker_does_not_screen_a_check_again(engine: Engine, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The gateway screened the job before it queued it (`offload.screened_check`): the worker's run skips it."""
+    def screened_twice(*args: object) -> None:
+        raise AssertionError("screened again")
+
+    monkeypatch.setattr(engine_module, "check_calls", screened_twice)
+    monkeypatch.setattr(engine_module, "check_preconditions", screened_twice)
+    body = json.loads((FIXTURES.parent.parent / "examples" / "check-actions.json").read_text())
+    with scoped(TAG):
+        assert engine.check(CheckRequest.model_validate(body), screened=True).results
+        with pytest.raises(AssertionError, match="screened again"):
+            engine.check(CheckRequest.model_validate(body))
