@@ -29,7 +29,17 @@ from typing import Any
 
 from precond.gateway.converted_spec import OpenAISpec, SGDSpec, converted_spec
 from precond_client.guard import RULE_CHARS, VIOLATION_CHARS, Guard, NotEmbeddable, clean
-from precond_client.rule_interpreter import TABLE, VALUE, Evaluate, Frame, OutsideGrammar, Scope, Shape, compile_rule
+from precond_client.rule_interpreter import (
+    TABLE,
+    VALUE,
+    Evaluate,
+    Frame,
+    OutsideGrammar,
+    Scope,
+    Shape,
+    WorkExceeded,
+    compile_rule,
+)
 from precond_client.schemas.api import rule_status
 
 JUDGED_BY = "interpreter"
@@ -146,14 +156,20 @@ class SGDSet:
     def judge(self, history: str, calls: Sequence[str]) -> dict[str, Any] | None:
         """The worker's answer (`CheckResponse` as JSON), or None when the history or a call is not one of the
         forms read here."""
-        read = self._remembered_history(history)
+        try:
+            read = self._remembered_history(history)
+        except WorkExceeded:
+            return None
         if read is None:
             return None
         objects, violation = read
         parsed = [_call(text, objects, self.methods) for text in calls]
         if any(p is None for p in parsed):
             return None
-        results = [self._verdict(text, objects, p) for text, p in zip(calls, parsed, strict=True) if p is not None]
+        try:
+            results = [self._verdict(text, objects, p) for text, p in zip(calls, parsed, strict=True) if p is not None]
+        except WorkExceeded:
+            return None  # the sandbox judges rules past the interpreter's step budget, under its CPU limit
         return {"results": results, "history_violation": violation, "judged_by": JUDGED_BY}
 
     def _remembered_history(self, history: str) -> History | None:
@@ -239,6 +255,8 @@ class SGDSet:
             try:
                 if not evaluate(frame):
                     violations.append(clean(rule, VIOLATION_CHARS))
+            except WorkExceeded:
+                raise
             except Exception as exc:  # a rule that raises is a broken rule, never a plain "not allowed"
                 errors.append(f"precondition {clean(rule, RULE_CHARS)!r} of {action} raised "
                               f"{clean(type(exc).__name__, 100)}: {clean(str(exc))}")
@@ -286,6 +304,8 @@ def _tables(cls: ast.ClassDef) -> set[str]:
 def _holds(evaluate: Evaluate, frame: Frame) -> bool:
     try:
         return bool(evaluate(frame))
+    except WorkExceeded:
+        raise
     except Exception:  # as the sandbox judges a history: a rule that raises does not hold
         return False
 
@@ -380,5 +400,7 @@ def judged(spec: str, preconditions: Mapping[str, Sequence[str]], decided: Mappi
     if isinstance(compiled, Guard) and isinstance(history, list) and (not history or "role" in history[0]) \
             and all(isinstance(c, Mapping) for c in calls):
         answer = compiled.check_actions(history, [c for c in calls if isinstance(c, Mapping)])
+        if any(f"raised {WorkExceeded.__name__}:" in (v.error or "") for v in answer.results):
+            return None  # the sandbox judges rules past the interpreter's step budget, under its CPU limit
         return {**answer.model_dump(mode="json"), "judged_by": JUDGED_BY}
     return None

@@ -17,6 +17,7 @@ import json
 import logging
 import multiprocessing
 import os
+import re
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -149,6 +150,18 @@ def labelled_run(spec: str, history: str | Sequence[Mapping[str, Any]], call: st
         return checks.Problem("invalid_input", "history", f"the history and the call make a program of "
                               f"{len(run):,} characters, over {max_chars:,}")
     return run, len(run.splitlines()), action
+
+
+ITERATING = re.compile(r"\bfor\b|\b(?:all|any|max|min)\s*\(|[*+-]")
+"""What makes a rule's evaluation grow with more than the collections it reads: a comprehension, a call that walks
+its arguments, arithmetic that builds a sequence (`slot * 100000`). The interpreter bounds each call's rules at
+`rule_interpreter.MAX_STEPS` (some 0.1 s), which the event loop must never spend: a check with such a rule is
+screened and judged in the pool, in the tenant's line. (Read from the text, so a `-` in a date sends a rule there
+too: never the other way round.)"""
+
+
+def iterating_rules(preconditions: Mapping[str, Sequence[str]]) -> bool:
+    return any(ITERATING.search(rule) for rules in preconditions.values() for rule in rules)
 
 
 class Judged(NamedTuple):

@@ -6,8 +6,10 @@ same 422."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -15,8 +17,10 @@ import pytest
 from precond.convert import sgd
 from precond.gateway import interpreted, offload
 from precond.gateway.converted_spec import OpenAISpec, SGDSpec, converted_spec
+from precond.gateway.routes.operations import screened_check
 from precond.programs import checks
 from precond_client.openai_log import Tool, spec_program
+from precond_client.schemas.api import CheckRequest
 
 EXAMPLE = json.loads((Path(__file__).resolve().parents[2] / "examples" / "check-actions.json").read_text())
 SPEC: str = EXAMPLE["spec"]
@@ -141,3 +145,28 @@ def test_what_is_compiled_is_remembered_per_tenant_and_bounded() -> None:
     for n in range(interpreted.REMEMBERED_SETS + 5):
         outcome(EXAMPLE, tag=f"tenant-{n}")
     assert len(interpreted._REMEMBERED.sets) == interpreted.REMEMBERED_SETS >= before
+
+
+class CountingPool:
+    """The check pool's `run` as the route calls it, done here, with the work it was told."""
+
+    def __init__(self) -> None:
+        self.chars: list[int] = []
+
+    async def run(self, tag: str, chars: int, function: Any, *args: Any) -> Any:
+        self.chars.append(chars)
+        return function(*args)
+
+
+def test_a_rule_that_iterates_is_judged_in_the_pool_never_on_the_loop() -> None:
+    heavy = "all(c != 'x' for c in slot * 100000)"  # 200,000 steps at most: far too long for the event loop
+    pool = CountingPool()
+    services = SimpleNamespace(checks=pool, settings=SimpleNamespace(interpret_checks=True))
+    for rules in (EXAMPLE["preconditions"], {"SYSTEM.INFORM": [heavy]}):
+        body = CheckRequest.model_validate({**EXAMPLE, "preconditions": rules})
+        found = asyncio.run(screened_check(services, "tenant", body))  # type: ignore[arg-type]
+        assert not isinstance(found, checks.Problem), found
+    light, iterating = pool.chars
+    assert light <= offload.INLINE_CHARS < iterating
+    # past the interpreter's step budget, the sandbox judges it (under its CPU limit): never a refusal of its own
+    assert isinstance(found, offload.Queued), found

@@ -136,6 +136,8 @@ async def screened_check(services: Services, tag: str,
     history = body.history if isinstance(body.history, str) else body.model_dump(include={"history"})["history"]
     calls = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
     chars = _check_chars(body.spec_text(), history, calls)
+    if services.settings.interpret_checks and offload.iterating_rules(body.preconditions):
+        chars += offload.INLINE_CHARS  # judged in the pool, never on the loop (`offload.ITERATING`)
     return await services.checks.run(tag, chars, offload.screened_check, body.spec_text(), body.preconditions,
                                      body.decided, history, calls, tag, MAX_SOURCE_CHARS,
                                      services.settings.interpret_checks)
