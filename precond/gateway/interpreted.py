@@ -28,18 +28,9 @@ from types import SimpleNamespace
 from typing import Any
 
 from precond.gateway.converted_spec import OpenAISpec, SGDSpec, converted_spec
+from precond_client import rule_interpreter as grammar
 from precond_client.guard import RULE_CHARS, VIOLATION_CHARS, Guard, NotEmbeddable, clean
-from precond_client.rule_interpreter import (
-    TABLE,
-    VALUE,
-    Evaluate,
-    Frame,
-    OutsideGrammar,
-    Scope,
-    Shape,
-    WorkExceeded,
-    compile_rule,
-)
+from precond_client.rule_interpreter import Evaluate, Frame, WorkExceeded
 from precond_client.schemas.api import rule_status
 
 JUDGED_BY = "interpreter"
@@ -138,8 +129,10 @@ class SGDSet:
                                    if isinstance(item, ast.FunctionDef) and item.name != "__init__"}
                         for cls in self.classes.values()}
         self.initial = {name: _initial(cls) for name, cls in self.classes.items()}
-        user_shape = Shape("object", {a: TABLE if a in _tables(spec.user) else VALUE for a in self.initial["USER"]})
-        self.system_shape = Shape("object", {"user": user_shape, "query_success": VALUE})
+        tables = _tables(spec.user)
+        user_shape = grammar.Shape("object", {a: grammar.TABLE if a in tables else grammar.VALUE
+                                              for a in self.initial["USER"]})
+        self.system_shape = grammar.Shape("object", {"user": user_shape, "query_success": grammar.VALUE})
         self.preconditions = {action: list(rules) for action, rules in preconditions.items()}
         self.decided = {action: dict(labels) for action, labels in decided.items()}
         self.rules = {action: [(text, self._compile(action, text)) for text in rules]
@@ -150,8 +143,8 @@ class SGDSet:
         cls, _, name = action.partition(".")
         method = self.methods.get(cls, {}).get(name)
         if cls != "SYSTEM" or method is None or not method.stub:
-            raise OutsideGrammar(f"{action}: not an action the interpreter judges")
-        return compile_rule(text, Scope(self.system_shape, method.params))
+            raise grammar.OutsideGrammar(f"{action}: not an action the interpreter judges")
+        return grammar.compile_rule(text, grammar.Scope(self.system_shape, method.params))
 
     def judge(self, history: str, calls: Sequence[str]) -> dict[str, Any] | None:
         """The worker's answer (`CheckResponse` as JSON), or None when the history or a call is not one of the
@@ -382,7 +375,7 @@ def _compiled(spec: str, preconditions: Mapping[str, Sequence[str]], decided: Ma
         if isinstance(shape, OpenAISpec):
             return Guard(spec, preconditions, decided)
         return SGDSet(shape, preconditions, decided)
-    except (NotEmbeddable, OutsideGrammar):
+    except (NotEmbeddable, grammar.OutsideGrammar):
         return None
 
 
