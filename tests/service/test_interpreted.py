@@ -170,3 +170,22 @@ def test_a_rule_that_iterates_is_judged_in_the_pool_never_on_the_loop() -> None:
     assert light <= offload.INLINE_CHARS < iterating
     # past the interpreter's step budget, the sandbox judges it (under its CPU limit): never a refusal of its own
     assert isinstance(found, offload.Queued), found
+
+
+def test_a_look_alike_specs_code_is_never_run_here(tmp_path: Path) -> None:
+    """Every place a body could hide code, each writing a canary file if it ran: the gateway sends the check to
+    the sandbox (or refuses it) and runs none of it itself."""
+    canary = tmp_path / "ran"
+    code = f"open({str(canary)!r}, 'w').write('x')"
+    specs = [SPEC.replace("  def REQ_MORE(self): pass\n", f"  def REQ_MORE(self): {code}\n"),
+             SPEC.replace("  def GOODBYE(self): pass\n", f"  def GOODBYE(self): pass\n  {code}\n"),
+             SPEC.replace("    self.query_success = None\n", f"    self.query_success = {code}\n"),
+             SPEC + code + "\n"]
+    bodies = [with_spec(spec) for spec in specs] + [
+        {**EXAMPLE, "history": EXAMPLE["history"] + code + "\n"},
+        {**EXAMPLE, "calls": [f"system.REQUEST({code})"]},
+        {**EXAMPLE, "preconditions": {"SYSTEM.INFORM": [code]}}]
+    for body in bodies:
+        found = outcome(body, tag=f"canary-{len(str(body))}")
+        assert isinstance(found, checks.Problem | offload.Queued), found
+    assert not canary.exists()
