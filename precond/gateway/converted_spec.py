@@ -115,6 +115,8 @@ def converted_spec(spec: str, scope: str) -> ConvertedSpec | None:
         tree, _ = checks.remembered_spec_methods(scope, spec)
     except (checks.ProgramProblem, RecursionError):
         return None
+    if len(spec) > checks.REMEMBERED_SPEC_CHARS:
+        return _sgd_spec(tree) or _openai_spec.__wrapped__(scope, spec)  # too large to keep
     return _sgd_spec(tree) or _openai_spec(scope, spec)
 
 

@@ -36,6 +36,9 @@ from precond_client.schemas.api import rule_status
 JUDGED_BY = "interpreter"
 REMEMBERED_SETS = 64
 """Compiled sets kept per process (the spec, its rules and labels, per tenant): a tenant's checks repeat them."""
+REMEMBERED_SET_CHARS = 128_000
+"""A set larger than this (its spec, rules and labels as text) is compiled for each check, never kept: at most
+`REMEMBERED_SETS` of this size stay in a gateway process."""
 LITERALS = (str, int, float, bool, type(None))
 REMEMBERED_HISTORIES = 16
 REMEMBERED_HISTORY_CHARS = 16_000
@@ -385,9 +388,12 @@ def judged(spec: str, preconditions: Mapping[str, Sequence[str]], decided: Mappi
     """The check's answer (`CheckResponse` as JSON, `judged_by` "interpreter") when it can be judged here, else
     None. `history` and `calls` as sent, `program` and `lines` as rendered for the sandbox, both screened
     (`checks.check_check`) already; `tag`: the caller's, under which what is compiled is remembered."""
-    key = (tag, spec, repr(sorted((a, tuple(r)) for a, r in preconditions.items())),
-           repr(sorted((a, sorted(d.items())) for a, d in decided.items())))
-    compiled = _REMEMBERED.get(key, lambda: _compiled(spec, preconditions, decided, tag))
+    rules = repr(sorted((a, tuple(r)) for a, r in preconditions.items()))
+    labels = repr(sorted((a, sorted(d.items())) for a, d in decided.items()))
+    if len(spec) + len(rules) + len(labels) > REMEMBERED_SET_CHARS:
+        compiled = _compiled(spec, preconditions, decided, tag)
+    else:
+        compiled = _REMEMBERED.get((tag, spec, rules, labels), lambda: _compiled(spec, preconditions, decided, tag))
     if isinstance(compiled, SGDSet):
         return compiled.judge(program, lines)
     if isinstance(compiled, Guard) and isinstance(history, list) and (not history or "role" in history[0]) \
