@@ -11,6 +11,12 @@ Every request carries an API key (two tenants, `quiet` and `flood`). Measures
   * the same against a stored precondition set, with a history of 40 events (what a dialog system sends);
   * both again timed by `wrk -c1` (one request at a time, a new call in each), when wrk is installed: the
     service's latency without this script's httpx client, whose own CPU is some 2 ms a request on 2 cores;
+    the example's spec is one `precond convert sgd` writes and its rules are ones the restricted interpreter
+    evaluates, so the gateway judges these checks itself (`judged_by: interpreter`); the row `... sandbox` sends
+    the same check with one more rule the interpreter does not evaluate (always true, on an action not called),
+    which takes the queue, a worker and the sandbox: the two paths paired by spec, in turn;
+  * Redis commands per check on the queue path: `INFO commandstats` of the stack's Redis around 50 uncached
+    checks that take it (the sandbox row's body), counted per command;
   * next-action latency through the gateway, uncached (a different seed per request);
   * fairness: the quiet tenant's uncached check-actions latency alone, and while the other tenant has
     `--flood` check-actions jobs queued (and how long those take to drain: what a first-come-first-served
@@ -109,6 +115,7 @@ def stack(args: argparse.Namespace, tmp: Path) -> Iterator[str]:
             if argv[0] == redis_server:
                 time.sleep(0.3)
         base = f"http://127.0.0.1:{http_port}"
+        (tmp / "redis-port").write_text(str(redis_port))
         wait_until(lambda: httpx.get(f"{base}/ready", timeout=2).status_code == 200, 300, "a ready worker")
         yield base
     finally:
@@ -196,6 +203,35 @@ def stored_set_template(base: str, check: dict[str, Any], key: str) -> dict[str,
     return {"precondition_set": answer.json()["id"], "history": dialog_events(40)}
 
 
+NOT_INTERPRETED = {"SYSTEM.GOODBYE": ["str(1) == '1'"]}
+"""A rule that always holds on an action the checks do not call, outside the restricted interpreter's grammar (it
+calls `str`): the check takes the queue and the sandbox, its verdicts unchanged."""
+
+
+def sandboxed(check: dict[str, Any]) -> dict[str, Any]:
+    return {**check, "preconditions": {**check["preconditions"], **NOT_INTERPRETED}}
+
+
+def redis_commands_per_check(base: str, tmp: Path, check: dict[str, Any], key: str, n: int = 50) -> dict[str, Any]:
+    """Commands the stack's Redis ran per uncached check on the queue path (`INFO commandstats` before and after
+    `n` sequential checks; the worker's idle reads of its queues, 1 a second, are in the count)."""
+    import redis
+
+    server = redis.Redis(port=int((tmp / "redis-port").read_text()))
+    bodies = [{**sandboxed(check), "calls": [f"system.REQUEST('redis_{i}')"]} for i in range(n)]
+
+    def stats() -> dict[str, int]:
+        return {name.removeprefix("cmdstat_"): int(v["calls"]) for name, v in server.info("commandstats").items()}
+
+    before = stats()
+    with httpx.Client(base_url=base, timeout=300, headers=auth(key)) as client:
+        for body in bodies:
+            timed_post(client, "/check-actions", body)
+    after = stats()
+    per = {name: (after[name] - before.get(name, 0)) / n for name in after if after[name] != before.get(name, 0)}
+    return {"n": n, "per_check": sum(per.values()), "by_command": dict(sorted(per.items(), key=lambda kv: -kv[1]))}
+
+
 def uncached_bodies(check: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
     """check-actions bodies with one new call each: a fresh job every time."""
     return [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
@@ -226,7 +262,8 @@ def interleaved_checks(stacks: list[tuple[str, dict[str, str]]], check: dict[str
 
 
 def fairness(base: str, check: dict[str, Any], keys: dict[str, str], args: argparse.Namespace) -> dict[str, Any]:
-    """The quiet tenant's latency alone, then behind `args.flood` queued jobs of the other tenant."""
+    """The quiet tenant's latency alone, then behind `args.flood` queued jobs of the other tenant (checks that
+    take the queue: `check` is the sandbox row's body)."""
     def quiet(tag: str) -> dict[str, float]:
         bodies = [{**check, "calls": [f"system.REQUEST('{tag}_{i}')"]} for i in range(args.fair_n + 2)]
         return latencies(base, "/check-actions", bodies, warmup=2, key=keys["quiet"])
@@ -297,6 +334,7 @@ def wrk_sequential_rows(stacks: list[tuple[str, dict[str, str]]], check: dict[st
     rows: list[dict[str, dict[str, float]]] = [{} for _ in stacks]
     templates = {
         "check_actions_uncached_wrk": [{**check} for _ in stacks],
+        "check_actions_uncached_sandbox_wrk": [sandboxed(check) for _ in stacks],
         "stored_set_40_events_wrk": [stored_set_template(base, check, keys["quiet"]) for base, keys in stacks],
     }
     for row, bodies in templates.items():
@@ -343,6 +381,21 @@ def cache_hits_wrk(base: str, body_file: Path, tmp: Path, args: argparse.Namespa
         elif "Non-2xx" in line or "Socket errors" in line:
             result.setdefault("errors", []).append(line.strip())
     return result
+
+
+def interpreter_throughput_wrk(base: str, check: dict[str, Any], tmp: Path, args: argparse.Namespace,
+                               key: str) -> dict[str, Any]:
+    """Checks the gateway judges itself, each with a new call, `wrk -t{threads} -c{connections}`: requests/s."""
+    pre, post = json.dumps({**check, "calls": [f"system.REQUEST('{CALL}')"]}).split(CALL)
+    script = tmp / "interpreter.lua"
+    script.write_text(WRK_SEQUENTIAL_LUA.format(pre=pre, post=post, key=key))
+    argv = ["wrk", f"-t{args.threads}", f"-c{args.connections}", f"-d{args.duration}s", "-s", str(script), base,
+            "--", f"throughput{time.time()}"]
+    out = subprocess.run(argv, capture_output=True, text=True, check=True).stdout
+    rate = next(float(line.split()[1]) for line in out.splitlines() if line.startswith("Requests/sec:"))
+    errors = next((line.split()[1] for line in out.splitlines() if line.startswith("errors ")), "?")
+    return {"tool": f"wrk -t{args.threads} -c{args.connections} -d{args.duration}s", "requests_per_s": rate,
+            "errors": errors}
 
 
 def _ms(text: str) -> float:
@@ -446,37 +499,52 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
     if args.next_n > 0:
         bodies = [{**next_action, "options": {"seed": i}} for i in range(args.next_n + 2)]
         results["next_action_uncached"] = latencies(base, "/next-action", bodies, warmup=2, key=key)
-    # cache hits: the first check-actions body is cached by now.
+    # cache hits: a check that takes the queue, cached after its first answer (one the gateway judges itself is
+    # never cached: judging it costs less than reading the cache)
     body_file = tmp / "body.json"
-    body_file.write_text(json.dumps({**check, "calls": ["system.REQUEST('slot_0')"]}))
+    body_file.write_text(json.dumps({**sandboxed(check), "calls": ["system.REQUEST('slot_0')"]}))
+    with httpx.Client(base_url=base, timeout=300, headers=auth(key)) as client:
+        timed_post(client, "/check-actions", json.loads(body_file.read_text()))
+    if shutil.which("wrk"):
+        results["interpreter_throughput"] = interpreter_throughput_wrk(base, check, tmp, args, key)
     if shutil.which("wrk"):
         results["cache_hit"] = cache_hits_wrk(base, body_file, tmp, args, key)
     else:
         results["cache_hit"] = cache_hits_httpx(base, json.loads(body_file.read_text()), args, key)
-    results["fairness"] = fairness(base, check, keys, args)
+    results["fairness"] = fairness(base, sandboxed(check), keys, args)
+    results["redis_commands"] = redis_commands_per_check(base, tmp, check, key)
     results["load_average"] = os.getloadavg()
 
 
 def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
     """(row label, cell) pairs of one checkout's results."""
     hit = results["cache_hit"]
-    rows = [("cache hit, check-actions (" + hit["tool"] + ")",
+    rows = [("cache hit, check-actions, queue path (" + hit["tool"] + ")",
              f"{hit['requests_per_s']:.0f} req/s, p50 {hit['p50_ms']:.1f} ms, p99 {hit.get('p99_ms', 0):.1f} ms")]
     for key, label in (("check_actions_uncached", "check-actions, uncached"),
                        ("stored_set_40_events", "check-actions, stored set, 40 events, uncached"),
                        ("check_actions_uncached_wrk", "check-actions, uncached, wrk -c1"),
+                       ("check_actions_uncached_sandbox_wrk", "check-actions, uncached, wrk -c1, sandbox"),
                        ("stored_set_40_events_wrk", "check-actions, stored set, 40 events, uncached, wrk -c1"),
                        ("next_action_uncached", "next-action, uncached")):
         if key not in results:  # --next-n 0, --wrk-seconds 0 or no wrk
             continue
         r = results[key]
         how = "interleaved" if results.get("interleaved") and key != "next_action_uncached" else "sequential"
-        rows.append((f"{label} (n={r['n']} {how})", f"p50 {r['p50_ms']:.1f} ms, p95 {r['p95_ms']:.1f} ms"))
+        rows.append((f"{label} (n={r['n']} {how})", f"p50 {r['p50_ms']:.2f} ms, p95 {r['p95_ms']:.2f} ms, "
+                                                   f"p99 {r['p99_ms']:.2f} ms"))
+    if "interpreter_throughput" in results:
+        r = results["interpreter_throughput"]
+        rows.append((f"check-actions judged in the gateway, a new call each ({r['tool']})",
+                     f"{r['requests_per_s']:.0f} req/s ({r['errors']} errors)"))
     fair = results["fairness"]
     for key, label in (("quiet_alone", "quiet tenant, alone"), ("quiet_during_flood", "quiet tenant, flooded")):
         r = fair[key]
         rows.append((f"{label} (n={r['n']})", f"p50 {r['p50_ms']:.1f} ms, p99 {r['p99_ms']:.1f} ms"))
     rows.append((f"{fair['flood_jobs']} flood jobs drained", f"{fair['flood_drain_s']:.1f} s"))
+    commands = results["redis_commands"]
+    top = ", ".join(f"{name} {count:g}" for name, count in list(commands["by_command"].items())[:6])
+    rows.append((f"Redis commands per check, queue path (n={commands['n']})", f"{commands['per_check']:.1f} ({top})"))
     return rows
 
 

@@ -176,7 +176,7 @@ class Guard:
         session = self.session(messages)
         return CheckResponse.model_construct(
             results=[session.check(c.get("name", ""), c.get("arguments", {})) for c in calls],
-            history_violation=session.history_violation)
+            history_violation=session.history_violation, judged_by="interpreter")
 
     def session(self, messages: Iterable[Mapping[str, Any]] = ()) -> Session:
         """A conversation's state, after `messages` (more with `add`)."""

@@ -520,16 +520,20 @@ class Engine:
                 for v in verdicts]
 
     # ---- check ------------------------------------------------------------------------------------
-    def check(self, request: CheckRequest) -> CheckResponse:
+    def check(self, request: CheckRequest, screened: bool = False) -> CheckResponse:
+        """`screened`: the gateway rendered the history and the calls and ran the static screen
+        (`checks.check_check`) before it queued the job, so the worker does not run it again."""
         spec = remembered_spec(scope.current(), _spec_of(request))
-        check_preconditions(spec, request.preconditions, scope.current())
+        if not screened:
+            check_preconditions(spec, request.preconditions, scope.current())
         history = rendered_history(spec.source, request.history)  # parsed by check_calls, once per scope and text
         try:
             calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls],
                                scope=scope.current())
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
-        check_calls(spec, request.preconditions, history, calls, scope.current())
+        if not screened:
+            check_calls(spec, request.preconditions, history, calls, scope.current())
         judged = sandbox_call(self._sandbox.judge, spec.source, request.preconditions, history, calls,
                               scope.current() or None, warm=scope.warm())
         verdicts = [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)

@@ -70,7 +70,8 @@ class RequestContext:
             route = getattr(scope.get("route"), "path", "unmatched")
             tag = str(scope["state"].get("tenant_tag", "-"))  # never the name: /metrics needs no key
             self.metrics.requests.labels(route, scope["method"], str(status), tag).inc()
-            self.metrics.latency.labels(route, scope["method"]).observe(time.perf_counter() - started)
+            judged_by = str(scope["state"].get("judged_by", "-"))  # a check's: "interpreter" or "sandbox"
+            self.metrics.latency.labels(route, scope["method"], judged_by).observe(time.perf_counter() - started)
 
 
 KEYED_PREFIXES = ("/infer-preconditions", "/next-action", "/check-actions", "/jobs", "/precondition-sets")

@@ -17,10 +17,11 @@ import json
 import logging
 import multiprocessing
 import os
+import re
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from typing import Any, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 from precond.convert.openai import call_lines, structured_history
 from precond.jobs.lifetime import die_with_parent
@@ -150,6 +151,59 @@ def labelled_run(spec: str, history: str | Sequence[Mapping[str, Any]], call: st
         return checks.Problem("invalid_input", "history", f"the history and the call make a program of "
                               f"{len(run):,} characters, over {max_chars:,}")
     return run, len(run.splitlines()), action
+
+
+ITERATING = re.compile(r"\bfor\b|\b(?:all|any|max|min)\s*\(|[*+-]")
+"""What makes a rule's evaluation grow with more than the collections it reads: a comprehension, a call that walks
+its arguments, arithmetic that builds a sequence (`slot * 100000`). The interpreter bounds each call's rules at
+`rule_interpreter.MAX_STEPS` (some 0.1 s), which the event loop must never spend: a check with such a rule is
+screened and judged in the pool, in the tenant's line. (Read from the text, so a `-` in a date sends a rule there
+too: never the other way round.)"""
+
+
+def iterating_rules(preconditions: Mapping[str, Sequence[str]]) -> bool:
+    return any(ITERATING.search(rule) for rules in preconditions.values() for rule in rules)
+
+
+class Judged(NamedTuple):
+    """A check's answer, judged in the gateway (`interpreted`)."""
+
+    answer: dict[str, Any]
+
+
+class Queued(NamedTuple):
+    """A check for the sandbox: the history's program and the calls' lines of the job the worker runs."""
+
+    program: str
+    lines: list[str]
+
+
+def screened_check(spec: str, preconditions: Mapping[str, Sequence[str]], decided: Mapping[str, Mapping[str, str]],
+                   history: str | Sequence[Mapping[str, Any]], calls: Sequence[str | Mapping[str, Any]], tag: str,
+                   max_chars: int, interpret: bool = True) -> Judged | Queued | checks.Problem:
+    """All the gateway does to a check before it answers or queues it, in one trip to the pool: the history and
+    the calls rendered to program text (`rendered`, `rendered_calls`), the static screen (`checks.check_check`:
+    the worker does not repeat it), and the answer itself where no caller text is code to run
+    (`interpreted.judged`), unless `interpret` is off; `tag`: the caller's, under which what is read is
+    remembered."""
+    program = history if isinstance(history, str) else rendered(spec, history, tag, max_chars)
+    if isinstance(program, checks.Problem):
+        return program
+    lines = rendered_calls(spec, calls, tag)
+    if isinstance(lines, checks.Problem):
+        return lines
+    problem = problem_of(checks.check_check, spec, preconditions, program, lines, tag)
+    if problem is not None:
+        return problem
+    if not interpret:
+        return Queued(program, lines)
+    from precond.gateway import interpreted  # here, not at the top: a pool process imports it on its first check
+
+    try:
+        answer = interpreted.judged(spec, preconditions, decided, history, program, calls, lines, tag)
+    except RecursionError:
+        answer = None  # a history nested too deeply for the interpreter: the sandbox judges it
+    return Judged(answer) if answer is not None else Queued(program, lines)
 
 
 CHECK_NICENESS = 10

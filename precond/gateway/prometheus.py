@@ -58,8 +58,9 @@ class Metrics:
         )
         self.latency = Histogram(
             "precond_http_request_seconds",
-            "HTTP request latency, waiting for the job included.",
-            ["route", "method"],
+            "HTTP request latency, waiting for the job included; `judged_by`: what judged a check (`interpreter`: "
+            "the gateway itself, `sandbox`: a worker; `-` for other routes).",
+            ["route", "method", "judged_by"],
             buckets=(0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60),
             registry=self.registry,
         )

@@ -61,6 +61,12 @@ class GatewaySettings(QueueSettings):
         default=False,
         description="Let tenants share cached results of identical requests (each tenant's own by default).",
     )
+    interpret_checks: bool = Field(
+        default=True,
+        description="Judge a check in the gateway itself when its spec is one a converter writes and every rule "
+        "is one the restricted interpreter evaluates (`judged_by: interpreter`: no job, no sandbox, nothing of the "
+        "request run); false: every check is a job the sandbox judges.",
+    )
     tenant_rate_per_s: float = Field(
         default=50.0, gt=0,
         description="Requests per second one tenant may send, on every route that needs a key (a token bucket, "

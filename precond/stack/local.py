@@ -256,6 +256,9 @@ def make_stack(
         "PRECOND_MAX_BODY_BYTES": "65536",
         "PYTHONPATH": str(ROOT),
         "PRECOND_SECRET": "stack-secret-for-tests",
+        # checks are jobs, as the tests of the queue, the worker, the cache and the sandbox want them; a test of
+        # the gateway's own judgement of a check turns it back on
+        "PRECOND_INTERPRET_CHECKS": "false",
         **settings,
     }
     return Stack(server, env, tmp, cache_redis=cache)

@@ -88,7 +88,7 @@ Runner = Callable[[Engine, Any, ProgressFn, CancelledFn], BaseModel]
 RUNNERS: Final[dict[JobKind, Runner]] = {
     "infer": lambda engine, job, progress, cancelled: engine.infer(job, progress, cancelled),
     "next-action": lambda engine, job, progress, cancelled: engine.next_action(job, progress, cancelled),
-    "check": lambda engine, job, _progress, _cancelled: engine.check(job),
+    "check": lambda engine, job, _progress, _cancelled: engine.check(job, screened=True),  # by the gateway
     "validate": lambda engine, job, _progress, _cancelled: engine.validate(
         job.spec, job.preconditions, job.demonstrations),
     "reinfer": reinfer,

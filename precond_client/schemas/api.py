@@ -46,6 +46,7 @@ Unseen = Literal["refuse", "allow"]
 Decided = Literal["established", "assumed", "zero-shot", "unseen", "transferred"]
 ModelFor = Literal["thin", "all"]
 Listed = Literal["all", "kept", "none"]
+JudgedBy = Literal["interpreter", "sandbox"]
 
 SourceText = Field(max_length=MAX_SOURCE_CHARS)
 
@@ -801,6 +802,13 @@ class CheckResponse(StrictBody):
         description="Set when the history itself broke the preconditions: the first line whose call an action's "
         "rules did not allow, the call, and those rules. The history is taken as what happened: the calls are "
         "still judged after it.",
+    )
+    judged_by: JudgedBy = Field(
+        default="sandbox",
+        description="What judged the calls: `interpreter` when the spec is one a converter writes (`precond "
+        "convert openai` or `sgd`, recognised from its structure) and every rule is one the restricted "
+        "interpreter evaluates, so the gateway answered at once without running any of the request's text; "
+        "`sandbox` when a worker ran the history and the rules in the sandbox. Both give the same verdicts.",
     )
 
 

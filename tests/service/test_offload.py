@@ -12,8 +12,9 @@ from types import SimpleNamespace
 
 import pytest
 
+from precond.gateway import offload
 from precond.gateway.offload import INLINE_CHARS, CheckPool, rendering_chars
-from precond.gateway.routes.operations import _with_rules_and_program
+from precond.gateway.routes.operations import screened_check
 from precond.programs import checks
 from precond.stack.attacks import tool_call_check_body
 from precond_client.schemas.api import CheckRequest
@@ -50,9 +51,10 @@ def test_a_tool_call_checks_spec_is_read_off_the_loop_or_once_per_tenant(monkeyp
     pool = CheckPool(1, 1)
 
     async def render(tag: str, body: CheckRequest) -> list[str]:
-        prepared = await _with_rules_and_program(SimpleNamespace(checks=pool), tag, body)  # type: ignore[arg-type]
-        assert isinstance(prepared, CheckRequest), prepared
-        return [c for c in prepared.calls if isinstance(c, str)]
+        services = SimpleNamespace(checks=pool, settings=SimpleNamespace(interpret_checks=True))
+        outcome = await screened_check(services, tag, body)  # type: ignore[arg-type]
+        assert isinstance(outcome, offload.Queued), outcome
+        return outcome.lines
 
     async def scenario() -> None:
         for _ in range(3):

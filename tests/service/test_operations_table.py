@@ -1,24 +1,26 @@
 """Every kind a route submits through `answer` has one row of `OPERATIONS`: what the gateway does with its body
 first (complete it, the model its answer depends on, its static check), looked up by kind, never by the type
-of the body."""
+of the body. A check is the exception: its route screens it, and judges it where it can, in one trip to the
+check pool (`offload.screened_check`)."""
 
 from __future__ import annotations
 
 from typing import get_args
 
+from precond.gateway import offload
 from precond.gateway.routes.operations import OPERATIONS
-from precond_client.schemas.api import CheckRequest, JobKind
+from precond.programs import checks
+from precond_client.schemas.api import JobKind
 
 
 def test_every_submitted_kind_has_a_row() -> None:
-    assert set(OPERATIONS) == set(get_args(JobKind)) - {"validate"}  # a set's validation: its route submits it
+    assert set(OPERATIONS) == set(get_args(JobKind)) - {"validate", "check"}  # their routes submit them
 
 
-def test_the_static_check_of_a_check_reads_the_rendered_calls() -> None:
-    body = CheckRequest(spec="class S:\n  def a(self): pass\n", preconditions={"S.a": ["True"]},
-                        history="s = S()\n", calls=["s.a()"])
-    static_check = OPERATIONS["check"].static_check
-    assert static_check is not None
-    check, args = static_check(body, 1_000, "tenant-tag")
-    assert check.__name__ == "check_check" and args[-2:] == (["s.a()"], "tenant-tag")
-    assert OPERATIONS["check"].model(body) is None and OPERATIONS["reinfer"].static_check is None
+def test_the_screen_of_a_check_reads_the_rendered_calls() -> None:
+    spec = "class S:\n  def a(self): pass\n"
+    outcome = offload.screened_check(spec, {"S.a": ["True"]}, {}, "s = S()\n", ["s.a()"], "tenant-tag", 1_000)
+    assert outcome == offload.Queued("s = S()\n", ["s.a()"])  # not a converter's spec: the sandbox judges it
+    refused = offload.screened_check(spec, {"S.a": ["True"]}, {}, "s = S()\n", ["s.b()"], "tenant-tag", 1_000)
+    assert isinstance(refused, checks.Problem) and refused.field == "calls[0]"
+    assert OPERATIONS["reinfer"].static_check is None

@@ -113,25 +113,62 @@ async def check_actions(
 ) -> Response:
     """Each call judged on its own copy of the state after the history. `allowed` is true only when the call
     ran with every rule holding; a rule or call that raises gives `allowed: false` with `error` naming the rule
-    and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs."""
-    return await answer(services, request, caller, "check", body, wait)
+    and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs.
+    A spec a converter writes with rules the restricted interpreter evaluates is judged by the gateway at once
+    (`judged_by: "interpreter"`, no job); any other check runs in the sandbox (`judged_by: "sandbox"`)."""
+    body = await _with_set(services, caller.tag, body)
+    outcome = await screened_check(services, caller.tag, body)
+    if isinstance(outcome, checks.Problem):
+        raise _unusable(outcome)
+    if isinstance(outcome, offload.Judged):
+        request.scope["state"]["judged_by"] = "interpreter"  # the latency metric's label (`middleware`)
+        return JSONResponse(outcome.answer)
+    request.scope["state"]["judged_by"] = "sandbox"
+    payload = body.model_copy(update={"history": outcome.program, "calls": outcome.lines}).model_dump(mode="json")
+    status = await submit_job(services, caller, "check", payload, None, wait)
+    return respond(request, status, services.settings.wait_max_s)
+
+
+async def screened_check(services: Services, tag: str,
+                         body: CheckRequest) -> offload.Judged | offload.Queued | checks.Problem:
+    """The check rendered, screened and, where it can be, judged, in one trip to the check pool
+    (`offload.screened_check`)."""
+    history = body.history if isinstance(body.history, str) else body.model_dump(include={"history"})["history"]
+    calls = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
+    chars = _check_chars(body.spec_text(), history, calls)
+    if services.settings.interpret_checks and offload.iterating_rules(body.preconditions):
+        chars += offload.INLINE_CHARS  # judged in the pool, never on the loop (`offload.ITERATING`)
+    return await services.checks.run(tag, chars, offload.screened_check, body.spec_text(), body.preconditions,
+                                     body.decided, history, calls, tag, MAX_SOURCE_CHARS,
+                                     services.settings.interpret_checks)
+
+
+def _check_chars(spec: str, history: str | list[Any], calls: list[str | dict[str, Any]]) -> int:
+    """What a check costs the pool, in characters of program text parsed (`CheckPool.run`)."""
+    sent = len(history) if isinstance(history, str) else offload.rendering_chars("", len(json.dumps(history,
+                                                                                                      default=str)))
+    return len(spec) + sent + sum(len(c) if isinstance(c, str) else len(json.dumps(c)) for c in calls)
+
+
+async def _with_set(services: Services, tag: str, body: RulesRequest) -> RulesRequest:
+    """A stored set's spec and rules in place of its reference (404 when the tenant has no such set), its
+    demonstrations too for a next action that sends none (they name the argument values the agent could use)."""
+    if body.precondition_set is None:
+        return body
+    stored = await services.sets.get(tag, body.precondition_set)
+    update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None,
+                              "decided": stored.decided}
+    if isinstance(body, NextActionRequest) and not body.demonstrations:
+        update["demonstrations"] = stored.demonstrations
+    return body.model_copy(update=update)
 
 
 async def _with_rules_and_program(
-    services: Services, tag: str, body: RulesRequest
-) -> RulesRequest | checks.Problem:
-    """The request as a worker runs it: a stored set's spec and rules in place of its reference (404 when the
-    tenant has no such set), its demonstrations too for a next action that sends none (they name the argument
-    values the agent could use), and a structured history (events or OpenAI messages) and tool calls rendered to
-    program text (literals only)."""
-    if body.precondition_set is not None:
-        stored = await services.sets.get(tag, body.precondition_set)
-        update: dict[str, Any] = {"spec": stored.spec, "preconditions": stored.preconditions, "precondition_set": None}
-        if isinstance(body, NextActionRequest) and not body.demonstrations:
-            update["demonstrations"] = stored.demonstrations
-        if isinstance(body, CheckRequest | NextActionRequest):
-            update["decided"] = stored.decided
-        body = body.model_copy(update=update)
+    services: Services, tag: str, body: NextActionRequest
+) -> NextActionRequest | checks.Problem:
+    """The request as a worker runs it: a stored set's spec and rules in place of its reference (`_with_set`),
+    and a structured history (events or OpenAI messages) rendered to program text (literals only)."""
+    body = await _with_set(services, tag, body)
     if not isinstance(body.history, str):
         history = body.model_dump(include={"history"})["history"]  # events and messages as plain data, at once
         chars = offload.rendering_chars(body.spec_text(), len(json.dumps(history, default=str)))
@@ -140,13 +177,6 @@ async def _with_rules_and_program(
         if isinstance(program, checks.Problem):
             return program
         body = body.model_copy(update={"history": program})
-    if isinstance(body, CheckRequest) and not all(isinstance(c, str) for c in body.calls):
-        sent = [c if isinstance(c, str) else c.model_dump() for c in body.calls]
-        chars = offload.rendering_chars(body.spec_text(), len(json.dumps(sent)))  # reading the spec's tools
-        calls = await services.checks.run(tag, chars, offload.rendered_calls, body.spec_text(), sent, tag)
-        if isinstance(calls, checks.Problem):
-            return calls
-        body = body.model_copy(update={"calls": calls})
     return body
 
 
@@ -200,7 +230,7 @@ async def _with_prior_sets(services: Services, tag: str, body: InferRequest) -> 
     return body.model_copy(update={"options": await with_prior_sets(services, tag, body.options)})
 
 
-async def _with_rules(services: Services, tag: str, body: RulesRequest) -> RulesRequest:
+async def _with_rules(services: Services, tag: str, body: NextActionRequest) -> NextActionRequest:
     prepared = await _with_rules_and_program(services, tag, body)
     if isinstance(prepared, checks.Problem):
         raise _unusable(prepared)
@@ -244,20 +274,14 @@ def _training_check(body: TrainPolicyJob, max_work_points: int, _tag: str) -> St
     return checks.check_training, (body.request.spec, body.request.demonstrations)
 
 
-def _check_check(body: CheckRequest, max_work_points: int, tag: str) -> StaticCheck:
-    # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
-    return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
-                                [c for c in body.calls if isinstance(c, str)], tag)
-
-
 OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
     "infer": Operation(_with_prior_sets, _model_if_generated, _infer_check),
     "next-action": Operation(_with_rules_and_policy, lambda body: keys.model_identity(), _next_action_check),
-    "check": Operation(_with_rules, lambda body: None, _check_check),
     "reinfer": Operation(_as_sent, _model_if_generated, None),
     "train-policy": Operation(_as_sent, lambda body: keys.model_identity(), _training_check),
 }
-"""Every kind a route submits through `answer` (a set's validation is submitted by its route directly)."""
+"""Every kind a route submits through `answer` (a set's validation and a check are submitted by their routes
+directly: a check is screened, and judged where it can be, in one trip to the check pool)."""
 
 
 async def answer(
