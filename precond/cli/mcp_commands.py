@@ -40,7 +40,7 @@ def _rules_judge(path: Path) -> Any:
     `precond convert openai` writes from the upstreams' tools (its actions being the tools it counts as writes)."""
     from precond_client.guard import Guard, NotEmbeddable
     from precond_client.mcp.serve import StartError
-    from precond_client.mcp.tools import spec_for, writes_of_rules
+    from precond_client.mcp.tools import spec_for
 
     loaded = _read(path, "--rules")
     try:
@@ -53,7 +53,7 @@ def _rules_judge(path: Path) -> Any:
 
     def make(schemas: Sequence[dict[str, Any]]) -> Guard:
         try:
-            return Guard(spec_for(schemas, writes_of_rules(preconditions)), preconditions, decided, name=str(path))
+            return Guard(spec_for(schemas), preconditions, decided, name=str(path))
         except NotEmbeddable as exc:
             raise StartError(f"--rules {path}: {exc}") from None
     return make

@@ -14,7 +14,7 @@ from typing import Any
 
 from mcp import types as mcp_types
 
-from precond_client.openai_log import Tool, python_name, spec_program
+from precond_client.openai_log import Tool, python_name, spec_program, writes_of
 
 
 def function_schema(tool: mcp_types.Tool) -> dict[str, Any]:
@@ -37,11 +37,13 @@ def agent_tools(schemas: Sequence[Mapping[str, Any]]) -> list[Tool]:
     return tools
 
 
-def writes_of_rules(preconditions: Mapping[str, Any]) -> set[str]:
-    """The state-changing tools an inference asked rules for: its actions (`AGENT.refund_order`), since
-    `precond convert openai` makes the request's actions exactly the tools it counts as writes."""
-    return {action.partition(".")[2] for action in preconditions if action.startswith("AGENT.")}
+def default_writes(schemas: Sequence[Mapping[str, Any]]) -> set[str]:
+    """The state-changing tools `precond convert openai` counts by default (named like writes: book_, cancel_,
+    ...): its spec, and so the spec the rules were learned over, has them as `WRITES`. Which tools have rules
+    says nothing of it, since every tool is guarded by default."""
+    return writes_of(agent_tools(schemas))
 
 
-def spec_for(schemas: Sequence[Mapping[str, Any]], writes: Iterable[str]) -> str:
-    return spec_program(agent_tools(schemas), writes)
+def spec_for(schemas: Sequence[Mapping[str, Any]], writes: Iterable[str] | None = None) -> str:
+    """The converter's spec of these tools (`writes`: its `--writes`, by default the converter's default)."""
+    return spec_program(agent_tools(schemas), default_writes(schemas) if writes is None else writes)

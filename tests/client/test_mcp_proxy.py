@@ -27,7 +27,7 @@ from precond.engine.factory import build_engine
 from precond.stack.keyed import KeyedStack
 from precond_client import Client
 from precond_client.guard import Guard
-from precond_client.mcp.tools import spec_for, writes_of_rules
+from precond_client.mcp.tools import spec_for
 from precond_client.schemas.api import InferRequest
 
 pytestmark = pytest.mark.stack  # starts the proxy and MCP servers as processes
@@ -190,7 +190,7 @@ def test_recorded_sessions_convert_and_learn_with_no_editing(learned: tuple[Path
     assert "order_id in self.results['get_order']" in preconditions["AGENT.refund_order"]
     # the spec the proxy judges --rules over is the converter's, character for character
     schemas = json.loads((log / "tools.json").read_text())
-    assert spec_for(schemas, writes_of_rules(preconditions)) == (log.parent / "converted" / "spec.py").read_text()
+    assert spec_for(schemas) == (log.parent / "converted" / "spec.py").read_text()
 
 
 def test_a_folder_of_sessions_with_a_bad_one_is_refused_naming_its_file(tmp_path: Path) -> None:
@@ -253,7 +253,7 @@ def test_a_stored_set_is_judged_by_the_service(learned: tuple[Path, Path], keyed
                                                tmp_path: Path) -> None:
     """`--set ps_...@n --server URL`: each call a `/check-actions` of the session's messages (`ServiceGuard`)."""
     log, _ = learned
-    spec = spec_for(json.loads((log / "tools.json").read_text()), writes_of_rules(REFUND_RULES))
+    spec = spec_for(json.loads((log / "tools.json").read_text()))
     with Client(keyed.url, api_key=keyed.keys["guard"]) as service:
         reference = service.create_set({"spec": spec, "preconditions": REFUND_RULES}).reference
     args = proxy_args(tmp_path / "log", "--mode", "enforce", "--set", reference, "--server", keyed.url,
@@ -269,10 +269,17 @@ def test_a_stored_set_is_judged_by_the_service(learned: tuple[Path, Path], keyed
     assert [line["verdict"]["allowed"] for line in call_lines(tmp_path / "log")] == [False, True, True]
 
 
+def _tool_of(session: dict[str, Any], index: int) -> str | None:
+    """The tool the message at `index` of a recorded session calls (None: no call there)."""
+    calls = session["traj"][index].get("tool_calls") or [{}]
+    return calls[0].get("function", {}).get("name")
+
+
 def test_a_labelled_call_becomes_a_counterexample_of_the_next_version(learned: tuple[Path, Path],
                                                                       tmp_path: Path) -> None:
     log, _ = learned
-    first = sorted((log / "sessions").glob("*.json"))[0]
+    first = next(path for path in sorted((log / "sessions").glob("*.json"))  # the sessions' order is not the
+                 if _tool_of(json.loads(path.read_text()), 2) == "refund_order")  # order they were played in
     labels = tmp_path / "labels.json"
     marked = precond("label", str(first), "--call", "call_2", "--labels", str(labels), "--note", "refund twice")
     assert marked.returncode == 0, marked.stderr
@@ -363,10 +370,10 @@ from pathlib import Path
 import anyio
 from precond_client.guard import Guard
 from precond_client.mcp.serve import Settings, serve
-from precond_client.mcp.tools import spec_for, writes_of_rules
+from precond_client.mcp.tools import spec_for
 rules = json.loads(Path(sys.argv[3]).read_text())
 anyio.run(serve, Settings([sys.argv[1]], "enforce", Path(sys.argv[2])),
-          lambda schemas: Guard(spec_for(schemas, writes_of_rules(rules)), rules))
+          lambda schemas: Guard(spec_for(schemas), rules))
 """
 """The proxy as `precond mcp --mode enforce --rules` makes it, with the light client alone (no service code)."""
 
