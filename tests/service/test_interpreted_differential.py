@@ -4,11 +4,12 @@
 
 The checks: every SGD fixture domain (and, with the development data, every SGD domain) under every condition the
 enumerator proposes for it (32 an action a set, with hand-written rules that raise and read tables their own call
-fills) and under its learned rules, each system call of its dialogs judged after every prefix of its test and
-demonstration dialogs; the tau-bench airline fixture (and the development airline and retail calls) under the
-learned rules and the hand-written clauses of the embedded guard's differential test, each state-changing call
-judged after every prefix of its run. A check the interpreter cannot take is answered `offload.Queued`: each
-case below asserts it was judged here, so a shape the recogniser stops accepting fails the test.
+fills) and under its learned rules, every system call of its dialogs judged after every prefix (before a system
+call) of its first dialogs, test dialogs first (4 of a fixture, 3 of a development domain); the tau-bench airline
+fixture (and the development airline and retail calls) under the learned rules and the hand-written clauses of
+the embedded guard's differential test, each call judged after every prefix of its run. A check the interpreter
+cannot take is answered `offload.Queued`: each case below asserts it was judged here, so a shape the recogniser
+stops accepting fails the test.
 """
 
 from __future__ import annotations
@@ -16,12 +17,12 @@ from __future__ import annotations
 import json
 from collections import Counter
 from collections.abc import Collection, Iterator
-from functools import partial
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from precond.convert.openai import convert
 from precond.engine import engine as engine_module
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
@@ -31,7 +32,7 @@ from precond.gateway import offload
 from precond.jobs.precondition_sets import decided
 from precond.sandbox import Sandbox
 from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
-from tests.client.test_guard_differential import CLAUSE, MAX_CALLS, fixture_calls, state_changing_calls
+from tests.client.test_guard_differential import CLAUSE, MAX_CALLS, fixture_calls
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SGD_FIXTURES = FIXTURES / "data" / "sgd"
@@ -138,26 +139,41 @@ def test_every_development_sgd_domain(engine: Engine) -> None:
 
 
 # ---- tau-bench -------------------------------------------------------------------------------------------------
-def tau_checks(data: Path, actions: Collection[str], every_call: bool
+def writes_of(run: list[dict[str, Any]], index: int, writes: Collection[str], actions: Collection[str]
+              ) -> list[dict[str, Any]]:
+    """The calls of a state-changing tool with rules that the message at `index` makes."""
+    return [{"name": c["function"]["name"], "arguments": c["function"]["arguments"]}
+            for c in run[index].get("tool_calls") or []
+            if c["function"]["name"] in writes and f"AGENT.{c['function']['name']}" in actions]
+
+
+def tau_checks(runs: list[list[dict[str, Any]]], actions: Collection[str], writes: Collection[str] | None
                ) -> Iterator[tuple[list[dict[str, Any]], list[dict[str, Any]]]]:
-    """(history, calls) at every message that calls a tool: its own state-changing calls, or (`every_call`) every
-    distinct call of the runs whose action has rules."""
-    runs = [record["traj"] for record in json.loads((data / "trajectories.json").read_text())]
-    calls_at = fixture_calls(runs, set(actions)) if every_call else partial(state_changing_calls,
-                                                                           actions=frozenset(actions))
+    """(history, calls) at every message that calls a tool: its own state-changing calls (of `writes`), or (None)
+    every distinct call of the runs whose action has rules."""
+    every = fixture_calls(runs, set(actions))
     for run in runs:
         for index in range(len(run)):
-            calls = calls_at(run, index)
+            calls = every(run, index) if writes is None else writes_of(run, index, writes, actions)
             for first in range(0, len(calls), MAX_CALLS):
                 yield run[:index], calls[first: first + MAX_CALLS]
 
 
 def check_tau(engine: Engine, data: Path, hand: dict[str, list[str]], every_call: bool, seen: Counter[str]) -> None:
-    converted = tools.load(data)
+    """The learned rules (from the successful runs) and the hand-written ones, over the domain's state-changing
+    tools (the airline's as `precond eval tools` names them, else the converter's by verb)."""
+    records = json.loads((data / "trajectories.json").read_text())
+    airline = data.name.endswith("airline")
+    converted = convert(records, json.loads((data / "tools.json").read_text()), "trajectories.json", "tools.json",
+                        set(tools.WRITES) if airline else None)
+    request = tools.infer_request(converted, tools.CONFIGS[0])
+    if not airline:
+        request = request.model_copy(update={"actions": [f"AGENT.{w}" for w in sorted(converted.writes)]})
     with scoped(TAG):
-        learned = engine.infer(tools.infer_request(converted, tools.CONFIGS[0]))
+        learned = engine.infer(request)
+    runs = [record["traj"] for record in records]
     for rules, labels in ((learned.preconditions, _decided(learned)), (hand, {})):
-        for history, calls in tau_checks(data, list(rules), every_call):
+        for history, calls in tau_checks(runs, list(rules), None if every_call else converted.writes):
             compare(engine, {"spec": converted.spec, "preconditions": rules, "decided": labels,
                              "history": history, "calls": calls}, seen)
 
