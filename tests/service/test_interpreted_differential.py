@@ -6,10 +6,10 @@ The checks: every SGD fixture domain (and, with the development data, every SGD 
 enumerator proposes for it (32 an action a set, with hand-written rules that raise and read tables their own call
 fills) and under its learned rules, every system call of its dialogs judged after every prefix (before a system
 call) of its first dialogs, test dialogs first (4 of a fixture, 3 of a development domain); the tau-bench airline
-fixture (and the first runs of the development airline and retail calls) under the learned rules and the hand-written clauses of
-the embedded guard's differential test, each call judged after every prefix of its run. A check the interpreter
-cannot take is answered `offload.Queued`: each case below asserts it was judged here, so a shape the recogniser
-stops accepting fails the test.
+fixture (and the first runs of the development airline and retail calls) under the learned rules and the
+hand-written clauses of the embedded guard's differential test, each call judged after every prefix of its run.
+A check the interpreter cannot take is answered `offload.Queued`: each case below asserts it was judged here, so a
+shape the recogniser stops accepting fails the test.
 """
 
 from __future__ import annotations
