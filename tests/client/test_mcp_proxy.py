@@ -423,3 +423,55 @@ def test_hostile_arguments_and_results_are_data_and_the_log_is_private_as_root_o
     made = [log, log / "sessions", *(log / "sessions").iterdir(), log / "calls.jsonl", log / "tools.json"]
     assert all(path.stat().st_mode & 0o077 == 0 for path in made)
     assert {path.stat().st_uid for path in made} == {os.geteuid() if user == "root" else 65534}
+
+
+def test_an_upstream_that_does_not_start_exits_2_naming_it(tmp_path: Path) -> None:
+    result = precond("mcp", "--upstream", "false", "--log", str(tmp_path / "log"))
+    assert result.returncode == 2 and "upstream 'false' did not start" in result.stderr, result.stderr
+    unreachable = f"http://127.0.0.1:{free_port()}/mcp"
+    result = precond("mcp", "--upstream", unreachable, "--log", str(tmp_path / "log"))
+    assert result.returncode == 2 and f"upstream {unreachable!r} did not start" in result.stderr, result.stderr
+
+
+def test_an_http_upstream_that_goes_away_is_an_error_naming_it_and_the_proxy_stays_up(tmp_path: Path) -> None:
+    """The SDK's HTTP transport ends its task group with the refused connection: that ends the upstream's
+    connection, never the proxy."""
+    port = free_port()
+    log = tmp_path / "log"
+
+    async def run(url: str, desk: subprocess.Popen[bytes]) -> tuple[Any, str, str, Any]:
+        async with stdio_proxy(proxy_args(log, "--timeout", "20", upstreams=[url, FAULTY])) as session:
+            before = await session.call_tool("get_order", {"order_id": "A100"})
+            desk.terminate()
+            desk.wait(timeout=30)
+            said = []
+            for _ in range(2):
+                try:
+                    await session.call_tool("get_order", {"order_id": "A100"})
+                    said.append("answered")
+                except MCPError as exc:
+                    said.append(exc.message)
+            return before, said[0], said[1], await session.call_tool("echo", {"text": "still here"})
+
+    process = subprocess.Popen([sys.executable, str(ROOT / "examples" / "mcp" / "refund_desk.py"), "--http",
+                                str(port)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        url = f"http://127.0.0.1:{port}/mcp"
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline
+                time.sleep(0.2)
+        before, first, second, echoed = asyncio.run(run(url, process))
+    finally:
+        process.kill()
+        process.wait(timeout=30)
+    assert not before.is_error
+    assert first.startswith(f"upstream {url!r} "), first
+    assert second.startswith(f"upstream {url!r} is gone"), second
+    assert texts(echoed) == "still here"
+    [record] = records(log)
+    assert len(record["traj"]) == 8
