@@ -27,6 +27,7 @@ from precond.engine.factory import build_engine
 from precond.stack.keyed import KeyedStack
 from precond_client import Client
 from precond_client.guard import Guard
+from precond_client.mcp.recorder import CUT, Recording
 from precond_client.mcp.tools import spec_for, writes_of_rules
 from precond_client.schemas.api import InferRequest
 
@@ -363,6 +364,7 @@ from pathlib import Path
 import anyio
 from precond_client.guard import Guard
 from precond_client.mcp.serve import Settings, serve
+from precond_client.mcp.recorder import CUT, Recording
 from precond_client.mcp.tools import spec_for, writes_of_rules
 rules = json.loads(Path(sys.argv[3]).read_text())
 anyio.run(serve, Settings([sys.argv[1]], "enforce", Path(sys.argv[2])),
@@ -475,3 +477,13 @@ def test_an_http_upstream_that_goes_away_is_an_error_naming_it_and_the_proxy_sta
     assert texts(echoed) == "still here"
     [record] = records(log)
     assert len(record["traj"]) == 8
+
+
+def test_a_result_too_long_for_the_room_left_is_recorded_cut_and_the_record_stays_within_its_bound(
+        tmp_path: Path) -> None:
+    recording = Recording.start(tmp_path, "s", 65536)
+    call_id, _ = recording.call("send_note", {"order_id": "A100", "text": "x" * 45_000})  # 19 KB left
+    recording.result(call_id, "send_note", "ü" * 20_000)
+    record = json.loads((tmp_path / "s.json").read_text(encoding="utf-8"))
+    assert (tmp_path / "s.json").stat().st_size <= 65536
+    assert record["traj"][1]["content"].endswith(CUT) and record["traj"][1]["content"].startswith("üü")
