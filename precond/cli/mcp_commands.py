@@ -66,8 +66,8 @@ def mcp(
                                       "MCP session), calls.jsonl (each call's verdict) and tools.json.")],
     mode: Annotated[str, typer.Option(help="record: forward and record; enforce: a refused call never reaches the "
                                       "upstream; shadow: judge and log, forward every call.")] = "record",
-    rules: Annotated[Path | None, typer.Option(help="The rules: what `precond infer` prints (or {action: "
-                                               "[rules]}), judged in this process.", show_default=False)] = None,
+    rules: Annotated[Path | None, typer.Option(help="The rules: what `precond infer` prints (or a JSON object of "
+                                               "action -> rules), judged in this process.", show_default=False)] = None,
     precondition_set: Annotated[str | None, typer.Option("--set", help="A stored set (ps_...@n), judged by the "
                                                          "service at --server.", show_default=False)] = None,
     server: Annotated[str | None, typer.Option(help="The service's URL, with --set.", envvar="PRECOND_SERVER",

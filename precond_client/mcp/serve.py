@@ -12,13 +12,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import anyio
 from mcp.server.stdio import stdio_server
 
 from precond_client.guard import Judge
 from precond_client.mcp.proxy import Mode, Proxy
 from precond_client.mcp.recorder import CallLog, prepare
 from precond_client.mcp.tools import function_schema
-from precond_client.mcp.upstreams import StartError, connect
+from precond_client.mcp.upstreams import StartError, hold
 
 MakeJudge = Callable[[Sequence[dict[str, Any]]], Judge | None]
 """The upstreams' tools (OpenAI function schemas) → the judge of their calls (None in `record`)."""
@@ -39,7 +40,9 @@ async def serve(settings: Settings, make_judge: MakeJudge) -> None:
     """Serve until the client (stdio) or a signal (HTTP) ends it; `StartError` when it cannot start."""
     sessions = prepare(settings.log)
     async with AsyncExitStack() as stack:
-        upstreams = [await connect(stack, target, settings.timeout) for target in settings.upstreams]
+        held = await stack.enter_async_context(anyio.create_task_group())
+        stack.callback(held.cancel_scope.cancel)  # the upstreams' connections end with the proxy
+        upstreams = [await held.start(hold, target, settings.timeout) for target in settings.upstreams]
         schemas = [function_schema(tool) for upstream in upstreams for tool in upstream.tools]
         judge = make_judge(schemas)
         calls = CallLog(settings.log)

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import anyio
+from anyio.abc import TaskStatus
 from mcp import ClientSession, StdioServerParameters, stdio_client
 from mcp import types as mcp_types
 from mcp.client.streamable_http import streamable_http_client
@@ -52,30 +53,45 @@ def is_url(target: str) -> bool:
     return target.startswith(("http://", "https://"))
 
 
-async def connect(stack: AsyncExitStack, target: str, timeout: float) -> Upstream:
-    """Start (or reach) one upstream, initialize it and list its tools; `StartError` naming it if it cannot.
-    `timeout`: the seconds each later call may take."""
+async def hold(target: str, timeout: float, *, task_status: TaskStatus[Upstream] = anyio.TASK_STATUS_IGNORED
+               ) -> None:
+    """One upstream's connection, in a task of its own (`task_group.start(hold, target, timeout)` returns the
+    `Upstream` once it has listed its tools; `StartError` naming it if it cannot). The SDK's transports run their
+    own task groups, which end with an error when the upstream goes (a refused connection, a dead process): that
+    error ends this task only, marking the upstream gone, never the proxy. `timeout`: the seconds a call may take."""
+    upstream: Upstream | None = None
+    started = False
     try:
-        if is_url(target):
-            read, write = await stack.enter_async_context(streamable_http_client(target))
-        else:
-            argv = shlex.split(target)
-            if not argv:
-                raise StartError("--upstream: an empty command")
-            params = StdioServerParameters(command=argv[0], args=argv[1:])
-            read, write = await stack.enter_async_context(stdio_client(params, errlog=sys.stderr))
-        session = await stack.enter_async_context(ClientSession(read, write))
-        upstream = Upstream(target, session, timeout)
-        with anyio.fail_after(START_SECONDS):
-            await session.initialize()
-            upstream.tools = await _list_tools(session)
+        async with AsyncExitStack() as stack:
+            read, write = await _transport(stack, target)
+            session = await stack.enter_async_context(ClientSession(read, write))
+            upstream = Upstream(target, session, timeout)
+            with anyio.fail_after(START_SECONDS):
+                await session.initialize()
+                upstream.tools = await _list_tools(session)
+            task_status.started(upstream)
+            started = True
+            await anyio.sleep_forever()
     except StartError:
         raise
     except TimeoutError:
-        raise StartError(f"upstream {target!r} did not start: no tools listed within {START_SECONDS:.0f} s") from None
-    except Exception as exc:  # any way a process or a URL can fail to become an MCP server
-        raise StartError(f"upstream {target!r} did not start: {_said(exc)}") from None
-    return upstream
+        if not started:
+            raise StartError(f"upstream {target!r} did not start: no tools listed within {START_SECONDS:.0f} s"
+                             ) from None
+    except Exception as exc:  # any way a process or a URL can fail, or stop, being an MCP server
+        if not started or upstream is None:
+            raise StartError(f"upstream {target!r} did not start: {_said(exc)}") from None
+        upstream.gone = _said(exc)
+
+
+async def _transport(stack: AsyncExitStack, target: str) -> tuple[Any, Any]:
+    if is_url(target):
+        return await stack.enter_async_context(streamable_http_client(target))
+    argv = shlex.split(target)
+    if not argv:
+        raise StartError("--upstream: an empty command")
+    params = StdioServerParameters(command=argv[0], args=argv[1:])
+    return await stack.enter_async_context(stdio_client(params, errlog=sys.stderr))
 
 
 async def _list_tools(session: ClientSession) -> list[mcp_types.Tool]:
@@ -129,5 +145,8 @@ async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_
 
 
 def _said(exc: BaseException) -> str:
+    """One line of what went wrong: a transport's group of errors said by its first error."""
+    while isinstance(exc, BaseExceptionGroup) and exc.exceptions:
+        exc = exc.exceptions[0]
     text = " ".join(str(exc).split()) or type(exc).__name__
     return text if len(text) <= 300 else text[:297] + "..."

@@ -27,6 +27,7 @@ from precond.engine.factory import build_engine
 from precond.stack.keyed import KeyedStack
 from precond_client import Client
 from precond_client.guard import Guard
+from precond_client.mcp.recorder import CUT, Recording
 from precond_client.mcp.tools import spec_for
 from precond_client.schemas.api import InferRequest
 
@@ -430,3 +431,65 @@ def test_hostile_arguments_and_results_are_data_and_the_log_is_private_as_root_o
     made = [log, log / "sessions", *(log / "sessions").iterdir(), log / "calls.jsonl", log / "tools.json"]
     assert all(path.stat().st_mode & 0o077 == 0 for path in made)
     assert {path.stat().st_uid for path in made} == {os.geteuid() if user == "root" else 65534}
+
+
+def test_an_upstream_that_does_not_start_exits_2_naming_it(tmp_path: Path) -> None:
+    result = precond("mcp", "--upstream", "false", "--log", str(tmp_path / "log"))
+    assert result.returncode == 2 and "upstream 'false' did not start" in result.stderr, result.stderr
+    unreachable = f"http://127.0.0.1:{free_port()}/mcp"
+    result = precond("mcp", "--upstream", unreachable, "--log", str(tmp_path / "log"))
+    assert result.returncode == 2 and f"upstream {unreachable!r} did not start" in result.stderr, result.stderr
+
+
+def test_an_http_upstream_that_goes_away_is_an_error_naming_it_and_the_proxy_stays_up(tmp_path: Path) -> None:
+    """The SDK's HTTP transport ends its task group with the refused connection: that ends the upstream's
+    connection, never the proxy."""
+    port = free_port()
+    log = tmp_path / "log"
+
+    async def run(url: str, desk: subprocess.Popen[bytes]) -> tuple[Any, str, str, Any]:
+        async with stdio_proxy(proxy_args(log, "--timeout", "20", upstreams=[url, FAULTY])) as session:
+            before = await session.call_tool("get_order", {"order_id": "A100"})
+            desk.terminate()
+            desk.wait(timeout=30)
+            said = []
+            for _ in range(2):
+                try:
+                    await session.call_tool("get_order", {"order_id": "A100"})
+                    said.append("answered")
+                except MCPError as exc:
+                    said.append(exc.message)
+            return before, said[0], said[1], await session.call_tool("echo", {"text": "still here"})
+
+    process = subprocess.Popen([sys.executable, str(ROOT / "examples" / "mcp" / "refund_desk.py"), "--http",
+                                str(port)], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        url = f"http://127.0.0.1:{port}/mcp"
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                assert time.monotonic() < deadline
+                time.sleep(0.2)
+        before, first, second, echoed = asyncio.run(run(url, process))
+    finally:
+        process.kill()
+        process.wait(timeout=30)
+    assert not before.is_error
+    assert first.startswith(f"upstream {url!r} "), first
+    assert second.startswith(f"upstream {url!r} is gone"), second
+    assert texts(echoed) == "still here"
+    [record] = records(log)
+    assert len(record["traj"]) == 8
+
+
+def test_a_result_too_long_for_the_room_left_is_recorded_cut_and_the_record_stays_within_its_bound(
+        tmp_path: Path) -> None:
+    recording = Recording.start(tmp_path, "s", 65536)
+    call_id, _ = recording.call("send_note", {"order_id": "A100", "text": "x" * 45_000})  # 19 KB left
+    recording.result(call_id, "send_note", "ü" * 20_000)
+    record = json.loads((tmp_path / "s.json").read_text(encoding="utf-8"))
+    assert (tmp_path / "s.json").stat().st_size <= 65536
+    assert record["traj"][1]["content"].endswith(CUT) and record["traj"][1]["content"].startswith("üü")
