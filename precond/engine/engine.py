@@ -21,6 +21,7 @@ from precond.engine import guarded as guarding
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import thin, too_few
 from precond.engine.freshness import writes_at
+from precond.engine.left_out import Traced, trace_judgeable
 from precond.engine.library import Library, shipped
 from precond.engine.next_action import NextActionPlanner
 from precond.engine.notices import rule_warnings
@@ -223,7 +224,13 @@ class Engine:
         guarded = _guarded(spec, actions, request.options)
         progress("trace", 0, 1)
         with timer.phase("trace"):
-            trace = sandbox_call(self._sandbox.trace, spec.source, demos, scope=scope.current())
+            traced = sandbox_call(trace_judgeable, self._sandbox, spec.source, demos, scope.current())
+        trace = traced.trace
+        if traced.left_out:  # too large to judge: each is empty from here on, and named in the warnings
+            request, demos = _without(request, traced), traced.demonstrations
+            demo_trees = [parse_source(d, f"demonstrations[{i}]") for i, d in enumerate(demos)]
+            labelled = counterexamples.read(spec, request.counterexamples, demos, actions) \
+                if request.counterexamples else None
         _refuse_no_evidence(actions, trace)
         enumerated = Proposals()
         stopped: dict[str, str] = {}
@@ -316,6 +323,7 @@ class Engine:
             cuts = (warnings.get(action), stopped.get(action), ranked[action].search, ranked[action].behind, unguarded)
             if any(cuts[1:]):
                 warnings[action] = "; ".join(w for w in cuts if w)
+        warnings.update({f"demonstrations[{i}]": why for i, why in traced.left_out.items()})
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, stats=response.stats,
@@ -683,6 +691,12 @@ def _merged(first: EvaluateResult | None, rest: EvaluateResult) -> EvaluateResul
     if first is None:
         return rest
     return EvaluateResult({**rest.points, **first.points}, {**rest.results, **first.results})
+
+
+def _without(request: InferRequest, traced: Traced) -> InferRequest:
+    """The request with the left-out demonstrations empty and without the labelled calls of their runs."""
+    runs = [r for r in request.counterexamples if r.demonstration not in traced.left_out]
+    return request.model_copy(update={"demonstrations": traced.demonstrations, "counterexamples": runs})
 
 
 def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:

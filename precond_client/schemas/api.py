@@ -550,7 +550,9 @@ class InferResponse(StrictBody):
         default_factory=dict,
         description="Per action whose rule is empty (every call allowed) or not backed by enough demonstrated "
         "calls, why: `no occurrence` (no demonstration calls it), `thin evidence` (fewer than 3 calls in 3 "
-        "demonstrations) or `empty rule` (no candidate passed validation). Absent: a rule learned from evidence.",
+        "demonstrations) or `empty rule` (no candidate passed validation). Absent: a rule learned from evidence. "
+        "Also per demonstration left out (`demonstrations[12]`): one that hits a sandbox limit (time, memory, "
+        "size) even when run alone teaches nothing, and the warning names the limit and the setting to raise.",
     )
     evidence: dict[str, dict[str, RuleEvidence]] = Field(
         default_factory=dict,
