@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import PurePath
 from typing import Any
 
 from precond.convert.openai import Converted, Trajectory
@@ -29,11 +30,15 @@ class Label:
     tool: str
     allowed: bool
     where: str
-    """`labels.json: [12]`, for errors and for the labelled call's name."""
+    """`data/labels.json: [12]`, the file as it was given, for errors."""
+    name: str
+    """`labels.json: [12]`, the file's name alone: the labelled call's name, which reports and the review page
+    show (a path as typed would show where it lay on the machine that converted it)."""
 
 
 def read_labels(data: Any, source: str, tools: set[str]) -> list[Label]:
-    """Records `{task_id, trial, message_index, tool, allowed, ...}` (LABELS.md); the rest of a record is not read."""
+    """Records `{task_id, trial, message_index, tool, allowed, ...}` (docs/converting.md, "Labelled calls"); the
+    rest of a record is not read."""
     if not isinstance(data, list):
         raise PlaceError(source, "expected a list of label records")
     labels = []
@@ -53,7 +58,8 @@ def read_labels(data: Any, source: str, tools: set[str]) -> list[Label]:
         allowed = record.get("allowed")
         if not isinstance(allowed, bool):
             raise PlaceError(f"{where}.allowed", "expected true or false")
-        labels.append(Label(f"task{task}-trial{trial}", message, tool, allowed, where))
+        labels.append(Label(f"task{task}-trial{trial}", message, tool, allowed, where,
+                            f"{PurePath(source).name}: [{index}]"))
     return labels
 
 
@@ -78,7 +84,7 @@ def counterexamples(converted: Converted, labels: Sequence[Label],
                              f"({call.tool} at message {label.message} of {label.run})")
         if other is label and label.tool in converted.writes:
             calls.setdefault(label.run, []).append(
-                {"line": line + 1, "verdict": "allow" if label.allowed else "refuse", "name": label.where})
+                {"line": line + 1, "verdict": "allow" if label.allowed else "refuse", "name": label.name})
     out: list[dict[str, Any]] = []
     for name, labelled in calls.items():
         run: dict[str, Any] = ({"demonstration": index[name]} if name in index
