@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from precond.convert.openai import call_lines, structured_history
+from precond.convert.openai import call_lines, call_schema_problems, structured_history
 from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine import guarded as guarding
 from precond.engine.enumeration import StateModel, enumerate_atoms
@@ -532,16 +532,18 @@ class Engine:
         spec = remembered_spec(scope.current(), _spec_of(request))
         check_preconditions(spec, request.preconditions, scope.current())
         history = rendered_history(spec.source, request.history)  # parsed by check_calls, once per scope and text
+        sent = [c if isinstance(c, str) else c.model_dump() for c in request.calls]
         try:
-            calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls],
-                               scope=scope.current())
+            calls = call_lines(spec.source, sent, scope=scope.current())
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
         check_calls(spec, request.preconditions, history, calls, scope.current())
         judged = sandbox_call(self._sandbox.judge, spec.source, request.preconditions, history, calls,
                               scope.current() or None, warm=scope.warm())
-        verdicts = [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
-                    for v in judged.verdicts]
+        broken = call_schema_problems(spec.source, sent, scope.current())  # refused before any rule is asked
+        verdicts = [CallVerdict(call=v.call, allowed=False, error=problem) if problem else
+                    CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
+                    for v, problem in zip(judged.verdicts, broken, strict=True)]
         actions = call_actions(spec, history, calls, scope.current())
         return CheckResponse(results=[_with_status(_labelled(v, spec, request.decided), action, request)
                                       for v, action in zip(verdicts, actions, strict=True)],

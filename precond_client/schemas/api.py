@@ -1033,6 +1033,11 @@ class ErrorInfo(StrictBody):
     type: str
     message: str
     field: str | None = None
+    blocked: list[Blocked] | None = Field(
+        default=None, description="`blocks_demonstration`: every demonstrated call the new rules would refuse (the "
+        "rule and where), so that a reviewer sees which demonstrations it blocks. The ways out: `force: true` "
+        "(they become the rule's known exceptions), a `reject` edit of the rule (or the set stored without it), "
+        "or the demonstrations left out.")
 
 
 class ErrorResponse(StrictBody):

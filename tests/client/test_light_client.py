@@ -1,7 +1,7 @@
 """The light client distribution (clients/python): its wheel holds `precond_client` (its schemas and the agent
-adapters included) only and depends on httpx and pydantic only (the adapters' frameworks are extras); installed
-alone in a fresh virtual environment (no system site packages), it imports without torch, fastapi or redis and
-works against a real stack, its embedded guard included."""
+adapters included) only and depends on httpx, pydantic and jsonschema only (the adapters' frameworks are
+extras); installed alone in a fresh virtual environment (no system site packages), it imports without torch,
+fastapi or redis and works against a real stack, its embedded guard included."""
 
 from __future__ import annotations
 
@@ -54,7 +54,7 @@ def test_the_wheel_holds_the_client_and_its_schemas_and_needs_httpx_and_pydantic
     assert headers["Name"] == "precond-client"
     requires = sorted(headers.get_all("Requires-Dist") or [])
     base = [r for r in requires if "extra ==" not in r]
-    assert [r.split(">")[0].split("=")[0].strip() for r in base] == ["httpx", "pydantic"], requires
+    assert [Requirement(r).name for r in base] == ["httpx", "jsonschema", "pydantic"], requires
     assert sorted(headers.get_all("Provides-Extra") or []) == ["langchain", "langgraph", "openai-agents"]
 
 

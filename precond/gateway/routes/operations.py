@@ -11,6 +11,7 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
+from precond.convert.openai import holds_schemas
 from precond.gateway import offload
 from precond.gateway.auth import CurrentCaller
 from precond.gateway.caller import Caller
@@ -146,7 +147,8 @@ async def _with_rules_and_program(
         calls = await services.checks.run(tag, chars, offload.rendered_calls, body.spec_text(), sent, tag)
         if isinstance(calls, checks.Problem):
             return calls
-        body = body.model_copy(update={"calls": calls})
+        if not holds_schemas(body.spec_text()):  # else the worker checks each call against its tool's schema
+            body = body.model_copy(update={"calls": calls})
     return body
 
 
@@ -172,8 +174,9 @@ def _text(history: object) -> str:
 
 def _program_chars(body: BaseModel) -> int:
     body = body.request if isinstance(body, TrainPolicyJob) else body
+    calls = [c if isinstance(c, str) else json.dumps(c.model_dump()) for c in getattr(body, "calls", [])]
     texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
-             *getattr(body, "demonstrations", []), *getattr(body, "calls", [])]
+             *getattr(body, "demonstrations", []), *calls]
     return sum(len(text) for text in texts)
 
 
@@ -245,7 +248,8 @@ def _training_check(body: TrainPolicyJob, max_work_points: int, _tag: str) -> St
 
 
 def _check_check(body: CheckRequest, max_work_points: int, tag: str) -> StaticCheck:
-    # tool calls were rendered to call lines with the history (`_with_rules_and_program`)
+    # tool calls were rendered to call lines with the history (`_with_rules_and_program`); those kept as sent, for
+    # the worker to check against their tools' schemas, rendered there too
     return checks.check_check, (body.spec_text(), body.preconditions, _text(body.history),
                                 [c for c in body.calls if isinstance(c, str)], tag)
 
