@@ -19,6 +19,7 @@ A call the guard cannot judge (arguments the converter refuses, a history it cou
 from __future__ import annotations
 
 import asyncio
+import re
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -31,6 +32,7 @@ from precond_client.openai_log import (
     Tool,
     call_line,
     converter_spec,
+    parse_json,
 )
 from precond_client.rule_interpreter import (
     LISTS,
@@ -44,6 +46,7 @@ from precond_client.rule_interpreter import (
     compile_rule,
 )
 from precond_client.schemas.api import CallVerdict, CheckResponse, PreconditionSet, RuleStatus, rule_status
+from precond_client.schemas.tool_schemas import SCHEMA_BROKEN, schema_problem
 
 AGENT_SHAPE = Shape("object", {
     "user": Shape("object", {"messages": VALUE, "last_said": VALUE}),
@@ -203,6 +206,10 @@ class Guard:
         status = self.status(tool.name)
         if len(line) > MAX_CALL_CHARS:
             return _verdict(line, False, error=TOO_LONG, status=status)
+        problem = schema_problem(tool.name, tool.schema, parse_json(arguments) if isinstance(arguments, str)
+                                 and arguments.strip() else arguments or {})
+        if problem is not None:  # refused before any rule is asked, as the service refuses it
+            return _verdict(line, False, error=problem, status=status)
         frame = Frame(state.state, tuple(_tupled(call.arguments.get(p)) for p in tool.params))
         violations: list[str] = []
         errors: list[str] = []
@@ -372,6 +379,10 @@ class ServiceSession:
         return answer.results[0]  # type: ignore[no-any-return]
 
 
+READ_FIRST = re.compile(r"(\w+) in self\.results\[['\"](\w+)['\"]\]")
+"""A rule that a read makes hold: the call's argument among that read tool's results."""
+
+
 def refusal(verdict: CallVerdict, guard: str) -> str:
     """What the model reads in place of the tool's result: why the call was refused, so that it can recover.
     It starts with "Error" so that the history read later records a failed call (`openai_log.outcome`)."""
@@ -381,5 +392,17 @@ def refusal(verdict: CallVerdict, guard: str) -> str:
     if verdict.error:
         reasons.append(verdict.error)
     return (f"Error: the precondition guard ({guard}) refused {verdict.call}: {'; '.join(reasons) or 'refused'}. "
-            "The tool did not run. Make the rule hold first (e.g. read what it reads) or tell the user why "
-            "this cannot be done.")
+            f"The tool did not run. {_way_out(verdict)}")
+
+
+def _way_out(verdict: CallVerdict) -> str:
+    """What the model can do about a refusal, naming only what a call of its own can change: a read the rule
+    waits for (a rule that is only `x in self.results['read_tool']`), or the arguments that break the tool's
+    schema. What a rule asks of what the records say (a delivered order's status) no call changes."""
+    if verdict.error is not None and verdict.error.startswith(SCHEMA_BROKEN):
+        return "Call it again with arguments that keep the tool's schema."
+    reads = [m for m in (READ_FIRST.fullmatch(rule.strip()) for rule in verdict.violations) if m]
+    if reads:  # the other rules may ask what the read returns: said by the next refusal, if any
+        named = ", ".join(dict.fromkeys(f"{m.group(2)} for {m.group(1)}" for m in reads))
+        return f"Call {named} first, then this call again."
+    return "No call of yours can change what its rule asks: tell the user why this cannot be done."

@@ -25,7 +25,7 @@ import math
 import unicodedata
 from collections import deque
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
@@ -91,6 +91,8 @@ class Tool:
     """Required parameters in the schema's order, then the optional ones (which default to None)."""
     required: frozenset[str]
     description: str = ""
+    schema: dict[str, Any] | None = field(default=None, compare=False, hash=False)
+    """Its `parameters` JSON Schema, which a proposed call's arguments must keep (`schemas.tool_schemas`)."""
 
     @cached_property
     def key(self) -> str | None:
@@ -115,8 +117,37 @@ class Call:
     """(success, parsed value), once its result has come."""
 
 
+SCHEMAS = "SCHEMAS"
+"""The spec's name for the tools' schemas: a dict literal, tool name -> its `parameters` JSON Schema, which a
+proposed call's arguments must keep (`precond_client.schemas.tool_schemas`)."""
+
+
+def schemas_line(schemas: dict[str, Any]) -> str:
+    """The spec's line that holds the schemas (Python literals: `true` is written `True`)."""
+    return f"{SCHEMAS} = {schemas!r}"
+
+
+def read_schemas(tree: ast.Module) -> dict[str, Any]:
+    """The schemas a spec holds (`SCHEMAS = {...}`: literals only, nothing run); none when it holds none.
+    ValueError when the name is given something else."""
+    node = next((n.value for n in tree.body if isinstance(n, ast.Assign)
+                 and [getattr(t, "id", None) for t in n.targets] == [SCHEMAS]), None)
+    if node is None:
+        return {}
+    try:
+        schemas = ast.literal_eval(node)
+    except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
+        raise ValueError(f"`{SCHEMAS}` is not a literal of tool schemas") from None
+    if not isinstance(schemas, dict) or not all(isinstance(k, str) and isinstance(v, dict) for k, v in schemas.items()):
+        raise ValueError(f"`{SCHEMAS}` is not a dict of tool name -> JSON Schema")
+    return schemas
+
+
 def spec_program(tools: Sequence[Tool], writes: Iterable[str]) -> str:
-    lines = [USER_SPEC.rstrip("\n"), f"WRITES = {tuple(sorted(writes))!r}", AGENT_STATE.rstrip("\n")]
+    lines = [USER_SPEC.rstrip("\n"), f"WRITES = {tuple(sorted(writes))!r}"]
+    schemas = {tool.name: tool.schema for tool in tools if tool.schema is not None}
+    lines += [schemas_line(schemas)] if schemas else []
+    lines.append(AGENT_STATE.rstrip("\n"))
     for tool in tools:
         params = [p for p in tool.params if p in tool.required] + [f"{p}=None" for p in tool.params
                                                                    if p not in tool.required]
@@ -144,8 +175,10 @@ def converter_spec(spec: str) -> tuple[tuple[Tool, ...], frozenset[str]]:
         names = ast.literal_eval(writes)
     except ValueError:
         raise ValueError("`WRITES` is not a tuple of tool names") from None
-    tools = tuple(_stub_tool(node) for node in agent.body
-                  if isinstance(node, ast.FunctionDef) and node.name not in ("__init__", "result"))
+    schemas = read_schemas(tree)
+    tools = tuple(replace(tool, schema=schemas.get(tool.name)) for tool in (
+        _stub_tool(node) for node in agent.body if isinstance(node, ast.FunctionDef)
+        and node.name not in ("__init__", "result")))
     if not isinstance(names, tuple) or not all(isinstance(n, str) for n in names):
         raise ValueError("`WRITES` is not a tuple of tool names")
     written = spec_program(tools, names)

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Install (pip only when something changed), then serve: two private Redis (or REDIS_URL / --redis-url), a worker
 # with the embedded model, the gateway on $PORT (8000 unless set; `PORT` is a gateway setting, see
-# docs/configuration.md). Arguments go to `precond serve` (e.g. --redis-url URL, --workers N).
+# docs/configuration.md). Arguments go to `precond serve` (e.g. --redis-url URL, --workers N, --no-rate-limit to
+# lift the open tenant's request rate for local use).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install.sh

@@ -135,3 +135,13 @@ def test_every_section_the_project_cites_by_name_exists() -> None:
             if not any(section.lower() in heading for heading in headings):
                 stale.append(f"{path.relative_to(ROOT)}: {page} '{section}'")
     assert not stale, "\n".join(stale)
+
+
+def test_every_upper_case_page_the_project_cites_exists() -> None:
+    """A page cited by its name alone (README.md, CHANGELOG.md) is a file of the checkout; a page of the data is
+    cited with its folder (`tau-airline/LABELS.md`), so that a reader knows where to look."""
+    names = {path.name for path in _project_files()}
+    cited = re.compile(r"(?<![\w/.-])([A-Z][A-Z_]*\.md)\b")
+    missing = [f"{path.relative_to(ROOT)}: {name}" for path in _project_files()
+               for name in cited.findall(path.read_text(encoding="utf-8", errors="replace")) if name not in names]
+    assert not missing, "\n".join(missing)

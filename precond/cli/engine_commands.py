@@ -115,8 +115,14 @@ def _print(response: BaseModel, summary: bool = False) -> None:
         return
     typer.echo(json.dumps(response.model_dump(mode="json"), indent=2))
     if isinstance(response, InferResponse):
-        for line in exception_lines(response):
+        for line in [*left_out_lines(response), *exception_lines(response)]:
             typer.echo(line, err=True)
+
+
+def left_out_lines(response: InferResponse) -> list[str]:
+    """The warnings that name no action (a demonstration left out for its size), one line each."""
+    return [f"WARNING {name}: {warning}" for name, warning in response.warnings.items()
+            if name not in response.preconditions]
 
 
 def _exceptions(evidence: RuleEvidence, indent: str) -> list[str]:
@@ -163,6 +169,7 @@ def summary_lines(response: InferResponse) -> list[str]:
                 lines.append(f"    decided: {label}{': ' if label and said else ''}{said}")
         if action in response.warnings:
             lines.append(f"  WARNING {response.warnings[action]}")
+    lines += left_out_lines(response)
     kept = sum(len(r) for r in response.preconditions.values())
     lines.append(f"{kept} rule(s) for {len(response.preconditions)} action(s); {len(response.warnings)} warning(s)")
     return lines

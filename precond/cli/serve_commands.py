@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from precond.gateway.settings import get_gateway_settings
+from precond.gateway.settings import GatewaySettings, get_gateway_settings
 from precond.worker.settings import get_worker_settings
 
 
@@ -38,17 +38,23 @@ def serve(
         typer.Option(min=1, max=65534, help="Port of the private queue Redis (the cache Redis takes the next one); "
                      "default: two free ports. A port something else holds is refused.", show_default=False),
     ] = None,
+    no_rate_limit: Annotated[
+        bool, typer.Option("--no-rate-limit", help="Local use without API keys: the one open tenant (`public`) "
+                           "may send requests at any rate (PRECOND_PUBLIC_RATE_LIMIT=false); loopback only.")
+    ] = False,
 ) -> None:
     """Run gateway, workers and, when REDIS_URL is unset, two private redis-servers (on two free ports, or
     --redis-port and the next; 127.0.0.1 only, with a random password per start, whatever else runs on the
     machine); says at start which Redis it uses, and again in the ready line.
 
     Without API keys (PRECOND_API_KEYS_FILE) the API is open: allowed on a loopback address, refused on any
-    other unless --no-auth says so.
+    other unless --no-auth says so. Every caller is then the tenant `public`, held to the tenants' request rate
+    unless --no-rate-limit (local use: a loopback address); the ready line says which.
     """
     from precond.cli.supervisor import Supervisor
 
     settings = get_gateway_settings()
+    env = _lifted(settings, host) if no_rate_limit else {}
     if settings.api_keys_file is None:
         if not _loopback(host) and not no_auth:
             typer.echo(f"error: refusing to serve on {host} without API keys: anyone who can reach it could use it. "
@@ -68,11 +74,36 @@ def serve(
         supervisor = Supervisor(
             worker_settings, host, port, workers, data_dir, gateway_processes=settings.processes,
             redis_maxmemory=redis_maxmemory, cache_maxmemory=cache_maxmemory, redis_port=redis_port,
+            ready_note=open_tenant_note(settings, lifted=bool(env)), env=env,
         )
     except SystemExit as refused:  # what the user asked for cannot be served: said, not a traceback
         typer.echo(f"error: {refused.code}", err=True)
         raise typer.Exit(2) from None
     raise typer.Exit(supervisor.run())
+
+
+def _lifted(settings: GatewaySettings, host: str) -> dict[str, str]:
+    """The setting --no-rate-limit gives every process, or exit 2 where it would lift a limit that protects
+    someone: keyed tenants keep theirs, and an address others reach keeps the open tenant's."""
+    if settings.api_keys_file is not None:
+        typer.echo("error: --no-rate-limit lifts the rate of the open tenant of a service without API keys; with "
+                   "PRECOND_API_KEYS_FILE every tenant keeps its rate (PRECOND_TENANT_RATE_PER_S)", err=True)
+        raise typer.Exit(2)
+    if not _loopback(host):
+        typer.echo(f"error: --no-rate-limit is for local use (a loopback address), not --host {host}", err=True)
+        raise typer.Exit(2)
+    return {"PRECOND_PUBLIC_RATE_LIMIT": "false"}
+
+
+def open_tenant_note(settings: GatewaySettings, lifted: bool) -> str:
+    """What the ready line says a service without API keys lets its one tenant do (nothing with keys)."""
+    if settings.api_keys_file is not None:
+        return ""
+    jobs = f"{settings.tenant_max_jobs} jobs at once"
+    if lifted or not settings.public_rate_limit:
+        return f"; no API keys: every caller is the tenant 'public', at any request rate, {jobs}"
+    return (f"; no API keys: every caller is the tenant 'public', {settings.tenant_rate_per_s:g} requests/s "
+            f"(bursts of {settings.tenant_burst}), {jobs} (--no-rate-limit lifts the rate)")
 
 
 def _loopback(host: str) -> bool:

@@ -218,9 +218,14 @@ class Supervisor:
         redis_maxmemory: str = "512mb",
         cache_maxmemory: str = "256mb",
         redis_port: int | None = None,
+        ready_note: str = "",
+        env: dict[str, str] | None = None,
     ) -> None:
+        """`ready_note`: what the ready line adds (what an open service's one tenant may do); `env`: settings
+        for every process started here, over this process's environment."""
         self.settings = settings
-        self.env = dict(os.environ)
+        self.env = {**os.environ, **(env or {})}
+        self.ready_note = ready_note
         self.children: list[Child] = []
         self.redis: tuple[PrivateRedis, ...] = ()
         if settings.redis_url is None:
@@ -264,7 +269,7 @@ class Supervisor:
             if not self.announced and is_ready(self.ready_url):
                 self.announced = True
                 print(f"precond: ready at {self.ready_url.removesuffix('/ready')} (GET /ready answers 200), "
-                      f"using {self.redis_short}", flush=True)
+                      f"using {self.redis_short}{self.ready_note}", flush=True)
             time.sleep(0.5)
         return self._shutdown()
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import PurePath
 from typing import Any
 
 from precond.convert.openai import Converted, Trajectory
@@ -36,7 +37,7 @@ class Label:
     tool: str
     allowed: bool
     where: str
-    """`labels.json: [12]`, for errors and for the labelled call's name."""
+    """`data/labels.json: [12]`, the file as it was given, for errors (the labelled call's name: `shown`)."""
     position: int = 0
     """Which call of that message (a label on the call itself knows; a record names the message's first)."""
 
@@ -64,6 +65,13 @@ def read_labels(data: Any, source: str, tools: set[str], runs: Sequence[str] = (
             raise PlaceError(f"{where}.allowed", "expected true or false")
         labels.append(Label(_run_name(record, where, runs), message, tool, allowed, where))
     return labels
+
+
+def shown(where: str) -> str:
+    """`labels.json: [12]` for `data/labels.json: [12]`: the labelled call's name, which reports and the review page
+    show, names the file alone (a path as typed would show where it lay on the machine that converted it)."""
+    file, separator, rest = where.partition(": ")
+    return f"{PurePath(file).name}{separator}{rest}"
 
 
 def _run_name(record: dict[str, Any], where: str, runs: Sequence[str]) -> str:
@@ -130,7 +138,7 @@ def counted(converted: Converted, labels: Sequence[Label], demonstrations: Seque
                              f"({call.tool} at message {label.message} of {label.run})")
         if other is label and label.tool in converted.guarded:
             calls.setdefault(label.run, []).append(
-                {"line": line + 1, "verdict": "allow" if label.allowed else "refuse", "name": label.where})
+                {"line": line + 1, "verdict": "allow" if label.allowed else "refuse", "name": shown(label.where)})
     out = Counted([], skipped=sum(label.tool not in converted.guarded for label in labels))
     ordered = sorted(calls.items(), key=lambda item: not _refuses(item[1]))
     for name, labelled in ordered[:MAX_COUNTEREXAMPLE_RUNS]:

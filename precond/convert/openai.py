@@ -12,11 +12,13 @@ library, `precond/programs/` and that module only: the gateway renders histories
 
 from __future__ import annotations
 
+import ast
 import keyword
 import math
 from collections import Counter
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 from precond.programs import checks
@@ -27,15 +29,19 @@ from precond_client.openai_log import (
     PREAMBLE,
     RESERVED,
     RESERVED_PARAMETERS,
+    SCHEMAS,
     Call,
     PlaceError,
     Reader,
     Tool,
     call_line,
+    parse_json,
+    read_schemas,
     records,
     spec_program,
     writes_of,
 )
+from precond_client.schemas.tool_schemas import schema_error, schema_problem
 
 
 @dataclass(frozen=True)
@@ -133,8 +139,11 @@ def read_tools(data: Any, source: str) -> list[Tool]:
         required = [params[r] for r in required]
         ordered = [p for p in params.values() if p in required] + [p for p in params.values() if p not in required]
         description = function.get("description")
+        invalid = schema_error(parameters) if parameters else None
+        if invalid is not None:
+            raise _fail(f"{where}.function.parameters", f"not a JSON Schema: {invalid}")
         tools[name] = Tool(name, tuple(ordered), frozenset(required),
-                           description if isinstance(description, str) else "")
+                           description if isinstance(description, str) else "", parameters or None)
     return list(tools.values())
 
 
@@ -315,3 +324,37 @@ def call_lines(spec: str, calls: Sequence[str | Mapping[str, Any]], field: str =
         return [c if isinstance(c, str) else renderer.line(dict(c), f"{field}[{n}]") for n, c in enumerate(calls)]
     except PlaceError as exc:
         raise _problem(exc) from None
+
+
+def holds_schemas(spec: str) -> bool:
+    """Whether the spec keeps its tools' JSON Schemas (`SCHEMAS = ...`, as `precond convert openai` writes it)."""
+    return f"\n{SCHEMAS} = " in spec
+
+
+def call_schema_problems(spec: str, calls: Sequence[str | Mapping[str, Any]], scope: str = "") -> list[str | None]:
+    """Per proposed call, why its arguments break its tool's JSON Schema (`tool_schemas`), None when they keep it
+    (or it is code, or its tool has none); a spec whose `SCHEMAS` cannot be read refuses every tool call (fail
+    closed). The calls have been read (`call_lines`): each names a tool of the spec, with a JSON object."""
+    schemas = _schemas_of(scope, spec) if any(not isinstance(c, str) for c in calls) else {}
+    problems: list[str | None] = []
+    for call in calls:
+        function = call.get("function", call) if not isinstance(call, str) else None
+        if not isinstance(function, Mapping):
+            problems.append(None)
+            continue
+        name = python_name(function["name"]) if isinstance(function.get("name"), str) else ""
+        arguments = function.get("arguments", {})
+        if isinstance(arguments, str):
+            arguments = parse_json(arguments) if arguments.strip() else {}
+        problems.append(schemas if isinstance(schemas, str) else
+                        schema_problem(name, schemas[name], arguments) if name in schemas else None)
+    return problems
+
+
+@lru_cache(maxsize=64)
+def _schemas_of(_scope: str, spec: str) -> dict[str, Any] | str:
+    """The spec's tool schemas, or why they cannot be read; read per scope, as `_tools_of` reads the tools."""
+    try:
+        return read_schemas(ast.parse(spec))
+    except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
+        return f"the spec's tool schemas cannot be read: {exc}"

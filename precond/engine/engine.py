@@ -15,12 +15,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from precond.convert.openai import call_lines, structured_history
+from precond.convert.openai import call_lines, call_schema_problems, structured_history
 from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine import guarded as guarding
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import thin, too_few
 from precond.engine.freshness import writes_at
+from precond.engine.left_out import Traced, trace_judgeable
 from precond.engine.library import Library, shipped
 from precond.engine.next_action import NextActionPlanner
 from precond.engine.notices import rule_warnings
@@ -223,7 +224,13 @@ class Engine:
         guarded = _guarded(spec, actions, request.options)
         progress("trace", 0, 1)
         with timer.phase("trace"):
-            trace = sandbox_call(self._sandbox.trace, spec.source, demos, scope=scope.current())
+            traced = sandbox_call(trace_judgeable, self._sandbox, spec.source, demos, scope.current())
+        trace = traced.trace
+        if traced.left_out:  # too large to judge: each is empty from here on, and named in the warnings
+            request, demos = _without(request, traced), traced.demonstrations
+            demo_trees = [parse_source(d, f"demonstrations[{i}]") for i, d in enumerate(demos)]
+            labelled = counterexamples.read(spec, request.counterexamples, demos, actions) \
+                if request.counterexamples else None
         _refuse_no_evidence(actions, trace)
         enumerated = Proposals()
         stopped: dict[str, str] = {}
@@ -316,6 +323,7 @@ class Engine:
             cuts = (warnings.get(action), stopped.get(action), ranked[action].search, ranked[action].behind, unguarded)
             if any(cuts[1:]):
                 warnings[action] = "; ".join(w for w in cuts if w)
+        warnings.update({f"demonstrations[{i}]": why for i, why in traced.left_out.items()})
         progress("done", 1, 1)
         return InferResponse(
             preconditions=preconditions, program=program, stats=response.stats,
@@ -527,17 +535,19 @@ class Engine:
         if not screened:
             check_preconditions(spec, request.preconditions, scope.current())
         history = rendered_history(spec.source, request.history)  # parsed by check_calls, once per scope and text
+        sent = [c if isinstance(c, str) else c.model_dump() for c in request.calls]
         try:
-            calls = call_lines(spec.source, [c if isinstance(c, str) else c.model_dump() for c in request.calls],
-                               scope=scope.current())
+            calls = call_lines(spec.source, sent, scope=scope.current())
         except checks.ProgramProblem as exc:
             raise as_error(exc) from exc
         if not screened:
             check_calls(spec, request.preconditions, history, calls, scope.current())
         judged = sandbox_call(self._sandbox.judge, spec.source, request.preconditions, history, calls,
                               scope.current() or None, warm=scope.warm())
-        verdicts = [CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
-                    for v in judged.verdicts]
+        broken = call_schema_problems(spec.source, sent, scope.current())  # refused before any rule is asked
+        verdicts = [CallVerdict(call=v.call, allowed=False, error=problem) if problem else
+                    CallVerdict(call=v.call, allowed=v.allowed, violations=list(v.violations), error=v.error)
+                    for v, problem in zip(judged.verdicts, broken, strict=True)]
         actions = call_actions(spec, history, calls, scope.current())
         return CheckResponse(results=[_with_status(_labelled(v, spec, request.decided), action, request)
                                       for v, action in zip(verdicts, actions, strict=True)],
@@ -687,6 +697,12 @@ def _merged(first: EvaluateResult | None, rest: EvaluateResult) -> EvaluateResul
     if first is None:
         return rest
     return EvaluateResult({**rest.points, **first.points}, {**rest.results, **first.results})
+
+
+def _without(request: InferRequest, traced: Traced) -> InferRequest:
+    """The request with the left-out demonstrations empty and without the labelled calls of their runs."""
+    runs = [r for r in request.counterexamples if r.demonstration not in traced.left_out]
+    return request.model_copy(update={"demonstrations": traced.demonstrations, "counterexamples": runs})
 
 
 def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:

@@ -3,13 +3,13 @@
 The tasks of `tau-airline/` are split in two halves (sorted task ids, alternately); rules are inferred model-free
 from one half's successful runs (the demonstrations), with or without that half's labelled calls as the request's
 `counterexamples` (`precond convert openai --labels`), and every labelled state-changing call of the other half is
-judged on the history before it. Then the halves swap: every call is judged once, by rules that never saw its
-task (split by task, never by call). In all, per split direction, per tool and per policy rule (T1-T8 of
-LABELS.md, a call counted under each rule its label says it breaks, or keeps): unsafe_allow (calls labelled
-refused that the guard allows, over those calls) and over_refuse (calls labelled allowed that it refuses, over
-those calls); and per refusal what it rests on (`REASONS`), so that a refusal by a correlate with no
-counterexample behind it shows. Labels reach the request as counterexamples only, never a demonstration or a
-prompt.
+judged on the history before it. Then the halves swap: every call is judged once, by rules that never saw its task
+(split by task, never by call). In all, per split direction, per tool and per policy rule (T1-T8 of the data's
+`tau-airline/LABELS.md`, beside its labels.json, not in this repository; a call counted under each rule its label
+says it breaks, or keeps): unsafe_allow (calls labelled refused that the guard allows, over those calls) and
+over_refuse (calls labelled allowed that it refuses, over those calls); and per refusal what it rests on
+(`REASONS`), so that a refusal by a correlate with no counterexample behind it shows. Labels reach the request as
+counterexamples only, never a demonstration or a prompt.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@ once per request as a `Caller`, with the request-rate and failed-authentication 
 
 Without a keys file the gateway is open: every caller is the tenant `public`. `precond serve` allows that
 only on a loopback address, and `PRECOND_REQUIRE_AUTH` (set by docker-compose) refuses to start without keys.
+`public` is held to the tenants' request rate unless `PRECOND_PUBLIC_RATE_LIMIT` is off (`serve --no-rate-limit`).
 """
 
 from __future__ import annotations
@@ -62,7 +63,8 @@ async def authenticate(request: Request, credentials: HTTPAuthorizationCredentia
             raise
     caller = Caller(tenant, tenant_tag(services.secret, tenant))
     request.state.tenant_tag = caller.tag  # metrics show the tag, never the name
-    refuse(services, caller.tag, await services.quotas.take_request(caller))
+    if services.keys is not None or services.settings.public_rate_limit:
+        refuse(services, caller.tag, await services.quotas.take_request(caller))
     return caller
 
 

@@ -20,7 +20,7 @@ from starlette.exceptions import HTTPException
 
 from precond.gateway.offload import PoolBroken
 from precond_client.schemas import errors as engine_errors
-from precond_client.schemas.api import ErrorInfo, ErrorResponse
+from precond_client.schemas.api import Blocked, ErrorInfo, ErrorResponse
 
 log = logging.getLogger("precond.gateway")
 
@@ -41,11 +41,12 @@ class ServiceError(HTTPException):
 
     def __init__(
         self, status: int, message: str, type_: str | None = None, headers: dict[str, str] | None = None,
-        field: str | None = None,
+        field: str | None = None, blocked: list[Blocked] | None = None,
     ) -> None:
         super().__init__(status_code=status, detail=message, headers=headers)
         self.type = type_ or _TYPE_BY_STATUS.get(status, "error")
         self.field = field
+        self.blocked = blocked
 
 
 def request_id(request: Request) -> str:
@@ -60,12 +61,19 @@ def _cut(text: str, limit: int) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+MAX_BLOCKED = 64
+"""Blocked calls an error lists (`blocks_demonstration`); its message counts them all."""
+
+
 def bounded(info: ErrorInfo) -> ErrorInfo:
     """Messages and fields cut to a bounded size: they may quote the input (an unknown 1 MB action name)."""
     return ErrorInfo(
         type=_cut(info.type, MAX_FIELD_CHARS),
         message=_cut(info.message, MAX_MESSAGE_CHARS),
         field=None if info.field is None else _cut(info.field, MAX_FIELD_CHARS),
+        blocked=None if info.blocked is None else [b.model_copy(update={
+            "rule": _cut(b.rule, MAX_FIELD_CHARS), "call": None if b.call is None else _cut(b.call, MAX_FIELD_CHARS)})
+            for b in info.blocked[:MAX_BLOCKED]],
     )
 
 
@@ -144,7 +152,8 @@ async def _validation(request: Request, exc: Exception) -> JSONResponse:
 async def _http(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, HTTPException)
     type_ = getattr(exc, "type", _TYPE_BY_STATUS.get(exc.status_code, "error"))
-    info = ErrorInfo(type=type_, message=str(exc.detail), field=getattr(exc, "field", None))
+    info = ErrorInfo(type=type_, message=str(exc.detail), field=getattr(exc, "field", None),
+                     blocked=getattr(exc, "blocked", None))
     return error_response(request, exc.status_code, info, headers=dict(exc.headers or {}))
 
 

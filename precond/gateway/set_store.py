@@ -275,8 +275,13 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
     return rules, required, rejected
 
 
+MAX_NAMED = 8
+"""Demonstrations a blocking message names; the error's `blocked` lists every call."""
+
+
 def blocking_message(validation: ValidateResponse, new_rules: set[tuple[str, str]]) -> tuple[str, Any] | None:
-    """Why an edit is refused: the first new rule that blocks a demonstrated call, and how many it blocks."""
+    """Why an edit is refused: the first new rule that blocks a demonstrated call, the demonstrations the new
+    rules block, and the ways out."""
     blocked = [b for b in validation.blocked if (b.action, b.rule) in new_rules]
     if not blocked:
         return None
@@ -293,7 +298,13 @@ def blocking_message(validation: ValidateResponse, new_rules: set[tuple[str, str
         return message, first
     first = blocked[0]
     more = len(blocked) - 1
+    demos = sorted({b.demonstration for b in blocked})
+    named = ", ".join(f"demonstrations[{d}]" for d in demos[:MAX_NAMED]) + (
+        f" and {len(demos) - MAX_NAMED} more" if len(demos) > MAX_NAMED else "")
     message = (f"rule {first.rule!r} of {first.action} would have blocked demonstrations[{first.demonstration}], "
                f"line {first.line} ({first.call})" + (f", and {more} more demonstrated call(s)" if more else "")
-               + "; fix the rule, or send force: true to keep it anyway")
+               + f"; the new rules block {named} (every call: the error's `blocked`). Ways out: fix the rule; send "
+               "force: true to keep it anyway (the calls it blocks become its known exceptions: right when they "
+               "are calls to refuse, such as labelled ones); store the set without it (or reject it in an edit); "
+               "or leave those demonstrations out")
     return message, first

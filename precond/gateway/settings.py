@@ -73,6 +73,12 @@ class GatewaySettings(QueueSettings):
         "429 above).",
     )
     tenant_burst: int = Field(default=100, ge=1, description="Requests one tenant may send at once.")
+    public_rate_limit: bool = Field(
+        default=True,
+        description="Without API keys: whether the one tenant every caller then is (`public`) is held to "
+        "PRECOND_TENANT_RATE_PER_S and PRECOND_TENANT_BURST. `precond serve --no-rate-limit` turns it off for "
+        "local use (a loopback address); keyed tenants are always held to their rate.",
+    )
     auth_failures_per_s: float = Field(
         default=1.0, gt=0,
         description="Failed authentications (missing, unknown, revoked or expired key) one source address may "

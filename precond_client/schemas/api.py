@@ -551,7 +551,9 @@ class InferResponse(StrictBody):
         default_factory=dict,
         description="Per action whose rule is empty (every call allowed) or not backed by enough demonstrated "
         "calls, why: `no occurrence` (no demonstration calls it), `thin evidence` (fewer than 3 calls in 3 "
-        "demonstrations) or `empty rule` (no candidate passed validation). Absent: a rule learned from evidence.",
+        "demonstrations) or `empty rule` (no candidate passed validation). Absent: a rule learned from evidence. "
+        "Also per demonstration left out (`demonstrations[12]`): one that hits a sandbox limit (time, memory, "
+        "size) even when run alone teaches nothing, and the warning names the limit and the setting to raise.",
     )
     evidence: dict[str, dict[str, RuleEvidence]] = Field(
         default_factory=dict,
@@ -1039,6 +1041,11 @@ class ErrorInfo(StrictBody):
     type: str
     message: str
     field: str | None = None
+    blocked: list[Blocked] | None = Field(
+        default=None, description="`blocks_demonstration`: every demonstrated call the new rules would refuse (the "
+        "rule and where), so that a reviewer sees which demonstrations it blocks. The ways out: `force: true` "
+        "(they become the rule's known exceptions), a `reject` edit of the rule (or the set stored without it), "
+        "or the demonstrations left out.")
 
 
 class ErrorResponse(StrictBody):

@@ -1,7 +1,7 @@
 """The light client distribution (clients/python): its wheel holds `precond_client` (its schemas, the agent
-adapters and the MCP proxy included) only and depends on httpx and pydantic only (the adapters' frameworks and the
-MCP SDK are extras); installed alone in a fresh virtual environment (no system site packages), it imports without
-torch, fastapi or redis and works against a real stack, its embedded guard included."""
+adapters and the MCP proxy included) only and depends on httpx, pydantic and jsonschema only (the adapters'
+frameworks and the MCP SDK are extras); installed alone in a fresh virtual environment (no system site packages), it
+imports without torch, fastapi or redis and works against a real stack, its embedded guard included."""
 
 from __future__ import annotations
 
@@ -10,12 +10,15 @@ import os
 import shutil
 import subprocess
 import sys
+import tomllib
 import venv
 import zipfile
 from email.parser import Parser
+from importlib.metadata import version
 from pathlib import Path
 
 import pytest
+from packaging.requirements import Requirement
 
 from precond.stack.keyed import KeyedStack
 from precond.stack.local import DEMOS, ROOT, SPEC
@@ -51,8 +54,24 @@ def test_the_wheel_holds_the_client_and_its_schemas_and_needs_httpx_and_pydantic
     assert headers["Name"] == "precond-client"
     requires = sorted(headers.get_all("Requires-Dist") or [])
     base = [r for r in requires if "extra ==" not in r]
-    assert [r.split(">")[0].split("=")[0].strip() for r in base] == ["httpx", "pydantic"], requires
+    assert [Requirement(r).name for r in base] == ["httpx", "jsonschema", "pydantic"], requires
     assert sorted(headers.get_all("Provides-Extra") or []) == ["langchain", "langgraph", "mcp", "openai-agents"]
+
+
+def test_the_adapters_extras_are_bounded_by_the_versions_tested_and_the_docs_say_them() -> None:
+    """Each adapter extra names its framework with the versions its tests ran with as bounds, the same in the
+    service's test dependencies (which these tests install), and the installed versions are within them."""
+    client = tomllib.loads((ROOT / "clients" / "python" / "pyproject.toml").read_text())
+    service = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["dev"]
+    guide = (ROOT / "docs" / "guard.md").read_text()
+    for extra, requirements in client["project"]["optional-dependencies"].items():
+        for text in requirements:
+            requirement = Requirement(text)
+            assert any(s.operator == "<" for s in requirement.specifier), f"{extra}: {text} has no upper bound"
+            assert text in service, f"{text} is not among the service's test dependencies as it is in the extra"
+            assert requirement.specifier.contains(version(requirement.name)), f"installed {requirement.name}"
+            upper = next(s.version for s in requirement.specifier if s.operator == "<")
+            assert f"<{upper}" in guide, f"docs/guard.md does not say {requirement.name}'s bound <{upper}"
 
 
 USE = """

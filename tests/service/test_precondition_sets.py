@@ -102,6 +102,12 @@ def test_an_edit_that_blocks_a_demonstration_is_refused_unless_forced(
     assert error["type"] == "blocks_demonstration" and error["field"] == "edits"
     assert "'self.user.selected' of SYSTEM.INFORM would have blocked demonstrations[" in error["message"]
     assert ", line " in error["message"] and "force" in error["message"]
+    blocked = error["blocked"]  # every call it blocks, and the ways out
+    assert blocked and {(b["action"], b["rule"]) for b in blocked} == {("SYSTEM.INFORM", "self.user.selected")}
+    named = sorted({b["demonstration"] for b in blocked})
+    assert f"the new rules block {', '.join(f'demonstrations[{d}]' for d in named[:8])}" in error["message"]
+    assert all(b["call"].startswith("system.INFORM(") and b["line"] >= 1 for b in blocked)
+    assert "Ways out" in error["message"] and "store the set without it" in error["message"]
     assert _ok(acme.get(f"/precondition-sets/{set_id}"))["latest"] == 1  # nothing stored
     forced = _ok(acme.post(f"/precondition-sets/{set_id}/versions", json={"edits": [bad], "force": True}), 201)
     assert forced["version"] == 2 and "self.user.selected" in forced["preconditions"]["SYSTEM.INFORM"]

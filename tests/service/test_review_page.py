@@ -390,6 +390,8 @@ def test_an_added_rule_that_blocks_a_demonstration_shows_the_apis_refusal_at_its
     form.locator("button[type=submit]").click()
     error = form.locator(".error")
     expect(error).to_contain_text("'self.user.selected' of SYSTEM.INFORM would have blocked demonstration")
+    expect(error).to_contain_text("Ways out")  # and which demonstrations it blocks, each call listed
+    expect(error.locator("ul.blocked li").first).to_contain_text("blocked by SYSTEM.INFORM: self.user.selected")
     assert _ok(acme.get(f"/precondition-sets/{made['id']}"))["latest"] == 1
     error.locator("button.force").click()  # keep it anyway: version 2, its blocked calls shown in their code
     page.wait_for_url(f"**/ui/sets/{made['id']}@2")

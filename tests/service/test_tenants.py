@@ -15,7 +15,9 @@ from pathlib import Path
 import httpx
 import pytest
 
+from precond.cli.serve_commands import open_tenant_note
 from precond.gateway.api_keys import KeyRecord, digest, new_key, read_records, write_records
+from precond.gateway.settings import GatewaySettings
 from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_QUEUE, JobId, tenant_tag, worker_key
 from precond.stack.local import ROOT, Stack, check_body, infer_body, make_stack, serving
 
@@ -180,6 +182,44 @@ def test_serve_refuses_an_open_non_loopback_address() -> None:
                           env={"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)})
     assert done.returncode == 2
     assert "without API keys" in done.stderr and "--no-auth" in done.stderr
+
+
+@pytest.mark.stack
+@pytest.mark.parametrize("lifted", [False, True])
+def test_the_open_tenant_keeps_the_rate_unless_lifted_for_local_use(tmp_path: Path, tiny_model_dir: Path,
+                                                                    lifted: bool) -> None:
+    """Without keys every caller is the tenant `public`: held to the tenants' rate, unless
+    PRECOND_PUBLIC_RATE_LIMIT is off (`precond serve --no-rate-limit`)."""
+    stack = make_stack(tmp_path, tiny_model_dir, PRECOND_TENANT_RATE_PER_S="0.01", PRECOND_TENANT_BURST="3",
+                       PRECOND_PUBLIC_RATE_LIMIT=str(not lifted).lower())
+    with serving(stack, workers=0), stack.http() as client:
+        codes = [client.post("/check-actions", json=check_body(f"system.REQUEST('r{i}')"),
+                             params={"wait": 0}).status_code for i in range(8)]
+    assert codes == [202] * 8 if lifted else codes == [202] * 3 + [429] * 5
+
+
+@pytest.mark.parametrize(("args", "says"), [
+    (["--host", "0.0.0.0", "--no-auth"], "for local use (a loopback address), not --host 0.0.0.0"),
+    (["--keys"], "with PRECOND_API_KEYS_FILE every tenant keeps its rate"),
+])
+def test_serve_lifts_only_the_open_local_tenants_rate(tmp_path: Path, args: list[str], says: str) -> None:
+    env = {"PATH": "/usr/bin:/bin", "PYTHONPATH": str(ROOT)}
+    if args == ["--keys"]:
+        make_key(tmp_path / "keys.jsonl", "acme")
+        env["PRECOND_API_KEYS_FILE"], args = str(tmp_path / "keys.jsonl"), []
+    done = subprocess.run([sys.executable, "-m", "precond.cli", "serve", "--no-rate-limit", *args], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60, check=False, env=env)
+    assert done.returncode == 2 and says in done.stderr, done.stderr
+
+
+def test_the_ready_line_says_what_the_open_tenant_may_do(tmp_path: Path) -> None:
+    open_service = GatewaySettings(tenant_rate_per_s=50, tenant_burst=100, tenant_max_jobs=32)
+    assert open_tenant_note(open_service, lifted=False) == (
+        "; no API keys: every caller is the tenant 'public', 50 requests/s (bursts of 100), 32 jobs at once "
+        "(--no-rate-limit lifts the rate)")
+    assert open_tenant_note(open_service, lifted=True) == (
+        "; no API keys: every caller is the tenant 'public', at any request rate, 32 jobs at once")
+    assert open_tenant_note(GatewaySettings(api_keys_file=tmp_path / "keys.jsonl"), lifted=False) == ""
 
 
 @pytest.fixture

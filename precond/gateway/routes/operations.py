@@ -11,6 +11,7 @@ from fastapi import APIRouter, Body, Query, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
+from precond.convert.openai import holds_schemas
 from precond.gateway import offload
 from precond.gateway.auth import CurrentCaller
 from precond.gateway.caller import Caller
@@ -124,7 +125,9 @@ async def check_actions(
         request.scope["state"]["judged_by"] = "interpreter"  # the latency metric's label (`middleware`)
         return JSONResponse(outcome.answer)
     request.scope["state"]["judged_by"] = "sandbox"
-    payload = body.model_copy(update={"history": outcome.program, "calls": outcome.lines}).model_dump(mode="json")
+    # a spec with its tools' schemas keeps the calls as sent: the worker checks their arguments against them
+    calls = body.calls if holds_schemas(body.spec_text()) else outcome.lines
+    payload = body.model_copy(update={"history": outcome.program, "calls": calls}).model_dump(mode="json")
     status = await submit_job(services, caller, "check", payload, None, wait)
     return respond(request, status, services.settings.wait_max_s)
 
@@ -202,8 +205,9 @@ def _text(history: object) -> str:
 
 def _program_chars(body: BaseModel) -> int:
     body = body.request if isinstance(body, TrainPolicyJob) else body
+    calls = [c if isinstance(c, str) else json.dumps(c.model_dump()) for c in getattr(body, "calls", [])]
     texts = [getattr(body, "spec", None) or "", _text(getattr(body, "history", "")),
-             *getattr(body, "demonstrations", []), *getattr(body, "calls", [])]
+             *getattr(body, "demonstrations", []), *calls]
     return sum(len(text) for text in texts)
 
 

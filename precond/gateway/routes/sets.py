@@ -274,7 +274,8 @@ def _refuse_blocking(validation: ValidateResponse | None, new: set[tuple[str, st
         return
     refusal = blocking_message(validation, new)
     if refusal is not None:
-        raise ServiceError(422, refusal[0], "blocks_demonstration", field=field)
+        raise ServiceError(422, refusal[0], "blocks_demonstration", field=field,
+                           blocked=[b for b in validation.blocked if (b.action, b.rule) in new])
 
 
 async def _validate(services: Services, caller: Caller, spec: str, rules: dict[str, list[str]],

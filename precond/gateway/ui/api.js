@@ -11,6 +11,7 @@ export class ApiError extends Error {
     this.status = status;
     this.type = error.type;
     this.field = error.field;
+    this.blocked = error.blocked || [];  // blocks_demonstration: every demonstrated call the new rules refuse
   }
 }
 

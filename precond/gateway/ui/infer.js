@@ -62,9 +62,17 @@ export function inferPanel(navigate) {
       navigate(`/ui/sets/${made.reference}`);
     } catch (problem) {
       if (!(problem instanceof ApiError) || problem.type !== "blocks_demonstration") throw problem;
-      // tolerated exceptions: the rules refuse a few demonstrated calls, which are what to review
-      errorBox(error, problem, " ", h("button", { type: "button", id: "infer-force",
-        onclick: () => store(body, result, true).catch((again) => errorBox(error, again)) }, "Store anyway"));
+      // the ways out: keep the rules (the calls they block become their known exceptions, right for labelled
+      // calls to refuse), or store the set without the rules that block
+      const blocking = new Set(problem.blocked.map((b) => `${b.action}\n${b.rule}`));
+      const without = { ...result, preconditions: Object.fromEntries(Object.entries(result.preconditions)
+        .map(([action, rules]) => [action, rules.filter((r) => !blocking.has(`${action}\n${r}`))])) };
+      const again = (answer, force) => () => store(body, answer, force).catch((e) => errorBox(error, e));
+      errorBox(error, problem, h("ul", { id: "infer-blocked" }, ...problem.blocked.map((b) => h("li", {},
+        `demonstrations[${b.demonstration}], line ${b.line}: ${b.call} — blocked by ${b.action}: ${b.rule}`))),
+      h("button", { type: "button", id: "infer-force", onclick: again(result, true) }, "Store anyway"), " ",
+      h("button", { type: "button", id: "infer-without", onclick: again(without, false) },
+        "Store without these rules"));
     }
   }
 

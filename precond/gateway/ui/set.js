@@ -57,10 +57,14 @@ function render(set, navigate) {
         { edits, base_version: set.version, force })).body;
       navigate(`/ui/sets/${made.reference}`);
     } catch (problem) {
-      const retry = problem instanceof ApiError && problem.type === "blocks_demonstration" && !force
+      const blocks = problem instanceof ApiError && problem.type === "blocks_demonstration";
+      const retry = blocks && !force
         ? h("button", { type: "button", class: "danger force", onclick: () => edit(edits, true, slot) },
           "Keep it anyway (force)") : null;
-      errorBox(slot, problem, " ", retry);
+      const blocked = blocks ? h("ul", { class: "blocked" }, ...problem.blocked.map((b) => h("li", {},
+        `demonstrations[${b.demonstration}], line ${b.line}: ${b.call} — blocked by ${b.action}: ${b.rule}`)))
+        : " ";
+      errorBox(slot, problem, blocked, retry);
     }
   };
 
