@@ -35,7 +35,7 @@ def heartbeats() -> list[dict[str, Any]]:
     password = Path(password_file).read_text().strip() if password_file else None
     url = os.environ.get("REDIS_URL", "redis://127.0.0.1:6379/0")
     client = redis.Redis.from_url(url, password=password, socket_timeout=3)
-    keys = client.keys(f"precond:worker:{socket.gethostname()}-*")
+    keys = list(client.scan_iter(match=f"precond:worker:{socket.gethostname()}-*"))  # SCAN: KEYS is no role's
     return [json.loads(raw) for raw in client.mget(keys) if raw] if keys else []
 
 

@@ -40,8 +40,15 @@ class QueueSettings(BaseSettings):
     )
     redis_password_file: Path | None = Field(
         default=None,
-        description="A file holding the Redis password (a mounted secret), used for `REDIS_URL` and "
-        "`PRECOND_CACHE_REDIS_URL` where the URL carries none.",
+        description="A file holding the Redis password (a mounted secret), used for `REDIS_URL` where the URL "
+        "carries none, and for `PRECOND_CACHE_REDIS_URL` unless `PRECOND_CACHE_REDIS_PASSWORD_FILE` is set. "
+        "Name the user in the URL (`redis://gateway@host:6379/0`) where Redis has one per role "
+        "(precond/jobs/redis_roles.py).",
+    )
+    cache_redis_password_file: Path | None = Field(
+        default=None,
+        description="A file holding the cache Redis password, used for `PRECOND_CACHE_REDIS_URL` where the URL "
+        "carries none: each Redis has users of its own. Unset: `PRECOND_REDIS_PASSWORD_FILE`.",
     )
     cache_ttl_s: int = Field(default=7 * 24 * 3600, ge=1, description="Lifetime of a cached result.")
     result_ttl_s: int = Field(
@@ -66,17 +73,25 @@ class QueueSettings(BaseSettings):
 
     @property
     def cache_redis_dsn(self) -> str:
-        """The cache Redis (the queue Redis unless `cache_redis_url` is set), password as for `redis_dsn`."""
-        return self._with_password(self.cache_redis_url) if self.cache_redis_url else self.redis_dsn
+        """The cache Redis (the queue Redis unless `cache_redis_url` is set), with the password of
+        `cache_redis_password_file` (else `redis_password_file`) when its URL has none."""
+        if not self.cache_redis_url:
+            return self.redis_dsn
+        if self.cache_redis_password_file is not None:
+            return self._with_password(self.cache_redis_url, self.cache_redis_password_file,
+                                       "PRECOND_CACHE_REDIS_PASSWORD_FILE")
+        return self._with_password(self.cache_redis_url)
 
-    def _with_password(self, url: str) -> str:
+    def _with_password(self, url: str, file: Path | None = None, setting: str = "PRECOND_REDIS_PASSWORD_FILE"
+                       ) -> str:
         parts = urlsplit(url)
-        if self.redis_password_file is None or parts.password:
+        file = file or self.redis_password_file
+        if file is None or parts.password:
             return url
         try:
-            password = self.redis_password_file.read_text().strip()
+            password = file.read_text().strip()
         except OSError as exc:
-            raise MissingSecret(f"PRECOND_REDIS_PASSWORD_FILE={self.redis_password_file}: {exc.strerror}") from exc
+            raise MissingSecret(f"{setting}={file}: {exc.strerror}") from exc
         if not password:
             return url
         user = quote(parts.username or "", safe="")

@@ -15,6 +15,7 @@ import contextlib
 import copy
 import json
 import os
+import secrets
 import signal
 import socket
 import subprocess
@@ -22,7 +23,7 @@ import sys
 import time
 from collections.abc import Awaitable, Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ import redis
 from redis.asyncio import Redis as AsyncRedis
 
 from precond.gateway.server import gateway_args
+from precond.jobs.redis_roles import ROLES, acl_lines, password_file
 
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = {
@@ -117,6 +119,10 @@ class RedisServer:
     password: str | None = None
     config: tuple[str, ...] = ()
     """More redis-server options, e.g. `("--maxmemory", "2mb", "--maxmemory-policy", "allkeys-lru")`."""
+    user: str | None = None
+    """The user `client` names (with `password`), where the server has users of its own (`acl`)."""
+    acl: str = ""
+    """The server's ACL lines (precond/jobs/redis_roles.py), read on standard input as compose passes them."""
 
     @property
     def url(self) -> str:
@@ -124,13 +130,13 @@ class RedisServer:
         return f"redis://127.0.0.1:{self.port}/0"
 
     def client(self) -> redis.Redis[bytes]:
-        return redis.Redis(port=self.port, password=self.password, socket_timeout=2)
+        return redis.Redis(port=self.port, username=self.user, password=self.password, socket_timeout=2)
 
     def run(self, scenario: Callable[[AsyncRedis[bytes]], Awaitable[None]]) -> None:
         """Runs an async scenario with a client of this server, closed after it whatever happens: the queue's
         and the stores' tests speak to Redis as the gateway and the worker do, through redis-py's asyncio client."""
         async def main() -> None:
-            client: AsyncRedis[bytes] = AsyncRedis(port=self.port, password=self.password)
+            client: AsyncRedis[bytes] = AsyncRedis(port=self.port, username=self.user, password=self.password)
             try:
                 await scenario(client)
             finally:
@@ -139,12 +145,16 @@ class RedisServer:
         asyncio.run(main())
 
     def argv(self, persistence: list[str]) -> list[str]:
-        argv = ["/usr/bin/redis-server", "--port", str(self.port), "--bind", "127.0.0.1",
-                "--dir", str(self.directory), *persistence, *self.config]
-        return argv if self.password is None else [*argv, "--requirepass", self.password]
+        argv = ["/usr/bin/redis-server", *(["-"] if self.acl else []), "--port", str(self.port),
+                "--bind", "127.0.0.1", "--dir", str(self.directory), *persistence, *self.config]
+        return argv if self.password is None or self.acl else [*argv, "--requirepass", self.password]
 
     def start(self) -> None:
-        self.process = subprocess.Popen(self.argv(["--save", "", "--appendonly", "no"]), stdout=subprocess.DEVNULL)
+        self.process = subprocess.Popen(self.argv(["--save", "", "--appendonly", "no"]), stdout=subprocess.DEVNULL,
+                                        stdin=subprocess.PIPE if self.acl else None)
+        if self.process.stdin is not None:
+            self.process.stdin.write(self.acl.encode())
+            self.process.stdin.close()
         wait_until(lambda: self.client().ping(), 10, "redis-server")
 
     def stop(self) -> None:
@@ -164,6 +174,8 @@ class Stack:
     processes: list[subprocess.Popen[bytes]] = field(default_factory=list)
     cache_redis: RedisServer | None = None
     """A cache Redis of its own (`PRECOND_CACHE_REDIS_URL`); None: the cache shares the queue Redis."""
+    roles: dict[str, dict[str, str]] = field(default_factory=dict)
+    """Per process kind (`gateway`, `worker`), settings over `env`: its own Redis users (`make_stack(roles=)`)."""
 
     @property
     def base_url(self) -> str:
@@ -174,7 +186,8 @@ class Stack:
 
     def _spawn(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
         log = (self.logs / f"{name}-{len(self.processes)}.log").open("wb")
-        process = subprocess.Popen(argv, env=self.env, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+        process = subprocess.Popen(argv, env={**self.env, **self.roles.get(name, {})}, cwd=ROOT, stdout=log,
+                                   stderr=subprocess.STDOUT,
                                    start_new_session=True)  # its own process group: stopped with what it started
         self.processes.append(process)
         return process
@@ -193,7 +206,8 @@ class Stack:
 
     def heartbeats(self) -> list[dict[str, object]]:
         client = self.redis.client()
-        return [json.loads(raw) for raw in client.mget(client.keys("precond:worker:*") or ["-"]) if raw]
+        beats = list(client.scan_iter(match="precond:worker:*"))  # SCAN: KEYS is no role's (redis_roles.py)
+        return [json.loads(raw) for raw in client.mget(beats or ["-"]) if raw]
 
     def worker_pids(self) -> set[int]:
         return {int(str(beat["pid"])) for beat in self.heartbeats()}
@@ -224,11 +238,28 @@ def make_stack(
     """A stack on a fresh queue Redis (more redis-server options in `redis_config`, e.g. "--maxmemory 64mb"),
     and on a cache Redis of its own when `cache_config` is given; with `password` (the default), both require
     it and gateway and workers read it from a file, as in docker-compose."""
+    return _make_stack(tmp, model_dir, redis_config, cache_config, password, False, settings)
+
+
+def make_role_stack(tmp: Path, model_dir: Path, *, cache_config: str, **settings: str) -> Stack:
+    """A stack whose two Redis have the users of precond/jobs/redis_roles.py, as in docker-compose: gateway and
+    workers each connect to each Redis as their own user (the stack's `client()` as the gateway's)."""
+    return _make_stack(tmp, model_dir, "", cache_config, None, True, settings)
+
+
+def _make_stack(tmp: Path, model_dir: Path, redis_config: str, cache_config: str | None, password: str | None,
+                roles: bool, settings: dict[str, str]) -> Stack:
+    queue_users = RoleUsers(tmp, "queue") if roles else None
     server = RedisServer(tmp, password=password, config=tuple(redis_config.split()))
+    if queue_users is not None:
+        server = queue_users.server(server)
     server.start()
     cache = None
+    cache_users = RoleUsers(tmp, "cache") if roles and cache_config is not None else None
     if cache_config is not None:
         cache = RedisServer(tmp, password=password, config=tuple(cache_config.split()))
+        if cache_users is not None:
+            cache = cache_users.server(cache)
         cache.start()
     redis_env = {"REDIS_URL": server.url}
     if cache is not None:
@@ -261,7 +292,32 @@ def make_stack(
         "PRECOND_INTERPRET_CHECKS": "false",
         **settings,
     }
-    return Stack(server, env, tmp, cache_redis=cache)
+    role_env = {} if queue_users is None else {
+        kind: {**queue_users.settings(kind, server, "REDIS_URL", "PRECOND_REDIS_PASSWORD_FILE"),
+               **(cache_users.settings(kind, cache, "PRECOND_CACHE_REDIS_URL", "PRECOND_CACHE_REDIS_PASSWORD_FILE")
+                  if cache is not None and cache_users is not None else {})}
+        for kind in ("gateway", "worker")}
+    return Stack(server, env, tmp, cache_redis=cache, roles=role_env)
+
+
+class RoleUsers:
+    """One Redis's users (precond/jobs/redis_roles.py), each with a fresh password in a file under `tmp`."""
+
+    def __init__(self, tmp: Path, name: str) -> None:
+        self.name = name
+        self.passwords = {role: secrets.token_hex(16) for role in ROLES[name]}
+        self.files = {role: tmp / password_file(name, role) for role in ROLES[name]}
+        for role, path in self.files.items():
+            path.write_text(self.passwords[role] + "\n")
+
+    def server(self, server: RedisServer) -> RedisServer:
+        """`server` with these users (and the gateway's for its own `client()`)."""
+        return replace(server, user="gateway", password=self.passwords["gateway"],
+                       acl="\n".join(acl_lines(self.name, self.passwords)) + "\n")
+
+    def settings(self, kind: str, server: RedisServer, url: str, password: str) -> dict[str, str]:
+        """The settings that make a process of `kind` connect to `server` as its own user."""
+        return {url: f"redis://{kind}@127.0.0.1:{server.port}/0", password: str(self.files[kind])}
 
 
 @contextmanager

@@ -364,9 +364,10 @@ class _Job:
         self.record = record
 
     def end(self, queue: str, how: Outcome | Failure | None) -> bytes:
-        """The stored end of this run: the outcome it returned, or why it ended without one."""
+        """The stored end of this run: the outcome it returned, or why it ended without one (built unvalidated:
+        every part is a model already, and the gateway validates what it reads)."""
         outcome, failure = (how, None) if isinstance(how, Outcome) else (None, how)
-        return encode_end(EndRecord(
+        return encode_end(EndRecord.model_construct(
             version=RECORD_VERSION, job_id=self.id[:200], queue=queue, job_try=self.taken.job_try,
             enqueued_ms=self.record.enqueued_ms if self.record else 0, start_ms=self.start_ms,
             finish_ms=int(time.time() * 1000), outcome=outcome, failure=failure))

@@ -25,6 +25,7 @@ from precond.cli.main import app as cli_app
 from precond.gateway.routes import health
 from precond.gateway.server import gateway_args
 from precond.jobs.queue.keys import MODEL_QUEUE, QUEUES, TRAIN_QUEUE
+from precond.jobs.redis_roles import acl_file, password_file
 from precond.worker.settings import WorkerSettings, queue_names
 
 KUBERNETES_VERSION = "1.32.0"
@@ -179,21 +180,34 @@ def test_the_pods_run_as_the_images_user() -> None:
         assert pod_spec(base(), "Deployment", name)["securityContext"]["runAsUser"] == IMAGE_USER
 
 
+OWN_REDIS = {"REDIS_URL", "PRECOND_REDIS_PASSWORD_FILE", "PRECOND_CACHE_REDIS_URL", "PRECOND_CACHE_REDIS_PASSWORD_FILE"}
+"""The settings by which gateways and workers each reach each Redis as their own user (precond/jobs/redis_roles.py)."""
+ROLE_OF = {"precond-gateway": ("gateway", "gateway"), "precond-worker": ("worker", "worker"),
+           "precond-trainer": ("worker", "trainer")}
+"""Deployment → (its Redis users' role, its compose service)."""
+
+
 def test_gateways_and_workers_read_one_environment(rendered: list[Resource]) -> None:
     """MODEL_* settings are part of every cache key: both sides read them from one ConfigMap, as compose
-    gives both one environment block, and a container sets none of its own."""
-    for name in ("precond-gateway", *WORKERS):
+    gives both one environment block, and a container sets none of its own. Each reaches each Redis as its own
+    user, as in compose."""
+    config = named(rendered, "ConfigMap", "precond-config")["data"]
+    services = compose()
+    for name, (role, service) in ROLE_OF.items():
         spec = container(rendered, "Deployment", name)
         assert spec["envFrom"] == [{"configMapRef": {"name": "precond-config"}}]
         assert not [e for e in spec.get("env", []) if e["name"].upper().startswith("MODEL_")]
-    config = named(rendered, "ConfigMap", "precond-config")["data"]
-    compose_env = compose()["gateway"]["environment"]
+        own, composed = env_of(spec), services[service]["environment"]
+        assert own["REDIS_URL"] == f"redis://{role}@precond-redis:6379/0", name
+        assert own["PRECOND_CACHE_REDIS_URL"] == f"redis://{role}@precond-redis-cache:6379/0", name
+        for variable in ("PRECOND_REDIS_PASSWORD_FILE", "PRECOND_CACHE_REDIS_PASSWORD_FILE"):
+            assert own[variable] == composed[variable], name  # the same role's file as in compose
+    assert not OWN_REDIS & set(config)
+    compose_env = {k: v for k, v in services["gateway"]["environment"].items() if k not in OWN_REDIS}
     assert set(compose_env) <= set(config)
     for name, value in compose_env.items():
-        if not name.endswith("REDIS_URL"):  # the Redis servers' names differ: compose services, cluster Services
-            assert config[name] == value, name
-    for variable, service in (("REDIS_URL", "precond-redis"), ("PRECOND_CACHE_REDIS_URL", "precond-redis-cache")):
-        assert config[variable] == f"redis://{service}:6379/0"
+        assert config[name] == value, name
+    for service in ("precond-redis", "precond-redis-cache"):
         named(rendered, "Service", service)
 
 
@@ -224,8 +238,9 @@ def test_workers_scale_on_exactly_the_queues_they_read(rendered: list[Resource])
         assert trigger["metadata"]["address"] == f"precond-redis.{namespace}.svc:6379"
         assert int(trigger["metadata"]["listLength"]) >= 1
         auth = named(rendered, "TriggerAuthentication", trigger["authenticationRef"]["name"])
-        assert auth["spec"]["secretTargetRef"] == [
-            {"parameter": "password", "name": "precond-secrets", "key": "redis-password"}]
+        assert auth["spec"]["secretTargetRef"] == [  # the queue Redis's read-only `keda` user
+            {"parameter": "username", "name": "precond-secrets", "key": "redis-queue-keda-username"},
+            {"parameter": "password", "name": "precond-secrets", "key": password_file("queue", "keda")}]
 
 
 MIB = 1024 * 1024
@@ -335,21 +350,30 @@ def mounted_secret_keys(spec: dict[str, Any]) -> set[str]:
 
 
 def test_each_pod_mounts_only_the_secrets_it_reads(rendered: list[Resource]) -> None:
-    assert mounted_secret_keys(pod_spec(rendered, "Deployment", "precond-gateway")) == {
-        "redis-password", "precond-secret", "api-keys.jsonl"}
-    for name in WORKERS:
-        assert mounted_secret_keys(pod_spec(rendered, "Deployment", name)) == {"redis-password", "precond-secret"}
-    for kind, name in (("StatefulSet", "precond-redis"), ("Deployment", "precond-redis-cache")):
-        assert mounted_secret_keys(pod_spec(rendered, kind, name)) == {"redis-password"}
+    """Gateways and workers their own role's Redis passwords; a Redis server its ACL lines (digests only) and
+    its probe's password."""
+    for name, (role, _) in ROLE_OF.items():
+        own = {password_file("queue", role), password_file("cache", role), "precond-secret"}
+        api_keys = {"api-keys.jsonl"} if role == "gateway" else set()  # a worker never authenticates callers
+        assert mounted_secret_keys(pod_spec(rendered, "Deployment", name)) == own | api_keys, name
+    for kind, name, server in (("StatefulSet", "precond-redis", "queue"),
+                               ("Deployment", "precond-redis-cache", "cache")):
+        assert mounted_secret_keys(pod_spec(rendered, kind, name)) == {acl_file(server),
+                                                                      password_file(server, "probe")}
 
 
-def test_the_redis_servers_are_bounded_and_need_the_password(rendered: list[Resource]) -> None:
+def test_the_redis_servers_are_bounded_and_have_a_user_per_role(rendered: list[Resource]) -> None:
     queue = " ".join(container(rendered, "StatefulSet", "precond-redis")["command"])
     cache = " ".join(container(rendered, "Deployment", "precond-redis-cache")["command"])
     assert "--appendonly yes" in queue and "--maxmemory-policy noeviction" in queue and "--dir /data" in queue
     assert "--appendonly no" in cache and "--maxmemory-policy allkeys-lru" in cache
-    for command in (queue, cache):
-        assert "requirepass $(cat /secrets/redis-password)" in command and re.search(r"--maxmemory \d+mb", command)
+    for command, kind, name, server in ((queue, "StatefulSet", "precond-redis", "queue"),
+                                        (cache, "Deployment", "precond-redis-cache", "cache")):
+        assert f"$(cat /secrets/{acl_file(server)})" in command and re.search(r"--maxmemory \d+mb", command)
+        assert "requirepass" not in command  # no default user: every client names its own
+        for probe in ("readinessProbe", "livenessProbe"):
+            check = " ".join(container(rendered, kind, name)[probe]["exec"]["command"])
+            assert f"/secrets/{password_file(server, 'probe')}" in check and "--user probe" in check
     claim = named(rendered, "StatefulSet", "precond-redis")["spec"]["volumeClaimTemplates"][0]
     assert claim["metadata"]["name"] == "data"
 

@@ -16,6 +16,7 @@ import yaml
 from precond.cli import export
 from precond.gateway.server import GATEWAY_ARGS
 from precond.jobs.queue.keys import QUEUES, TRAIN_QUEUE
+from precond.jobs.redis_roles import ROLES, acl_file, password_file
 from precond.worker.settings import WorkerSettings, queue_names
 from precond_client.schemas.api import CheckRequest, InferRequest, NextActionRequest
 
@@ -88,6 +89,10 @@ def _command(service: dict[str, Any]) -> str:
     return command if isinstance(command, str) else " ".join(command)
 
 
+OWN_REDIS = {"REDIS_URL", "PRECOND_REDIS_PASSWORD_FILE", "PRECOND_CACHE_REDIS_URL", "PRECOND_CACHE_REDIS_PASSWORD_FILE"}
+"""The settings by which gateway and workers each reach each Redis as their own user."""
+
+
 def test_compose_invariants() -> None:
     services = _compose()["services"]
     assert "--appendonly yes" in _command(services["redis"])
@@ -103,12 +108,13 @@ def test_compose_invariants() -> None:
     for worker in ("worker", "trainer", "worker-gpu"):
         assert services[worker]["depends_on"]["model"] == {"condition": "service_completed_successfully"}
     assert services["model"]["command"] == ["precond", "prepare-model"]
-    assert services["model"]["environment"] == services["gateway"]["environment"]
+    shared = {name: value for name, value in services["gateway"]["environment"].items() if name not in OWN_REDIS}
+    assert services["model"]["environment"] == shared
     for worker in ("worker", "trainer", "worker-gpu"):
         assert "model-cache:/models" in services[worker]["volumes"]
-        env, shared = services[worker]["environment"], services["gateway"]["environment"]
+        env = services[worker]["environment"]
         assert shared.items() <= env.items(), worker  # MODEL_* are cache keys: one environment
-        assert all(name.startswith("PRECOND_") for name in set(env) - set(shared)), worker
+        assert all(name.startswith("PRECOND_") or name in OWN_REDIS for name in set(env) - set(shared)), worker
     assert services["gateway"]["ports"] == ["8000:8000"]
     assert services["gateway"]["command"][1:1 + len(GATEWAY_ARGS)] == list(GATEWAY_ARGS)  # as every other start
     assert services["gateway"]["command"][-2:] == ["--workers", "${PRECOND_GATEWAY_PROCESSES:-1}"]
@@ -158,7 +164,8 @@ REDIS_SERVICES = ("redis", "redis-cache")
 
 
 def test_compose_redis_is_closed_and_bounded() -> None:
-    """Both Redis require the password the `keys` service generates, are reachable only inside the compose
+    """Both Redis have the users whose passwords and ACL lines the `keys` service generates (gateway and workers
+    each connect as their own, to each Redis with its own password), are reachable only inside the compose
     network, and are bounded: the queue Redis refuses writes when full (never evicts a queued job or an
     owed result), the cache Redis evicts least recently used entries and keeps nothing on disk."""
     compose = _compose()
@@ -167,25 +174,29 @@ def test_compose_redis_is_closed_and_bounded() -> None:
     assert keys["image"] == services["gateway"]["image"]
     assert "secrets:/secrets" in keys["volumes"]
     generated = _command(keys)
-    assert "/secrets/redis-password" in generated and "/secrets/precond-secret" in generated
-    for name in REDIS_SERVICES:
+    assert "--redis /secrets" in generated and "/secrets/precond-secret" in generated
+    for name, server in zip(REDIS_SERVICES, ("queue", "cache"), strict=True):
         service = services[name]
         assert "ports" not in service and "expose" not in service, f"{name} must not be published"
         assert service.get("network_mode") is None, name
         assert "secrets:/secrets:ro" in service["volumes"], name
         assert service["depends_on"]["keys"]["condition"] == "service_completed_successfully", name
         command = _command(service)
-        assert "requirepass $$(cat /secrets/redis-password)" in command, name  # $$: compose's literal $
-        assert "/secrets/redis-password" in service["healthcheck"]["test"][1], name
+        assert f"$$(cat /secrets/{acl_file(server)})" in command, name  # $$: compose's literal $
+        assert "requirepass" not in command, name  # no default user: each client names its own
+        assert f"/secrets/{password_file(server, 'probe')}" in service["healthcheck"]["test"][1], name
+        assert "--user probe" in service["healthcheck"]["test"][1], name
     queue, cache = (_command(services[name]) for name in REDIS_SERVICES)
     assert "--maxmemory-policy noeviction" in queue and re.search(r"--maxmemory \d+[kmg]b", queue)
     assert "--maxmemory-policy allkeys-lru" in cache and re.search(r"--maxmemory \d+[kmg]b", cache)
     assert '--save ""' in cache and "--appendonly no" in cache
-    env = services["gateway"]["environment"]
-    assert env["REDIS_URL"] == "redis://redis:6379/0"  # the password comes from the file, not the URL
-    assert env["PRECOND_CACHE_REDIS_URL"] == "redis://redis-cache:6379/0"
-    assert env["PRECOND_REDIS_PASSWORD_FILE"] == "/secrets/redis-password"
-    assert env["PRECOND_SECRET_FILE"] == "/secrets/precond-secret"
+    for name, role in (("gateway", "gateway"), ("worker", "worker"), ("trainer", "worker"), ("worker-gpu", "worker")):
+        env = services[name]["environment"]
+        assert env["REDIS_URL"] == f"redis://{role}@redis:6379/0", name  # the password comes from the file
+        assert env["PRECOND_CACHE_REDIS_URL"] == f"redis://{role}@redis-cache:6379/0", name
+        assert env["PRECOND_REDIS_PASSWORD_FILE"] == f"/secrets/{password_file('queue', role)}", name
+        assert env["PRECOND_CACHE_REDIS_PASSWORD_FILE"] == f"/secrets/{password_file('cache', role)}", name
+        assert env["PRECOND_SECRET_FILE"] == "/secrets/precond-secret", name
     for name in ("gateway", "worker", "worker-gpu"):
         assert "secrets:/secrets:ro" in services[name]["volumes"], name
         for dependency in ("keys", *REDIS_SERVICES):
@@ -194,15 +205,20 @@ def test_compose_redis_is_closed_and_bounded() -> None:
 
 
 def test_keys_script_writes_each_secret_once(tmp_path: Path) -> None:
-    files = [tmp_path / "secrets" / "redis-password", tmp_path / "secrets" / "precond-secret"]
-    script = [sys.executable, str(ROOT / "docker" / "keys.py"), *map(str, files)]
+    secrets = tmp_path / "secrets"
+    files = [secrets / "precond-secret", *(secrets / password_file(server, role)
+                                          for server, roles in ROLES.items() for role in roles)]
+    script = [sys.executable, str(ROOT / "docker" / "keys.py"), str(files[0]), "--redis", str(secrets)]
     first = subprocess.run(script, capture_output=True, text=True, check=True).stdout
-    assert first.count("created") == 2
+    assert first.count("created") == len(files)
     values = [f.read_text() for f in files]
-    assert len(set(values)) == 2 and all(len(v.strip()) == 64 for v in values)
-    assert all(f.stat().st_mode & 0o777 == 0o600 for f in files)
+    assert len(set(values)) == len(files) and all(len(v.strip()) == 64 for v in values)
+    assert all(f.stat().st_mode & 0o777 == 0o600 for f in [*files, secrets / acl_file("queue")])
+    acl = (secrets / acl_file("queue")).read_text()
+    assert all(value.strip() not in acl for value in values)  # the ACL lines hold digests only
     again = subprocess.run(script, capture_output=True, text=True, check=True).stdout
-    assert again.count("kept") == 2 and [f.read_text() for f in files] == values
+    assert again.count("kept") == len(files) and [f.read_text() for f in files] == values
+    assert (secrets / acl_file("queue")).read_text() == acl
 
 
 def test_compose_never_serves_an_open_api() -> None:

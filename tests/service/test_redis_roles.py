@@ -5,6 +5,8 @@
 * the cache Redis (result-cache entries only) with a small `maxmemory` (2 MB) and `allkeys-lru`: flooding it
   evicts cache entries, never queued jobs or owed results;
 * both require a password, which gateway and workers read from `PRECOND_REDIS_PASSWORD_FILE`;
+* with a user per role (precond/jobs/redis_roles.py: the users of compose and the manifests), gateway and worker
+  each serve as their own, on each Redis;
 * every key the service writes expires or belongs to a short list of bounded keys;
 * a cache entry no worker signed is never served.
 """
@@ -30,7 +32,17 @@ from precond.jobs import cache
 from precond.jobs.cache import ResultCache
 from precond.jobs.queue import keys
 from precond.jobs.settings import QueueSettings
-from precond.stack.local import DEMOS, SPEC, Stack, check_body, infer_body, make_stack, serving, wait_until
+from precond.stack.local import (
+    DEMOS,
+    SPEC,
+    Stack,
+    check_body,
+    infer_body,
+    make_role_stack,
+    make_stack,
+    serving,
+    wait_until,
+)
 from precond_client.schemas.api import CheckRequest, CheckResponse
 
 PASSWORD = "roles-test-redis-password"
@@ -109,6 +121,25 @@ def test_both_redis_require_the_password(stack: Stack) -> None:
     assert answer.status_code == 202  # accepted: the gateway authenticated to the queue Redis
 
 
+@pytest.mark.stack
+def test_gateway_and_worker_serve_as_their_own_redis_users(tmp_path: Path, tiny_model_dir: Path) -> None:
+    roles = make_role_stack(tmp_path, tiny_model_dir, cache_config="--maxmemory 2mb --maxmemory-policy allkeys-lru")
+    with serving(roles, workers=1), roles.http() as client:
+        answer = client.post("/infer-preconditions", json=infer_body(seed=9000), params={"wait": 60})
+        assert answer.status_code == 200, answer.text
+        job = answer.headers["X-Job-Id"]
+        assert roles.redis.client().exists(f"arq:result:{job}")  # the worker's queue user stored its end
+        cached = roles.cache_redis
+        assert cached is not None  # and its cache user the result (written beside the end, on another Redis)
+        wait_until(lambda: cached.client().get(keys.cache_key(job)) is not None, 10, "the cached result")
+    for kind in ("gateway", "worker"):
+        own = roles.roles[kind]
+        assert own["REDIS_URL"].startswith(f"redis://{kind}@") and own["PRECOND_CACHE_REDIS_URL"].startswith(
+            f"redis://{kind}@")
+        assert own["PRECOND_REDIS_PASSWORD_FILE"].endswith(f"redis-queue-{kind}-password")
+        assert own["PRECOND_CACHE_REDIS_PASSWORD_FILE"].endswith(f"redis-cache-{kind}-password")
+
+
 def test_password_file_completes_redis_urls(tmp_path: Path) -> None:
     password_file = tmp_path / "redis-password"
     password_file.write_text("s3cret-value\n")
@@ -119,6 +150,12 @@ def test_password_file_completes_redis_urls(tmp_path: Path) -> None:
     explicit = QueueSettings(REDIS_URL="redis://:own@redis:6379/0", redis_password_file=password_file)
     assert explicit.redis_dsn == "redis://:own@redis:6379/0"  # a URL's own password wins
     assert explicit.cache_redis_dsn == explicit.redis_dsn  # no cache Redis of its own: the queue Redis
+    cache_file = tmp_path / "redis-cache-gateway-password"
+    cache_file.write_text("other\n")
+    own = QueueSettings(REDIS_URL="redis://gateway@redis:6379/0", cache_redis_url="redis://gateway@redis-cache:6379/0",
+                        redis_password_file=password_file, cache_redis_password_file=cache_file)
+    assert own.redis_dsn == "redis://gateway:s3cret-value@redis:6379/0"  # the URL's user, the file's password
+    assert own.cache_redis_dsn == "redis://gateway:other@redis-cache:6379/0"  # the cache Redis's own
 
 
 async def _flood(url: str, secret: bytes, entries: int, size: int) -> tuple[dict[str, Any] | None, bool]:
