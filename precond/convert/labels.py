@@ -43,8 +43,9 @@ class Label:
 
 
 def read_labels(data: Any, source: str, tools: set[str], runs: Sequence[str] = ()) -> list[Label]:
-    """Records `{task_id, trial, ...}` (LABELS.md) or `{run, ...}`, `runs` being the converted runs' names in
-    the file's order (a `run` that is an integer is an index into them); the rest of a record is not read."""
+    """Records `{task_id, trial, ...}` or `{run, ...}` (docs/converting.md, "Labelled calls"), `runs` being the
+    converted runs' names in the file's order (a `run` that is an integer is an index into them); the rest of a
+    record is not read."""
     if not isinstance(data, list):
         raise PlaceError(source, f"expected a list of label records {SHAPE}")
     if not data:
