@@ -53,7 +53,7 @@ class Frame:
     """One call's evaluation: the state, the arguments by position, the keys its rules inserted into tables, the
     sets it built whose values hash alike, and the steps left of its budget."""
 
-    __slots__ = ("alike", "args", "budget", "env", "inserted", "state")
+    __slots__ = ("alike", "args", "budget", "env", "inserted", "recent", "state")
 
     def __init__(self, state: object, args: Sequence[Any], budget: int = MAX_STEPS) -> None:
         self.state = state
@@ -64,6 +64,9 @@ class Frame:
         self.env: Cell | None = None
         """The comprehension being evaluated (None outside any)."""
         self.alike: dict[int, tuple[Any, int]] = {}
+        self.recent: tuple[tuple[Any, int], ...] = ()
+        """The last two sets built here and their weights (`weigh`), known from their building: `{...} == {...}`
+        compares the two it just built."""
         """Sets built here (by id, with the set) whose values hash alike: the most of one hash, which each lookup
         in the set may compare with."""
         self.budget = budget
@@ -114,6 +117,9 @@ def weigh(value: Any, frame: Frame) -> int:
         return 1 + int(value.bit_length()) // BITS_PER_STEP
     if kind not in CONTAINER_TYPES:
         return 1
+    for made, known in frame.recent:
+        if made is value:
+            return known
     limit, total, stack = frame.budget, 1, [value]
     while stack and total <= limit:
         container = stack.pop()
@@ -148,7 +154,8 @@ def compare_cost(sized: bool) -> Callable[[Any, Any, Frame], int]:
             return 1
         if sized and kind is not tuple and len(left) != len(right):
             return 1
-        return 1 + weigh(left, frame) + weigh(right, frame)
+        frame.charge(weigh(left, frame))  # before the other side is walked: the walks stop at the budget left
+        return 1 + weigh(right, frame)
 
     return cost
 
@@ -249,15 +256,16 @@ class SetBuilder:
         self.weights.append(weight)
 
     def build(self) -> set[Any]:
-        if len(set(self.hashes)) == len(self.hashes):  # hashes are distinct integers: this set never probes
-            return set(self.values)
-        groups: dict[int, list[int]] = {}
-        for index, hashed in enumerate(self.hashes):
-            groups.setdefault(hashed, []).append(index)
-        alike = max(self._distinct(indexes) for indexes in groups.values() if len(indexes) > 1)
+        alike = 1
+        if len(set(self.hashes)) != len(self.hashes):  # hashes are distinct integers: else this set never probes
+            groups: dict[int, list[int]] = {}
+            for index, hashed in enumerate(self.hashes):
+                groups.setdefault(hashed, []).append(index)
+            alike = max(self._distinct(indexes) for indexes in groups.values() if len(indexes) > 1)
         made = set(self.values)
         if alike > 1:
             self.frame.alike[id(made)] = (made, alike)
+        self.frame.recent = (*self.frame.recent[-1:], (made, (1 + sum(self.weights)) * alike))
         return made
 
     def _distinct(self, indexes: list[int]) -> int:
