@@ -189,8 +189,6 @@ def weighed(items: Iterable[Any], frame: Frame) -> Iterator[Any]:
         yield item
 
 
-
-
 def built_size(value: Any) -> int:
     return len(value) if isinstance(value, SIZED) else 0
 
@@ -216,8 +214,6 @@ def arithmetic_cost(a: Any, b: Any, repeats: bool, frame: Frame) -> int:
     return 1 + built
 
 
-
-
 def call_cost(function: Callable[..., Any], values: list[Any], frame: Frame) -> int:
     """`len` one step; `all`/`any` an element each; `max`/`min` the size of what they compare."""
     if function is len:
@@ -228,8 +224,6 @@ def call_cost(function: Callable[..., Any], values: list[Any], frame: Frame) -> 
         only = values[0]
         return 1 + (len(only) if type(only) is str else weigh(only, frame) if type(only) in CONTAINER_TYPES else 0)
     return 1 + sum(weigh(v, frame) for v in values)
-
-
 
 
 class SetBuilder:
