@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from precond.convert.openai import call_lines, structured_history
 from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine import guarded as guarding
+from precond.engine.decisive import decisive_points
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import thin, too_few
 from precond.engine.freshness import writes_at
@@ -46,13 +47,15 @@ from precond.engine.spec import (
     resolve_actions,
     skip_statements,
 )
-from precond.engine.tool_conditions import separating, tool_atoms
+from precond.engine.tool_conditions import separating, tool_atoms, tool_class
 from precond.engine.work import WorkBudget, points_of
 from precond.programs import checks
 from precond.sandbox.types import (
+    TIMED_OUT,
     BrokenRule,
     EvaluateResult,
     LimitExceeded,
+    Point,
     ProgramError,
     SandboxCancelled,
     SandboxCrashed,
@@ -225,6 +228,7 @@ class Engine:
         with timer.phase("trace"):
             trace = sandbox_call(self._sandbox.trace, spec.source, demos, scope=scope.current())
         _refuse_no_evidence(actions, trace)
+        judged_at = _judged_at(spec, actions, trace)
         enumerated = Proposals()
         stopped: dict[str, str] = {}
         policy: dict[str, set[str]] = {}
@@ -232,7 +236,7 @@ class Engine:
             with timer.phase("enumerate"):
                 labelled_trees = [parse_source(p, "counterexamples") for p in labelled.programs] if labelled else []
                 stopped = self._enumerate(spec, actions, demo_trees + labelled_trees, trace, enumerated,
-                                          request.options.now, policy)
+                                          request.options.now, policy, judged_at)
         writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
         prompted = _prompted(actions, trace, request.options)
         settled = [a for a in actions if a not in prompted]
@@ -245,7 +249,8 @@ class Engine:
                 found = _proposed(settled, enumerated, prior)
                 with timer.phase("validate"):
                     first = sandbox_call(self._sandbox.evaluate, spec.source, demos,
-                                         {a: list(found.source.get(a, {})) for a in settled}, scope=scope.current())
+                                         {a: list(found.source.get(a, {})) for a in settled},
+                                         {a: judged_at[a] for a in settled if a in judged_at}, scope=scope.current())
                 with timer.phase("rank"):
                     known = _known_rules(spec, prompted, select_rules(
                         settled, Inference(trace, first, found, request.options, writes, prior), guarded))
@@ -259,6 +264,7 @@ class Engine:
             rest = [a for a in actions if first is None or a not in first.results]
             evaluated = _merged(first, sandbox_call(self._sandbox.evaluate, spec.source, demos,
                                                     {a: list(proposals.source.get(a, {})) for a in rest},
+                                                    {a: judged_at[a] for a in rest if a in judged_at},
                                                     scope=scope.current()))
         unseen = {a: not trace.actions[a].occurrences for a in actions}
         unrunnable: dict[str, dict[str, str]] = {}
@@ -304,6 +310,10 @@ class Engine:
             listed_here = "; ".join(f"`{e}` ({why})" for e, why in list(dropped_here.items())[:3])
             warnings[action] = "; ".join(w for w in (warnings.get(action), (
                 f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
+        for action, slow in _timed_out(evaluated).items():
+            warnings[action] = "; ".join(w for w in (warnings.get(action), (
+                f"{slow} candidate(s) dropped: they ran out of time in the sandbox (SANDBOX_TIMEOUT_S), judged "
+                f"alone too; the others were judged")) if w)
         for action, separation in separated.items():
             if separation.unrefused:
                 warnings[action] = "; ".join(w for w in (warnings.get(action), _unrefused(
@@ -390,17 +400,19 @@ class Engine:
     def _enumerate(
         self, spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals,
         now: str | None = None, policy: dict[str, set[str]] | None = None,
+        judged_at: Mapping[str, Sequence[Point]] | None = None,
     ) -> dict[str, str]:
         """Adds the enumerator's atoms, each action's cut to the work budget; the report line of each cut one.
         `policy` gets, for a tool spec's actions, the conditions over results and arguments (`tool_conditions`):
-        the ones labelled calls are separated by."""
+        the ones labelled calls are separated by. `judged_at`: the actions judged at fewer points than their
+        default grid (`decisive`), whose budget is counted on those."""
         budget = WorkBudget(self._sandbox.limits.max_points)
         state = StateModel(spec, demo_trees)
         state.tool_facts.now = now
         stopped: dict[str, str] = {}
         for action in actions:
             info = trace.actions[action]
-            n_points = points_of(trace, info)
+            n_points = len(judged_at[action]) if judged_at and action in judged_at else points_of(trace, info)
             found = enumerate_atoms(state, info, spec.methods[action].cls, budget.enumerated(n_points))
             proposals.add(action, found.atoms, "enumerate", len(found.atoms))
             if policy is not None and spec.methods[action].cls == state.tool_class:
@@ -683,6 +695,24 @@ def _merged(first: EvaluateResult | None, rest: EvaluateResult) -> EvaluateResul
     if first is None:
         return rest
     return EvaluateResult({**rest.points, **first.points}, {**rest.results, **first.results})
+
+
+def _timed_out(evaluated: EvaluateResult) -> dict[str, int]:
+    """Per action, the candidates the sandbox dropped for running out of time: each is left out and counted, the
+    request goes on."""
+    counts = {a: sum((r.reason or "").startswith(TIMED_OUT) for r in results) for a, results in
+              evaluated.results.items()}
+    return {a: n for a, n in counts.items() if n}
+
+
+def _judged_at(spec: Spec, actions: Sequence[str], trace: TraceResult) -> dict[str, list[Point]]:
+    """A tool-calling agent's actions judged where a condition decides something (`engine.decisive`), those whose
+    default grid is larger; every other action keeps the default grid."""
+    cls = tool_class(spec)
+    methods = [q for q, m in spec.methods.items() if m.cls == cls]
+    found = {a: decisive_points(trace, trace.actions[a], methods) for a in actions
+             if cls is not None and spec.methods[a].cls == cls}
+    return {a: points for a, points in found.items() if points is not None}
 
 
 def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:
