@@ -22,8 +22,9 @@ from __future__ import annotations
 import ast
 import itertools
 import re
+from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from precond.engine.evidence import OccurrenceIndex, gather
 from precond.engine.ranking import Candidate, Cluster
@@ -187,6 +188,9 @@ class Separation:
     unshown: bool
     """No demonstrated call to allow: none demonstrated, or each labelled 'refuse'. The action is then refused
     (`options.unseen`) unless its labelled calls give it a rule, as a never-demonstrated one is."""
+    conflicts: list[str] = field(default_factory=list)
+    """Per rule made from the labels that refuses calls demonstrated or labelled 'allow', in words: which of those,
+    and which calls labelled 'refuse' it refuses. Such a rule is `assumed` (a human decides), never established."""
 
 
 def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
@@ -274,11 +278,25 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         e = cluster.representative.expression
         refuses[e] = [_name(examples[k]) for k in _bits_of(negative & ~truth.get(e, 0))]
         wrong[e] = [_name(examples[k]) for k in _bits_of(positive & ~truth.get(e, 0))]
+    conflicts = [_conflict(e, wrong[e], refuses[e]) for e, *_ in added if wrong.get(e)]
+    decided.update({e: "assumed" for e, *_ in added if wrong.get(e)})
     exempt = {p for p, c in labelled_demos.items() if c.verdict == REFUSE}
     return Separation(replace(ranked, results=results, chosen=chosen, reasons=reasons, evidence=evidence,
                               verdicts=verdicts, decided=decided), refuses, wrong, exempt,
                       [_name(examples[k]) for k in _bits_of(negative & ~_refused_by(
-                          {c.representative.expression for c in chosen}, truth, negative))], unshown)
+                          {c.representative.expression for c in chosen}, truth, negative))], unshown, conflicts)
+
+
+def _conflict(rule: str, allowed: Sequence[str], refused: Sequence[str]) -> str:
+    """A rule made from the labels that refuses calls to allow, in words (`Separation.conflicts`)."""
+    def listed(names: Sequence[str]) -> str:
+        counted = Counter(names)
+        shown = [f"{n} x{c}" if c > 1 else n for n, c in list(counted.items())[:4]]
+        more = len(counted) - len(shown)
+        return ", ".join(shown) + (f" and {more} more" if more > 0 else "")
+    return (f"conflict: `{rule}` refuses {len(allowed)} call(s) demonstrated or labelled 'allow' "
+            f"({listed(allowed)}) to refuse {len(refused)} labelled 'refuse' ({listed(refused)}); no condition "
+            f"separates both sides: assumed, review it")
 
 
 def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int, unshown: bool = False
@@ -324,22 +342,46 @@ def _required(truth: Mapping[str, int], positive: int, negative: int) -> list[st
 
 def _smallest(truth: Mapping[str, int], positive: int, negative: int) -> tuple[list[str], list[Term]]:
     """Required conditions (the first k of `_required`'s order) and the terms that separate what they leave:
-    the k whose calls to allow left refused, plus CONDITION_COST per condition, are fewest."""
+    the k whose labelled calls left on the wrong side (calls to allow refused, calls labelled 'refuse' allowed),
+    plus CONDITION_COST per condition, are fewest. A call labelled 'refuse' that no condition holding at some call
+    to allow refuses (`unseparable`) is left out of the terms' search: it stays allowed and is reported, and
+    the terms still separate the others (one such label never costs the rule that refuses the rest)."""
     order = _required(truth, positive, negative)
+    alone = unseparable(truth, positive, negative)
     best: tuple[tuple[float, int], list[str], list[Term]] | None = None
     for k in range(len(order) + 1):
         remaining = negative
         for e in order[:k]:
             remaining &= truth[e]
-        terms = _terms(truth, positive, remaining)
-        allowed = _held(terms, truth, -1) if remaining else positive
-        if remaining and not terms:
-            allowed = positive  # nothing separates what is left: those calls stay allowed, and say so
-        size = sum(_conditions(e) for e in order[:k]) + sum(_conditions(e) for t in terms for e in t)
-        cost = ((positive & ~allowed).bit_count() + CONDITION_COST * size, size)
-        if best is None or cost < best[0]:
-            best = (cost, order[:k], terms)
+        for separated in dict.fromkeys((remaining & ~alone, remaining & ~alone & ~_shadows(truth, positive,
+                                                                                           remaining))):
+            terms = _terms(truth, positive, separated)
+            allowed = _held(terms, truth, -1) if separated and terms else positive | remaining
+            size = sum(_conditions(e) for e in order[:k]) + sum(_conditions(e) for t in terms for e in t)
+            wrong = (positive & ~allowed).bit_count() + (remaining & allowed).bit_count()
+            cost = (wrong + CONDITION_COST * size, size)
+            if best is None or cost < best[0]:
+                best = (cost, order[:k], terms)
     return (best[1], best[2]) if best else ([], [])
+
+
+def _shadows(truth: Mapping[str, int], positive: int, negative: int) -> int:
+    """The calls labelled 'refuse' at which every condition holding at some call to allow holds too: a rule refuses
+    one only by refusing that call to allow as well (`_smallest` weighs both)."""
+    shadows = 0
+    for p in _bits_of(positive):
+        held = [t for t in truth.values() if (t >> p) & 1]
+        for n in _bits_of(negative & ~shadows):
+            if all((t >> n) & 1 for t in held):
+                shadows |= 1 << n
+    return shadows
+
+
+def unseparable(truth: Mapping[str, int], positive: int, negative: int) -> int:
+    """The calls labelled 'refuse' that every condition holding at some call to allow also allows: no rule made
+    of these conditions refuses one of them without refusing every call to allow."""
+    useful = [t for t in truth.values() if t & positive]
+    return sum(1 << k for k in _bits_of(negative) if all((t >> k) & 1 for t in useful))
 
 
 LIMIT_FORMS = re.compile(r" not in | != | < |\bany\(|\]\[[^\]]+\] == (?:'[^']*'|-?\d|None|True|False)")

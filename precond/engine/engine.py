@@ -315,6 +315,8 @@ class Engine:
                 f"{slow} candidate(s) dropped: they ran out of time in the sandbox (SANDBOX_TIMEOUT_S), judged "
                 f"alone too; the others were judged")) if w)
         for action, separation in separated.items():
+            if separation.conflicts:
+                warnings[action] = "; ".join(w for w in (warnings.get(action), *separation.conflicts) if w)
             if separation.unrefused:
                 warnings[action] = "; ".join(w for w in (warnings.get(action), _unrefused(
                     separation.unrefused, preconditions[action] == [UNSEEN_RULE])) if w)
