@@ -48,6 +48,7 @@ from precond.engine.spec import (
     skip_statements,
 )
 from precond.engine.tool_conditions import separating, tool_atoms, tool_class
+from precond.engine.tool_relations import relations
 from precond.engine.work import WorkBudget, points_of
 from precond.programs import checks
 from precond.sandbox.types import (
@@ -236,7 +237,7 @@ class Engine:
             with timer.phase("enumerate"):
                 labelled_trees = [parse_source(p, "counterexamples") for p in labelled.programs] if labelled else []
                 stopped = self._enumerate(spec, actions, demo_trees + labelled_trees, trace, enumerated,
-                                          request.options.now, policy, judged_at)
+                                          request.options.now, policy, judged_at, len(demo_trees))
         writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
         prompted = _prompted(actions, trace, request.options)
         settled = [a for a in actions if a not in prompted]
@@ -402,15 +403,16 @@ class Engine:
     def _enumerate(
         self, spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals,
         now: str | None = None, policy: dict[str, set[str]] | None = None,
-        judged_at: Mapping[str, Sequence[Point]] | None = None,
+        judged_at: Mapping[str, Sequence[Point]] | None = None, demonstrated: int | None = None,
     ) -> dict[str, str]:
         """Adds the enumerator's atoms, each action's cut to the work budget; the report line of each cut one.
         `policy` gets, for a tool spec's actions, the conditions over results and arguments (`tool_conditions`):
         the ones labelled calls are separated by. `judged_at`: the actions judged at fewer points than their
-        default grid (`decisive`), whose budget is counted on those."""
+        default grid (`decisive`), whose budget is counted on those; `demonstrated`: how many of `demo_trees` are
+        demonstrations (the rest are runs of labelled calls)."""
         budget = WorkBudget(self._sandbox.limits.max_points)
         state = StateModel(spec, demo_trees)
-        state.tool_facts.now = now
+        state.tool_facts.now, state.tool_facts.demonstrated = now, demonstrated
         stopped: dict[str, str] = {}
         for action in actions:
             info = trace.actions[action]
@@ -418,7 +420,9 @@ class Engine:
             found = enumerate_atoms(state, info, spec.methods[action].cls, budget.enumerated(n_points))
             proposals.add(action, found.atoms, "enumerate", len(found.atoms))
             if policy is not None and spec.methods[action].cls == state.tool_class:
-                policy[action] = separating(tool_atoms(state.tool_facts, spec.methods[action].name, info.params))
+                name = spec.methods[action].name
+                policy[action] = separating(tool_atoms(state.tool_facts, name, info.params)
+                                            + relations(state.tool_facts, name, info.params))
             if found.cut:
                 stopped[action] = budget.stopped(len(found.atoms), n_points)
         return stopped
