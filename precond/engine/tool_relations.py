@@ -105,7 +105,8 @@ def _about_read(facts: ToolFacts, calls: Sequence[Seen], params: Sequence[str], 
     at = [(c, r) for c, r in zip(calls, read, strict=True) if isinstance(r, dict)]
     if not at or len(at) < len(calls):
         return []
-    atoms = [f"{has} and {a}" for a in _compared(at, params, key, got) + _contained(at, params, key, got)]
+    atoms = [f"{has} and {a}" for a in _compared(at, params, key, got) + _contained(at, params, key, got)
+             + _variants(facts, at, params, key, got)]
     for name, other, render in _joins(facts, at, tool):
         joined = render.format(f"{got}[{name!r}]")
         atoms.append(f"{has} and {joined}")
@@ -151,14 +152,46 @@ def _comparable(a: Any, b: Any) -> bool:
 def _contained(at: At, params: Sequence[str], key: str, got: str) -> list[str]:
     """A list argument of scalars within a list field's items' field, at every demonstrated call."""
     atoms = []
-    for param in (p for p in params if p != key):
-        lists = [c.args.get(param) for c, _ in at]
-        if not all(isinstance(v, list) and all(isinstance(x, str | int) for x in v) for v in lists):
-            continue
+    for param in _scalar_lists(at, params, key):
         for name, inner in _list_fields(at[0][1]):
             if _holds(at, _within, param, name, inner):
                 atoms.append(f"all(x in [y[{inner!r}] for y in {got}[{name!r}]] for x in {param})")
     return atoms
+
+
+def _scalar_lists(at: At, params: Sequence[str], key: str) -> list[str]:
+    """The arguments but the key that are lists of strings or numbers at every demonstrated call (item ids)."""
+    def scalars(value: Any) -> bool:
+        return isinstance(value, list) and all(isinstance(x, str | int) for x in value)
+    return [p for p in params if p != key and all(scalars(c.args.get(p)) for c, _ in at)]
+
+
+def _variants(facts: ToolFacts, at: At, params: Sequence[str], key: str, got: str) -> list[str]:
+    """A list argument of scalars among the entries of an object another read keeps for the items of this read
+    (`all(any(x in self.results['get_product_details'][y['product_id']]['variants'] for y in ...['items']) for x
+    in new_item_ids)`: each new item a variant of a product of the order), at every demonstrated call."""
+    atoms = []
+    for param in _scalar_lists(at, params, key):
+        for name, inner in _list_fields(at[0][1], every=True):
+            for other in sorted(t for t in facts.mappings if t != _key_tool(facts, key)):
+                for entries in sorted(facts.mappings[other]):
+                    if _holds(at, _entry_of, param, name, inner, other, entries):
+                        table = f"{RESULTS}[{other!r}]"
+                        atoms.append(f"all(any(x in {table}[y[{inner!r}]][{entries!r}] for y in {got}[{name!r}]) "
+                                     f"for x in {param})")
+    return atoms[:2]
+
+
+def _key_tool(facts: ToolFacts, key: str) -> str | None:
+    """The read the parameter `key` names (its results are this read, not another)."""
+    return next((t for t, p in sorted(facts.key_param.items()) if p == key), None)
+
+
+def _entry_of(call: Seen, result: dict[str, Any], param: str, name: str, inner: str, other: str, entries: str
+              ) -> bool:
+    owners = [call.results.get((other, y[inner])) for y in result[name]]
+    items: Any = call.args[param]
+    return all(any(isinstance(o, dict) and x in o[entries] for o in owners) for x in items)
 
 
 def _within(call: Seen, result: dict[str, Any], param: str, name: str, inner: str) -> bool:
@@ -173,14 +206,15 @@ def _found(call: Seen, result: dict[str, Any], other: str, name: str) -> bool:
     return result[name] in [v for (tool, _), v in call.results.items() if tool == other]
 
 
-def _list_fields(result: dict[str, object]) -> list[tuple[str, str]]:
-    """(list field, a string field every item holds) of a result, the fields named as ids first."""
+def _list_fields(result: dict[str, object], every: bool = False) -> list[tuple[str, str]]:
+    """(list field, a string field every item holds) of a result, the fields named as ids first; the first two
+    of each list, or `every` one."""
     found = []
     for name, items in sorted(result.items()):
         if isinstance(name, str) and isinstance(items, list) and items and all(isinstance(y, dict) for y in items):
             shared = set.intersection(*(set(y) for y in items))
             found += [(name, f) for f in sorted(shared, key=lambda f: (not f.endswith("id"), f))
-                      if isinstance(f, str) and all(isinstance(y[f], str) for y in items)][:2]
+                      if isinstance(f, str) and all(isinstance(y[f], str) for y in items)][:None if every else 2]
     return found
 
 

@@ -1,6 +1,7 @@
 """Relations between a tool call and what came before it (precond/engine/tool_relations.py), on a library desk agent
 written from scratch: an earlier write on the same loan, an argument among its values, an argument against a date
-the read holds, the books of that loan, the loan's member as the one read and their card, and the user's "yes".
+the read holds, the books of that loan and copies of its titles, the loan's member as the one read and their card,
+and the user's "yes".
 Every one is a condition the embedded guard runs; one it cannot run is never proposed."""
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from precond_client.schemas.api import CheckRequest, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "array" if p == "book_ids" else "string"} for p in params}, "required": list(params)}}}
-    for name, params in [("get_member", ("member_id",)), ("get_loan", ("loan_id",)),
+    for name, params in [("get_member", ("member_id",)), ("get_loan", ("loan_id",)), ("get_title", ("title_id",)),
                          ("renew_loan", ("loan_id", "book_ids", "card_id", "reason", "until")),
                          ("close_loan", ("loan_id",))]]
 RENEW = "AGENT.renew_loan"
@@ -42,12 +43,14 @@ def desk_run(n: int, reason: str, renew_twice: bool = False, book: str | None = 
     """Member m{n} asks to renew loan L{n} (books b{n}a, b{n}b, due 2024-06-0{n % 9 + 1}) until a later date."""
     due = f"2024-06-0{n % 9 + 1}"
     loan = {"loan_id": f"L{n}", "member_id": f"m{n}", "due": due,
-            "books": [{"book_id": f"b{n}a"}, {"book_id": f"b{n}b"}]}
+            "books": [{"book_id": f"b{n}a", "title_id": f"t{n}"}, {"book_id": f"b{n}b", "title_id": f"t{n}"}]}
+    title = {"title_id": f"t{n}", "copies": {f"b{n}{c}": {"shelf": c} for c in "abc"}}
     renew = {"loan_id": f"L{n}", "book_ids": [book or f"b{n}a"], "card_id": f"card_{n}", "reason": reason,
              "until": f"2024-07-0{n % 9 + 1}"}
     steps: list[dict[str, object]] = [{"role": "user", "content": f"I am m{n}, renew my loan"},
              *call("get_member", {"member_id": f"m{n}"}, {"name": "x", "cards": {f"card_{n}": {"kind": "library"}}}),
-             *call("get_loan", {"loan_id": f"L{n}"}, loan), {"role": "user", "content": "yes"},
+             *call("get_loan", {"loan_id": f"L{n}"}, loan), *call("get_title", {"title_id": f"t{n}"}, title),
+             {"role": "user", "content": "yes"},
              *call("renew_loan", renew, {"ok": True})]
     if renew_twice:
         steps += [{"role": "user", "content": "yes"}, *call("renew_loan", renew, {"ok": True})]
@@ -71,6 +74,8 @@ def test_each_relation_kind_is_proposed_from_what_the_demonstrated_calls_show() 
     assert "reason in ('exam', 'illness', 'travel')" in found  # an argument among its values
     assert f"{HAS} and until >= {LOAN}['due']" in found  # an argument against a date of the same loan
     assert f"{HAS} and all(x in [y['book_id'] for y in {LOAN}['books']] for x in book_ids)" in found
+    copies = "self.results['get_title'][y['title_id']]['copies']"  # a copy of a title of the loan's books
+    assert f"{HAS} and all(any(x in {copies} for y in {LOAN}['books']) for x in book_ids)" in found
     member = f"{LOAN}['member_id'] in self.results['get_member']"
     assert f"{HAS} and {member}" in found  # a join of two reads: the loan's member is one read
     assert f"{HAS} and {member} and card_id in self.results['get_member'][{LOAN}['member_id']]['cards']" in found
@@ -88,7 +93,8 @@ def test_every_proposed_relation_runs_in_the_embedded_guard_and_others_are_never
     found = relations_of([desk_run(n, REASONS[n % 3]) for n in range(6)])
     params = ("loan_id", "book_ids", "card_id", "reason", "until")
     state = SimpleNamespace(results={"get_loan": {"L1": {"member_id": "m1", "due": "2024-06-02", "books": [
-        {"book_id": "b1a"}]}}, "get_member": {"m1": {"cards": {"card_1": {}}}}}, changes={}, errors={}, seen={},
+        {"book_id": "b1a", "title_id": "t1"}]}}, "get_member": {"m1": {"cards": {"card_1": {}}}},
+        "get_title": {"t1": {"copies": {"b1a": {}}}}}, changes={}, errors={}, seen={},
         last_ok=True, user=SimpleNamespace(messages=2, last_said="yes"))
     for atom in found:
         rule = compile_rule(atom, Scope(AGENT_SHAPE, params))
