@@ -281,7 +281,7 @@ class Engine:
         separated: dict[str, counterexamples.Separation] = {}
         if labelled is not None:
             with timer.phase("counterexamples"):
-                separated = self._separate(spec, labelled, trace, evaluated, ranked, policy)
+                separated = self._separate(spec, labelled, trace, evaluated, ranked, policy, demos)
             ranked = {**ranked, **{a: s.ranked for a, s in separated.items()}}
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         if request.options.unseen == "refuse":  # unless the code model's zero-shot guess, or a call labelled
@@ -337,8 +337,8 @@ class Engine:
         )
 
     def _separate(self, spec: Spec, labelled: counterexamples.Labelled, trace: TraceResult,
-                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked], policy: Mapping[str, set[str]]
-                  ) -> dict[str, counterexamples.Separation]:
+                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked], policy: Mapping[str, set[str]],
+                  demos: Sequence[str]) -> dict[str, counterexamples.Separation]:
         """Each labelled action's rules against its labelled calls (`engine.counterexamples`): every judged
         condition is judged again at the labelled calls of the runs given as programs."""
         try:
@@ -363,7 +363,7 @@ class Engine:
             separated[action] = counterexamples.separate(
                 action, ranked[action], evaluated.points.get(action, ()), trace.actions[action].occurrences,
                 counterexamples.demonstrated_points(labelled, trace, action), cases, results, order,
-                policy.get(action))
+                policy.get(action), counterexamples.task_of(labelled, demos))
         return separated
 
     def _generate(

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.counterexamples import _smallest, unseparable
+from precond.engine.counterexamples import _smallest, own_task, unseparable
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
 from precond_client.schemas.api import CheckRequest, InferRequest
@@ -48,6 +48,19 @@ def test_a_label_nothing_separates_does_not_drop_the_terms_that_separate_the_oth
     truth = {"a": 0b10001, "b": 0b10010}
     assert unseparable(truth, 0b00011, 0b11100) == 0b10000
     assert _smallest(truth, 0b00011, 0b11100) == ([], [("a",), ("b",)])
+
+
+def test_a_condition_that_separates_only_its_own_task_is_not_chosen() -> None:
+    # bits 0-2 to allow (tasks a, b, c), 3-7 to refuse (tasks a, a, a, b, c): `only_a` refuses the three of task a
+    # (a value only that task shows), `status` one call of each task
+    tasks = ["a", "b", "c", "a", "a", "a", "b", "c"]
+    truth = {"only_a": 0b11000111, "status": 0b00110111}
+    assert own_task(0b00111000, 0b11111000, tasks) and not own_task(0b11001000, 0b11111000, tasks)
+    required, terms = _smallest(truth, 0b111, 0b11111000)  # without the tasks it is part of the rule
+    assert "only_a" in required or any("only_a" in t for t in terms)
+    required, terms = _smallest(truth, 0b111, 0b11111000, tasks)
+    assert "only_a" not in required and not any("only_a" in t for t in terms) and (required or terms)
+    assert not own_task(0b00111000, 0b00111000 | 0b01000000, ["a"] * 3 + ["a", "a", "a", "b", "b"])  # 2 tasks
 
 
 DEMOS = convert([run("A1", "lost", "no"), run("B2", "delivered", "yes"), run("C3", "lost", "yes"),
