@@ -29,10 +29,11 @@ runs (`runnable`): one it cannot is never proposed.
 from __future__ import annotations
 
 import operator
+import re
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
-from precond.engine.tool_conditions import KIND, MAX_VALUES, RESULTS, Seen, ToolFacts
+from precond.engine.tool_conditions import KIND, MAX_VALUES, RESULTS, Seen, ToolFacts, arithmetic
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import OutsideGrammar, Scope, compile_rule
 
@@ -40,6 +41,16 @@ MAX_RELATIONS = 48
 """Relation conditions per action, at most: 6 writes x 2 ways, a few categories, joins and containments."""
 CHANGES = "self.changes"
 SAID = "self.user.last_said"
+
+
+EARLIER_WRITE = re.compile(r"^\w+ (?:not )?in self\.changes\['\w+'\]$")
+
+
+def labels_only(atom: str) -> bool:
+    """An earlier write on the same key (`earlier_writes`), or the arithmetic of a tool spec
+    (`tool_conditions.arithmetic`): chosen only to separate labelled calls, never kept from demonstrations alone
+    (that a flight change came before every baggage change in the logs is their order, not a requirement)."""
+    return bool(EARLIER_WRITE.match(atom)) or arithmetic(atom)
 
 
 def relations(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
@@ -105,8 +116,7 @@ def _about_read(facts: ToolFacts, calls: Sequence[Seen], params: Sequence[str], 
     at = [(c, r) for c, r in zip(calls, read, strict=True) if isinstance(r, dict)]
     if not at or len(at) < len(calls):
         return []
-    atoms = [f"{has} and {a}" for a in _compared(at, params, key, got) + _contained(at, params, key, got)
-             + _variants(facts, at, params, key, got)]
+    atoms = [f"{has} and {a}" for a in _compared(at, params, key, got) + _contained(at, params, key, got)]
     for name, other, render in _joins(facts, at, tool):
         joined = render.format(f"{got}[{name!r}]")
         atoms.append(f"{has} and {joined}")
@@ -166,34 +176,6 @@ def _scalar_lists(at: At, params: Sequence[str], key: str) -> list[str]:
     return [p for p in params if p != key and all(scalars(c.args.get(p)) for c, _ in at)]
 
 
-def _variants(facts: ToolFacts, at: At, params: Sequence[str], key: str, got: str) -> list[str]:
-    """A list argument of scalars among the entries of an object another read keeps for the items of this read
-    (`all(any(x in self.results['get_product_details'][y['product_id']]['variants'] for y in ...['items']) for x
-    in new_item_ids)`: each new item a variant of a product of the order), at every demonstrated call."""
-    atoms = []
-    for param in _scalar_lists(at, params, key):
-        for name, inner in _list_fields(at[0][1], every=True):
-            for other in sorted(t for t in facts.mappings if t != _key_tool(facts, key)):
-                for entries in sorted(facts.mappings[other]):
-                    if _holds(at, _entry_of, param, name, inner, other, entries):
-                        table = f"{RESULTS}[{other!r}]"
-                        atoms.append(f"all(any(x in {table}[y[{inner!r}]][{entries!r}] for y in {got}[{name!r}]) "
-                                     f"for x in {param})")
-    return atoms[:2]
-
-
-def _key_tool(facts: ToolFacts, key: str) -> str | None:
-    """The read the parameter `key` names (its results are this read, not another)."""
-    return next((t for t, p in sorted(facts.key_param.items()) if p == key), None)
-
-
-def _entry_of(call: Seen, result: dict[str, Any], param: str, name: str, inner: str, other: str, entries: str
-              ) -> bool:
-    owners = [call.results.get((other, y[inner])) for y in result[name]]
-    items: Any = call.args[param]
-    return all(any(isinstance(o, dict) and x in o[entries] for o in owners) for x in items)
-
-
 def _within(call: Seen, result: dict[str, Any], param: str, name: str, inner: str) -> bool:
     return all(x in [y[inner] for y in result[name]] for x in call.args[param])  # type: ignore[attr-defined]
 
@@ -206,15 +188,14 @@ def _found(call: Seen, result: dict[str, Any], other: str, name: str) -> bool:
     return result[name] in [v for (tool, _), v in call.results.items() if tool == other]
 
 
-def _list_fields(result: dict[str, object], every: bool = False) -> list[tuple[str, str]]:
-    """(list field, a string field every item holds) of a result, the fields named as ids first; the first two
-    of each list, or `every` one."""
+def _list_fields(result: dict[str, object]) -> list[tuple[str, str]]:
+    """(list field, a string field every item holds) of a result, the fields named as ids first."""
     found = []
     for name, items in sorted(result.items()):
         if isinstance(name, str) and isinstance(items, list) and items and all(isinstance(y, dict) for y in items):
             shared = set.intersection(*(set(y) for y in items))
             found += [(name, f) for f in sorted(shared, key=lambda f: (not f.endswith("id"), f))
-                      if isinstance(f, str) and all(isinstance(y[f], str) for y in items)][:None if every else 2]
+                      if isinstance(f, str) and all(isinstance(y[f], str) for y in items)][:2]
     return found
 
 
