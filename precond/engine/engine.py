@@ -354,8 +354,7 @@ class Engine:
             results: dict[str, Any] = {}
             order: list[Any] = [p for _, p in cases]
             if cases:
-                expressions = list(dict.fromkeys(r.expression for r in ranked[action].results
-                                                 if r.status != "rejected"))
+                expressions = _separable(ranked[action], policy.get(action))
                 judged = sandbox_call(self._sandbox.evaluate, spec.source, labelled.programs, {action: expressions},
                                       {action: order}, scope=scope.current())
                 results = {r.expression: r for r in judged.results.get(action, ())}
@@ -701,6 +700,15 @@ def _merged(first: EvaluateResult | None, rest: EvaluateResult) -> EvaluateResul
     if first is None:
         return rest
     return EvaluateResult({**rest.points, **first.points}, {**rest.results, **first.results})
+
+
+def _separable(ranked: Ranked, policy: set[str] | None) -> list[str]:
+    """The judged conditions the labelled calls are separated by (`counterexamples.separate`): every one, or for a
+    tool spec the ranking's kept rules and the conditions over results and arguments (`policy`), the only ones
+    its separation reads; the rest need not be judged again at the labelled calls."""
+    kept = {c.representative.expression for c in ranked.chosen}
+    return list(dict.fromkeys(r.expression for r in ranked.results if r.status != "rejected" and (
+        not policy or r.expression in policy or r.expression in kept)))
 
 
 def _timed_out(evaluated: EvaluateResult) -> dict[str, int]:
