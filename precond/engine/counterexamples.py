@@ -22,8 +22,9 @@ from __future__ import annotations
 import ast
 import itertools
 import re
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections import Counter
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 
 from precond.engine.evidence import OccurrenceIndex, gather
 from precond.engine.ranking import Candidate, Cluster
@@ -166,6 +167,22 @@ def _at_line(trace: TraceResult, action: str, run: int, line: int) -> Point | No
     return None
 
 
+def task_of(labelled: Labelled, demos: Sequence[str]) -> Callable[[Point | Case], str]:
+    """The task of a demonstrated call (its point) or a labelled call: its run's first words of the user (the
+    task's instruction: a run labelled around a violation starts as the successful run of its task did), else
+    the run itself."""
+    def first_words(text: str, run: str) -> str:
+        return next((line.strip() for line in text.splitlines() if ".says(" in line), run)
+
+    def of(where: Point | Case) -> str:
+        if isinstance(where, Point):
+            return first_words(demos[where.demo], f"demonstrations[{where.demo}]")
+        if where.demonstration is not None:
+            return first_words(demos[where.demonstration], f"demonstrations[{where.demonstration}]")
+        return first_words(labelled.programs[where.run], f"run {where.run}")
+    return of
+
+
 @dataclass(frozen=True)
 class Example:
     case: Case | None
@@ -187,14 +204,18 @@ class Separation:
     unshown: bool
     """No demonstrated call to allow: none demonstrated, or each labelled 'refuse'. The action is then refused
     (`options.unseen`) unless its labelled calls give it a rule, as a never-demonstrated one is."""
+    conflicts: list[str] = field(default_factory=list)
+    """Per rule made from the labels that refuses calls demonstrated or labelled 'allow', in words: which of those,
+    and which calls labelled 'refuse' it refuses. Such a rule is `assumed` (a human decides), never established."""
 
 
 def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
              labelled_demos: Mapping[Point, Case], case_points: Sequence[tuple[Case, Point]],
              case_results: Mapping[str, CandidateResult], case_order: Sequence[Point],
-             policy: set[str] | None = None) -> Separation:
+             policy: set[str] | None = None, tasks: Callable[[Point | Case], str] | None = None) -> Separation:
     """The action's rules chosen against its labelled calls (module docstring). `policy`: the conditions
-    the separating rules are made of when given (a tool spec's conditions over results and arguments)."""
+    the separating rules are made of when given (a tool spec's conditions over results and arguments); `tasks`:
+    the task a demonstrated call (its point) or a labelled call of another run belongs to (`own_task`)."""
     examples: list[Example] = []
     demo_bits: list[int | None] = []
     for occurrence in dict.fromkeys(occurrences):
@@ -222,7 +243,9 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
             } if policy else truth
     # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule
     # from above: only the limits a tool's policy states are learned from the calls to refuse (`_limits`)
-    required, learned = _smallest(pool, positive, remaining) if positive else (
+    task_of = [tasks(case or occurrence) for case, occurrence in _sources(examples, occurrences, case_points)] \
+        if tasks else None
+    required, learned = _smallest(pool, positive, remaining, task_of) if positive else (
         _limits(pool, negative, remaining) if policy else [], [])
     table: Table | None = None
     if policy and (kept or required or learned):
@@ -243,7 +266,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         chosen.append(Cluster((Candidate(e, "enumerate", by_text[e].satisfied),)))
         notes[e] = ("kept: holds at every call to allow and refuses calls labelled 'refuse'" if positive else
                     "kept: a limit that refuses calls labelled 'refuse'; no call of the action is labelled 'allow' "
-                    "or demonstrated")
+                    "or demonstrated") + _across(negative & ~truth.get(e, 0), negative, task_of)
     decided_required: dict[str, Decided] = dict.fromkeys(required, "established")
     results, evidence, verdicts = list(ranked.results), dict(ranked.evidence), dict(ranked.verdicts)
     decided = {**{e: d for e, d in ranked.decided.items() if e in kept}, **decided_required}
@@ -274,11 +297,25 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         e = cluster.representative.expression
         refuses[e] = [_name(examples[k]) for k in _bits_of(negative & ~truth.get(e, 0))]
         wrong[e] = [_name(examples[k]) for k in _bits_of(positive & ~truth.get(e, 0))]
+    conflicts = [_conflict(e, wrong[e], refuses[e]) for e, *_ in added if wrong.get(e)]
+    decided.update({e: "assumed" for e, *_ in added if wrong.get(e)})
     exempt = {p for p, c in labelled_demos.items() if c.verdict == REFUSE}
     return Separation(replace(ranked, results=results, chosen=chosen, reasons=reasons, evidence=evidence,
                               verdicts=verdicts, decided=decided), refuses, wrong, exempt,
                       [_name(examples[k]) for k in _bits_of(negative & ~_refused_by(
-                          {c.representative.expression for c in chosen}, truth, negative))], unshown)
+                          {c.representative.expression for c in chosen}, truth, negative))], unshown, conflicts)
+
+
+def _conflict(rule: str, allowed: Sequence[str], refused: Sequence[str]) -> str:
+    """A rule made from the labels that refuses calls to allow, in words (`Separation.conflicts`)."""
+    def listed(names: Sequence[str]) -> str:
+        counted = Counter(names)
+        shown = [f"{n} x{c}" if c > 1 else n for n, c in list(counted.items())[:4]]
+        more = len(counted) - len(shown)
+        return ", ".join(shown) + (f" and {more} more" if more > 0 else "")
+    return (f"conflict: `{rule}` refuses {len(allowed)} call(s) demonstrated or labelled 'allow' "
+            f"({listed(allowed)}) to refuse {len(refused)} labelled 'refuse' ({listed(refused)}); no condition "
+            f"separates both sides: assumed, review it")
 
 
 def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int, unshown: bool = False
@@ -322,24 +359,81 @@ def _required(truth: Mapping[str, int], positive: int, negative: int) -> list[st
     return chosen
 
 
-def _smallest(truth: Mapping[str, int], positive: int, negative: int) -> tuple[list[str], list[Term]]:
+def _sources(examples: Sequence[Example], occurrences: Sequence[Point], case_points: Sequence[tuple[Case, Point]]
+             ) -> list[tuple[Case | None, Point]]:
+    """Per example, its labelled call (None for a demonstrated call no label names) and its point."""
+    demonstrated = list(dict.fromkeys(occurrences))
+    return [(e.case, demonstrated[k]) for k, e in enumerate(examples[:len(demonstrated)])] + \
+        [(case, point) for case, point in case_points]
+
+
+MIN_TASKS = 3
+"""Tasks whose calls labelled 'refuse' a condition must be judged across before one task's are too few
+(`own_task`)."""
+
+
+def _across(refused: int, negative: int, task_of: Sequence[str] | None) -> str:
+    """How many tasks' labelled calls a condition refuses, for its reason: why a leave-one-task-out choice kept it."""
+    if task_of is None or len({task_of[k] for k in _bits_of(negative)}) < MIN_TASKS:
+        return ""
+    return (f" (of {len({task_of[k] for k in _bits_of(refused)})} tasks; chosen leave-one-task-out: a condition "
+            "refusing one task's calls alone is not)")
+
+
+def own_task(refused: int, negative: int, task_of: Sequence[str] | None) -> bool:
+    """Whether the calls labelled 'refuse' a condition refuses (`refused`) all come from one task while the
+    labelled calls span at least MIN_TASKS tasks: left out, that task's calls would never have chosen it, so a
+    leave-one-task-out choice never keeps it (it separates only its own task, as a value only that task shows)."""
+    if task_of is None or not refused:
+        return False
+    spanned = {task_of[k] for k in _bits_of(negative)}
+    return len(spanned) >= MIN_TASKS and len({task_of[k] for k in _bits_of(refused)}) == 1
+
+
+def _smallest(truth: Mapping[str, int], positive: int, negative: int, task_of: Sequence[str] | None = None
+              ) -> tuple[list[str], list[Term]]:
     """Required conditions (the first k of `_required`'s order) and the terms that separate what they leave:
-    the k whose calls to allow left refused, plus CONDITION_COST per condition, are fewest."""
+    the k whose labelled calls left on the wrong side (calls to allow refused, calls labelled 'refuse' allowed),
+    plus CONDITION_COST per condition, are fewest. A call labelled 'refuse' that no condition holding at some call
+    to allow refuses (`unseparable`) is left out of the terms' search: it stays allowed and is reported, and
+    the terms still separate the others (one such label never costs the rule that refuses the rest)."""
+    truth = {e: t for e, t in truth.items() if not own_task(negative & ~t, negative, task_of)}
     order = _required(truth, positive, negative)
+    alone = unseparable(truth, positive, negative)
     best: tuple[tuple[float, int], list[str], list[Term]] | None = None
     for k in range(len(order) + 1):
         remaining = negative
         for e in order[:k]:
             remaining &= truth[e]
-        terms = _terms(truth, positive, remaining)
-        allowed = _held(terms, truth, -1) if remaining else positive
-        if remaining and not terms:
-            allowed = positive  # nothing separates what is left: those calls stay allowed, and say so
-        size = sum(_conditions(e) for e in order[:k]) + sum(_conditions(e) for t in terms for e in t)
-        cost = ((positive & ~allowed).bit_count() + CONDITION_COST * size, size)
-        if best is None or cost < best[0]:
-            best = (cost, order[:k], terms)
+        for separated in dict.fromkeys((remaining & ~alone, remaining & ~alone & ~_shadows(truth, positive,
+                                                                                           remaining))):
+            terms = _terms(truth, positive, separated)
+            allowed = _held(terms, truth, -1) if separated and terms else positive | remaining
+            size = sum(_conditions(e) for e in order[:k]) + sum(_conditions(e) for t in terms for e in t)
+            wrong = (positive & ~allowed).bit_count() + (remaining & allowed).bit_count()
+            cost = (wrong + CONDITION_COST * size, size)
+            if best is None or cost < best[0]:
+                best = (cost, order[:k], terms)
     return (best[1], best[2]) if best else ([], [])
+
+
+def _shadows(truth: Mapping[str, int], positive: int, negative: int) -> int:
+    """The calls labelled 'refuse' at which every condition holding at some call to allow holds too: a rule refuses
+    one only by refusing that call to allow as well (`_smallest` weighs both)."""
+    shadows = 0
+    for p in _bits_of(positive):
+        held = [t for t in truth.values() if (t >> p) & 1]
+        for n in _bits_of(negative & ~shadows):
+            if all((t >> n) & 1 for t in held):
+                shadows |= 1 << n
+    return shadows
+
+
+def unseparable(truth: Mapping[str, int], positive: int, negative: int) -> int:
+    """The calls labelled 'refuse' that every condition holding at some call to allow also allows: no rule made
+    of these conditions refuses one of them without refusing every call to allow."""
+    useful = [t for t in truth.values() if t & positive]
+    return sum(1 << k for k in _bits_of(negative) if all((t >> k) & 1 for t in useful))
 
 
 LIMIT_FORMS = re.compile(r" not in | != | < |\bany\(|\]\[[^\]]+\] == (?:'[^']*'|-?\d|None|True|False)")

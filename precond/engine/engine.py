@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 from precond.convert.openai import call_lines, call_schema_problems, structured_history
 from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine import guarded as guarding
+from precond.engine.decisive import decisive_points
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import thin, too_few
 from precond.engine.freshness import writes_at
@@ -47,13 +48,16 @@ from precond.engine.spec import (
     resolve_actions,
     skip_statements,
 )
-from precond.engine.tool_conditions import separating, tool_atoms
+from precond.engine.tool_conditions import separating, tool_atoms, tool_class
+from precond.engine.tool_relations import relations
 from precond.engine.work import WorkBudget, points_of
 from precond.programs import checks
 from precond.sandbox.types import (
+    TIMED_OUT,
     BrokenRule,
     EvaluateResult,
     LimitExceeded,
+    Point,
     ProgramError,
     SandboxCancelled,
     SandboxCrashed,
@@ -232,6 +236,7 @@ class Engine:
             labelled = counterexamples.read(spec, request.counterexamples, demos, actions) \
                 if request.counterexamples else None
         _refuse_no_evidence(actions, trace)
+        judged_at = _judged_at(spec, actions, trace)
         enumerated = Proposals()
         stopped: dict[str, str] = {}
         policy: dict[str, set[str]] = {}
@@ -239,7 +244,7 @@ class Engine:
             with timer.phase("enumerate"):
                 labelled_trees = [parse_source(p, "counterexamples") for p in labelled.programs] if labelled else []
                 stopped = self._enumerate(spec, actions, demo_trees + labelled_trees, trace, enumerated,
-                                          request.options.now, policy)
+                                          request.options.now, policy, judged_at, len(demo_trees))
         writes = writes_at(spec, trace) if request.options.ranking == "cautious" else {}
         prompted = _prompted(actions, trace, request.options)
         settled = [a for a in actions if a not in prompted]
@@ -252,7 +257,8 @@ class Engine:
                 found = _proposed(settled, enumerated, prior)
                 with timer.phase("validate"):
                     first = sandbox_call(self._sandbox.evaluate, spec.source, demos,
-                                         {a: list(found.source.get(a, {})) for a in settled}, scope=scope.current())
+                                         {a: list(found.source.get(a, {})) for a in settled},
+                                         {a: judged_at[a] for a in settled if a in judged_at}, scope=scope.current())
                 with timer.phase("rank"):
                     known = _known_rules(spec, prompted, select_rules(
                         settled, Inference(trace, first, found, request.options, writes, prior), guarded))
@@ -266,6 +272,7 @@ class Engine:
             rest = [a for a in actions if first is None or a not in first.results]
             evaluated = _merged(first, sandbox_call(self._sandbox.evaluate, spec.source, demos,
                                                     {a: list(proposals.source.get(a, {})) for a in rest},
+                                                    {a: judged_at[a] for a in rest if a in judged_at},
                                                     scope=scope.current()))
         unseen = {a: not trace.actions[a].occurrences for a in actions}
         unrunnable: dict[str, dict[str, str]] = {}
@@ -281,7 +288,7 @@ class Engine:
         separated: dict[str, counterexamples.Separation] = {}
         if labelled is not None:
             with timer.phase("counterexamples"):
-                separated = self._separate(spec, labelled, trace, evaluated, ranked, policy)
+                separated = self._separate(spec, labelled, trace, evaluated, ranked, policy, demos)
             ranked = {**ranked, **{a: s.ranked for a, s in separated.items()}}
         chosen = {a: [c.representative.expression for c in ranked[a].chosen] for a in actions}
         if request.options.unseen == "refuse":  # unless the code model's zero-shot guess, or a call labelled
@@ -311,7 +318,13 @@ class Engine:
             listed_here = "; ".join(f"`{e}` ({why})" for e, why in list(dropped_here.items())[:3])
             warnings[action] = "; ".join(w for w in (warnings.get(action), (
                 f"{len(dropped_here)} candidate(s) dropped: they raise on the spec's state: {listed_here}")) if w)
+        for action, slow in _timed_out(evaluated).items():
+            warnings[action] = "; ".join(w for w in (warnings.get(action), (
+                f"{slow} candidate(s) dropped: they ran out of time in the sandbox (SANDBOX_TIMEOUT_S), judged "
+                f"alone too; the others were judged")) if w)
         for action, separation in separated.items():
+            if separation.conflicts:
+                warnings[action] = "; ".join(w for w in (warnings.get(action), *separation.conflicts) if w)
             if separation.unrefused:
                 warnings[action] = "; ".join(w for w in (warnings.get(action), _unrefused(
                     separation.unrefused, preconditions[action] == [UNSEEN_RULE])) if w)
@@ -332,8 +345,8 @@ class Engine:
         )
 
     def _separate(self, spec: Spec, labelled: counterexamples.Labelled, trace: TraceResult,
-                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked], policy: Mapping[str, set[str]]
-                  ) -> dict[str, counterexamples.Separation]:
+                  evaluated: EvaluateResult, ranked: Mapping[str, Ranked], policy: Mapping[str, set[str]],
+                  demos: Sequence[str]) -> dict[str, counterexamples.Separation]:
         """Each labelled action's rules against its labelled calls (`engine.counterexamples`): every judged
         condition is judged again at the labelled calls of the runs given as programs."""
         try:
@@ -349,8 +362,7 @@ class Engine:
             results: dict[str, Any] = {}
             order: list[Any] = [p for _, p in cases]
             if cases:
-                expressions = list(dict.fromkeys(r.expression for r in ranked[action].results
-                                                 if r.status != "rejected"))
+                expressions = _separable(ranked[action], policy.get(action))
                 judged = sandbox_call(self._sandbox.evaluate, spec.source, labelled.programs, {action: expressions},
                                       {action: order}, scope=scope.current())
                 results = {r.expression: r for r in judged.results.get(action, ())}
@@ -358,7 +370,7 @@ class Engine:
             separated[action] = counterexamples.separate(
                 action, ranked[action], evaluated.points.get(action, ()), trace.actions[action].occurrences,
                 counterexamples.demonstrated_points(labelled, trace, action), cases, results, order,
-                policy.get(action))
+                policy.get(action), counterexamples.task_of(labelled, demos))
         return separated
 
     def _generate(
@@ -398,21 +410,26 @@ class Engine:
     def _enumerate(
         self, spec: Spec, actions: list[str], demo_trees: list[ast.Module], trace: TraceResult, proposals: Proposals,
         now: str | None = None, policy: dict[str, set[str]] | None = None,
+        judged_at: Mapping[str, Sequence[Point]] | None = None, demonstrated: int | None = None,
     ) -> dict[str, str]:
         """Adds the enumerator's atoms, each action's cut to the work budget; the report line of each cut one.
         `policy` gets, for a tool spec's actions, the conditions over results and arguments (`tool_conditions`):
-        the ones labelled calls are separated by."""
+        the ones labelled calls are separated by. `judged_at`: the actions judged at fewer points than their
+        default grid (`decisive`), whose budget is counted on those; `demonstrated`: how many of `demo_trees` are
+        demonstrations (the rest are runs of labelled calls)."""
         budget = WorkBudget(self._sandbox.limits.max_points)
         state = StateModel(spec, demo_trees)
-        state.tool_facts.now = now
+        state.tool_facts.now, state.tool_facts.demonstrated = now, demonstrated
         stopped: dict[str, str] = {}
         for action in actions:
             info = trace.actions[action]
-            n_points = points_of(trace, info)
+            n_points = len(judged_at[action]) if judged_at and action in judged_at else points_of(trace, info)
             found = enumerate_atoms(state, info, spec.methods[action].cls, budget.enumerated(n_points))
             proposals.add(action, found.atoms, "enumerate", len(found.atoms))
             if policy is not None and spec.methods[action].cls == state.tool_class:
-                policy[action] = separating(tool_atoms(state.tool_facts, spec.methods[action].name, info.params))
+                name = spec.methods[action].name
+                policy[action] = separating(tool_atoms(state.tool_facts, name, info.params)
+                                            + relations(state.tool_facts, name, info.params))
             if found.cut:
                 stopped[action] = budget.stopped(len(found.atoms), n_points)
         return stopped
@@ -703,6 +720,33 @@ def _without(request: InferRequest, traced: Traced) -> InferRequest:
     """The request with the left-out demonstrations empty and without the labelled calls of their runs."""
     runs = [r for r in request.counterexamples if r.demonstration not in traced.left_out]
     return request.model_copy(update={"demonstrations": traced.demonstrations, "counterexamples": runs})
+
+
+def _separable(ranked: Ranked, policy: set[str] | None) -> list[str]:
+    """The judged conditions the labelled calls are separated by (`counterexamples.separate`): every one, or for a
+    tool spec the ranking's kept rules and the conditions over results and arguments (`policy`), the only ones
+    its separation reads; the rest need not be judged again at the labelled calls."""
+    kept = {c.representative.expression for c in ranked.chosen}
+    return list(dict.fromkeys(r.expression for r in ranked.results if r.status != "rejected" and (
+        not policy or r.expression in policy or r.expression in kept)))
+
+
+def _timed_out(evaluated: EvaluateResult) -> dict[str, int]:
+    """Per action, the candidates the sandbox dropped for running out of time: each is left out and counted, the
+    request goes on."""
+    counts = {a: sum((r.reason or "").startswith(TIMED_OUT) for r in results) for a, results in
+              evaluated.results.items()}
+    return {a: n for a, n in counts.items() if n}
+
+
+def _judged_at(spec: Spec, actions: Sequence[str], trace: TraceResult) -> dict[str, list[Point]]:
+    """A tool-calling agent's actions judged where a condition decides something (`engine.decisive`), those whose
+    default grid is larger; every other action keeps the default grid."""
+    cls = tool_class(spec)
+    methods = [q for q, m in spec.methods.items() if m.cls == cls]
+    found = {a: decisive_points(trace, trace.actions[a], methods) for a in actions
+             if cls is not None and spec.methods[a].cls == cls}
+    return {a: points for a, points in found.items() if points is not None}
 
 
 def _refuse_no_evidence(actions: Sequence[str], trace: TraceResult) -> None:

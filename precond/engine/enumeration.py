@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 from precond.engine.spec import Spec
 from precond.engine.tool_conditions import ToolFacts, read_facts, tool_atoms, tool_class
+from precond.engine.tool_relations import relations
 from precond.programs import Method, Purity
 from precond.sandbox.types import ActionInfo
 
@@ -260,6 +261,7 @@ def _atom_stream(model: StateModel, info: ActionInfo, cls: str) -> Iterator[str]
         yield from (f"{word!r} in {param}" for word in words)
     if cls == model.tool_class:  # a tool-calling agent's spec (precond.convert.openai): engine.tool_conditions
         yield from tool_atoms(model.tool_facts, info.name.rsplit(".", 1)[-1], params)
+        yield from relations(model.tool_facts, info.name.rsplit(".", 1)[-1], params)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from precond.engine.ranking import (
     zero_shot,
 )
 from precond.engine.report import Proposals, Ranked
-from precond.engine.tool_conditions import arithmetic
+from precond.engine.tool_relations import labels_only
 from precond.sandbox.types import ActionInfo, CandidateResult, EvaluateResult, TraceResult
 from precond_client.schemas.api import Decided, InferOptions, Verdict
 
@@ -70,10 +70,11 @@ class _Judged:
     verdicts: dict[str, Verdict]
 
     def candidates(self, *fates: Verdict) -> list[Candidate]:
-        """The candidates of those fates; never the arithmetic of a tool spec (`tool_conditions.arithmetic`), which
-        only separates labelled calls: a count that fits the demonstrations is a correlate."""
+        """The candidates of those fates; never the arithmetic of a tool spec nor an earlier write on the key
+        (`tool_relations.labels_only`), which only separate labelled calls: a count that fits the demonstrations,
+        or the order the logs made their writes in, is a correlate."""
         return [Candidate(r.expression, self.origins.get(r.expression, "model"), r.satisfied)
-                for r in self.results if self.verdicts.get(r.expression) in fates and not arithmetic(r.expression)]
+                for r in self.results if self.verdicts.get(r.expression) in fates and not labels_only(r.expression)]
 
 
 def _judged(action: str, info: ActionInfo, inference: Inference) -> _Judged:

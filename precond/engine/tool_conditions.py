@@ -70,6 +70,10 @@ class Seen:
 
     args: dict[str, object]
     results: dict[tuple[str, object], object]
+    said: object = None
+    """What the user said last before the call (`USER.says`)."""
+    run: int = 0
+    """The index of the run it was read from."""
 
 
 @dataclass
@@ -94,6 +98,13 @@ class ToolFacts:
     entries: set[str] = field(default_factory=set)
     """The names of the entries of the objects reads returned (a profile's payment methods by id), at most
     MAX_ENTRIES: what an item naming one of them refers to."""
+    params: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """tool → its parameters (the spec's stubs), in the order a call passes them."""
+    writes: frozenset[str] = frozenset()
+    """The state-changing tools (the spec's `WRITES`), whose results are kept in `self.changes`."""
+    demonstrated: int | None = None
+    """How many of the runs read are demonstrations (the first ones; the others are runs of labelled calls);
+    None: all of them."""
 
 
 def tool_class(spec: Spec) -> str | None:
@@ -123,10 +134,12 @@ def _literal(node: ast.expr) -> tuple[bool, object]:
 class _Replay:
     """Walks one demonstration's statements in order, keeping the results as the spec's observation would."""
 
-    def __init__(self, facts: ToolFacts, params: dict[str, tuple[str, ...]], writes: frozenset[str]) -> None:
-        self.facts, self.params, self.writes = facts, params, writes
+    def __init__(self, facts: ToolFacts, params: dict[str, tuple[str, ...]], writes: frozenset[str],
+                 run: int = 0) -> None:
+        self.facts, self.params, self.writes, self.run = facts, params, writes, run
         self.results: dict[tuple[str, object], object] = {}
         self.pending: list[tuple[str, dict[str, object]]] = []
+        self.said: object = None
 
     def statement(self, node: ast.stmt) -> None:
         call = node.value if isinstance(node, ast.Expr) else None
@@ -138,9 +151,11 @@ class _Replay:
         values = [v for _, v in parsed]
         if call.func.attr == "result" and len(values) == len(RESULT_PARAMS):
             self.result(*values)
+        elif call.func.attr == "says" and len(values) == 1:
+            self.said = values[0]
         elif call.func.attr in self.params:
             args = dict(zip(self.params[call.func.attr], values, strict=False))
-            self.facts.seen.setdefault(call.func.attr, []).append(Seen(args, dict(self.results)))
+            self.facts.seen.setdefault(call.func.attr, []).append(Seen(args, dict(self.results), self.said, self.run))
             self.pending.append((call.func.attr, args))
 
     def result(self, tool: object, key: object, ok: object, value: object) -> None:
@@ -156,6 +171,8 @@ class _Replay:
         if ok is True and isinstance(value, dict):
             self.results[(tool, key)] = value
             self._note_fields(tool, value)
+        elif ok is True and isinstance(value, str | int) and not isinstance(value, bool):
+            self.results[(tool, key)] = value  # an id a lookup found (`find_user_id_by_email`)
         if ok is True and isinstance(value, list):
             counts = self.facts.records.setdefault(tool, Counter())
             for record in records(value):
@@ -190,11 +207,11 @@ def _note_items(fields: dict[str, Counter[Scalar]], items: list[object]) -> None
 
 
 def read_facts(spec: Spec, cls: str, demos: Iterable[ast.Module]) -> ToolFacts:
-    facts = ToolFacts()
     params = {m.name: m.positional for m in spec.methods.values() if m.cls == cls and m.stub}
     writes = writes_of(spec)
-    for module in demos:
-        replay = _Replay(facts, params, writes)
+    facts = ToolFacts(params=params, writes=writes)
+    for run, module in enumerate(demos):
+        replay = _Replay(facts, params, writes, run)
         for node in module.body:
             replay.statement(node)
     return facts

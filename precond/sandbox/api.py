@@ -18,6 +18,7 @@ from precond.sandbox.plain import SpecVocabulary, is_plain, vocabulary
 from precond.sandbox.policy import PolicyUnavailable, build_filter
 from precond.sandbox.pool import ServerPool
 from precond.sandbox.types import (
+    TIMED_OUT,
     BrokenRule,
     CallVerdict,
     CandidateResult,
@@ -140,7 +141,7 @@ class Sandbox:
                     raise  # the demonstrations themselves ran out of time: the request's failure
                 retried = " (also when judged alone)" if (action, expression) in alone else ""
                 judged[(action, expression)] = CandidateResult(expression, "rejected", reason=(
-                    f"dropped: ran out of time{retried}: {exc.message}"))
+                    f"{TIMED_OUT}{retried}: {exc.message}"))
         return _evaluate_result(judged, found, candidates, problems, points or {})
 
     def _run_plain(self, base: dict[str, Any], plain: dict[str, list[str]],

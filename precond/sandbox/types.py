@@ -126,6 +126,9 @@ class TraceResult:
     positions: tuple[tuple[Position, ...], ...]
 
 
+TIMED_OUT = "dropped: ran out of time"
+"""How the reason of a candidate dropped for running out of time starts (the engine counts them)."""
+
 CandidateStatus = Literal["rejected", "invalid", "valid"]
 
 

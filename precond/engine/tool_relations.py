@@ -1,0 +1,228 @@
+"""Relations between a tool call and what came before it: the conditions a policy states about *this* key.
+
+`tool_conditions` proposes what one read says about the call's key (read before, a field's value, the
+argument against the field of the same name). A policy also relates the call to other calls and other reads:
+
+- an earlier write on the same key (`order_id not in self.changes['modify_pending_order_items']`: "can only be
+  modified once"; `order_id in self.changes['cancel_pending_order']`: a refund after the cancellation of *that*
+  order), for each state-changing tool with a parameter of the same name, both ways;
+- an argument among the few values the demonstrated calls give it (`reason in ('no longer needed', 'ordered by
+  mistake')`), for a string argument with 2 to MAX_VALUES values that names no read's key;
+- an argument compared with an ordered field of the read its key names (`amount <= ...['total']`, `date <= ...
+  ['departure']`), with the comparisons every demonstrated call keeps;
+- a list argument contained in a list the read holds (`all(x in [y['item_id'] for y in ...['items']] for x in
+  item_ids)`: the items of that order), where every demonstrated call's items are there;
+- a join of two reads: a field of the read the call names is a key of another read, or an id a lookup found
+  (`...[order_id]['user_id'] in [self.results['find_user_id_by_email'][k] for k in ...]`: the order's customer is
+  the authenticated one), and an argument in an entry of that other read (`payment_method_id in
+  self.results['get_user_details'][...[order_id]['user_id']]['payment_methods']`: the owner's payment method);
+- what the user said last before the call, where the demonstrated calls share it (`self.user.last_said ==
+  'yes'`: an explicit confirmation).
+
+Each is proposed only where the demonstrated calls show it holding (the values seen type it: an id is no
+category, a date is compared with a date), except the earlier writes, which the demonstrations cannot show
+refused and the labels decide. At most MAX_RELATIONS an action: a handful per key, read and argument, so a
+request's search stays within its work budget (`engine.decisive`). Every condition is one the embedded guard
+runs (`runnable`): one it cannot is never proposed.
+"""
+
+from __future__ import annotations
+
+import operator
+import re
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+from precond.engine.tool_conditions import KIND, MAX_VALUES, RESULTS, Seen, ToolFacts, arithmetic
+from precond_client.guard import AGENT_SHAPE
+from precond_client.rule_interpreter import OutsideGrammar, Scope, compile_rule
+
+MAX_RELATIONS = 48
+"""Relation conditions per action, at most: 6 writes x 2 ways, a few categories, joins and containments."""
+CHANGES = "self.changes"
+SAID = "self.user.last_said"
+
+
+EARLIER_WRITE = re.compile(r"^\w+ (?:not )?in self\.changes\['\w+'\]$")
+
+
+def labels_only(atom: str) -> bool:
+    """An earlier write on the same key (`earlier_writes`), or the arithmetic of a tool spec
+    (`tool_conditions.arithmetic`): chosen only to separate labelled calls, never kept from demonstrations alone
+    (that a flight change came before every baggage change in the logs is their order, not a requirement)."""
+    return bool(EARLIER_WRITE.match(atom)) or arithmetic(atom)
+
+
+def relations(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """The relation conditions of one action (module docstring), each runnable by the embedded guard."""
+    calls = [c for c in facts.seen.get(action, []) if facts.demonstrated is None or c.run < facts.demonstrated]
+    atoms = [*earlier_writes(facts, params), *categories(facts, calls, params), *confirmation(calls)]
+    for key in params:
+        for tool, param in sorted(facts.key_param.items()):
+            if param == key and tool != action:
+                atoms += _about_read(facts, calls, params, key, tool)
+    return runnable(list(dict.fromkeys(atoms)), params)[:MAX_RELATIONS]
+
+
+def runnable(atoms: Iterable[str], params: Sequence[str]) -> list[str]:
+    """The conditions the embedded guard (`precond_client.rule_interpreter`) compiles; the others are dropped."""
+    scope = Scope(AGENT_SHAPE, tuple(params))
+    kept = []
+    for atom in atoms:
+        try:
+            compile_rule(atom, scope)
+        except OutsideGrammar:
+            continue
+        kept.append(atom)
+    return kept
+
+
+def earlier_writes(facts: ToolFacts, params: Sequence[str]) -> list[str]:
+    """`key in / not in self.changes[W]` for each write W with a parameter named as one of the call's keys."""
+    keys = set(facts.key_param.values())
+    atoms = []
+    for key in (p for p in params if p in keys):
+        for write in sorted(w for w in facts.writes if key in facts.params.get(w, ())):
+            atoms += [f"{key} not in {CHANGES}[{write!r}]", f"{key} in {CHANGES}[{write!r}]"]
+    return atoms
+
+
+def categories(facts: ToolFacts, calls: Sequence[Seen], params: Sequence[str]) -> list[str]:
+    """`param in (values...)` for a string argument that names nothing (no read's key, no `*_id`, no `card_7`-like
+    values) and takes 2..MAX_VALUES values."""
+    keys = set(facts.key_param.values())
+    atoms = []
+    for param in params:
+        values = [c.args.get(param) for c in calls]
+        found = sorted({v for v in values if isinstance(v, str)})
+        named = param.endswith(("id", "ids")) or any(KIND.match(v) for v in found)  # an id is no category
+        if param not in keys and not named and values and all(isinstance(v, str) for v in values) \
+                and 2 <= len(found) <= MAX_VALUES:
+            atoms.append(f"{param} in {tuple(found)!r}")
+    return atoms
+
+
+def confirmation(calls: Sequence[Seen]) -> list[str]:
+    """`self.user.last_said == v` where every demonstrated call came right after the user said v."""
+    said = {c.said for c in calls}
+    value = next(iter(said)) if len(said) == 1 else None
+    return [f"{SAID} == {value!r}"] if isinstance(value, str) and len(calls) >= 2 and len(value) <= 40 else []
+
+
+def _about_read(facts: ToolFacts, calls: Sequence[Seen], params: Sequence[str], key: str, tool: str) -> list[str]:
+    table = f"{RESULTS}[{tool!r}]"
+    has, got = f"{key} in {table}", f"{table}[{key}]"
+    read = [c.results.get((tool, c.args.get(key))) for c in calls]
+    at = [(c, r) for c, r in zip(calls, read, strict=True) if isinstance(r, dict)]
+    if not at or len(at) < len(calls):
+        return []
+    atoms = [f"{has} and {a}" for a in _compared(at, params, key, got) + _contained(at, params, key, got)]
+    for name, other, render in _joins(facts, at, tool):
+        joined = render.format(f"{got}[{name!r}]")
+        atoms.append(f"{has} and {joined}")
+        atoms += [f"{has} and {joined} and {a}" for a in _owned(facts, at, params, key, name, other, got)]
+    return atoms
+
+
+At = Sequence[tuple[Seen, dict[str, Any]]]
+"""The demonstrated calls with the result of the read their key names."""
+
+
+def _holds(at: At, test: Callable[..., Any], *extra: Any) -> bool:
+    """Whether `test(call, result, *extra)` holds at every demonstrated call (one that raises does not)."""
+    try:
+        return all(test(c, r, *extra) for c, r in at)
+    except (TypeError, KeyError, AttributeError):
+        return False
+
+
+def _ordered(value: object) -> bool:
+    return isinstance(value, int | float | str) and not isinstance(value, bool)
+
+
+def _compared(at: At, params: Sequence[str], key: str, got: str) -> list[str]:
+    """An ordered argument against an ordered field of another name, of the same type, both ways it holds."""
+    atoms = []
+    for param in (p for p in params if p != key):
+        for name in sorted(k for k in at[0][1] if isinstance(k, str) and k != param):
+            pairs: list[tuple[Any, Any]] = [(c.args.get(param), r.get(name)) for c, r in at]
+            if not all(_comparable(a, b) for a, b in pairs):
+                continue
+            atoms += [f"{param} {op} {got}[{name!r}]" for op, test in (("<=", operator.le), (">=", operator.ge))
+                      if all(test(a, b) for a, b in pairs)]
+    return atoms
+
+
+def _comparable(a: Any, b: Any) -> bool:
+    """Two numbers, or two dates (strings that start with a year), of one type."""
+    return _ordered(a) and _ordered(b) and type(a) is type(b) and (
+        not isinstance(a, str) or (a[:4].isdigit() and b[:4].isdigit()))
+
+
+def _contained(at: At, params: Sequence[str], key: str, got: str) -> list[str]:
+    """A list argument of scalars within a list field's items' field, at every demonstrated call."""
+    atoms = []
+    for param in _scalar_lists(at, params, key):
+        for name, inner in _list_fields(at[0][1]):
+            if _holds(at, _within, param, name, inner):
+                atoms.append(f"all(x in [y[{inner!r}] for y in {got}[{name!r}]] for x in {param})")
+    return atoms
+
+
+def _scalar_lists(at: At, params: Sequence[str], key: str) -> list[str]:
+    """The arguments but the key that are lists of strings or numbers at every demonstrated call (item ids)."""
+    def scalars(value: Any) -> bool:
+        return isinstance(value, list) and all(isinstance(x, str | int) for x in value)
+    return [p for p in params if p != key and all(scalars(c.args.get(p)) for c, _ in at)]
+
+
+def _within(call: Seen, result: dict[str, Any], param: str, name: str, inner: str) -> bool:
+    return all(x in [y[inner] for y in result[name]] for x in call.args[param])  # type: ignore[attr-defined]
+
+
+def _keyed(call: Seen, result: dict[str, Any], other: str, name: str) -> bool:
+    return (other, result[name]) in call.results
+
+
+def _found(call: Seen, result: dict[str, Any], other: str, name: str) -> bool:
+    return result[name] in [v for (tool, _), v in call.results.items() if tool == other]
+
+
+def _list_fields(result: dict[str, object]) -> list[tuple[str, str]]:
+    """(list field, a string field every item holds) of a result, the fields named as ids first."""
+    found = []
+    for name, items in sorted(result.items()):
+        if isinstance(name, str) and isinstance(items, list) and items and all(isinstance(y, dict) for y in items):
+            shared = set.intersection(*(set(y) for y in items))
+            found += [(name, f) for f in sorted(shared, key=lambda f: (not f.endswith("id"), f))
+                      if isinstance(f, str) and all(isinstance(y[f], str) for y in items)][:2]
+    return found
+
+
+def _joins(facts: ToolFacts, at: At, tool: str) -> list[tuple[str, str, str]]:
+    """(field, other read, a template saying that the field's value `{}` is among that read's keys or the ids it
+    found), for each string field of the read and other read where every demonstrated call shows it so."""
+    joins: list[tuple[str, str, str]] = []
+    others = sorted({t for c, _ in at for t, _ in c.results if t != tool})
+    for name in sorted(k for k, v in at[0][1].items() if isinstance(k, str) and isinstance(v, str)):
+        for other in others:
+            table = f"{RESULTS}[{other!r}]"
+            if _holds(at, _keyed, other, name):
+                joins.append((name, other, f"{{}} in {table}"))
+            if _holds(at, _found, other, name):
+                joins.append((name, other, f"{{}} in [{table}[k] for k in {table}]"))
+    return joins[:MAX_VALUES]
+
+
+def _owned(facts: ToolFacts, at: At, params: Sequence[str], key: str, name: str, other: str, got: str) -> list[str]:
+    """A string argument among the entries of an object field of the joined read (the owner's payment methods)."""
+    atoms = []
+    entry = f"{RESULTS}[{other!r}][{got}[{name!r}]]"
+    for param in (p for p in params if p != key):
+        for field_name in sorted(facts.mappings.get(other, set())):
+            def owned(c: Seen, r: dict[str, Any], p: str = param, f: str = field_name) -> bool:
+                joined = c.results.get((other, r[name]))
+                return isinstance(c.args.get(p), str) and isinstance(joined, dict) and c.args[p] in joined[f]
+            if _holds(at, owned):
+                atoms.append(f"{param} in {entry}[{field_name!r}]")
+    return atoms
