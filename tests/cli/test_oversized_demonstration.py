@@ -56,7 +56,8 @@ def learn(tmp_path: Path, runs: list[list[dict[str, Any]]]) -> subprocess.Comple
     env = {**os.environ, "SANDBOX_RESULT_BYTES": RESULT_LIMIT}
     converted = subprocess.run([sys.executable, "-m", "precond.cli", "convert", "openai",
                                 str(tmp_path / "trajectories.json"), "--tools", str(tmp_path / "tools.json"),
-                                "--out", str(tmp_path / "shop"), "--writes", "refund_order,cancel_order"],
+                                "--out", str(tmp_path / "shop"), "--writes", "refund_order,cancel_order",
+                                "--guard", "refund_order,cancel_order"],
                                capture_output=True, text=True, timeout=300, cwd=ROOT, env=env, check=False)
     assert converted.returncode == 0, converted.stderr
     request = json.loads((tmp_path / "shop" / "request.json").read_text())
