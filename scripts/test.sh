@@ -1,8 +1,11 @@
 #!/usr/bin/env bash
 # Install, then lint, type-check and run the test suite (the README's test command; CI runs exactly this) in
-# three steps: the fast suite (`-m "not model and not stack"`), then the tests that start real stacks, pod
-# simulations and fresh installs (`-m stack`), then those that run the real embedded model (`-m model`).
-# One step alone: `python -m pytest -q -m "not model and not stack"` after `. .venv/bin/activate`.
+# two steps: the fast suite (`-m "not model and not stack"`), then the tests that start real stacks, pod
+# simulations and fresh installs (`-m stack`) together with those that run the real embedded model (`-m model`):
+# the model's tests are single-threaded and CPU-bound, the stacks' tests mostly wait for processes, so they share
+# the cores. Each step runs on every core (pytest-xdist, `-n auto`; PYTEST_XDIST_AUTO_NUM_WORKERS sets how many),
+# a test file per process (`--dist loadfile`: a module's stack is started once, in the process that runs it).
+# One step alone: `python -m pytest -q -m "not model and not stack"` after `. .venv/bin/activate` (add `-n auto`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install.sh
@@ -14,7 +17,7 @@ mypy
 pytest_step() {
   # Exit code 5 means "no tests collected" (e.g. arguments that select no model test): not a failure.
   local code=0
-  python -m pytest -q "$@" || code=$?
+  python -m pytest -q -n auto --dist loadfile "$@" || code=$?
   if [ "$code" -eq 5 ]; then
     code=0
   fi
@@ -22,5 +25,4 @@ pytest_step() {
 }
 
 pytest_step -m "not model and not stack" "$@"
-pytest_step -m stack "$@"
-pytest_step -m model "$@"
+pytest_step -m "stack or model" "$@"

@@ -13,7 +13,7 @@ from precond.stack.tiny_model import build_tiny_model
 torch.set_num_threads(1)
 
 STACK_FIXTURES = frozenset({"stack", "own_stack", "unconfinable", "rate_limited", "small_answers", "redis_down",
-                            "keyed"})
+                            "keyed", "guessed"})
 """Fixtures that start a stack (Redis, gateway and worker processes: precond.stack.local). A test that uses one,
 directly or through another fixture, is marked `stack` and runs in the test command's second step; a test that
 starts processes itself says so with `@pytest.mark.stack`."""

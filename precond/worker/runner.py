@@ -21,6 +21,7 @@ import logging
 import os
 import signal
 import socket
+import threading
 import uuid
 from collections.abc import Callable
 from typing import Any
@@ -151,7 +152,9 @@ class WorkerProcess:
         self.memory.start()
         gc.freeze()  # what start-up built lives as long as the process: the collector need not walk it again
         if self.engine is not None and self.settings.preload_model and MODEL_QUEUE in self.queues:
-            tasks.append(asyncio.create_task(self._preload()))
+            # a daemon thread, never awaited: a SIGTERM while the model loads stops the worker within its drain,
+            # not after the load (which cannot be interrupted: tens of seconds for a model read from disk)
+            threading.Thread(target=self._preload, args=(self.engine,), name="model-preload", daemon=True).start()
         await asyncio.gather(*tasks)
         heartbeat.cancel()
         self.memory.stop()
@@ -195,10 +198,9 @@ class WorkerProcess:
             with contextlib.suppress(RedisError, OSError):
                 await worker.close()
 
-    async def _preload(self) -> None:
-        assert self.engine is not None
+    def _preload(self, engine: Engine) -> None:
         try:
-            await asyncio.to_thread(self.engine.model)
+            engine.model()
         except Exception as exc:  # a broken model must not stop check jobs; the heartbeat reports it
             log.exception("model failed to load")
             self.model_error = f"{type(exc).__name__}: {exc}"

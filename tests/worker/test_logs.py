@@ -6,11 +6,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from precond.stack.local import RedisServer
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.mark.stack
 def test_a_worker_process_logs_its_start_once(tmp_path: Path) -> None:
     redis = RedisServer(tmp_path)
     redis.start()

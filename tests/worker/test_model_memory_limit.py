@@ -10,7 +10,7 @@ import pytest
 
 from precond.stack.local import ROOT, check_body, make_stack, serving, wait_until
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.stack]
 
 LIMIT = """\
 from pathlib import Path

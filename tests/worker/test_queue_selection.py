@@ -36,8 +36,11 @@ def test_the_command_line_refuses_an_unknown_queue() -> None:
     assert TRAIN_QUEUE in result.output  # the names it could have used
 
 
+@pytest.mark.stack
 def test_a_training_worker_trains_and_never_loads_the_model(tmp_path: Path, tiny_model_dir: Path) -> None:
-    stack = make_stack(tmp_path, tiny_model_dir, PRECOND_WORKER_QUEUES=TRAIN_QUEUE)
+    # the answer waits for the whole training (a child that imports torch: more than the default 30 s on a busy
+    # machine), so the 200 below is the training's result, not a 202 for a slow start
+    stack = make_stack(tmp_path, tiny_model_dir, PRECOND_WORKER_QUEUES=TRAIN_QUEUE, PRECOND_WAIT_MAX_S="120")
     with serving(stack, workers=1), stack.http() as client:
         [beat] = stack.heartbeats()
         assert beat["queues"] == [TRAIN_QUEUE]
