@@ -29,7 +29,9 @@ the permissive side silently. For each action it keeps:
    assistant says most (docs/results.md measures both sides).
 4. *Behind a yes*: where a flag of the other party (`self.user.affirmed`) was made true right before every call
    of a tool call, it answers the agent's confirmation of what that party said before, so that party's
-   earlier facts are not assumed (`behind_trigger`; named in the warning, `Choice.behind`); the agent's own
+   earlier facts that its confirmation named are not assumed (`behind_trigger`, `confirmed`: the slots the agent's
+   confirmation in the turn before asked about; a yes that answered none covers nothing; named in the warning,
+   `Choice.behind`); the agent's own
    state (an identity check, a search's success) is the service's answer, which no yes replaces, and stays
    assumed. What else held at each call is searched for a disjunction (`hidden_disjunction`: refills left
    or the doctor's approval, neither at every refill): kept, assumed, where a demonstration shows the yes
@@ -146,7 +148,8 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     kept = {c.satisfied for c in chosen}
     extra = assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept)
     assenting = behind_trigger(chosen, evidence) if tool_call else frozenset()
-    behind = [c for c in extra if assenting and parties(c.representative.expression) <= assenting]
+    behind = [c for c in extra if assenting and parties(c.representative.expression) <= assenting
+              and confirmed(c.representative.expression, evidence)]
     extra = [c for c in extra if c not in behind]
     offered: list[tuple[Cluster, str]] = []
     if assenting:
@@ -176,6 +179,24 @@ def behind_trigger(chosen: Sequence[Cluster], evidence: ActionEvidence) -> froze
                 and evidence.occurrences and all(enabled_at(c, evidence, index)):
             found |= owners
     return frozenset(found)
+
+
+ANY_SLOT = "*"
+"""In `ActionEvidence.confirmed`: a confirmation that names no slot (`ASK_CONFIRM_BOOKING()`) asks about all of it."""
+
+
+def confirmed(expression: str, evidence: ActionEvidence) -> bool:
+    """Whether the yes before every call covers this fact of the party that said it: the agent's confirmation in
+    the turn right before each call's observations named the fact's slot (`CONFIRM('address')` covers
+    `informed_slot['address']`), or named none. A yes that answered no confirmation covers nothing, and a slot
+    no confirmation named stays required: the user who says yes to an offer before giving the address."""
+    asked = [evidence.confirmed.get((occ.demo, occ.position), frozenset()) for occ in evidence.occurrences]
+    if not asked or not all(asked):
+        return False
+    if all(ANY_SLOT in a for a in asked):
+        return True
+    keys = {k for _, k in _lookups(expression)}
+    return bool(keys) and all(keys <= a for a in asked)
 
 
 def _flag(expression: str) -> bool:
@@ -398,7 +419,8 @@ def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_poin
     if tool_call:
         assenting = behind_trigger(shared, evidence)
         return [c for c in shared if not assenting or all(enabled_at(c, evidence, index))
-                or not parties(c.representative.expression) <= assenting]
+                or not parties(c.representative.expression) <= assenting
+                or not confirmed(c.representative.expression, evidence)]
     news = [c for c in every if c not in shared and evidence.writes
             and len(_made(c, evidence, index)) == len(evidence.occurrences)]
     enabled = [c for c in shared if enabling_rate(c, evidence, index) > 0]

@@ -9,6 +9,11 @@ whose spec shares a source's vocabulary (`applies`). They are candidates like a 
 kept one says `decided: transferred` with `library:<domain>` as its source. The tenant's own priors come on top:
 where a request carries its own prior rules for an action, the library is silent about that action.
 
+Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice needs a failure result, a success
+notice a success, in every domain whose spec defines the result, demonstrated or not (`Library.signed`; the
+selection keeps one unless the request's demonstrations refute it). A domain's inferred `not self.query_success`
+also holds before anything was asked: "Sorry, that failed" with nothing failed.
+
 `options.library: "off"` leaves it out. The evaluation builds the library for a held-out domain without that
 domain (precond/evaluation/library.py), so no score comes from rules that saw the domain they are scored on.
 """
@@ -26,6 +31,10 @@ PREFIX = "library:"
 MIN_SHARED_ACTIONS = 3
 """A source applies to a spec with at least this many action names in common with it (a dialog vocabulary:
 REQUEST, GOODBYE, ANYTHING_ELSE...); rules naming what the spec does not define are dropped anyway."""
+SIGNED_SOURCE = "notices"
+SIGNED: dict[str, tuple[str, ...]] = {"NOTIFY_FAILURE": ("self.query_success is False",),
+                                      "NOTIFY_SUCCESS": ("self.query_success",)}
+"""Notices tied to a result of their sign, by method name: applied to every spec that defines them (`for_spec`)."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +49,7 @@ class LibrarySource:
 @dataclass(frozen=True)
 class Library:
     sources: tuple[LibrarySource, ...] = field(default_factory=tuple)
+    signed: Mapping[str, Sequence[str]] = field(default_factory=dict)
 
     def for_spec(self, actions: Sequence[str], own: Mapping[str, Sequence[str]] | None = None
                  ) -> list[tuple[str, dict[str, list[str]]]]:
@@ -55,11 +65,14 @@ class Library:
                      if m in by_method and by_method[m] not in taken and r}
             if rules:
                 out.append((PREFIX + src.source, rules))
+        signed = {by_method[m]: list(r) for m, r in self.signed.items() if m in by_method and by_method[m] not in taken}
+        if signed:
+            out.append((PREFIX + SIGNED_SOURCE, signed))
         return out
 
     def without(self, name: str) -> Library:
         """The library with one domain's source left out (leave-one-domain-out)."""
-        return Library(tuple(s for s in self.sources if s.source != name))
+        return Library(tuple(s for s in self.sources if s.source != name), self.signed)
 
 
 def applies(source: LibrarySource, by_method: Mapping[str, str]) -> bool:
@@ -70,13 +83,16 @@ def from_json(data: Mapping[str, object]) -> Library:
     raw = data.get("sources", [])
     if not isinstance(raw, list):
         raise ValueError("rule library: 'sources' must be a list")
+    signed = data.get("signed", {})
+    if not isinstance(signed, dict):
+        raise ValueError("rule library: 'signed' must map actions to rules")
     return Library(tuple(LibrarySource(str(s["source"]), {str(a): [str(r) for r in rules]
                                                           for a, rules in s["rules"].items()})
-                         for s in raw))
+                         for s in raw), {str(a): tuple(str(r) for r in rules) for a, rules in signed.items()})
 
 
 def to_json(library: Library) -> dict[str, object]:
-    return {"format_version": 1,
+    return {"format_version": 1, "signed": {a: list(r) for a, r in library.signed.items()},
             "sources": [{"source": s.source, "rules": {a: list(r) for a, r in s.rules.items()}}
                         for s in library.sources]}
 

@@ -52,10 +52,11 @@ def select_rules(actions: Sequence[str], inference: Inference, guarded: Sequence
     """`guarded`: the actions whose refusal protects something (engine.guarded); None: every action (the
     cautious criterion alike for all)."""
     turns = previous_turns(inference.trace)
+    asked = confirmations(inference.trace, turns) if inference.options.ranking == "cautious" else {}
     tool_calls = _tool_calls(inference.trace) if inference.options.ranking == "cautious" else set()
     shielded = set(actions if guarded is None else guarded)
     return {action: _select(action, inference, turns, action in tool_calls, action not in shielded,
-                            action not in shielded and guarding.follow_up_name(guarding.method_name(action)))
+                            action not in shielded and guarding.follow_up_name(guarding.method_name(action)), asked)
             for action in actions}
 
 
@@ -97,13 +98,15 @@ class _Chosen:
 
 
 def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], int], tool_call: bool,
-            conversational: bool, follow_up: bool = False) -> Ranked:
+            conversational: bool, follow_up: bool = False,
+            asked: Mapping[tuple[int, int], frozenset[str]] | None = None) -> Ranked:
     options, info = inference.options, inference.trace.actions[action]
     points = inference.evaluated.points.get(action, ())
     seen = _judged(action, info, inference)
     evidence = ActionEvidence(points, info.occurrences, turns, info.params, seen.index.mask,
                               not info.occurrences or thin(seen.index.occurrences, options.tolerance),
-                              options.tolerance, inference.writes if options.ranking == "cautious" else {})
+                              options.tolerance, inference.writes if options.ranking == "cautious" else {},
+                              asked or {})
     votes = inference.proposals.votes.get(action, {})
     chosen = _choose(seen, evidence, options, votes, info, tool_call, conversational, follow_up)
     choice = chosen.choice
@@ -114,6 +117,7 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     if prior is not None and prior.rules.get(action):
         choice = _with_priors(choice, prior, action, seen.results, seen.verdicts, evidence)
         choice, slipped = _read_priors(choice, seen, evidence, options, conversational, too_few(info.occurrences))
+        choice = priors.signed(choice, prior, action, seen.results, seen.verdicts)
         chosen = replace(chosen, slipped=[*chosen.slipped, *slipped])
         transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items() if d == "transferred"}
     reported, judged, verdicts = _with_composites(choice, seen.results, seen.judged, seen.verdicts, seen.index)
@@ -225,6 +229,29 @@ def previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
                 k -= 1
             starts[(demo, position)] = k + 1
     return starts
+
+
+def confirmations(trace: TraceResult, turns: Mapping[tuple[int, int], int]) -> dict[tuple[int, int], frozenset[str]]:
+    """For each agent action's occurrence, the slots the agent's confirmations (an act named CONFIRM) asked about
+    in its turn right before the observations that led to it (`CONFIRM('product')`, `CONFIRM('quantity')`, then
+    the user's yes); `cautious.ANY_SLOT` for one that names none. Absent where no confirmation came: a yes after
+    an offer answered no confirmation."""
+    named: dict[tuple[int, int], set[str]] = {}
+    for name, info in trace.actions.items():
+        if info.stub and "CONFIRM" in guarding.method_name(name).upper():
+            for occ in info.occurrences:
+                values = {v for v in occ.args if isinstance(v, str)}
+                named.setdefault((occ.demo, occ.position), set()).update(values or {cautious.ANY_SLOT})
+    out: dict[tuple[int, int], frozenset[str]] = {}
+    for (demo, position), start in turns.items():
+        slots: set[str] = set()
+        k = start - 1
+        while k >= 0 and (demo, k) in turns and turns[(demo, k)] == turns.get((demo, start - 1)):
+            slots |= named.get((demo, k), set())
+            k -= 1
+        if slots:
+            out[(demo, position)] = frozenset(slots)
+    return out
 
 
 def _zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Sequence[str]) -> cautious.Choice:

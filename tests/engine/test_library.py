@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from precond.engine.engine import UNSEEN_RULE, Engine
-from precond.engine.library import Library, LibrarySource, from_json, to_json
+from precond.engine.library import SIGNED, Library, LibrarySource, from_json, shipped, to_json
 from precond.sandbox import Sandbox
 from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
 
@@ -104,3 +104,23 @@ def test_a_source_of_another_vocabulary_does_not_apply() -> None:
 def test_leaving_a_domain_out_and_the_file_format_round_trip() -> None:
     assert [s.source for s in LIBRARY.without("Buses_9").sources] == ["Trains_9", "alfworld"]
     assert from_json(to_json(LIBRARY)) == LIBRARY
+
+
+def test_signed_notices_apply_to_every_spec_that_defines_them() -> None:
+    """A failure notice needs a failure result in every domain: the signed rules join a spec that shares no
+    vocabulary with any source, and survive a JSON round trip and leaving a domain out."""
+    library = from_json(to_json(shipped())).without("Alarm_1")
+    found = dict(library.for_spec(["BOT.NOTIFY_FAILURE", "BOT.Pay"]))
+    assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": list(SIGNED["NOTIFY_FAILURE"])}
+    assert shipped().signed == SIGNED
+
+
+def test_a_failure_notice_needs_a_failure_result_though_its_domains_learned_less(engine: Engine) -> None:
+    """The domains' `not self.query_success` holds before anything was asked; the signed notice does not."""
+    engine.library = Library(LIBRARY.sources, dict(SIGNED))
+    try:
+        response = _infer(engine)
+    finally:
+        engine.library = LIBRARY
+    assert response.preconditions["SYSTEM.NOTIFY_FAILURE"] == [FAILURE, "self.query_success is False"]
+    assert response.evidence["SYSTEM.NOTIFY_FAILURE"]["self.query_success is False"].source == "library:notices"
