@@ -9,8 +9,8 @@ whose spec shares a source's vocabulary (`applies`). They are candidates like a 
 kept one says `decided: transferred` with `library:<domain>` as its source. The tenant's own priors come on top:
 where a request carries its own prior rules for an action, the library is silent about that action.
 
-Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice needs a failure result, a success
-notice a success, in every domain whose spec defines the result, demonstrated or not (`Library.signed`; the
+Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed", "nothing
+was found") needs a failure result, a success notice a success, in every domain whose spec defines the result, demonstrated or not (`Library.signed`; the
 selection keeps one unless the request's demonstrations refute it). A domain's inferred `not self.query_success`
 also holds before anything was asked: "Sorry, that failed" with nothing failed.
 
@@ -32,9 +32,12 @@ MIN_SHARED_ACTIONS = 3
 """A source applies to a spec with at least this many action names in common with it (a dialog vocabulary:
 REQUEST, GOODBYE, ANYTHING_ELSE...); rules naming what the spec does not define are dropped anyway."""
 SIGNED_SOURCE = "notices"
-SIGNED: dict[str, tuple[str, ...]] = {"NOTIFY_FAILURE": ("self.query_success is False",),
-                                      "NOTIFY_SUCCESS": ("self.query_success",)}
-"""Notices tied to a result of their sign, by method name: applied to every spec that defines them (`for_spec`)."""
+SIGNED: dict[str, tuple[str, ...]] = {"FAIL": ("self.query_success is False",),
+                                      "NOTHING_FOUND": ("self.query_success is False",),
+                                      "SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}
+"""Notices tied to a result of their sign, by a word of the method's name (`NOTIFY_FAILURE`, `INFORM_BOOKING_FAILED`,
+`INFORM_NOTHING_FOUND`; `NOTIFY_SUCCESS`, `INFORM_BOOKING_CONFIRMED`): applied to every spec that defines them
+(`for_spec`)."""
 
 
 @dataclass(frozen=True)
@@ -65,10 +68,16 @@ class Library:
                      if m in by_method and by_method[m] not in taken and r}
             if rules:
                 out.append((PREFIX + src.source, rules))
-        signed = {by_method[m]: list(r) for m, r in self.signed.items() if m in by_method and by_method[m] not in taken}
+        signed = {action: rules for action in by_method.values() if action not in taken
+                  and (rules := self.signed_rules(action))}
         if signed:
             out.append((PREFIX + SIGNED_SOURCE, signed))
         return out
+
+    def signed_rules(self, action: str) -> list[str]:
+        """The signed notices' rules for an action whose method name holds one of their words."""
+        name = action.rsplit(".", 1)[-1].upper()
+        return list(dict.fromkeys(r for word, rules in self.signed.items() if word in name for r in rules))
 
     def without(self, name: str) -> Library:
         """The library with one domain's source left out (leave-one-domain-out)."""

@@ -111,7 +111,10 @@ def test_signed_notices_apply_to_every_spec_that_defines_them() -> None:
     vocabulary with any source, and survive a JSON round trip and leaving a domain out."""
     library = from_json(to_json(shipped())).without("Alarm_1")
     found = dict(library.for_spec(["BOT.NOTIFY_FAILURE", "BOT.Pay"]))
-    assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": list(SIGNED["NOTIFY_FAILURE"])}
+    assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": list(SIGNED["FAIL"])}
+    assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["self.query_success is False"]
+    assert library.signed_rules("BOT.INFORM_BOOKING_CONFIRMED") == ["self.query_success"]
+    assert library.signed_rules("BOT.ASK_CONFIRM_BOOKING") == []
     assert shipped().signed == SIGNED
 
 
