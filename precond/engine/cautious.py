@@ -154,7 +154,7 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     offered: list[tuple[Cluster, str]] = []
     if assenting:
         found, witnessed, why = hidden_disjunction(atoms, chosen, evidence, assenting)
-        if found is not None and witnessed:
+        if found is not None and (witnessed or answered(found)):
             extra.append(found)
             notes[found.representative.expression] = why
         elif found is not None:
@@ -257,10 +257,20 @@ def hidden_disjunction(atoms: Sequence[Cluster], chosen: Sequence[Cluster], evid
         kept &= c.satisfied
     witnessed = bool(kept & ~evidence.occurrence_mask & ~satisfied)
     what = "a disjunction behind the trigger: at every call one of its terms held, none at all of them"
-    why = (f"{what}; the demonstrations show the trigger without any term and no call; assumed (review it)"
-           if witnessed else f"dropped: {what}; no demonstration shows the trigger without any term and no call, so "
-           "nothing tells it from a coincidence (a reviewer may keep it)")
+    if witnessed:
+        why = f"{what}; the demonstrations show the trigger without any term and no call; assumed (review it)"
+    elif all(answered(t) for t in terms):
+        why = f"{what}; its terms are what the agent's back-end answered, which no yes overrides; assumed (review it)"
+    else:
+        why = (f"dropped: {what}; no demonstration shows the trigger without any term and no call, so nothing tells "
+               "it from a coincidence (a reviewer may keep it)")
     return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), witnessed, why
+
+
+def answered(c: Cluster) -> bool:
+    """A condition on the agent's own state alone (`self.has_refills or self.doctor_approved`): what its back-end
+    answered (refills left, an approval), which the other party's yes cannot override."""
+    return parties(c.representative.expression) == frozenset({"self"})
 
 
 def _conversational(chosen: Sequence[Cluster], decided: Mapping[str, Decided], notes: dict[str, str], search: str,

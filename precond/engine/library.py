@@ -10,9 +10,10 @@ kept one says `decided: transferred` with `library:<domain>` as its source. The 
 where a request carries its own prior rules for an action, the library is silent about that action.
 
 Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed", "nothing
-was found") needs a failure result, a success notice a success, in every domain whose spec defines the result, demonstrated or not (`Library.signed`; the
-selection keeps one unless the request's demonstrations refute it). A domain's inferred `not self.query_success`
-also holds before anything was asked: "Sorry, that failed" with nothing failed.
+was found") needs a failure result, a success notice a success, in every domain whose spec defines the result,
+demonstrated or not (`Library.signed`; the selection keeps one unless the request's demonstrations refute it). A
+domain's inferred `not self.query_success` also holds before anything was asked: "Sorry, that failed" with
+nothing failed.
 
 `options.library: "off"` leaves it out. The evaluation builds the library for a held-out domain without that
 domain (precond/evaluation/library.py), so no score comes from rules that saw the domain they are scored on.

@@ -232,25 +232,31 @@ def previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
 
 
 def confirmations(trace: TraceResult, turns: Mapping[tuple[int, int], int]) -> dict[tuple[int, int], frozenset[str]]:
-    """For each agent action's occurrence, the slots the agent's confirmations (an act named CONFIRM) asked about
-    in its turn right before the observations that led to it (`CONFIRM('product')`, `CONFIRM('quantity')`, then
-    the user's yes); `cautious.ANY_SLOT` for one that names none. Absent where no confirmation came: a yes after
-    an offer answered no confirmation."""
-    named: dict[tuple[int, int], set[str]] = {}
+    """For each agent action's occurrence whose observations answered a confirmation or an offer (an act named
+    CONFIRM or OFFER in the agent's turn right before them: `CONFIRM('time')`, then the user's yes), the slots it
+    covers: those the dialog's confirmations named before (a re-confirmation of a changed time keeps the city
+    confirmed earlier) and those the answered offer named; `cautious.ANY_SLOT` for one that names none
+    (`ASK_CONFIRM_BOOKING()`). Absent where the turn before asked neither: that yes confirmed nothing."""
+    confirm: dict[int, dict[int, set[str]]] = {}
+    offer: dict[int, dict[int, set[str]]] = {}
     for name, info in trace.actions.items():
-        if info.stub and "CONFIRM" in guarding.method_name(name).upper():
-            for occ in info.occurrences:
-                values = {v for v in occ.args if isinstance(v, str)}
-                named.setdefault((occ.demo, occ.position), set()).update(values or {cautious.ANY_SLOT})
+        word = guarding.method_name(name).upper()
+        table = confirm if "CONFIRM" in word else offer if "OFFER" in word else None
+        if table is None or not info.stub:
+            continue
+        for occ in info.occurrences:
+            values = {v for v in occ.args if isinstance(v, str)} or {cautious.ANY_SLOT}
+            table.setdefault(occ.demo, {}).setdefault(occ.position, set()).update(values)
     out: dict[tuple[int, int], frozenset[str]] = {}
     for (demo, position), start in turns.items():
-        slots: set[str] = set()
-        k = start - 1
-        while k >= 0 and (demo, k) in turns and turns[(demo, k)] == turns.get((demo, start - 1)):
-            slots |= named.get((demo, k), set())
-            k -= 1
-        if slots:
-            out[(demo, position)] = frozenset(slots)
+        before = turns.get((demo, start - 1))
+        turn = range(start - 1, -1, -1) if before is not None else range(0)
+        asked = [k for k in turn if turns.get((demo, k)) == before]
+        if not any(k in confirm.get(demo, {}) or k in offer.get(demo, {}) for k in asked):
+            continue
+        slots = {v for k, values in confirm.get(demo, {}).items() if k < start for v in values}
+        slots |= {v for k in asked for v in offer.get(demo, {}).get(k, set())}
+        out[(demo, position)] = frozenset(slots)
     return out
 
 
