@@ -69,8 +69,8 @@ class Library:
                      if m in by_method and by_method[m] not in taken and r}
             if rules:
                 out.append((PREFIX + src.source, rules))
-        signed = {action: rules for action in by_method.values() if action not in taken
-                  and (rules := self.signed_rules(action))}
+        signed = {action: found for action in by_method.values() if action not in taken
+                  and (found := self.signed_rules(action))}
         if signed:
             out.append((PREFIX + SIGNED_SOURCE, signed))
         return out
