@@ -28,14 +28,15 @@ the permissive side silently. For each action it keeps:
    words): acting on any other phase there costs a re-ask, not a blocked card, and dialog acts are what an
    assistant says most (docs/results.md measures both sides).
 4. *Behind a yes*: where a flag of the other party (`self.user.affirmed`) was made true right before every call
-   of a tool call, it answers the agent's confirmation of what that party said before, so that party's
-   earlier facts that its confirmation named are not assumed (`behind_trigger`, `confirmed`: the slots the agent's
-   confirmation in the turn before asked about; a yes that answered none covers nothing; named in the warning,
-   `Choice.behind`); the agent's own
-   state (an identity check, a search's success) is the service's answer, which no yes replaces, and stays
-   assumed. What else held at each call is searched for a disjunction (`hidden_disjunction`: refills left
-   or the doctor's approval, neither at every refill): kept, assumed, where a demonstration shows the yes
-   without it and no call; otherwise offered among the dropped candidates for a reviewer.
+   of a tool call, it answers the agent's confirmation, so the facts of that party about the slots the
+   confirmation named are not assumed (`behind_trigger`, `confirmed`: `ActionEvidence.confirmed`, what the
+   dialog's confirmations and the answered offer named; a yes that answered none covers nothing; named in the
+   warning, `Choice.behind`); the agent's own state (an identity check, a search's success) is the service's
+   answer, which no yes replaces, and stays assumed. What else held at each call is searched for a disjunction
+   (`hidden_disjunction`: refills left or the doctor's approval, neither at every refill): kept, assumed, where
+   a demonstration shows the yes without it and no call, or where its terms are the agent's own state
+   (`answered`: what the back-end said, which no yes overrides); otherwise offered among the dropped candidates
+   for a reviewer.
 
 Actions demonstrated too thinly to learn from get the positive facts their few calls share, assumed
 (`thin_rules`: for a tool call every one but those behind a yes, for a dialog act what enabled it and what it
