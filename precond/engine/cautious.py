@@ -189,15 +189,14 @@ ANY_SLOT = "*"
 def confirmed(expression: str, evidence: ActionEvidence) -> bool:
     """Whether the yes before every call covers this fact of the party that said it: the agent's confirmation in
     the turn right before each call's observations named the fact's slot (`CONFIRM('address')` covers
-    `informed_slot['address']`), or named none. A yes that answered no confirmation covers nothing, and a slot
-    no confirmation named stays required: the user who says yes to an offer before giving the address."""
+    `informed_slot['address']`), or named none; a fact about no slot (an intent, `selected`) it covers whole. A yes
+    that answered no confirmation covers nothing, and a slot no confirmation named stays required: the user who
+    says yes to an offer before giving the address."""
     asked = [evidence.confirmed.get((occ.demo, occ.position), frozenset()) for occ in evidence.occurrences]
     if not asked or not all(asked):
         return False
-    if all(ANY_SLOT in a for a in asked):
-        return True
-    keys = {k for _, k in _lookups(expression)}
-    return bool(keys) and all(keys <= a for a in asked)
+    keys = {k for _, k in _lookups(expression)} & evidence.slots
+    return all(ANY_SLOT in a or keys <= a for a in asked)
 
 
 def _flag(expression: str) -> bool:

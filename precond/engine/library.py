@@ -33,7 +33,7 @@ MIN_SHARED_ACTIONS = 3
 """A source applies to a spec with at least this many action names in common with it (a dialog vocabulary:
 REQUEST, GOODBYE, ANYTHING_ELSE...); rules naming what the spec does not define are dropped anyway."""
 SIGNED_SOURCE = "notices"
-SIGNED: dict[str, tuple[str, ...]] = {"FAIL": ("self.query_success is False",),
+SIGNED: dict[str, tuple[str, ...]] = {"FAIL": ("not self.query_success",),
                                       "NOTHING_FOUND": ("self.query_success is False",),
                                       "SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}
 """Notices tied to a result of their sign, by a word of the method's name (`NOTIFY_FAILURE`, `INFORM_BOOKING_FAILED`,

@@ -111,19 +111,26 @@ def test_signed_notices_apply_to_every_spec_that_defines_them() -> None:
     vocabulary with any source, and survive a JSON round trip and leaving a domain out."""
     library = from_json(to_json(shipped())).without("Alarm_1")
     found = dict(library.for_spec(["BOT.NOTIFY_FAILURE", "BOT.Pay"]))
-    assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": list(SIGNED["FAIL"])}
+    assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": ["not self.query_success"]}
     assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["self.query_success is False"]
     assert library.signed_rules("BOT.INFORM_BOOKING_CONFIRMED") == ["self.query_success"]
     assert library.signed_rules("BOT.ASK_CONFIRM_BOOKING") == []
     assert shipped().signed == SIGNED
 
 
-def test_a_failure_notice_needs_a_failure_result_though_its_domains_learned_less(engine: Engine) -> None:
-    """The domains' `not self.query_success` holds before anything was asked; the signed notice does not."""
-    engine.library = Library(LIBRARY.sources, dict(SIGNED))
+def test_nothing_found_needs_a_failure_result_though_its_demonstrations_also_allow_before_any_search(
+        engine: Engine) -> None:
+    """Every "nothing found" came after an empty search, so the demonstrations establish `not self.query_success`,
+    which holds before any search too; the signed notice refuses it there, demonstrated or not."""
+    spec = SPEC.replace("  def NOTIFY_FAILURE(self): pass\n", "  def INFORM_NOTHING_FOUND(self): pass\n")
+    empty = [d.replace("system.search_result(True)\nsystem.OFFER()\nuser.SELECT()",
+                       "system.search_result(False)\nsystem.INFORM_NOTHING_FOUND()") for d in DEMOS]
+    engine.library = Library((), dict(SIGNED))
     try:
-        response = _infer(engine)
+        response = engine.infer(InferRequest(spec=spec, demonstrations=[*DEMOS, *empty],
+                                             options=InferOptions(generators=["enumerate"])))
     finally:
         engine.library = LIBRARY
-    assert response.preconditions["SYSTEM.NOTIFY_FAILURE"] == [FAILURE, "self.query_success is False"]
-    assert response.evidence["SYSTEM.NOTIFY_FAILURE"]["self.query_success is False"].source == "library:notices"
+    rules = response.preconditions["SYSTEM.INFORM_NOTHING_FOUND"]
+    assert "self.query_success is False" in rules
+    assert response.evidence["SYSTEM.INFORM_NOTHING_FOUND"]["self.query_success is False"].source == "library:notices"
