@@ -9,11 +9,11 @@ whose spec shares a source's vocabulary (`applies`). They are candidates like a 
 kept one says `decided: transferred` with `library:<domain>` as its source. The tenant's own priors come on top:
 where a request carries its own prior rules for an action, the library is silent about that action.
 
-Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed", "nothing
-was found") needs a failure result, a success notice a success, in every domain whose spec defines the result,
-demonstrated or not (`Library.signed`; the selection keeps one unless the request's demonstrations refute it). A
-domain's inferred `not self.query_success` also holds before anything was asked: "Sorry, that failed" with
-nothing failed.
+Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed") needs
+a result that is no success, "nothing was found" an empty answer, a success notice a success, in every domain
+whose spec defines the result, demonstrated or not (`Library.signed`; the selection keeps one unless the
+request's demonstrations refute it). A domain's inferred `not self.query_success` also holds before any search:
+"nothing found" with nothing looked up.
 
 `options.library: "off"` leaves it out. The evaluation builds the library for a held-out domain without that
 domain (precond/evaluation/library.py), so no score comes from rules that saw the domain they are scored on.
