@@ -9,11 +9,10 @@ whose spec shares a source's vocabulary (`applies`). They are candidates like a 
 kept one says `decided: transferred` with `library:<domain>` as its source. The tenant's own priors come on top:
 where a request carries its own prior rules for an action, the library is silent about that action.
 
-Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed") needs
-a result that is no success, "nothing was found" an empty answer, a success notice a success, in every domain
-whose spec defines the result, demonstrated or not (`Library.signed`; the selection keeps one unless the
-request's demonstrations refute it). A domain's inferred `not self.query_success` also holds before any search:
-"nothing found" with nothing looked up.
+Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed",
+"nothing was found") needs a result that is no success, a success notice a success, in every domain whose spec
+defines the result, demonstrated or not (`Library.signed`; the selection keeps one unless the request's
+demonstrations refute it), whatever else the domain learned (a disjunction with the user's thanks).
 
 `options.library: "off"` leaves it out. The evaluation builds the library for a held-out domain without that
 domain (precond/evaluation/library.py), so no score comes from rules that saw the domain they are scored on.
@@ -34,7 +33,7 @@ MIN_SHARED_ACTIONS = 3
 REQUEST, GOODBYE, ANYTHING_ELSE...); rules naming what the spec does not define are dropped anyway."""
 SIGNED_SOURCE = "notices"
 SIGNED: dict[str, tuple[str, ...]] = {"FAIL": ("not self.query_success",),
-                                      "NOTHING_FOUND": ("self.query_success is False",),
+                                      "NOTHING_FOUND": ("not self.query_success",),
                                       "SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}
 """Notices tied to a result of their sign, by a word of the method's name (`NOTIFY_FAILURE`, `INFORM_BOOKING_FAILED`,
 `INFORM_NOTHING_FOUND`; `NOTIFY_SUCCESS`, `INFORM_BOOKING_CONFIRMED`): applied to every spec that defines them

@@ -112,25 +112,22 @@ def test_signed_notices_apply_to_every_spec_that_defines_them() -> None:
     library = from_json(to_json(shipped())).without("Alarm_1")
     found = dict(library.for_spec(["BOT.NOTIFY_FAILURE", "BOT.Pay"]))
     assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": ["not self.query_success"]}
-    assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["self.query_success is False"]
+    assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["not self.query_success"]
     assert library.signed_rules("BOT.INFORM_BOOKING_CONFIRMED") == ["self.query_success"]
     assert library.signed_rules("BOT.ASK_CONFIRM_BOOKING") == []
     assert shipped().signed == SIGNED
 
 
-def test_nothing_found_needs_a_failure_result_though_its_demonstrations_also_allow_before_any_search(
-        engine: Engine) -> None:
-    """Every "nothing found" came after an empty search, so the demonstrations establish `not self.query_success`,
-    which holds before any search too; the signed notice refuses it there, demonstrated or not."""
+def test_a_never_demonstrated_nothing_found_needs_an_answer_that_is_no_success(engine: Engine) -> None:
+    """No source of the library speaks this vocabulary and no demonstration shows "nothing found": the signed
+    notice gives it its rule (without it: refused everywhere), refused after a success."""
     spec = SPEC.replace("  def NOTIFY_FAILURE(self): pass\n", "  def INFORM_NOTHING_FOUND(self): pass\n")
-    empty = [d.replace("system.search_result(True)\nsystem.OFFER()\nuser.SELECT()",
-                       "system.search_result(False)\nsystem.INFORM_NOTHING_FOUND()") for d in DEMOS]
     engine.library = Library((), dict(SIGNED))
     try:
-        response = engine.infer(InferRequest(spec=spec, demonstrations=[*DEMOS, *empty],
+        response = engine.infer(InferRequest(spec=spec, demonstrations=DEMOS,
                                              options=InferOptions(generators=["enumerate"])))
     finally:
         engine.library = LIBRARY
-    rules = response.preconditions["SYSTEM.INFORM_NOTHING_FOUND"]
-    assert "self.query_success is False" in rules
-    assert response.evidence["SYSTEM.INFORM_NOTHING_FOUND"]["self.query_success is False"].source == "library:notices"
+    assert response.preconditions["SYSTEM.INFORM_NOTHING_FOUND"] == ["not self.query_success"]
+    evidence = response.evidence["SYSTEM.INFORM_NOTHING_FOUND"]["not self.query_success"]
+    assert (evidence.decided, evidence.source) == ("transferred", "library:notices")
