@@ -440,11 +440,21 @@ def domains(
     seed: SeedOption = 0,
     cache_dir: CacheOption = DEFAULT_CACHE,
     out: Annotated[Path, typer.Option(help="Report whose twenty-domain section is (re)written.")] = REPORT,
+    max_unsafe: Annotated[float | None, typer.Option(
+        min=0.0, max=1.0, help="Fail (exit 1, naming each domain and its numbers) when a config's counterfactual "
+                               "unsafe share on any domain exceeds this bound.")] = None,
 ) -> None:
     """Every development domain (SGD, STAR, ALFWorld): per benchmark the mean, the worst domain and the domains at
-    or below `always`, for the paper's F1 and the counterfactual metric (precond/evaluation/generalisation.py)."""
+    or below `always`, for the paper's F1 and the counterfactual metric (precond/evaluation/generalisation.py);
+    with `--max-unsafe`, a config that breaks the bound on any domain fails the command."""
     from precond.evaluation.configs import expand
-    from precond.evaluation.generalisation import DEFAULT_CONFIGS, summarize, summary_table, write_section
+    from precond.evaluation.generalisation import (
+        DEFAULT_CONFIGS,
+        summarize,
+        summary_table,
+        unsafe_breaches,
+        write_section,
+    )
     from precond.evaluation.safety import evaluate
     from precond.evaluation.scoring import Satisfaction
 
@@ -459,6 +469,10 @@ def domains(
     write_section(rows, out)
     typer.echo(summary_table(summarize(rows)))
     typer.echo(f"\nwrote the twenty-domain section of {out}")
+    breaches = unsafe_breaches(rows, max_unsafe) if max_unsafe is not None else []
+    if breaches:
+        typer.echo(f"error: {len(breaches)} domain(s) above --max-unsafe:\n  " + "\n  ".join(breaches), err=True)
+        raise typer.Exit(1)
 
 
 def library(

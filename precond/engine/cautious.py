@@ -28,12 +28,15 @@ the permissive side silently. For each action it keeps:
    words): acting on any other phase there costs a re-ask, not a blocked card, and dialog acts are what an
    assistant says most (docs/results.md measures both sides).
 4. *Behind a yes*: where a flag of the other party (`self.user.affirmed`) was made true right before every call
-   of a tool call, it answers the agent's confirmation of what that party said before, so that party's
-   earlier facts are not assumed (`behind_trigger`; named in the warning, `Choice.behind`); the agent's own
-   state (an identity check, a search's success) is the service's answer, which no yes replaces, and stays
-   assumed. What else held at each call is searched for a disjunction (`hidden_disjunction`: refills left
-   or the doctor's approval, neither at every refill): kept, assumed, where a demonstration shows the yes
-   without it and no call; otherwise offered among the dropped candidates for a reviewer.
+   of a tool call, it answers the agent's confirmation, so the facts of that party about the slots the
+   confirmation named are not assumed (`behind_trigger`, `confirmed`: `ActionEvidence.confirmed`, what the
+   dialog's confirmations and the answered offer named; a yes that answered none covers nothing; named in the
+   warning, `Choice.behind`); the agent's own state (an identity check, a search's success) is the service's
+   answer, which no yes replaces, and stays assumed. What else held at each call is searched for a disjunction
+   (`hidden_disjunction`: refills left or the doctor's approval, neither at every refill): kept, assumed, where
+   a demonstration shows the yes without it and no call, or where its terms are the agent's own state
+   (`answered`: what the back-end said, which no yes overrides); otherwise offered among the dropped candidates
+   for a reviewer.
 
 Actions demonstrated too thinly to learn from get the positive facts their few calls share, assumed
 (`thin_rules`: for a tool call every one but those behind a yes, for a dialog act what enabled it and what it
@@ -146,12 +149,13 @@ def choose(clusters: Sequence[Cluster], common: Sequence[Cluster], atoms: Sequen
     kept = {c.satisfied for c in chosen}
     extra = assumed(common, evidence, kept) if tool_call else spoken_of(common, atoms, evidence, kept)
     assenting = behind_trigger(chosen, evidence) if tool_call else frozenset()
-    behind = [c for c in extra if assenting and parties(c.representative.expression) <= assenting]
+    behind = [c for c in extra if assenting and parties(c.representative.expression) <= assenting
+              and confirmed(c.representative.expression, evidence)]
     extra = [c for c in extra if c not in behind]
     offered: list[tuple[Cluster, str]] = []
     if assenting:
         found, witnessed, why = hidden_disjunction(atoms, chosen, evidence, assenting)
-        if found is not None and witnessed:
+        if found is not None and (witnessed or answered(found)):
             extra.append(found)
             notes[found.representative.expression] = why
         elif found is not None:
@@ -176,6 +180,23 @@ def behind_trigger(chosen: Sequence[Cluster], evidence: ActionEvidence) -> froze
                 and evidence.occurrences and all(enabled_at(c, evidence, index)):
             found |= owners
     return frozenset(found)
+
+
+ANY_SLOT = "*"
+"""In `ActionEvidence.confirmed`: a confirmation that names no slot (`ASK_CONFIRM_BOOKING()`) asks about all of it."""
+
+
+def confirmed(expression: str, evidence: ActionEvidence) -> bool:
+    """Whether the yes before every call covers this fact of the party that said it: the agent's confirmation in
+    the turn right before each call's observations named the fact's slot (`CONFIRM('address')` covers
+    `informed_slot['address']`), or named none; a fact about no slot (an intent, `selected`) it covers whole. A yes
+    that answered no confirmation covers nothing, and a slot no confirmation named stays required: the user who
+    says yes to an offer before giving the address."""
+    asked = [evidence.confirmed.get((occ.demo, occ.position), frozenset()) for occ in evidence.occurrences]
+    if not asked or not all(asked):
+        return False
+    keys = {k for _, k in _lookups(expression)} & evidence.slots
+    return all(ANY_SLOT in a or keys <= a for a in asked)
 
 
 def _flag(expression: str) -> bool:
@@ -236,10 +257,20 @@ def hidden_disjunction(atoms: Sequence[Cluster], chosen: Sequence[Cluster], evid
         kept &= c.satisfied
     witnessed = bool(kept & ~evidence.occurrence_mask & ~satisfied)
     what = "a disjunction behind the trigger: at every call one of its terms held, none at all of them"
-    why = (f"{what}; the demonstrations show the trigger without any term and no call; assumed (review it)"
-           if witnessed else f"dropped: {what}; no demonstration shows the trigger without any term and no call, so "
-           "nothing tells it from a coincidence (a reviewer may keep it)")
+    if witnessed:
+        why = f"{what}; the demonstrations show the trigger without any term and no call; assumed (review it)"
+    elif all(answered(t) for t in terms):
+        why = f"{what}; its terms are what the agent's back-end answered, which no yes overrides; assumed (review it)"
+    else:
+        why = (f"dropped: {what}; no demonstration shows the trigger without any term and no call, so nothing tells "
+               "it from a coincidence (a reviewer may keep it)")
     return Cluster((Candidate(expression, terms[0].representative.source, satisfied),)), witnessed, why
+
+
+def answered(c: Cluster) -> bool:
+    """A condition on the agent's own state alone (`self.has_refills or self.doctor_approved`): what its back-end
+    answered (refills left, an approval), which the other party's yes cannot override."""
+    return parties(c.representative.expression) == frozenset({"self"})
 
 
 def _conversational(chosen: Sequence[Cluster], decided: Mapping[str, Decided], notes: dict[str, str], search: str,
@@ -398,7 +429,8 @@ def thin_rules(candidates: Sequence[Candidate], evidence: ActionEvidence, n_poin
     if tool_call:
         assenting = behind_trigger(shared, evidence)
         return [c for c in shared if not assenting or all(enabled_at(c, evidence, index))
-                or not parties(c.representative.expression) <= assenting]
+                or not parties(c.representative.expression) <= assenting
+                or not confirmed(c.representative.expression, evidence)]
     news = [c for c in every if c not in shared and evidence.writes
             and len(_made(c, evidence, index)) == len(evidence.occurrences)]
     enabled = [c for c in shared if enabling_rate(c, evidence, index) > 0]

@@ -9,6 +9,11 @@ whose spec shares a source's vocabulary (`applies`). They are candidates like a 
 kept one says `decided: transferred` with `library:<domain>` as its source. The tenant's own priors come on top:
 where a request carries its own prior rules for an action, the library is silent about that action.
 
+Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed",
+"nothing was found") needs a result that is no success, a success notice a success, in every domain whose spec
+defines the result, demonstrated or not (`Library.signed`; the selection keeps one unless the request's
+demonstrations refute it), whatever else the domain learned (a disjunction with the user's thanks).
+
 `options.library: "off"` leaves it out. The evaluation builds the library for a held-out domain without that
 domain (precond/evaluation/library.py), so no score comes from rules that saw the domain they are scored on.
 """
@@ -26,6 +31,13 @@ PREFIX = "library:"
 MIN_SHARED_ACTIONS = 3
 """A source applies to a spec with at least this many action names in common with it (a dialog vocabulary:
 REQUEST, GOODBYE, ANYTHING_ELSE...); rules naming what the spec does not define are dropped anyway."""
+SIGNED_SOURCE = "notices"
+SIGNED: dict[str, tuple[str, ...]] = {"FAIL": ("not self.query_success",),
+                                      "NOTHING_FOUND": ("not self.query_success",),
+                                      "SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}
+"""Notices tied to a result of their sign, by a word of the method's name (`NOTIFY_FAILURE`, `INFORM_BOOKING_FAILED`,
+`INFORM_NOTHING_FOUND`; `NOTIFY_SUCCESS`, `INFORM_BOOKING_CONFIRMED`): applied to every spec that defines them
+(`for_spec`)."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +52,7 @@ class LibrarySource:
 @dataclass(frozen=True)
 class Library:
     sources: tuple[LibrarySource, ...] = field(default_factory=tuple)
+    signed: Mapping[str, Sequence[str]] = field(default_factory=dict)
 
     def for_spec(self, actions: Sequence[str], own: Mapping[str, Sequence[str]] | None = None
                  ) -> list[tuple[str, dict[str, list[str]]]]:
@@ -55,11 +68,20 @@ class Library:
                      if m in by_method and by_method[m] not in taken and r}
             if rules:
                 out.append((PREFIX + src.source, rules))
+        signed = {action: found for action in by_method.values() if action not in taken
+                  and (found := self.signed_rules(action))}
+        if signed:
+            out.append((PREFIX + SIGNED_SOURCE, signed))
         return out
+
+    def signed_rules(self, action: str) -> list[str]:
+        """The signed notices' rules for an action whose method name holds one of their words."""
+        name = action.rsplit(".", 1)[-1].upper()
+        return list(dict.fromkeys(r for word, rules in self.signed.items() if word in name for r in rules))
 
     def without(self, name: str) -> Library:
         """The library with one domain's source left out (leave-one-domain-out)."""
-        return Library(tuple(s for s in self.sources if s.source != name))
+        return Library(tuple(s for s in self.sources if s.source != name), self.signed)
 
 
 def applies(source: LibrarySource, by_method: Mapping[str, str]) -> bool:
@@ -70,13 +92,16 @@ def from_json(data: Mapping[str, object]) -> Library:
     raw = data.get("sources", [])
     if not isinstance(raw, list):
         raise ValueError("rule library: 'sources' must be a list")
+    signed = data.get("signed", {})
+    if not isinstance(signed, dict):
+        raise ValueError("rule library: 'signed' must map actions to rules")
     return Library(tuple(LibrarySource(str(s["source"]), {str(a): [str(r) for r in rules]
                                                           for a, rules in s["rules"].items()})
-                         for s in raw))
+                         for s in raw), {str(a): tuple(str(r) for r in rules) for a, rules in signed.items()})
 
 
 def to_json(library: Library) -> dict[str, object]:
-    return {"format_version": 1,
+    return {"format_version": 1, "signed": {a: list(r) for a, r in library.signed.items()},
             "sources": [{"source": s.source, "rules": {a: list(r) for a, r in s.rules.items()}}
                         for s in library.sources]}
 

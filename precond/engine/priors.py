@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from precond.engine.cautious import Choice
-from precond.engine.library import Library
+from precond.engine.library import PREFIX, SIGNED_SOURCE, Library
 from precond.engine.ranking import ActionEvidence, Candidate, Cluster
 from precond.engine.spec import Spec, as_error
 from precond.programs import checks
@@ -367,3 +367,24 @@ def _terms(expression: str) -> list[str]:
     if any(isinstance(n, ast.BoolOp) for v in values for n in ast.walk(v)):
         return []
     return [ast.unparse(v) for v in values]
+
+
+def signed(choice: Choice, prior: Priors, action: str, results: Sequence[CandidateResult],
+           verdicts: Mapping[str, Verdict]) -> Choice:
+    """The library's signed notices (`library.SIGNED`) join the kept rules, demonstrated or not, unless a call
+    refutes them: "Sorry, that failed" needs a failure result though every demonstrated one also read `not
+    self.query_success`, which holds before anything was asked."""
+    source = PREFIX + SIGNED_SOURCE
+    by_text = {r.expression: r for r in results}
+    kept = {c.representative.expression for c in choice.chosen}
+    added: list[Cluster] = []
+    for rule in prior.rules.get(action, {}).values():
+        result = by_text.get(rule.expression)
+        if source not in rule.sources or rule.expression in kept or result is None or result.status == "rejected" \
+                or verdicts.get(rule.expression) == "refuted":
+            continue
+        added.append(Cluster((Candidate(rule.expression, "prior", result.satisfied),)))
+    if not added:
+        return choice
+    decided: dict[str, Decided] = {**choice.decided, **{c.representative.expression: "transferred" for c in added}}
+    return replace(choice, chosen=[*choice.chosen, *added], decided=decided)

@@ -66,6 +66,8 @@ class ActionEvidence:
     thin: bool = False  # too few occurrences to learn from: ranked like a never-demonstrated action
     tolerance: float = 0.0  # share of the occurrences the kept rules together may refuse
     writes: Mapping[tuple[int, int], frozenset[Access]] = field(default_factory=dict)  # what observations wrote
+    confirmed: Mapping[tuple[int, int], frozenset[str]] = field(default_factory=dict)  # what the turn before asked
+    slots: frozenset[str] = frozenset()  # every slot the agent's acts name (`selection.confirmations`)
 
 
 def cluster(valid: Sequence[Candidate]) -> list[Cluster]:

@@ -52,10 +52,13 @@ def select_rules(actions: Sequence[str], inference: Inference, guarded: Sequence
     """`guarded`: the actions whose refusal protects something (engine.guarded); None: every action (the
     cautious criterion alike for all)."""
     turns = previous_turns(inference.trace)
+    asked, slots = confirmations(inference.trace, turns) if inference.options.ranking == "cautious" \
+        else ({}, frozenset())
     tool_calls = _tool_calls(inference.trace) if inference.options.ranking == "cautious" else set()
     shielded = set(actions if guarded is None else guarded)
     return {action: _select(action, inference, turns, action in tool_calls, action not in shielded,
-                            action not in shielded and guarding.follow_up_name(guarding.method_name(action)))
+                            action not in shielded and guarding.follow_up_name(guarding.method_name(action)),
+                            (asked, slots))
             for action in actions}
 
 
@@ -98,13 +101,15 @@ class _Chosen:
 
 
 def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], int], tool_call: bool,
-            conversational: bool, follow_up: bool = False) -> Ranked:
+            conversational: bool, follow_up: bool = False,
+            asked: tuple[Mapping[tuple[int, int], frozenset[str]], frozenset[str]] | None = None) -> Ranked:
     options, info = inference.options, inference.trace.actions[action]
     points = inference.evaluated.points.get(action, ())
     seen = _judged(action, info, inference)
     evidence = ActionEvidence(points, info.occurrences, turns, info.params, seen.index.mask,
                               not info.occurrences or thin(seen.index.occurrences, options.tolerance),
-                              options.tolerance, inference.writes if options.ranking == "cautious" else {})
+                              options.tolerance, inference.writes if options.ranking == "cautious" else {},
+                              *(asked or ({}, frozenset())))
     votes = inference.proposals.votes.get(action, {})
     chosen = _choose(seen, evidence, options, votes, info, tool_call, conversational, follow_up)
     choice = chosen.choice
@@ -115,6 +120,7 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     if prior is not None and prior.rules.get(action):
         choice = _with_priors(choice, prior, action, seen.results, seen.verdicts, evidence)
         choice, slipped = _read_priors(choice, seen, evidence, options, conversational, too_few(info.occurrences))
+        choice = priors.signed(choice, prior, action, seen.results, seen.verdicts)
         chosen = replace(chosen, slipped=[*chosen.slipped, *slipped])
         transferred = {e: prior.source_of(action, e) or "" for e, d in choice.decided.items() if d == "transferred"}
     reported, judged, verdicts = _with_composites(choice, seen.results, seen.judged, seen.verdicts, seen.index)
@@ -226,6 +232,41 @@ def previous_turns(trace: TraceResult) -> dict[tuple[int, int], int]:
                 k -= 1
             starts[(demo, position)] = k + 1
     return starts
+
+
+def confirmations(trace: TraceResult, turns: Mapping[tuple[int, int], int]
+                  ) -> tuple[dict[tuple[int, int], frozenset[str]], frozenset[str]]:
+    """For each agent action's occurrence whose observations answered a confirmation or an offer (an act named
+    CONFIRM or OFFER in the agent's turn right before them: `CONFIRM('time')`, then the user's yes), the slots it
+    covers: those the dialog's confirmations named before (a re-confirmation of a changed time keeps the city
+    confirmed earlier) and those the answered offer named; `cautious.ANY_SLOT` for one that names none
+    (`ASK_CONFIRM_BOOKING()`). Absent where the turn before asked neither: that yes confirmed nothing. Also every
+    slot the agent's acts name (requests, offers, confirmations): a fact about any other key (an intent) or no key
+    (`selected`) is no slot a confirmation could name, and the yes covers it as before."""
+    confirm: dict[int, dict[int, set[str]]] = {}
+    offer: dict[int, dict[int, set[str]]] = {}
+    asks: dict[int, dict[int, set[str]]] = {}
+    for name, info in trace.actions.items():
+        word = guarding.method_name(name).upper()
+        table = confirm if "CONFIRM" in word else offer if "OFFER" in word else asks if "REQUEST" in word else None
+        if table is None or not info.stub:
+            continue
+        for occ in info.occurrences:
+            values = {v for v in occ.args if isinstance(v, str)} or {cautious.ANY_SLOT}
+            table.setdefault(occ.demo, {}).setdefault(occ.position, set()).update(values)
+    out: dict[tuple[int, int], frozenset[str]] = {}
+    for (demo, position), start in turns.items():
+        before = turns.get((demo, start - 1))
+        turn = range(start - 1, -1, -1) if before is not None else range(0)
+        asked = [k for k in turn if turns.get((demo, k)) == before]
+        if not any(k in confirm.get(demo, {}) or k in offer.get(demo, {}) for k in asked):
+            continue
+        slots = {v for k, values in confirm.get(demo, {}).items() if k < start for v in values}
+        slots |= {v for k in asked for v in offer.get(demo, {}).get(k, set())}
+        out[(demo, position)] = frozenset(slots)
+    named = {v for table in (confirm, offer, asks) for by_position in table.values() for values in by_position.values()
+             for v in values}
+    return out, frozenset(named - {cautious.ANY_SLOT})
 
 
 def _zero_shot(valid: Sequence[Candidate], votes: Mapping[str, int], params: Sequence[str]) -> cautious.Choice:

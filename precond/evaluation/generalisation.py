@@ -174,3 +174,19 @@ def write_section(rows: Sequence[Mapping[str, Any]], out: Path, notes: Mapping[s
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     where = f"{machine()}\n- load average when written (1, 5, 15 min): {load}"
     replace_section(out, HEADING, section(rows, notes, where), before="## Precondition inference")
+
+
+def unsafe_breaches(rows: Sequence[Mapping[str, Any]], bound: float) -> list[str]:
+    """Each (config, domain) whose counterfactual unsafe share exceeds `bound`, in words with its F1: a choice
+    that raises the paper's F1 can drop a condition the test dialogs never exercise, so a configuration is
+    judged by F1 only within this bound (`precond eval domains --max-unsafe`). The `always` and `gt` baselines
+    are not configurations to choose."""
+    out = []
+    for r in rows:
+        unsafe = r.get("unsafe_allow")
+        if r["config"] in ("always", "gt") or r.get("error") is not None or unsafe is None or unsafe <= bound:
+            continue
+        f1 = r.get("f1")
+        out.append(f"{r['config']} on {r['benchmark']} {r['domain']}: unsafe {unsafe:.3f} > {bound:.3f} "
+                   f"(F1 {_fmt(f1)})")
+    return out

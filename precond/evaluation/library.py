@@ -19,7 +19,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from precond.engine.library import LIBRARY_FILE, Library, LibrarySource, to_json
+from precond.engine.library import LIBRARY_FILE, SIGNED, Library, LibrarySource, to_json
 from precond.evaluation.cache import JsonCache
 from precond.evaluation.configs import InferConfig, parse_config
 from precond.evaluation.domains import Domain
@@ -62,7 +62,7 @@ def build(domains: Sequence[Domain], config: InferConfig, cache_: JsonCache,
         result = infer_one(domain, plain)
         if result.error is None:
             sources.append(source_of(domain, result.preconditions))
-    return Library(tuple(sources))
+    return Library(tuple(sources), dict(SIGNED))
 
 
 def held_out(library: Library, domain: Domain) -> Library:

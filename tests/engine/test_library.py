@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from precond.engine.engine import UNSEEN_RULE, Engine
-from precond.engine.library import Library, LibrarySource, from_json, to_json
+from precond.engine.library import SIGNED, Library, LibrarySource, from_json, shipped, to_json
 from precond.sandbox import Sandbox
 from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
 
@@ -104,3 +104,30 @@ def test_a_source_of_another_vocabulary_does_not_apply() -> None:
 def test_leaving_a_domain_out_and_the_file_format_round_trip() -> None:
     assert [s.source for s in LIBRARY.without("Buses_9").sources] == ["Trains_9", "alfworld"]
     assert from_json(to_json(LIBRARY)) == LIBRARY
+
+
+def test_signed_notices_apply_to_every_spec_that_defines_them() -> None:
+    """A failure notice needs a failure result in every domain: the signed rules join a spec that shares no
+    vocabulary with any source, and survive a JSON round trip and leaving a domain out."""
+    library = from_json(to_json(shipped())).without("Alarm_1")
+    found = dict(library.for_spec(["BOT.NOTIFY_FAILURE", "BOT.Pay"]))
+    assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": ["not self.query_success"]}
+    assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["not self.query_success"]
+    assert library.signed_rules("BOT.INFORM_BOOKING_CONFIRMED") == ["self.query_success"]
+    assert library.signed_rules("BOT.ASK_CONFIRM_BOOKING") == []
+    assert shipped().signed == SIGNED
+
+
+def test_a_never_demonstrated_nothing_found_needs_an_answer_that_is_no_success(engine: Engine) -> None:
+    """No source of the library speaks this vocabulary and no demonstration shows "nothing found": the signed
+    notice gives it its rule (without it: refused everywhere), refused after a success."""
+    spec = SPEC.replace("  def NOTIFY_FAILURE(self): pass\n", "  def INFORM_NOTHING_FOUND(self): pass\n")
+    engine.library = Library((), dict(SIGNED))
+    try:
+        response = engine.infer(InferRequest(spec=spec, demonstrations=DEMOS,
+                                             options=InferOptions(generators=["enumerate"])))
+    finally:
+        engine.library = LIBRARY
+    assert response.preconditions["SYSTEM.INFORM_NOTHING_FOUND"] == ["not self.query_success"]
+    evidence = response.evidence["SYSTEM.INFORM_NOTHING_FOUND"]["not self.query_success"]
+    assert (evidence.decided, evidence.source) == ("transferred", "library:notices")

@@ -98,10 +98,13 @@ def test_a_refill_after_yes_needs_refills_left_or_the_doctors_approval(engine: E
     assert _allowed(engine, rules, _yes_after(0, True))
 
 
-def test_without_a_turned_away_patient_the_disjunction_is_offered_to_a_reviewer(engine: Engine) -> None:
-    """Every demonstration ends in a refill: nothing tells the disjunction from a coincidence, so it is not kept,
-    but it is among the candidates, with why, for a reviewer to pick."""
+def test_without_a_turned_away_patient_the_back_ends_answers_still_guard_the_refill(engine: Engine) -> None:
+    """Every demonstration ends in a refill, so nothing witnesses the disjunction; but its terms are what the
+    pharmacy's back-end answered (refills left, the doctor's approval), which the patient's yes cannot override:
+    it is kept, assumed, and a yes after a back-end no is refused."""
     response = _infer(engine, REFILLED)
-    assert RULE not in response.preconditions["PHARMACY.REFILL"]
-    report = next(c for c in response.candidates["PHARMACY.REFILL"] if c.assertion == RULE)
-    assert not report.kept and report.reason and report.reason.startswith("dropped: a disjunction behind the trigger")
+    rules = response.preconditions
+    assert RULE in rules["PHARMACY.REFILL"]
+    assert response.evidence["PHARMACY.REFILL"][RULE].decided == "assumed"
+    assert not _allowed(engine, rules, _yes_after(0, False))
+    assert _allowed(engine, rules, _yes_after(0, True))

@@ -3,10 +3,15 @@ row says how it was chosen; the leave-one-domain-out settings parse into request
 
 from __future__ import annotations
 
-import pytest
+from pathlib import Path
 
+import pytest
+from typer.testing import CliRunner
+
+from precond.cli import eval_commands
+from precond.cli.main import app
 from precond.evaluation.configs import parse_config
-from precond.evaluation.generalisation import HOW_CHOSEN, how_chosen, section, summarize
+from precond.evaluation.generalisation import HOW_CHOSEN, how_chosen, section, summarize, unsafe_breaches
 from precond.evaluation.library import source_config
 
 
@@ -61,3 +66,24 @@ def test_answer_slips_reach_the_request_and_the_row_says_so() -> None:
     assert config.infer_options(["SYSTEM.Book"]).answer_slips == 0.0
     assert source_config(config).name == "enumerate/cautious/guard=spec/slips=0"
     assert "answer_slips" in how_chosen(config.name)
+
+
+def test_a_config_above_the_unsafe_bound_on_any_domain_is_named_with_its_numbers() -> None:
+    assert unsafe_breaches(ROWS, 0.3) == []
+    assert unsafe_breaches(ROWS, 0.2) == ["x/cautious on sgd B: unsafe 0.300 > 0.200 (F1 0.550)"]
+    assert len(unsafe_breaches([*ROWS, _row("always", "C", "sgd", 0.5, 1.0)], 0.05)) == 2  # baselines are no choice
+
+
+def test_the_domains_command_fails_a_config_above_the_bound(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from precond.evaluation import safety
+    rows = [*ROWS, _row("always", "A", "sgd", 0.5, 1.0)]
+    monkeypatch.setattr(safety, "evaluate", lambda *args, **kwargs: rows)
+    monkeypatch.setattr(eval_commands, "_domains", lambda *args: [])
+    monkeypatch.setattr(eval_commands, "_sandbox", lambda: None)
+    monkeypatch.setattr(eval_commands, "_memo_engine", lambda store: (None,))
+    out = tmp_path / "results.md"
+    common = ["eval", "domains", "--configs", "always", "--cache", str(tmp_path / "c"), "--out", str(out)]
+    failed = CliRunner().invoke(app, [*common, "--max-unsafe", "0.2"])
+    assert failed.exit_code == 1 and "x/cautious on sgd B: unsafe 0.300 > 0.200" in failed.output
+    assert CliRunner().invoke(app, [*common, "--max-unsafe", "0.3"]).exit_code == 0
+    assert CliRunner().invoke(app, [*common, "--max-unsafe", "-1"]).exit_code == 2
