@@ -7,7 +7,7 @@ successful runs, with that half's labelled policy-breaking runs as counterexampl
 before and at each run's violating call), and every labelled state-changing call of the other half is judged on
 the history before it; then the halves swap, so each call is judged once by rules that never saw its task.
 Reports unsafe (calls labelled refused that the guard allows, over those calls) and over-refusal (calls labelled
-allowed that it refuses, over those calls), per tool and per rule of LABELS.md (R1-R10), the rules, and the
+allowed that it refuses, over those calls), per tool and per rule of tau-retail/LABELS.md (R1-R10), the rules, and the
 inference's seconds; then (unless --skip-all) the seconds of one inference of all 150 runs with every label.
 """
 
@@ -51,7 +51,7 @@ def request(converted: Converted, records: list[dict[str, Any]], train: set[str]
 def judged(engine: Any, converted: Converted, records: list[dict[str, Any]], test: set[str],
            inferred: Any) -> list[dict[str, Any]]:
     """Every labelled call of the `test` tasks judged by the rules (`eval tools --labels`' judge), with the
-    rules of LABELS.md its label says it breaks."""
+    rules of tau-retail/LABELS.md its label says it breaks."""
     mine = [r for r in records if f"task{r['task_id']}" in test]
     return [{"tool": j.tool, "allowed": j.allowed, "refused": j.refused,
              "broken": [r for r in RULES if (record.get("rules") or {}).get(r) is False]}

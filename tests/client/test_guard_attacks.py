@@ -72,8 +72,8 @@ def read(flights):
             {"role": "tool", "tool_call_id": "c1", "content": json.dumps(result)}]
 
 alike = read([{"flight_number": 7 + i * P, "date": "2024-05-20"} for i in range(30000)])
-change = {"reservation_id": "BIG001", "cabin": "economy", "payment_id": "gift_card_1",
-          "flights": [{"flight_number": 7, "date": "2024-05-20"}]}
+change = {"reservation_id": "BIG001", "cabin": "economy", "payment_id": "gift_card_1",  # arguments its tool's
+          "flights": [{"flight_number": "HAT007", "date": "2024-05-20"}]}  # schema allows: the result attacks
 out["alike"] = verdict({"AGENT.update_reservation_flights": [pairs]}, alike, "update_reservation_flights", change)
 flown = {**change, "flights": [{"flight_number": "HAT1", "date": "2024-05-01"}, {"flight_number": "HAT2",
                                                                                   "date": "2024-05-20"}]}

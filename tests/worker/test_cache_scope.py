@@ -16,7 +16,7 @@ class SeesScope:
     def __init__(self) -> None:
         self.seen: list[str] = []
 
-    def check(self, request: CheckRequest) -> CheckResponse:
+    def check(self, request: CheckRequest, screened: bool = False) -> CheckResponse:
         self.seen.append(current())
         return CheckResponse(results=[])
 
