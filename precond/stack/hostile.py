@@ -81,6 +81,16 @@ def _all_disallowed(body: dict[str, Any]) -> str | None:
     return f"allowed or unexplained: {bad}" if bad else None
 
 
+def _trap_left_out(body: dict[str, Any]) -> str | None:
+    """An answered inference (200) names the hostile demonstration as left out, after the limit it ran into, and
+    learned from the other one (an inference that fails whole for one demonstration is what a user must not
+    get); a refusal (4xx) is checked as any other."""
+    if "error" in body:
+        return None
+    warning = body.get("warnings", {}).get("demonstrations[0]", "")
+    return None if "left out" in warning else f"demonstrations[0] not named as left out: {body.get('warnings')}"
+
+
 def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
     cases: list[dict[str, Any]] = []
     post = "POST"
@@ -96,11 +106,14 @@ def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
     cases.append({"name": "demonstration:repr_eq_trap_argument", "method": post, "path": "/infer-preconditions",
                   "json": _infer(infer_body(spec=SPEC + REPR_TRAP,
                                             demonstrations=[_demo_with("system.REQUEST(TRAP())\n"), DEMOS[1]])),
-                  "expect": REJECTED})
+                  "expect": (200,), "check": _trap_left_out})  # the trap hangs: left out
     for name, (code, expect) in programs.items():
+        # A demonstration that runs into a sandbox limit is left out by name and the other one teaches (200); one
+        # refused before it runs is refused (422).
+        limited = expect == REJECTED
         cases.append({"name": f"demonstration:{name}", "method": post, "path": "/infer-preconditions",
                       "json": _infer(infer_body(demonstrations=[_demo_with(code), DEMOS[1]])),
-                      "expect": expect})
+                      "expect": (200, *REJECTED) if limited else expect, "check": _trap_left_out if limited else None})
     for name, expression in corpus.CANDIDATES.items():
         # Preconditions judge proposed calls only: propose the action they guard.
         body = check_body("system.REQUEST('city')") | {"preconditions": {"SYSTEM.REQUEST": [expression]}}

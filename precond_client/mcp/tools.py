@@ -3,7 +3,8 @@ them to `tools.json` beside the recorded sessions), and as the spec that command
 rules an inference printed can be judged by the embedded guard without a spec file.
 
 `agent_tools` reads the schemas as `precond.convert.openai.read_tools` does (required parameters in the schema's
-order, then the optional ones; the description as docstring; names as Python binds them); a test holds the two
+order, then the optional ones; the description as docstring; names as Python binds them; the parameters' JSON
+Schema, which the spec keeps and the guard checks arguments against); a test holds the two
 to the same spec text, since the guard refuses any spec but the converter's, character for character.
 """
 
@@ -33,7 +34,7 @@ def agent_tools(schemas: Sequence[Mapping[str, Any]]) -> list[Tool]:
         required = {python_name(r) for r in parameters.get("required", [])}
         ordered = [p for p in properties if p in required] + [p for p in properties if p not in required]
         tools.append(Tool(python_name(function["name"]), tuple(ordered), frozenset(required),
-                          function.get("description") or ""))
+                          function.get("description") or "", dict(parameters) or None))
     return tools
 
 

@@ -188,8 +188,9 @@ def test_serve_starts_its_own_redis_beside_an_open_one_and_prints_one_line_when_
         assert process.stdout is not None
         line = next((out for out in process.stdout if out.startswith("precond:")), "")  # not redis' or uvicorn's log
         ready = re.fullmatch(rf"precond: ready at http://127\.0\.0\.1:{port} \(GET /ready answers 200\), using its "
-                             r"own password-protected Redis on 127\.0\.0\.1:(\d+) \(queue\) and :(\d+) \(cache\)\n",
-                             line)
+                             r"own password-protected Redis on 127\.0\.0\.1:(\d+) \(queue\) and :(\d+) \(cache\); "
+                             r"no API keys: every caller is the tenant 'public', [\d.]+ requests/s \(bursts of \d+\), "
+                             r"\d+ jobs at once \(--no-rate-limit lifts the rate\)\n", line)
         assert ready, line
         assert "6379" not in ready.groups()
         body = json.loads((EXAMPLES / "check-actions.json").read_text())

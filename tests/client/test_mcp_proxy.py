@@ -82,7 +82,7 @@ def test_enforce_over_stdio_refuses_a_call_the_rules_forbid_before_the_upstream(
     assert [t.name for t in listed.tools] == ["get_order", "refund_order", "send_note"]
     assert refused.is_error
     assert "order_id in self.results['get_order']" in texts(refused)  # the rule, and what would make it hold
-    assert "The tool did not run" in texts(refused) and "read what it reads" in texts(refused)
+    assert "The tool did not run" in texts(refused) and "Call get_order for order_id first" in texts(refused)
     assert json.loads(texts(read))["refunded"] == 0  # the refused refund never reached the desk
     assert not allowed.is_error and json.loads(texts(allowed))["refunded"] == 5
     [record] = records(log)
