@@ -24,7 +24,7 @@ import sys
 import tempfile
 import time
 from collections.abc import AsyncIterator
-from contextlib import asynccontextmanager
+from contextlib import AsyncExitStack, asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -45,20 +45,20 @@ def cpu() -> str:
 
 
 @asynccontextmanager
-async def client(args: list[str]) -> AsyncIterator[ClientSession]:
-    params = StdioServerParameters(command=sys.executable, args=args, cwd=str(ROOT),
-                                   env={"PYTHONPATH": os.environ.get("PYTHONPATH", str(ROOT))})
+async def client(args: list[str], root: Path = ROOT) -> AsyncIterator[ClientSession]:
+    params = StdioServerParameters(command=sys.executable, args=args, cwd=str(root), env={"PYTHONPATH": str(root)})
     with open(os.devnull, "w") as quiet:
         async with stdio_client(params, errlog=quiet) as (read, write), ClientSession(read, write) as session:
             await session.initialize()
             yield session
 
 
-def proxy_cpu_seconds() -> float:
-    """The CPU time so far of this process's child that runs `precond.cli mcp` (user + system)."""
+def proxy_cpu_seconds(root: Path) -> float:
+    """The CPU time so far of this process's child that runs `precond.cli mcp` from `root` (user + system)."""
     for task in Path(f"/proc/{os.getpid()}/task").iterdir():
         for child in (task / "children").read_text().split():
-            if b"precond.cli" in Path(f"/proc/{child}/cmdline").read_bytes():
+            if (b"precond.cli" in Path(f"/proc/{child}/cmdline").read_bytes()
+                    and Path(f"/proc/{child}/cwd").resolve() == root):
                 fields = Path(f"/proc/{child}/stat").read_text().rpartition(")")[2].split()
                 return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     raise RuntimeError("no proxy process found")
@@ -78,44 +78,51 @@ async def timed(session: ClientSession, n: int) -> float:
     return elapsed
 
 
-async def bench_mode(mode: str, calls: int, folder: Path) -> dict[str, Any]:
+def summary(direct_s: list[float], proxied_s: list[float], log: Path, calls: int, cpu_s: float
+            ) -> dict[str, Any]:
+    added = [p - d for p, d in zip(proxied_s, direct_s, strict=True)]
+    logged = [json.loads(line) for line in (log / "calls.jsonl").read_text().splitlines()][-calls:]
+    own = [(line["ms"] - line["upstream_ms"]) / 1000 for line in logged]
+    return {"proxied_ms": {"p50": at(proxied_s, 0.5), "p99": at(proxied_s, 0.99)},
+            "added_ms": {"p50": at(added, 0.5), "p99": at(added, 0.99)},
+            "own_work_ms": {"p50": at(own, 0.5), "p99": at(own, 0.99)},
+            "proxy_cpu_ms_per_call": round(cpu_s / calls * 1000, 3)}
+
+
+async def bench_mode(mode: str, calls: int, folder: Path, roots: list[Path]) -> dict[str, Any]:
+    """Each call made directly and through each root's proxy, in an order that turns with the call."""
     rules = folder / "rules.json"
     rules.write_text(json.dumps(RULES))
     judged = ["--mode", mode, "--rules", str(rules)] if mode != "record" else []
-    proxy = ["-m", "precond.cli", "mcp", "--upstream", " ".join([sys.executable, *DESK]),
-             "--log", str(folder / mode), *judged]
-    async with client(DESK) as direct, client(proxy) as proxied:
+    logs = [folder / f"{mode}-{n}" for n in range(len(roots))]
+    async with AsyncExitStack() as stack:
+        direct = await stack.enter_async_context(client(DESK))
+        proxies = [await stack.enter_async_context(client(
+            ["-m", "precond.cli", "mcp", "--upstream", " ".join([sys.executable, *DESK]), "--log", str(log),
+             *judged], root)) for root, log in zip(roots, logs, strict=True)]
+        sessions = [direct, *proxies]
         for n in range(WARM):
-            await timed(direct, n)
-            await timed(proxied, n)
-        direct_s: list[float] = []
-        proxied_s: list[float] = []
-        cpu_before = proxy_cpu_seconds()
+            for session in sessions:
+                await timed(session, n)
+        times: list[list[float]] = [[] for _ in sessions]
+        cpu_before = [proxy_cpu_seconds(root) for root in roots]
         for n in range(calls):
-            if n % 4 < 2:
-                direct_s.append(await timed(direct, n))
-                proxied_s.append(await timed(proxied, n))
-            else:
-                proxied_s.append(await timed(proxied, n))
-                direct_s.append(await timed(direct, n))
-        cpu_used = proxy_cpu_seconds() - cpu_before
-    added = [p - d for p, d in zip(proxied_s, direct_s, strict=True)]
-    logged = [json.loads(line) for line in (folder / mode / "calls.jsonl").read_text().splitlines()][-calls:]
-    own = [(line["ms"] - line["upstream_ms"]) / 1000 for line in logged]
-    return {"mode": mode, "calls": calls,
-            "direct_ms": {"p50": at(direct_s, 0.5), "p99": at(direct_s, 0.99)},
-            "proxied_ms": {"p50": at(proxied_s, 0.5), "p99": at(proxied_s, 0.99)},
-            "added_ms": {"p50": at(added, 0.5), "p99": at(added, 0.99)},
-            "own_work_ms": {"p50": at(own, 0.5), "p99": at(own, 0.99)},
-            "proxy_cpu_ms_per_call": round(cpu_used / calls * 1000, 3)}
+            turn = n % len(sessions)
+            for k in [*range(turn, len(sessions)), *range(turn)]:
+                times[k].append(await timed(sessions[k], n))
+        cpu_used = [proxy_cpu_seconds(root) - before for root, before in zip(roots, cpu_before, strict=True)]
+    return {"mode": mode, "calls": calls, "direct_ms": {"p50": at(times[0], 0.5), "p99": at(times[0], 0.99)},
+            "proxies": {str(root): summary(times[0], times[k + 1], logs[k], calls, cpu_used[k])
+                        for k, root in enumerate(roots)}}
 
 
 async def run(args: argparse.Namespace) -> dict[str, Any]:
-    results: dict[str, Any] = {"cpu": cpu(), "cores": os.cpu_count(), "python": platform.python_version(),
-                               "modes": []}
+    results: dict[str, Any] = {"cpu": cpu(), "cores": os.cpu_count(), "load": os.getloadavg(),
+                               "python": platform.python_version(), "modes": []}
+    roots = [ROOT, *(root.resolve() for root in args.against)]
     with tempfile.TemporaryDirectory() as folder:
         for mode in args.modes.split(","):
-            results["modes"].append(await bench_mode(mode, args.calls, Path(folder)))
+            results["modes"].append(await bench_mode(mode, args.calls, Path(folder), roots))
     return results
 
 
@@ -123,6 +130,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--calls", type=int, default=1000, help="paired calls per mode")
     parser.add_argument("--modes", default="record,enforce,shadow")
+    parser.add_argument("--against", type=Path, action="append", default=[],
+                        help="another checkout of the project (an older version) whose proxy is timed in the same "
+                             "run, call by call with this one's (repeatable)")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
     results = asyncio.run(run(args))

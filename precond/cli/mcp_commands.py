@@ -75,10 +75,15 @@ def mcp(
     api_key: ApiKey = None,
     http: Annotated[int | None, typer.Option(min=1, max=65535, help="Serve streamable HTTP on "
                                              "http://127.0.0.1:PORT/mcp instead of stdio.", show_default=False)] = None,
-    timeout: Annotated[float, typer.Option(min=0.1, max=3600, help="Seconds an upstream has to start or to answer "
-                                           "a call before the client gets an error naming it.")] = 30.0,
+    timeout: Annotated[float, typer.Option(min=0.1, max=3600, help="Seconds an upstream has to answer a call "
+                                           "before the client gets an error naming it.")] = 30.0,
+    start_timeout: Annotated[float, typer.Option(min=0.1, max=3600, help="Seconds an upstream has to start and "
+                                                 "list its tools, at start and when a call starts it again after "
+                                                 "its connection closed.")] = 120.0,
     max_log_bytes: Annotated[int, typer.Option(min=65536, help="Bound of one session's record: a call past it is "
                                                "refused, named.")] = 8 * 1024 * 1024,
+    max_calls_bytes: Annotated[int, typer.Option(min=65536, help="Bound of calls.jsonl: a call past it is refused, "
+                                                 "named, until the file is moved away.")] = 256 * 1024 * 1024,
 ) -> None:
     """Front MCP servers: list their tools unchanged, record every tool call, judge it with a set first."""
     if mode not in MODES:
@@ -93,7 +98,7 @@ def mcp(
     if precondition_set is not None and server is None:
         _fail("--set needs --server URL (the service that holds the set)")
     make = _rules_judge(rules) if rules is not None else _service_judge(precondition_set, server, api_key)
-    _run(upstream, mode, log, http, timeout, max_log_bytes, make)
+    _run(upstream, mode, log, http, (timeout, start_timeout), (max_log_bytes, max_calls_bytes), make)
 
 
 def _service_judge(reference: str | None, server: str | None, api_key: str | None) -> Any:
@@ -107,13 +112,13 @@ def _service_judge(reference: str | None, server: str | None, api_key: str | Non
     return make
 
 
-def _run(upstreams: list[str], mode: str, log: Path, http: int | None, timeout: float, max_log_bytes: int,
-         make: Any) -> None:
+def _run(upstreams: list[str], mode: str, log: Path, http: int | None, timeouts: tuple[float, float],
+         bounds: tuple[int, int], make: Any) -> None:
     import anyio
 
     from precond_client.mcp.serve import Settings, StartError, serve
 
-    settings = Settings(upstreams, mode, log, http, timeout, max_log_bytes)  # type: ignore[arg-type]
+    settings = Settings(upstreams, mode, log, http, timeouts[0], *bounds, timeouts[1])  # type: ignore[arg-type]
     try:
         anyio.run(serve, settings, make)
     except* StartError as group:

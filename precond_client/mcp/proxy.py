@@ -16,6 +16,7 @@ result with the call before it, as an agent's log does.
 from __future__ import annotations
 
 import json
+import sys
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
@@ -34,8 +35,9 @@ from precond_client.mcp.upstreams import Upstream, UpstreamFailure, call, routes
 from precond_client.schemas.api import CallVerdict
 
 Mode = Literal["record", "enforce", "shadow"]
-MAX_SESSIONS = 1000
-"""Sessions kept in memory (the oldest forgotten first; its record stays on disk)."""
+MAX_SESSIONS = 256
+"""Sessions kept in memory, each with its record's file open (the oldest forgotten first, its file closed; its
+record stays on disk, and a call in it later starts a new record)."""
 STDIO = "stdio"
 
 
@@ -57,6 +59,7 @@ class Proxy:
         self.max_log_bytes = max_log_bytes
         self.sessions: OrderedDict[str, Session] = OrderedDict()
         self.tools = [tool for upstream in upstreams for tool in upstream.tools]
+        self.said_full = False
 
     def server(self) -> Server[Any]:
         server: Server[Any] = Server("precond-mcp", on_list_tools=self.list_tools, on_call_tool=self.call_tool)
@@ -77,8 +80,13 @@ class Proxy:
             guard = self.judge.session() if self.judge is not None and self.mode != "record" else None
             found = self.sessions[key] = Session(Recording.start(self.folder, name, self.max_log_bytes), guard)
             while len(self.sessions) > MAX_SESSIONS:
-                self.sessions.popitem(last=False)
+                self.sessions.popitem(last=False)[1].recording.close()
         return found
+
+    def close(self) -> None:
+        """Every record's file closed (each is complete on disk after every call already)."""
+        for session in self.sessions.values():
+            session.recording.close()
 
     async def call_tool(self, ctx: ServerRequestContext[Any], params: mcp_types.CallToolRequestParams
                         ) -> mcp_types.CallToolResult:
@@ -87,7 +95,22 @@ class Proxy:
             raise MCPError(mcp_types.INVALID_PARAMS, f"no tool {params.name[:100]!r} in the upstreams")
         session = self.session(ctx)
         async with session.lock:
-            return await self._serve(session, upstream, params.name, dict(params.arguments or {}))
+            try:
+                self.calls.reserve()
+                self.said_full = False
+            except LogFull as exc:
+                self._full(exc)
+                return _error(f"Error: precond mcp did not make the call {params.name[:100]}: {exc}")
+            try:
+                return await self._serve(session, upstream, params.name, dict(params.arguments or {}))
+            finally:
+                self.calls.release()
+
+    def _full(self, exc: LogFull) -> None:
+        """Said on stderr once per time the bound is reached (the client is told at every call)."""
+        if not self.said_full:
+            print(f"precond mcp: {exc}", file=sys.stderr, flush=True)
+        self.said_full = True
 
     async def _serve(self, session: Session, upstream: Upstream, name: str, arguments: dict[str, Any]
                      ) -> mcp_types.CallToolResult:

@@ -13,11 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import anyio
-from mcp.server.stdio import stdio_server
 
 from precond_client.guard import Judge
 from precond_client.mcp.proxy import Mode, Proxy
 from precond_client.mcp.recorder import CallLog, prepare
+from precond_client.mcp.stdio import serving_stdio
 from precond_client.mcp.tools import function_schema
 from precond_client.mcp.upstreams import StartError, hold
 
@@ -32,8 +32,13 @@ class Settings:
     log: Path
     http: int | None = None
     timeout: float = 30.0
-    """Seconds an upstream has to answer a call (or to start) before the client is told it did not."""
+    """Seconds an upstream has to answer a call before the client is told it did not."""
     max_log_bytes: int = 8 * 1024 * 1024
+    """Bound of one session's record."""
+    max_calls_bytes: int = 256 * 1024 * 1024
+    """Bound of `calls.jsonl`."""
+    start_timeout: float = 120.0
+    """Seconds an upstream has to start and list its tools (at start, and again after its connection closed)."""
 
 
 async def serve(settings: Settings, make_judge: MakeJudge) -> None:
@@ -42,16 +47,20 @@ async def serve(settings: Settings, make_judge: MakeJudge) -> None:
     async with AsyncExitStack() as stack:
         held = await stack.enter_async_context(anyio.create_task_group())
         stack.callback(held.cancel_scope.cancel)  # the upstreams' connections end with the proxy
-        upstreams = [await held.start(hold, target, settings.timeout) for target in settings.upstreams]
+        upstreams = [await held.start(hold, target, settings.timeout, settings.start_timeout)
+                     for target in settings.upstreams]
+        for upstream in upstreams:
+            upstream.group = held  # where a connection that closed is opened again
         schemas = [function_schema(tool) for upstream in upstreams for tool in upstream.tools]
         judge = make_judge(schemas)
-        calls = CallLog(settings.log)
+        calls = CallLog(settings.log, settings.max_calls_bytes)
         stack.callback(calls.close)
         proxy = Proxy(upstreams, settings.mode, judge, sessions, calls, settings.max_log_bytes)
+        stack.callback(proxy.close)
         _write_private(settings.log / "tools.json", json.dumps(schemas, indent=2) + "\n")
         server = proxy.server()
         if settings.http is None:
-            async with stdio_server() as (read, write):
+            async with serving_stdio() as (read, write):
                 await server.run(read, write, server.create_initialization_options())
             return
         import uvicorn

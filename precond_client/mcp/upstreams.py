@@ -4,7 +4,9 @@ a name two upstreams list is refused at start, naming both, since a call could n
 
 A call that fails on the upstream's side (it died, it did not answer within the timeout, it answered something
 that is not a `CallToolResult`) raises `UpstreamFailure` naming the upstream: the proxy answers the client with an
-MCP error and stays up for the other calls and upstreams.
+MCP error and stays up for the other calls and upstreams. An upstream whose connection closed (its process ended,
+its URL stopped answering) is started (or reached) again by the next call to it, within its start timeout; one that
+does not come back fails that call, saying why, and the call after it tries again.
 """
 
 from __future__ import annotations
@@ -16,15 +18,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import anyio
-from anyio.abc import TaskStatus
+from anyio.abc import TaskGroup, TaskStatus
 from mcp import ClientSession, StdioServerParameters, stdio_client
 from mcp import types as mcp_types
 from mcp.client.streamable_http import streamable_http_client
 from mcp.shared.exceptions import MCPError
 from pydantic import ValidationError
 
-START_SECONDS = 120.0
-"""Time an upstream has to start, initialize and list its tools (a Python server's imports take seconds)."""
 MAX_TOOL_PAGES = 100
 """`tools/list` pages read from one upstream: a server that keeps answering with a cursor is cut off, said."""
 
@@ -44,29 +44,34 @@ class Upstream:
     session: ClientSession
     timeout: float
     """Seconds a call may take before the client is told the upstream did not answer."""
+    start_timeout: float
+    """Seconds it has to start, initialize and list its tools (a Python server's imports take seconds)."""
     tools: list[mcp_types.Tool] = field(default_factory=list)
     gone: str | None = None
-    """Why it no longer answers (its connection closed): later calls fail at once with it."""
+    """Why it no longer answers (its connection closed): the next call starts it again first."""
+    group: TaskGroup | None = None
+    """The task group its connection runs in, where a new one is started (None: it is not started again)."""
+    reviving: anyio.Lock = field(default_factory=anyio.Lock)
 
 
 def is_url(target: str) -> bool:
     return target.startswith(("http://", "https://"))
 
 
-async def hold(target: str, timeout: float, *, task_status: TaskStatus[Upstream] = anyio.TASK_STATUS_IGNORED
-               ) -> None:
-    """One upstream's connection, in a task of its own (`task_group.start(hold, target, timeout)` returns the
+async def hold(target: str, timeout: float, start_timeout: float, *,
+               task_status: TaskStatus[Upstream] = anyio.TASK_STATUS_IGNORED) -> None:
+    """One upstream's connection, in a task of its own (`task_group.start(hold, target, ...)` returns the
     `Upstream` once it has listed its tools; `StartError` naming it if it cannot). The SDK's transports run their
     own task groups, which end with an error when the upstream goes (a refused connection, a dead process): that
-    error ends this task only, marking the upstream gone, never the proxy. `timeout`: the seconds a call may take."""
+    error ends this task only, marking the upstream gone, never the proxy."""
     upstream: Upstream | None = None
     started = False
     try:
         async with AsyncExitStack() as stack:
             read, write = await _transport(stack, target)
             session = await stack.enter_async_context(ClientSession(read, write))
-            upstream = Upstream(target, session, timeout)
-            with anyio.fail_after(START_SECONDS):
+            upstream = Upstream(target, session, timeout, start_timeout)
+            with anyio.fail_after(start_timeout):
                 await session.initialize()
                 upstream.tools = await _list_tools(session)
             task_status.started(upstream)
@@ -76,12 +81,13 @@ async def hold(target: str, timeout: float, *, task_status: TaskStatus[Upstream]
         raise
     except TimeoutError:
         if not started:
-            raise StartError(f"upstream {target!r} did not start: no tools listed within {START_SECONDS:.0f} s"
-                             ) from None
+            raise StartError(f"upstream {target!r} did not start: no tools listed within {start_timeout:g} s "
+                             "(--start-timeout)") from None
     except Exception as exc:  # any way a process or a URL can fail, or stop, being an MCP server
         if not started or upstream is None:
             raise StartError(f"upstream {target!r} did not start: {_said(exc)}") from None
-        upstream.gone = _said(exc)
+        if upstream.session is session:  # not yet replaced by a new connection
+            upstream.gone = _said(exc)
 
 
 async def _transport(stack: AsyncExitStack, target: str) -> tuple[Any, Any]:
@@ -124,7 +130,7 @@ async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_
     `call_tool`): the result is parsed as a `CallToolResult` but not checked against the tool's output schema,
     which the client behind the proxy does with the schema it listed (it costs about 1 ms a call)."""
     if upstream.gone is not None:
-        raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}")
+        await revive(upstream)
     try:
         request = mcp_types.CallToolRequest(params=mcp_types.CallToolRequestParams(name=name, arguments=arguments))
         return await upstream.session.send_request(request, mcp_types.CallToolResult,
@@ -142,6 +148,23 @@ async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_
     except Exception as exc:  # a broken pipe or a closed stream: the upstream is gone
         upstream.gone = _said(exc)
         raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}") from None
+
+
+async def revive(upstream: Upstream) -> None:
+    """A new connection for an upstream that is gone (its command started again, its URL reached again), within
+    its start timeout; `UpstreamFailure` saying why it is gone and why it did not come back."""
+    async with upstream.reviving:
+        if upstream.gone is None:  # another call revived it while this one waited
+            return
+        failed = f"upstream {upstream.target!r} is gone ({upstream.gone})"
+        if upstream.group is None:
+            raise UpstreamFailure(failed)
+        try:
+            fresh: Upstream = await upstream.group.start(hold, upstream.target, upstream.timeout,
+                                                         upstream.start_timeout)
+        except StartError as exc:
+            raise UpstreamFailure(f"{failed} and did not start again: {_said(exc)}") from None
+        upstream.session, upstream.gone = fresh.session, None
 
 
 def _said(exc: BaseException) -> str:

@@ -295,7 +295,8 @@ def test_a_labelled_call_becomes_a_counterexample_of_the_next_version(learned: t
     assert missing.returncode == 2 and "no call 'call_99'" in missing.stderr
 
 
-def test_a_dead_hung_or_malformed_upstream_is_an_error_naming_it_and_no_call_is_lost(tmp_path: Path) -> None:
+def test_a_dead_hung_or_malformed_upstream_is_an_error_naming_it_no_call_is_lost_and_a_dead_one_restarts(
+        tmp_path: Path) -> None:
     log = tmp_path / "log"
     calls = ["echo", "malformed", "hang", "echo", "die", "echo"]
 
@@ -314,12 +315,15 @@ def test_a_dead_hung_or_malformed_upstream_is_an_error_naming_it_and_no_call_is_
     assert said[0] == said[3] == "hi"
     assert said[1].startswith(f"{named} answered a malformed result")
     assert said[2] == f"{named} did not answer within 2 s (--timeout)"
-    assert said[4].startswith(f"{named} is gone") and said[5].startswith(f"{named} is gone")
+    assert said[4].startswith(f"{named} is gone")
+    assert said[5] == "hi"  # the upstream that died was started again for the next call
     assert not desk.is_error  # the proxy stayed up: the other upstream still serves
     [record] = records(log)
     assert len(record["traj"]) == 2 * (len(calls) + 1)  # every call recorded, each failure as an error
     assert [m["content"].startswith("Error") for m in record["traj"][1:12:2]] == [
-        False, True, True, False, True, True]
+        False, True, True, False, True, False]
+    assert [line["outcome"] for line in call_lines(log)] == [
+        "ok", "upstream failed", "upstream failed", "ok", "upstream failed", "ok", "ok"]
 
 
 def test_a_session_log_is_bounded_and_a_call_past_the_bound_is_refused_named(tmp_path: Path) -> None:
@@ -479,7 +483,7 @@ def test_an_http_upstream_that_goes_away_is_an_error_naming_it_and_the_proxy_sta
         process.wait(timeout=30)
     assert not before.is_error
     assert first.startswith(f"upstream {url!r} "), first
-    assert second.startswith(f"upstream {url!r} is gone"), second
+    assert second.startswith(f"upstream {url!r} is gone") and "did not start again" in second, second
     assert texts(echoed) == "still here"
     [record] = records(log)
     assert len(record["traj"]) == 8
