@@ -14,6 +14,7 @@ from __future__ import annotations
 import fcntl
 import os
 import stat
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, contextmanager, suppress
 from typing import Any, cast
@@ -23,11 +24,8 @@ from mcp.server.stdio import stdio_server
 
 READ_BYTES = 1 << 16
 MAX_LINE = 1 << 28
-"""Bytes a message may have before its newline (256 MiB): a client that never sends one is cut off, said."""
-
-
-class LineTooLong(Exception):
-    """A message longer than `MAX_LINE`: the wire is read no further."""
+"""Bytes a message may have before its newline (256 MiB): past it the wire is read no further (the client's
+connection ends, as at its end of input), said on stderr."""
 
 
 class PipeLines:
@@ -49,7 +47,9 @@ class PipeLines:
                 del self.buffer[: end + 1]
                 return line.decode("utf-8", "replace")
             if len(self.buffer) > MAX_LINE:
-                raise LineTooLong(f"a message of more than {MAX_LINE} bytes without a newline")
+                print(f"precond mcp: a message of more than {MAX_LINE} bytes without a newline: the client's "
+                      "connection is read no further", file=sys.stderr, flush=True)
+                raise StopAsyncIteration
             try:
                 chunk = os.read(self.fd, READ_BYTES)
             except BlockingIOError:

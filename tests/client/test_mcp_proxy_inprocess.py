@@ -1,10 +1,12 @@
 """The MCP proxy's own work, in this process with a stand-in upstream (no transport, no child process): the
 verdicts `enforce` and `shadow` log are the embedded guard's on the recorded history, for any sequence of calls
-(hypothesis); `calls.jsonl` is bounded and a call past its bound is refused, named."""
+(hypothesis); `calls.jsonl` is bounded and a call past its bound is refused, named; the stdio wire's reads and
+writes."""
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -15,6 +17,7 @@ from hypothesis import strategies as st
 from mcp import types as mcp_types
 
 from precond_client.guard import Guard
+from precond_client.mcp import stdio
 from precond_client.mcp.proxy import Mode, Proxy
 from precond_client.mcp.recorder import CallLog, prepare
 from precond_client.mcp.tools import function_schema, spec_for
@@ -128,3 +131,43 @@ def test_calls_jsonl_moved_away_at_its_bound_is_started_again(tmp_path: Path) ->
     assert not anyio.run(run, 1)[0].is_error
     proxy.calls.close()
     assert len(lines(tmp_path)) == 1
+
+
+def test_the_stdio_wire_is_read_in_lines_and_written_whole_on_the_loop(monkeypatch: pytest.MonkeyPatch,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """The proxy's own pipe reads and writes: lines as the SDK reads them (bad UTF-8 replaced, a last line without
+    its newline), a write larger than the pipe holds finished whole while the other end reads, and a message past
+    the bound cut off, said."""
+    inbound, feed = os.pipe()
+    os.set_blocking(inbound, False)
+    os.write(feed, b'{"a": 1}\n{"b": "\xff"}\npartial')
+    os.close(feed)
+
+    async def read_all(fd: int) -> list[str]:
+        return [line async for line in stdio.PipeLines(fd)]
+
+    assert anyio.run(read_all, inbound) == ['{"a": 1}\n', '{"b": "\ufffd"}\n', "partial"]
+    os.close(inbound)
+
+    outbound, sink = os.pipe()
+    os.set_blocking(sink, False)
+    big = "x" * (4 << 20) + "\n"
+
+    async def write_and_read() -> str:
+        async with anyio.create_task_group() as group:
+            group.start_soon(stdio.PipeWriter(sink).write, big)
+            return await anext(stdio.PipeLines(outbound))
+
+    os.set_blocking(outbound, False)
+    assert anyio.run(write_and_read) == big
+    os.close(sink)
+    os.close(outbound)
+
+    monkeypatch.setattr(stdio, "MAX_LINE", 1024)
+    endless, feed = os.pipe()
+    os.set_blocking(endless, False)
+    os.write(feed, b"y" * 4096)
+    assert anyio.run(read_all, endless) == []
+    assert "more than 1024 bytes without a newline" in capsys.readouterr().err
+    os.close(feed)
+    os.close(endless)
