@@ -1,16 +1,19 @@
 """What `precond mcp` adds to a tool call: the refund desk of examples/mcp called directly and through the proxy,
 both over stdio with the SDK's client, paired call by call in one run.
 
-    python bench/mcp_proxy_bench.py [--calls 1000] [--modes record,enforce,shadow] [--json out.json]
+    python bench/mcp_proxy_bench.py [--calls 1000] [--modes record,enforce,shadow] [--against OLD] [--json out.json]
 
 Per mode, `--calls` calls alternate a read (`get_order`) and a write (`refund_order`, judged by the read-before-
-write rule in `enforce` and `shadow`); each call is made once directly and once through the proxy, in turn (which
-goes first alternates). `added` is the through-the-proxy time less the direct time of the same pair: p50/p99.
-`own_work_ms` is the proxy's own work on a call, from its `calls.jsonl` (the call's time less the upstream's:
-judging, recording, logging), the rest of `added` being the second MCP hop (the SDK's transports and dispatch in
-the proxy process). `proxy_cpu_ms_per_call` is the proxy process's CPU time (user + system, from /proc) over the
-calls, which other processes on a shared machine do not add to. Wall-clock figures on a busy machine include other
-processes' time slices: say so with them.
+write rule in `enforce` and `shadow`); each call is made once directly and once through each proxy, in an order
+that turns with the call. `--against DIR` (repeatable) adds the proxy of another checkout of the project (an
+older version, e.g. `git worktree add` or `git archive` of a commit) to the same run, its process started from
+DIR, so that two versions are timed under the same load, call by call. `added` is the through-the-proxy time less
+the direct time of the same call: p50/p99. `own_work_ms` is the proxy's own work on a call, from its
+`calls.jsonl` (the call's time less the upstream's: judging, recording, logging), the rest of `added` being the
+second MCP hop (the SDK's transports and dispatch in the proxy process). `proxy_cpu_ms_per_call` is the proxy
+process's CPU time (user + system, from /proc) over the calls, which other processes on a shared machine do not
+add to. Wall-clock figures on a busy machine include other processes' time slices: say so with them (`load` is
+the load average at the start).
 """
 
 from __future__ import annotations
