@@ -118,7 +118,8 @@ def _run(upstreams: list[str], mode: str, log: Path, http: int | None, timeouts:
 
     from precond_client.mcp.serve import Settings, StartError, serve
 
-    settings = Settings(upstreams, mode, log, http, timeouts[0], *bounds, timeouts[1])  # type: ignore[arg-type]
+    settings = Settings(upstreams, mode, log, http, timeout=timeouts[0], start_timeout=timeouts[1],  # type: ignore[arg-type]
+                        max_log_bytes=bounds[0], max_calls_bytes=bounds[1])
     try:
         anyio.run(serve, settings, make)
     except* StartError as group:

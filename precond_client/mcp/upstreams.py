@@ -51,6 +51,9 @@ class Upstream:
     """Why it no longer answers (its connection closed): the next call starts it again first."""
     group: TaskGroup | None = None
     """The task group its connection runs in, where a new one is started (None: it is not started again)."""
+    scope: anyio.CancelScope | None = None
+    """Its connection's task: cancelled when a new connection replaces it (a process that died leaves its pipes
+    and the task that read them, ended here)."""
     reviving: anyio.Lock = field(default_factory=anyio.Lock)
 
 
@@ -68,9 +71,10 @@ async def hold(target: str, timeout: float, start_timeout: float, *,
     started = False
     try:
         async with AsyncExitStack() as stack:
+            scope = stack.enter_context(anyio.CancelScope())
             read, write = await _transport(stack, target)
             session = await stack.enter_async_context(ClientSession(read, write))
-            upstream = Upstream(target, session, timeout, start_timeout)
+            upstream = Upstream(target, session, timeout, start_timeout, scope=scope)
             with anyio.fail_after(start_timeout):
                 await session.initialize()
                 upstream.tools = await _list_tools(session)
@@ -159,12 +163,14 @@ async def revive(upstream: Upstream) -> None:
         failed = f"upstream {upstream.target!r} is gone ({upstream.gone})"
         if upstream.group is None:
             raise UpstreamFailure(failed)
+        if upstream.scope is not None:
+            upstream.scope.cancel()  # the old connection's process and pipes, closed
         try:
             fresh: Upstream = await upstream.group.start(hold, upstream.target, upstream.timeout,
                                                          upstream.start_timeout)
         except StartError as exc:
             raise UpstreamFailure(f"{failed} and did not start again: {_said(exc)}") from None
-        upstream.session, upstream.gone = fresh.session, None
+        upstream.session, upstream.scope, upstream.gone = fresh.session, fresh.scope, None
 
 
 def _said(exc: BaseException) -> str:

@@ -343,6 +343,31 @@ def test_a_session_log_is_bounded_and_a_call_past_the_bound_is_refused_named(tmp
     assert [line["outcome"] for line in call_lines(log)][2:] == ["refused: log full"] * 2
 
 
+def test_calls_jsonl_at_its_bound_refuses_the_call_named_until_the_file_is_moved_away(tmp_path: Path) -> None:
+    log = tmp_path / "log"
+    log.mkdir()
+    (log / "calls.jsonl").write_text("{}\n" * 20_000)  # 60 KB of 64 KiB: no room for a call's line
+    stderr = tmp_path / "stderr"
+
+    async def run() -> list[Any]:
+        params = StdioServerParameters(command=sys.executable, cwd=str(ROOT),
+                                       args=proxy_args(log, "--max-calls-bytes", "65536"))
+        with stderr.open("w") as errlog:
+            async with stdio_client(params, errlog=errlog) as (read, write), ClientSession(read, write) as session:
+                await session.initialize()
+                first = await play(session, [("get_order", {"order_id": "A100"})] * 2)
+                (log / "calls.jsonl").rename(log / "calls.1.jsonl")
+                return [*first, *await play(session, [("get_order", {"order_id": "A100"})])]
+
+    refused, again, made = asyncio.run(run())
+    assert refused.is_error and again.is_error and not made.is_error
+    assert "calls.jsonl reached its bound (65536 bytes, --max-calls-bytes)" in texts(refused)
+    assert stderr.read_text().count("calls.jsonl reached its bound") == 1  # said once on the proxy's stderr
+    assert [line["outcome"] for line in call_lines(log)] == ["ok"]
+    [record] = records(log)
+    assert len(record["traj"]) == 2  # the refused calls were not made, nor recorded
+
+
 @pytest.mark.parametrize(("args", "said"), [
     (["--mode", "enforce"], "--mode enforce needs the rules"),
     (["--mode", "record", "--rules", "x.json"], "--mode record judges nothing"),
