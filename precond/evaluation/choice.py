@@ -46,6 +46,11 @@ CHOICES: tuple[Choice, ...] = (
             "empty-available": "notices=empty-available", "off": "notices=off"}, "found-asked-available"),
     Choice("answer slips", "`options.answer_slips`: the evidence weighting's bound on slips (0: a notice keeps "
            "'an answer came')", {"0.3": "", "0": "slips=0"}, "0.3"),
+    Choice("tolerance", "`options.tolerance`: the share of an action's demonstrated calls a rule may miss and still "
+           "hold (0: the paper's strict validation)", {"0.05": "", "0": "tol=0"}, "0.05"),
+    Choice("unseen", "`options.unseen`: what a never-demonstrated guarded action gets when no prior and no guess "
+           "decides it (`refuse`: the rule `False`; `allow`: no rule)", {"refuse": "", "allow": "unseen=allow"},
+           "refuse"),
 )
 
 
