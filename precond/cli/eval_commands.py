@@ -443,10 +443,14 @@ def domains(
     max_unsafe: Annotated[float | None, typer.Option(
         min=0.0, max=1.0, help="Fail (exit 1, naming each domain and its numbers) when a config's counterfactual "
                                "unsafe share on any domain exceeds this bound.")] = None,
+    unsafe_against: Annotated[str | None, typer.Option(
+        help="Fail (exit 1, naming each domain) when a config's unsafe share on any domain exceeds this config's "
+             "beyond noise (precond/evaluation/choice.py); the config is measured too.")] = None,
 ) -> None:
     """Every development domain (SGD, STAR, ALFWorld): per benchmark the mean, the worst domain and the domains at
     or below `always`, for the paper's F1 and the counterfactual metric (precond/evaluation/generalisation.py);
     with `--max-unsafe`, a config that breaks the bound on any domain fails the command."""
+    from precond.evaluation.choice import raised_against
     from precond.evaluation.configs import expand
     from precond.evaluation.generalisation import (
         DEFAULT_CONFIGS,
@@ -459,9 +463,7 @@ def domains(
     from precond.evaluation.scoring import Satisfaction
 
     store = JsonCache(cache_dir)
-    chosen = expand(configs or DEFAULT_CONFIGS)
-    if not any(c.name == "always" for c in chosen):
-        chosen = [*chosen, *expand("always")]  # the `<=always` column needs it
+    chosen = expand(",".join([configs or DEFAULT_CONFIGS, "always", unsafe_against or ""]))  # `<=always` needs it
     engine = _memo_engine(store)[0]  # completions remembered: a config that asks the same question pays once
     rows = evaluate(_domains(data, "state"), chosen, store, Satisfaction(_sandbox(), store),
                     lambda: engine.infer, variants, seed)
@@ -472,6 +474,54 @@ def domains(
     breaches = unsafe_breaches(rows, max_unsafe) if max_unsafe is not None else []
     if breaches:
         typer.echo(f"error: {len(breaches)} domain(s) above --max-unsafe:\n  " + "\n  ".join(breaches), err=True)
+    raised = raised_against(rows, unsafe_against) if unsafe_against else []
+    if raised:
+        typer.echo(f"error: {len(raised)} domain(s) less safe than {unsafe_against}:\n  " + "\n  ".join(raised),
+                   err=True)
+    if breaches or raised:
+        raise typer.Exit(1)
+
+
+def choose(
+    data: DataOption = None,
+    base: Annotated[str, typer.Option(help="The config each candidate changes (model-free: the model is not "
+                                           "loaded).")] = "enumerate/cautious/guard=spec/lib=lodo",
+    only: Annotated[str, typer.Option("--choices", help="Comma-separated choice names (default: all).")] = "",
+    variants: VariantsOption = 4,
+    seed: SeedOption = 0,
+    cache_dir: CacheOption = DEFAULT_CACHE,
+    out: Annotated[Path | None, typer.Option(help="Also write the tables to this Markdown file.")] = None,
+) -> None:
+    """Each data-driven choice of the learner (precond/evaluation/choice.py): its candidates on every development
+    domain, picked by leave-one-domain-out on F1 among those that raise the counterfactual unsafe share on no
+    domain beyond noise. Exit 1 naming the choice when a pick is not what ships, or when a run failed."""
+    from precond.evaluation.choice import CHOICES, by_candidate, config_name, decide
+    from precond.evaluation.configs import expand
+    from precond.evaluation.safety import evaluate
+    from precond.evaluation.scoring import Satisfaction
+
+    wanted = [c.strip() for c in only.split(",") if c.strip()]
+    unknown = [w for w in wanted if w not in {c.name for c in CHOICES}]
+    if unknown:
+        raise typer.BadParameter(f"unknown choice(s) {unknown}; known: {[c.name for c in CHOICES]}",
+                                 param_hint="--choices")
+    store = JsonCache(cache_dir)
+    domains_ = _domains(data, "state")
+    sat = Satisfaction(_sandbox(), store)
+    texts, differ = [], []
+    for choice in [c for c in CHOICES if not wanted or c.name in wanted]:
+        configs = expand(",".join(config_name(base, s) for s in choice.candidates.values()))
+        rows = evaluate(domains_, configs, store, sat, lambda: _engine(False).infer, variants, seed)
+        _fail_on_errors(rows)
+        outcome = decide(choice, by_candidate(choice, base, rows))
+        texts.append(outcome.text)
+        typer.echo(outcome.text)
+        if outcome.picked != choice.shipped:
+            differ.append(f"{choice.name}: picked {outcome.picked}, ships {choice.shipped}")
+    if out is not None:
+        out.write_text("\n".join(texts), encoding="utf-8")
+    if differ:
+        typer.echo("error: the shipped default is not the pick:\n  " + "\n  ".join(differ), err=True)
         raise typer.Exit(1)
 
 
@@ -532,6 +582,7 @@ def register(app: typer.Typer) -> None:
     group.command("counterfactual")(counterfactual)
     group.command("transfer")(transfer)
     group.command("domains")(domains)
+    group.command("choose")(choose)
     group.command("library")(library)
     group.command("tools")(tools)
     group.command("report")(report)

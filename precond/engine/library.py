@@ -9,10 +9,11 @@ whose spec shares a source's vocabulary (`applies`). They are candidates like a 
 kept one says `decided: transferred` with `library:<domain>` as its source. The tenant's own priors come on top:
 where a request carries its own prior rules for an action, the library is silent about that action.
 
-Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed",
-"nothing was found") needs a result that is no success, a success notice a success, in every domain whose spec
-defines the result, demonstrated or not (`Library.signed`; the selection keeps one unless the request's
-demonstrations refute it), whatever else the domain learned (a disjunction with the user's thanks).
+Beside the domains' rules it ships the *signed notices* (`SIGNED`): a failure notice ("Sorry, that failed") needs a
+result that is no success, "nothing was found" and "not available" an answer that is no success, a success notice a
+success, in every domain whose spec defines the result, demonstrated or not (`Library.signed`; the selection keeps
+one unless the request's demonstrations refute it), whatever else the domain learned (a disjunction with the user's
+thanks).
 
 `options.library: "off"` leaves it out. The evaluation builds the library for a held-out domain without that
 domain (precond/evaluation/library.py), so no score comes from rules that saw the domain they are scored on.
@@ -33,11 +34,15 @@ MIN_SHARED_ACTIONS = 3
 REQUEST, GOODBYE, ANYTHING_ELSE...); rules naming what the spec does not define are dropped anyway."""
 SIGNED_SOURCE = "notices"
 SIGNED: dict[str, tuple[str, ...]] = {"FAIL": ("not self.query_success",),
-                                      "NOTHING_FOUND": ("not self.query_success",),
+                                      "NOTHING_FOUND": ("self.query_success is False",),
+                                      "NOT_AVAILABLE": ("self.query_success is False",),
                                       "SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}
 """Notices tied to a result of their sign, by a word of the method's name (`NOTIFY_FAILURE`, `INFORM_BOOKING_FAILED`,
-`INFORM_NOTHING_FOUND`; `NOTIFY_SUCCESS`, `INFORM_BOOKING_CONFIRMED`): applied to every spec that defines them
-(`for_spec`)."""
+`INFORM_NOTHING_FOUND`, `INFORM_VENUE_NOT_AVAILABLE`; `NOTIFY_SUCCESS`, `INFORM_BOOKING_CONFIRMED`): applied to every
+spec that defines them (`for_spec`). "Nothing found" and "not available" report an answer, so they need one (`is
+False`: refused before any search); a failure notice needs no success. Chosen by `precond eval choose` (the
+`signed notices` choice: the highest F1 among the readings that raise the counterfactual unsafe share on no
+development domain)."""
 
 
 @dataclass(frozen=True)

@@ -251,18 +251,8 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
     """
     if not chosen_priors:
         return choice
-    prior_decided: dict[str, Decided] = {c.expression: "transferred" for c in chosen_priors}
     if sparse:
-        own_kept = [
-            c for c in choice.chosen if choice.decided.get(c.representative.expression) in ("established", "assumed")
-            and not any(_about(state_read(c.representative.expression), state_read(p.expression))
-                        for p in chosen_priors)]
-        return replace(choice, chosen=[*own_kept, *(Cluster((c,)) for c in chosen_priors)],
-                       decided={**{c.representative.expression: choice.decided[c.representative.expression]
-                                   for c in own_kept}, **prior_decided},
-                       notes={**{e: n for e, n in choice.notes.items()
-                                 if any(e == c.representative.expression for c in own_kept)},
-                              **_notes(chosen_priors)})
+        return _prefer_thin(choice, chosen_priors)
     choice, chosen_priors = _alternatives(choice, chosen_priors, params)
     if not chosen_priors:
         return choice
@@ -291,6 +281,22 @@ def prefer(choice: Choice, chosen_priors: Sequence[Candidate], support: Mapping[
     notes = {e: n for e, n in choice.notes.items() if e in decided}
     return replace(choice, chosen=[*kept, *(Cluster((c,)) for c in transferred)], decided=decided,
                    notes={**notes, **_notes(transferred)})
+
+
+def _prefer_thin(choice: Choice, chosen_priors: Sequence[Candidate]) -> Choice:
+    """A thinly demonstrated (or never demonstrated) action: the priors replace the guesses about the state they
+    read, and the other established or assumed rules stay."""
+    own_kept = [
+        c for c in choice.chosen if choice.decided.get(c.representative.expression) in ("established", "assumed")
+        and not any(_about(state_read(c.representative.expression), state_read(p.expression))
+                    for p in chosen_priors)]
+    prior_decided: dict[str, Decided] = {c.expression: "transferred" for c in chosen_priors}
+    return replace(choice, chosen=[*own_kept, *(Cluster((c,)) for c in chosen_priors)],
+                   decided={**{c.representative.expression: choice.decided[c.representative.expression]
+                               for c in own_kept}, **prior_decided},
+                   notes={**{e: n for e, n in choice.notes.items()
+                             if any(e == c.representative.expression for c in own_kept)},
+                          **_notes(chosen_priors)})
 
 
 def _about(state: frozenset[tuple[str, object]], other: frozenset[tuple[str, object]]) -> bool:

@@ -325,27 +325,25 @@ def explain(
                 f"tolerance ({action_budget(evidence)} of {mask.bit_count()} occurrences), and among the "
                 "points those rules still allow it does not single the occurrences out strongly")
             continue
-        if mine in chosen_sets:
-            if criterion in ("recency", "cautious"):
-                reasons[candidate.expression] = (
-                    f"kept: {held}, no valid rule is stricter, and it was made true before "
-                    f"{rate:.0%} of the occurrences (or is about the action's own arguments)")
-            elif criterion == "marginal":
-                reasons[candidate.expression] = (
-                    f"kept: {held}, no valid rule is stricter, and it still excluded enough of the "
-                    "points the rules before it allowed")
-            else:
-                reasons[candidate.expression] = (
-                    f"kept: {held} and no valid rule is stricter (subsumption-minimal)")
-        elif criterion in ("recency", "cautious"):
-            reasons[candidate.expression] = (
-                f"{held}, but was already true before the user's last turn each time: looks "
-                "like a phase, not a requirement")
-        else:
-            reasons[candidate.expression] = (
-                f"{held}, but excluded less than {MIN_GAIN:.0%} of the points the stricter "
-                "rules already allowed: likely a coincidence")
+        reasons[candidate.expression] = _ranked(criterion, held, rate, mine in chosen_sets)
     return reasons
+
+
+def _ranked(criterion: str, held: str, rate: float, kept: bool) -> str:
+    """Why a minimal, informative rule within the tolerance was kept or passed over by the criterion."""
+    if kept:
+        if criterion in ("recency", "cautious"):
+            return (f"kept: {held}, no valid rule is stricter, and it was made true before "
+                    f"{rate:.0%} of the occurrences (or is about the action's own arguments)")
+        if criterion == "marginal":
+            return (f"kept: {held}, no valid rule is stricter, and it still excluded enough of the "
+                    "points the rules before it allowed")
+        return f"kept: {held} and no valid rule is stricter (subsumption-minimal)"
+    if criterion in ("recency", "cautious"):
+        return (f"{held}, but was already true before the user's last turn each time: looks like a phase, "
+                "not a requirement")
+    return (f"{held}, but excluded less than {MIN_GAIN:.0%} of the points the stricter "
+            "rules already allowed: likely a coincidence")
 
 
 def _explain_zero_shot(valid: Sequence[Candidate], chosen: Sequence[Cluster], evidence: ActionEvidence,

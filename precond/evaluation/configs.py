@@ -33,6 +33,20 @@ from typing import Any, get_args
 from precond_client.schemas.api import DEFAULT_TOLERANCE, Generator, InferOptions, Ranking
 
 BASELINES = ("always", "gt")
+_SUCCESS = {"SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}
+_EMPTY = ("not self.query_success",)
+_ASKED = ("self.query_success is False",)
+NOTICE_READINGS: dict[str, dict[str, tuple[str, ...]]] = {
+    "off": {},
+    "empty": {"FAIL": _EMPTY, "NOTHING_FOUND": _EMPTY, **_SUCCESS},
+    "found-asked": {"FAIL": _EMPTY, "NOTHING_FOUND": _ASKED, **_SUCCESS},
+    "asked": {"FAIL": _ASKED, "NOTHING_FOUND": _ASKED, **_SUCCESS},
+    "found-asked-available": {"FAIL": _EMPTY, "NOTHING_FOUND": _ASKED, "NOT_AVAILABLE": _ASKED, **_SUCCESS},
+    "empty-available": {"FAIL": _EMPTY, "NOTHING_FOUND": _EMPTY, "NOT_AVAILABLE": _EMPTY, **_SUCCESS},
+}
+"""`notices=<reading>`: the signed notices a `lib=lodo` config's library carries (precond/engine/library.py `SIGNED`):
+what a failure notice, "nothing found" and "not available" need of the last result. `empty`: an answer that is no
+success (also before anything was asked); `asked`: an answer came and it was no success."""
 _KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
          "seed": "seed", "judge": "judge", "mnt": "max_new_tokens",
          "rules": "show_rules"}
@@ -82,6 +96,7 @@ class InferConfig:
     max_rate: float | None = None
     sample: int | None = None
     noise: float = 0.0
+    notices: str | None = None
 
     @property
     def base(self) -> InferConfig:
@@ -124,6 +139,7 @@ def parse_config(name: str) -> InferConfig:
     max_rate: float | None = None
     sample: int | None = None
     noise = 0.0
+    notices: str | None = None
     for item in parts[2:]:
         key, _, value = item.partition("=")
         if key == "maxrate":
@@ -144,6 +160,10 @@ def parse_config(name: str) -> InferConfig:
             if value not in ("all", "spec"):
                 raise ValueError(f"config {name!r}: guard={value!r}: expected all or spec")
             options["guarded"] = value
+        elif key == "notices":
+            if value not in NOTICE_READINGS:
+                raise ValueError(f"config {name!r}: notices={value!r}: expected one of {sorted(NOTICE_READINGS)}")
+            notices = value
         elif key == "lib":
             if value not in ("0", "lodo"):
                 raise ValueError(f"config {name!r}: lib={value!r}: expected 0 (no rule library) or lodo")
@@ -154,9 +174,9 @@ def parse_config(name: str) -> InferConfig:
             options[_KEYS[key]] = int(value)
         else:
             known = ", ".join(["demos", "maxrate", "tol", "sample", "noise", "for", "unseen", "lib", "guard",
-                               *_KEYS])
+                               "notices", *_KEYS])
             raise ValueError(f"config {name!r}: unknown key {key!r} (known: {known})")
-    config = InferConfig(name, None, generators, parts[1], demos, options, max_rate, sample, noise)
+    config = InferConfig(name, None, generators, parts[1], demos, options, max_rate, sample, noise, notices)
     config.infer_options()  # fail now on out-of-range values, not after an hour of other configs
     return config
 

@@ -37,6 +37,12 @@ HOW_CHOSEN: dict[str, str] = {
         "before, a thin act keeps what it speaks of beside the priors) chosen by leave-one-domain-out among 7 "
         "variants (none, all, each left out alone) on the 20 development domains' mean F1 of the model-free row: "
         "every held-out domain chose all of them"),
+    "enumerate/cautious/guard=spec/lib=lodo": (
+        "the shipped default without the model: guarded actions from the spec (fixed before measuring), the rule "
+        "library leave-one-domain-out (each domain scored with the `lib=0` rules of the other 20, never its own, "
+        "never ground truth); its data-driven choices (the signed notices' readings, `options.answer_slips`) "
+        "picked by `precond eval choose`: the highest mean F1 over the 21 development domains among the "
+        "candidates that raise the counterfactual unsafe share on no domain beyond noise"),
     "model+enumerate/cautious/guard=spec/lib=lodo/slips=0": "the shipped default with `options.answer_slips` 0 (a "
                                                             "notice keeps 'an answer came'): the comparison for its "
                                                             "declared default 0.3",
@@ -44,8 +50,10 @@ HOW_CHOSEN: dict[str, str] = {
 TEXT = """Per benchmark (SGD: 14 services; STAR: 6 tasks of human agents; ALFWorld valid_unseen): the mean over its
 domains, the worst domain, and `<=always` = how many domains score at or below `always` (no rule) on the paper's
 F1. `unsafe` / `over`: the counterfactual metric ({variants} variants per test dialog, seed {seed}), mean and worst
-domain. "how chosen" says where a row's settings come from; nothing in a row was chosen on the domain it is
-scored on. Regenerate: `precond eval domains` (cached inferences are reused; the model is the embedded CPU model).
+domain. "how chosen" says where a row's settings come from: no rule a row's domain is scored with was inferred on it
+(the library leaves it out), and the learner's data-driven choices were picked on all 21 domains within safety
+(`precond eval choose` also prints the pick each held-out domain gets from the others). Regenerate: `precond eval
+domains --configs "enumerate/cautious/guard=spec/lib=lodo,always,gt"` (model-free; cached inferences are reused).
 """
 
 

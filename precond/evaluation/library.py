@@ -21,7 +21,7 @@ from typing import Any
 
 from precond.engine.library import LIBRARY_FILE, SIGNED, Library, LibrarySource, to_json
 from precond.evaluation.cache import JsonCache
-from precond.evaluation.configs import InferConfig, parse_config
+from precond.evaluation.configs import NOTICE_READINGS, InferConfig, parse_config
 from precond.evaluation.domains import Domain
 
 InferFn = Callable[[Any], Any]
@@ -30,7 +30,7 @@ BENCHMARK_DIRS = ("sgd", "star", "alfworld")
 
 def source_config(config: InferConfig) -> InferConfig:
     """The same configuration without the library: what a source's rules are inferred with."""
-    name = "/".join(p for p in config.name.split("/") if not p.startswith("lib="))
+    name = "/".join(p for p in config.name.split("/") if not p.startswith(("lib=", "notices=")))
     return parse_config(name)
 
 
@@ -55,14 +55,16 @@ def source_of(domain: Domain, rules: dict[str, list[str]]) -> LibrarySource:
 
 def build(domains: Sequence[Domain], config: InferConfig, cache_: JsonCache,
           infer_one: Callable[[Domain, InferConfig], Any]) -> Library:
-    """One source per domain: its `lib=0` inference (one that failed gives none)."""
+    """One source per domain: its `lib=0` inference (one that failed gives none), and the config's signed
+    notices (`notices=`; the shipped ones by default)."""
     plain = source_config(config)
     sources = []
     for domain in domains:
         result = infer_one(domain, plain)
         if result.error is None:
             sources.append(source_of(domain, result.preconditions))
-    return Library(tuple(sources), dict(SIGNED))
+    signed = NOTICE_READINGS[config.notices] if config.notices else SIGNED
+    return Library(tuple(sources), dict(signed))
 
 
 def held_out(library: Library, domain: Domain) -> Library:

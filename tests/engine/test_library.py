@@ -112,15 +112,16 @@ def test_signed_notices_apply_to_every_spec_that_defines_them() -> None:
     library = from_json(to_json(shipped())).without("Alarm_1")
     found = dict(library.for_spec(["BOT.NOTIFY_FAILURE", "BOT.Pay"]))
     assert found["library:notices"] == {"BOT.NOTIFY_FAILURE": ["not self.query_success"]}
-    assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["not self.query_success"]
+    assert library.signed_rules("BOT.INFORM_NOTHING_FOUND") == ["self.query_success is False"]
+    assert library.signed_rules("BOT.INFORM_VENUE_NOT_AVAILABLE") == ["self.query_success is False"]
     assert library.signed_rules("BOT.INFORM_BOOKING_CONFIRMED") == ["self.query_success"]
     assert library.signed_rules("BOT.ASK_CONFIRM_BOOKING") == []
     assert shipped().signed == SIGNED
 
 
-def test_a_never_demonstrated_nothing_found_needs_an_answer_that_is_no_success(engine: Engine) -> None:
+def test_a_never_demonstrated_nothing_found_needs_an_empty_answer(engine: Engine) -> None:
     """No source of the library speaks this vocabulary and no demonstration shows "nothing found": the signed
-    notice gives it its rule (without it: refused everywhere), refused after a success."""
+    notice gives it its rule (without it: refused everywhere), refused after a success and before any search."""
     spec = SPEC.replace("  def NOTIFY_FAILURE(self): pass\n", "  def INFORM_NOTHING_FOUND(self): pass\n")
     engine.library = Library((), dict(SIGNED))
     try:
@@ -128,6 +129,6 @@ def test_a_never_demonstrated_nothing_found_needs_an_answer_that_is_no_success(e
                                              options=InferOptions(generators=["enumerate"])))
     finally:
         engine.library = LIBRARY
-    assert response.preconditions["SYSTEM.INFORM_NOTHING_FOUND"] == ["not self.query_success"]
-    evidence = response.evidence["SYSTEM.INFORM_NOTHING_FOUND"]["not self.query_success"]
+    assert response.preconditions["SYSTEM.INFORM_NOTHING_FOUND"] == ["self.query_success is False"]
+    evidence = response.evidence["SYSTEM.INFORM_NOTHING_FOUND"]["self.query_success is False"]
     assert (evidence.decided, evidence.source) == ("transferred", "library:notices")
