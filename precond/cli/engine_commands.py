@@ -21,7 +21,7 @@ from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
 from precond.convert.shape import ConvertError, parse_json
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_SOURCE_NAME_CHARS,
     CheckRequest,
     InferOptions,

@@ -64,7 +64,7 @@ from precond.sandbox.types import (
     SandboxUnavailable,
     TraceResult,
 )
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_CALL_CHARS,
     Blocked,
     CallVerdict,
@@ -800,5 +800,3 @@ def _exceptions_of(chosen: Mapping[str, Sequence[str]], ranked: Mapping[str, Ran
                 for occ in ranked[action].evidence[expression].exceptions:
                     steps.setdefault(occ.demo, set()).add(occ.position)
     return steps
-
-

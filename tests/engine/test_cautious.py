@@ -11,7 +11,7 @@ import pytest
 from precond.engine.cautious import polarity
 from precond.engine.engine import UNSEEN_RULE, Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
+from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
 
 CARD_SPEC = """from collections import defaultdict
 class USER:

@@ -13,7 +13,7 @@ import pytest
 from precond.engine.engine import UNSEEN_RULE, Engine
 from precond.engine.library import Library
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_PRIOR_RULES,
     CheckRequest,
     InferOptions,

@@ -12,7 +12,7 @@ import pytest
 
 from precond.engine.engine import UNSEEN_RULE, Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     CheckRequest,
     InferOptions,
     InferRequest,

@@ -47,7 +47,7 @@ from precond.engine.models.store import (
 from precond.engine.models.tree import TokenTree, groups
 from precond.engine.scope import current as current_scope
 from precond.engine.settings import EMBEDDED, PREFIX_CACHE_MB, ModelSettings
-from precond_client.schemas.api import ModelInfo
+from precond_client.schemas import ModelInfo
 from precond_client.schemas.errors import Cancelled
 
 logger = logging.getLogger(__name__)
