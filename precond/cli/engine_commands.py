@@ -317,7 +317,7 @@ def train_policy(
     from precond_client.schemas.training import TrainPolicyRequest
 
     body = _load(request, TrainPolicyRequest)
-    from precond.engine.models.backend import load_weights
+    from precond.engine.models.weights import load_weights
     from precond.engine.settings import ModelSettings
     from precond.engine.spec import parse_spec
     from precond.engine.training import train_policy as train

@@ -28,7 +28,7 @@ import torch
 
 from precond.engine import prompting
 from precond.engine.models.adapters import save_adapter, with_lora
-from precond.engine.models.backend import Weights
+from precond.engine.models.weights import Weights
 from precond.engine.next_action import classify
 from precond.engine.spec import Spec, parse_source
 from precond.programs.checks import instance_classes
