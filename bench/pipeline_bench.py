@@ -34,7 +34,7 @@ from precond.engine.engine import Engine  # noqa: E402
 from precond.engine.models.stopping import StopRule, stop_index  # noqa: E402
 from precond.engine.settings import ModelSettings, SandboxSettings  # noqa: E402
 from precond.evaluation.settings import data_path  # noqa: E402
-from precond_client.schemas.api import (  # noqa: E402
+from precond_client.schemas import (  # noqa: E402
     InferRequest,
     ModelInfo,
     NextActionMode,

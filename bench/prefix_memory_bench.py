@@ -30,7 +30,7 @@ from bench.pipeline_bench import domain, histories  # noqa: E402
 from precond.engine.engine import Engine  # noqa: E402
 from precond.engine.scope import scoped  # noqa: E402
 from precond.engine.settings import ModelSettings, SandboxSettings  # noqa: E402
-from precond_client.schemas.api import NextActionRequest  # noqa: E402
+from precond_client.schemas import NextActionRequest  # noqa: E402
 
 logger = logging.getLogger("prefix_memory_bench")
 

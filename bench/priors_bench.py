@@ -18,7 +18,7 @@ from precond.engine.engine import Engine
 from precond.evaluation.domains import load_domains
 from precond.evaluation.settings import DataSettings
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferOptions, InferRequest, PriorSource
+from precond_client.schemas import InferOptions, InferRequest, PriorSource
 
 
 def _seconds(engine: Engine, request: InferRequest) -> float:

@@ -27,7 +27,7 @@ from precond.convert.labels import counterexamples, read_labels  # noqa: E402
 from precond.convert.openai import Converted, convert  # noqa: E402
 from precond.engine.factory import build_engine  # noqa: E402
 from precond.evaluation.tools_labels import judge  # noqa: E402
-from precond_client.schemas.api import InferRequest  # noqa: E402
+from precond_client.schemas import InferRequest  # noqa: E402
 
 WRITES = ("cancel_pending_order", "modify_pending_order_address", "modify_pending_order_items",
           "modify_pending_order_payment", "return_delivered_order_items", "exchange_delivered_order_items")

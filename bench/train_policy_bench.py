@@ -16,7 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from precond.engine.models.backend import load_weights
+from precond.engine.models.weights import load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
 from precond.engine.training import train_policy

@@ -19,7 +19,7 @@ _SOURCES: dict[str, tuple[str, ...]] = {
     "precond_client.errors": ("Cancelled", "Conflict", "InvalidInput", "JobTimeout", "NotFound", "PrecondError",
                               "RateLimited", "Unauthorized", "Unavailable"),
     "precond_client.history": ("History", "event"),
-    "precond_client.schemas.api": (
+    "precond_client.schemas": (
         "AllowedCall", "CallVerdict", "CheckRequest", "CheckResponse", "HistoryEvent", "InferOptions",
         "InferRequest", "InferResponse", "JobProgress", "JobStatus", "NextActionOptions", "NextActionRequest",
         "NextActionResponse", "PreconditionSet", "PreconditionSetCreate", "PreconditionSetList",
@@ -110,7 +110,7 @@ if TYPE_CHECKING:
         Unavailable,
     )
     from precond_client.history import History, event
-    from precond_client.schemas.api import (
+    from precond_client.schemas import (
         AllowedCall,
         CallVerdict,
         CheckRequest,

@@ -23,7 +23,7 @@ from precond_client.errors import (
     RateLimited,
     Unavailable,
 )
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     ADAPTER_REFERENCE,
     SET_REFERENCE,
     CheckRequest,

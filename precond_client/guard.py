@@ -45,7 +45,7 @@ from precond_client.rule_interpreter import (
     Shape,
     compile_rule,
 )
-from precond_client.schemas.api import CallVerdict, CheckResponse, PreconditionSet, RuleStatus, rule_status
+from precond_client.schemas import CallVerdict, CheckResponse, PreconditionSet, RuleStatus, rule_status
 from precond_client.schemas.tool_schemas import SCHEMA_BROKEN, schema_problem
 
 AGENT_SHAPE = Shape("object", {
@@ -92,7 +92,7 @@ class _Rule:
 
 def _verdict(call: str, allowed: bool, violations: list[str] | None = None, decided: dict[str, str] | None = None,
              error: str | None = None, status: tuple[str, RuleStatus] | None = None) -> CallVerdict:
-    """`status`: the action judged and what its rule rests on (`schemas.api.rule_status`), as the service says."""
+    """`status`: the action judged and what its rule rests on (`schemas.rule_status`), as the service says."""
     # model_construct: every field is already of its type; validation would be most of a check's time
     action, rule_status = status if status is not None else (None, None)
     return CallVerdict.model_construct(call=call, allowed=allowed, violations=violations or [],

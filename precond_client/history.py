@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-from precond_client.schemas.api import MAX_EVENT_ARGS, HistoryEvent
+from precond_client.schemas import MAX_EVENT_ARGS, HistoryEvent
 
 Arg = str | int | float | bool | None
 """What an event argument may be: a scalar. Anything else is refused here, before it is sent."""

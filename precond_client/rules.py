@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from precond_client.schemas.api import RuleEdit
+from precond_client.schemas import RuleEdit
 
 
 def add(action: str, rule: str) -> RuleEdit:

@@ -12,7 +12,7 @@ from pydantic import BaseModel
 
 from precond_client import _core
 from precond_client.errors import JobTimeout, PrecondError
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     CheckRequest,
     CheckResponse,
     InferOptions,

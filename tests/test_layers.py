@@ -20,8 +20,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERS = {f"precond.{name}" for name in ("jobs", "engine", "programs", "sandbox", "gateway", "worker", "cli",
-                                        "evaluation", "stack", "convert")}
+LAYERS = {f"precond.{name}" for name in ("jobs", "store", "patches", "engine", "programs", "sandbox", "gateway",
+                                        "worker", "cli", "evaluation", "stack", "convert")}
 SCHEMAS = "precond_client.schemas"
 OPENAI_LOG = "precond_client.openai_log"
 INTERPRETER = "precond_client.rule_interpreter"
@@ -39,8 +39,10 @@ def p(*names: str) -> set[str]:
 FORBIDDEN: dict[str, set[str]] = {
     "precond.gateway": p("worker", "engine", "cli", "evaluation", "stack"),
     "precond.worker": p("gateway", "cli", "evaluation", "stack"),
-    "precond.engine": p("worker", "jobs", "gateway", "cli", "evaluation", "stack"),
-    "precond.jobs": p("gateway", "worker", "cli", "evaluation", "stack"),
+    "precond.engine": p("worker", "jobs", "store", "gateway", "cli", "evaluation", "stack"),
+    "precond.jobs": p("store", "gateway", "worker", "cli", "evaluation", "stack"),
+    "precond.store": p("gateway", "worker", "engine", "sandbox", "cli", "evaluation", "stack"),
+    "precond.patches": set(PROJECT) - p("patches"),
     "precond.sandbox": set(PROJECT) - p("sandbox", "programs"),
     "precond.programs": set(PROJECT) - p("programs"),
     SCHEMAS: set(PROJECT) - {SCHEMAS},
@@ -106,7 +108,7 @@ def test_the_checker_sees_imports() -> None:
     # a guard against a walker that finds nothing and so passes everything
     assert ("precond/worker/runner.py", "precond.jobs.queue.heartbeats") in imports("precond.worker")
     assert any(module.startswith("precond.engine.") for _, module in imports("precond.worker"))
-    assert layer_of("precond_client.schemas.api") == SCHEMAS and layer_of("precond_client.aio") == CLIENT
+    assert layer_of("precond_client.schemas") == SCHEMAS and layer_of("precond_client.aio") == CLIENT
     assert ("precond/convert/openai.py", OPENAI_LOG) in imports("precond.convert")
     assert ("precond_client/guard.py", INTERPRETER) in imports(CLIENT)
 
@@ -145,7 +147,7 @@ def loaded_by(statement: str) -> set[str]:
     ("import precond.jobs.queue.keys, precond.jobs.records, precond.jobs.queue.heartbeats, precond.jobs.cache",
      {*p("sandbox", "engine", "gateway", "worker"), "torch"}),
     ("import precond.worker.runner", {*p("gateway", "cli"), "torch", "transformers"}),
-    ("import precond_client.schemas.api", {*LAYERS, "precond_client.aio", "precond_client.sync", "httpx"}),
+    ("import precond_client.schemas", {*LAYERS, "precond_client.aio", "precond_client.sync", "httpx"}),
     ("import precond_client.guard", {*LAYERS, "httpx", "agents", "langgraph", "langchain_core"}),
 ])
 def test_importing_a_layer_loads_nothing_below_or_above_it(statement: str, never: set[str]) -> None:

@@ -18,7 +18,7 @@ from precond.convert import sgd as sgd_converter
 from precond.convert.shape import ConvertError, load_json
 from precond.programs import checks
 from precond_client.openai_log import MAX_SEEN
-from precond_client.schemas.api import MAX_COUNTEREXAMPLE_RUNS, MAX_LABELLED_CALLS, InferRequest
+from precond_client.schemas import MAX_COUNTEREXAMPLE_RUNS, MAX_LABELLED_CALLS, InferRequest
 
 app = typer.Typer(help="Convert dialog data (SGD files, JSON event logs) to a spec, programs and a request.",
                   no_args_is_help=True)

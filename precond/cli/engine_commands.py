@@ -21,7 +21,7 @@ from pydantic import BaseModel, ValidationError
 from tqdm import tqdm
 
 from precond.convert.shape import ConvertError, parse_json
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_SOURCE_NAME_CHARS,
     CheckRequest,
     InferOptions,
@@ -317,7 +317,7 @@ def train_policy(
     from precond_client.schemas.training import TrainPolicyRequest
 
     body = _load(request, TrainPolicyRequest)
-    from precond.engine.models.backend import load_weights
+    from precond.engine.models.weights import load_weights
     from precond.engine.settings import ModelSettings
     from precond.engine.spec import parse_spec
     from precond.engine.training import train_policy as train

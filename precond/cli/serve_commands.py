@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from precond.gateway.settings import GatewaySettings, get_gateway_settings
-from precond.worker.settings import get_worker_settings
+from precond.worker.settings import WorkerSettings, get_worker_settings
 
 
 def serve(
@@ -55,21 +55,9 @@ def serve(
 
     settings = get_gateway_settings()
     env = _lifted(settings, host) if no_rate_limit else {}
-    if settings.api_keys_file is None:
-        if not _loopback(host) and not no_auth:
-            typer.echo(f"error: refusing to serve on {host} without API keys: anyone who can reach it could use it. "
-                       "Make a key (precond keys create --tenant NAME --file keys.jsonl) and set "
-                       "PRECOND_API_KEYS_FILE, or pass --no-auth.", err=True)
-            raise typer.Exit(2)
-        typer.echo(f"note: no API keys: the API on {host} is open to anyone who can reach it", err=True)
+    _open_or_refused(settings, host, no_auth)
     port = settings.port if port is None else port
-    worker_settings = get_worker_settings()
-    if redis_url is not None:
-        worker_settings = worker_settings.model_copy(update={"redis_url": redis_url})
-    if worker_settings.redis_url is not None and redis_port is not None:
-        typer.echo("error: --redis-port is the port of the private Redis precond serve starts; with --redis-url "
-                   "or REDIS_URL none is started", err=True)
-        raise typer.Exit(2)
+    worker_settings = _worker_settings(redis_url, redis_port)
     try:
         supervisor = Supervisor(
             worker_settings, host, port, workers, data_dir, gateway_processes=settings.processes,
@@ -80,6 +68,30 @@ def serve(
         typer.echo(f"error: {refused.code}", err=True)
         raise typer.Exit(2) from None
     raise typer.Exit(supervisor.run())
+
+
+def _open_or_refused(settings: GatewaySettings, host: str, no_auth: bool) -> None:
+    """Without API keys: exit 2 on an address others reach unless --no-auth, else say the API is open."""
+    if settings.api_keys_file is not None:
+        return
+    if not _loopback(host) and not no_auth:
+        typer.echo(f"error: refusing to serve on {host} without API keys: anyone who can reach it could use it. "
+                   "Make a key (precond keys create --tenant NAME --file keys.jsonl) and set "
+                   "PRECOND_API_KEYS_FILE, or pass --no-auth.", err=True)
+        raise typer.Exit(2)
+    typer.echo(f"note: no API keys: the API on {host} is open to anyone who can reach it", err=True)
+
+
+def _worker_settings(redis_url: str | None, redis_port: int | None) -> WorkerSettings:
+    """The workers' settings with --redis-url; exit 2 for --redis-port beside a Redis that is not started here."""
+    worker_settings = get_worker_settings()
+    if redis_url is not None:
+        worker_settings = worker_settings.model_copy(update={"redis_url": redis_url})
+    if worker_settings.redis_url is not None and redis_port is not None:
+        typer.echo("error: --redis-port is the port of the private Redis precond serve starts; with --redis-url "
+                   "or REDIS_URL none is started", err=True)
+        raise typer.Exit(2)
+    return worker_settings
 
 
 def _lifted(settings: GatewaySettings, host: str) -> dict[str, str]:
@@ -145,7 +157,7 @@ def prepare_model() -> None:
     """Convert the configured model (`MODEL_*`) into MODEL_CACHE_DIR, with its int8 copy where MODEL_QUANT picks
     int8, and exit: a serving pod's init container runs it, so that the worker's memory limit holds the served
     model, not the one-time conversion (a full-width copy)."""
-    from precond.engine.models.backend import serving_weights
+    from precond.engine.models.weights import serving_weights
     from precond.engine.settings import ModelSettings
 
     info = serving_weights(ModelSettings()).info

@@ -24,7 +24,7 @@ from typing import Any
 
 from precond.convert.openai import Converted, Trajectory
 from precond_client.openai_log import PlaceError
-from precond_client.schemas.api import MAX_COUNTEREXAMPLE_RUNS, MAX_LABELLED_CALLS
+from precond_client.schemas import MAX_COUNTEREXAMPLE_RUNS, MAX_LABELLED_CALLS
 
 SHAPE = "{run, message_index, tool, allowed} or {task_id, trial, message_index, tool, allowed}"
 

@@ -62,7 +62,7 @@ from precond.engine.ranking import (
     subsumption,
 )
 from precond.sandbox.types import Point
-from precond_client.schemas.api import Decided
+from precond_client.schemas import Decided
 
 MAX_TERMS = 3
 MAX_DISJUNCTION_ATOMS = 400  # conditions the cover looks at; more are left out and the report says so

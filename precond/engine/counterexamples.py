@@ -41,7 +41,7 @@ from precond.engine.tool_conditions import (
     key,
 )
 from precond.sandbox.types import CandidateResult, Point, TraceResult
-from precond_client.schemas.api import Counterexamples, Decided
+from precond_client.schemas import Counterexamples, Decided
 from precond_client.schemas.errors import InvalidInput
 
 MAX_TERMS = 4

@@ -52,7 +52,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from precond.sandbox.types import Point
-from precond_client.schemas.api import Verdict
+from precond_client.schemas import Verdict
 
 MIN_OCCURRENCES = 3
 MIN_DIALOGS = 3

@@ -11,7 +11,7 @@ from precond.engine.settings import ModelSettings, SandboxSettings
 
 if TYPE_CHECKING:
     from precond.engine.models import CodeModel
-    from precond.engine.models.backend import Weights
+    from precond.engine.models.weights import Weights
 
 
 def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
@@ -40,6 +40,6 @@ def build_engine(with_model: bool = True, min_sandbox_workers: int = 1,
 def training_weights() -> Weights:
     """A fresh, trainable full-width copy of the configured model (`MODEL_*` settings): what a policy training
     loads, in the engine or in a worker's training process."""
-    from precond.engine.models.backend import load_weights
+    from precond.engine.models.weights import load_weights
 
     return load_weights(ModelSettings())

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 from precond.engine import constrained, prompting
 from precond.engine.spec import Spec
 from precond.programs.checks import instance_classes
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_THOUGHT_CHARS,
     AllowedCall,
     CallVerdict,

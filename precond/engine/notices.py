@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from precond.engine.evidence import MIN_DIALOGS, MIN_OCCURRENCES, strict, too_few
 from precond.sandbox.types import Point
-from precond_client.schemas.api import Decided, InferOptions
+from precond_client.schemas import Decided, InferOptions
 
 MAX_LISTED_ASSUMED = 8
 

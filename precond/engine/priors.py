@@ -26,7 +26,7 @@ from precond.engine.spec import Spec, as_error
 from precond.programs import checks
 from precond.programs.checks import normal
 from precond.sandbox.types import CandidateResult
-from precond_client.schemas.api import Decided, InferOptions, Verdict
+from precond_client.schemas import Decided, InferOptions, Verdict
 from precond_client.schemas.errors import InvalidInput
 
 SURVIVING: tuple[Verdict, ...] = ("held", "tolerated", "chance")

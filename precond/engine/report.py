@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from precond.engine.evidence import Evidence, describe
 from precond.engine.ranking import Candidate, Cluster
 from precond.sandbox.types import CandidateResult, Point, TraceResult
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_CALL_CHARS,
     MAX_LISTED_EXCEPTIONS,
     CandidateReport,

@@ -31,7 +31,7 @@ from precond.engine.ranking import (
 from precond.engine.report import Proposals, Ranked
 from precond.engine.tool_relations import labels_only
 from precond.sandbox.types import ActionInfo, CandidateResult, EvaluateResult, TraceResult
-from precond_client.schemas.api import Decided, InferOptions, Verdict
+from precond_client.schemas import Decided, InferOptions, Verdict
 
 
 @dataclass(frozen=True)

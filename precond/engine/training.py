@@ -28,11 +28,11 @@ import torch
 
 from precond.engine import prompting
 from precond.engine.models.adapters import save_adapter, with_lora
-from precond.engine.models.backend import Weights
+from precond.engine.models.weights import Weights
 from precond.engine.next_action import classify
 from precond.engine.spec import Spec, parse_source
 from precond.programs.checks import instance_classes
-from precond_client.schemas.api import MAX_CALL_CHARS
+from precond_client.schemas import MAX_CALL_CHARS
 from precond_client.schemas.errors import Cancelled, InvalidInput
 from precond_client.schemas.training import (
     MAX_KNOWN_CALLS,

@@ -24,7 +24,7 @@ from precond.evaluation.domains import action_positions, parse_command
 from precond.evaluation.metrics import percentile
 from precond.evaluation.policy import PolicyConfig, PolicyEngine
 from precond.evaluation.stats import bootstrap, paired_difference
-from precond_client.schemas.api import NextActionOptions, NextActionRequest
+from precond_client.schemas import NextActionOptions, NextActionRequest
 from precond_client.schemas.errors import PrecondError
 
 

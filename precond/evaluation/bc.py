@@ -15,7 +15,7 @@ from pathlib import Path
 import torch
 
 from precond.engine.models.adapters import RESULT, read_result
-from precond.engine.models.backend import load_weights
+from precond.engine.models.weights import load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
 from precond.engine.training import OBJECTIVE, train_policy

@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, get_args
 
-from precond_client.schemas.api import DEFAULT_TOLERANCE, Generator, InferOptions, Ranking
+from precond_client.schemas import DEFAULT_TOLERANCE, Generator, InferOptions, Ranking
 
 BASELINES = ("always", "gt")
 _SUCCESS = {"SUCCESS": ("self.query_success",), "CONFIRMED": ("self.query_success",)}

@@ -42,7 +42,7 @@ from tqdm import tqdm
 from precond.evaluation.cache import JsonCache
 from precond.evaluation.domains import SGD_SETUP_STATEMENTS, Domain
 from precond.evaluation.metrics import mean, percentile, turn_f1
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     CheckRequest,
     CheckResponse,
     NextActionOptions,

@@ -23,7 +23,7 @@ from precond.evaluation.noise import corrupt, sample
 from precond.evaluation.ranking_probe import rerank
 from precond.evaluation.scoring import Satisfaction, score
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferRequest, InferResponse
+from precond_client.schemas import InferRequest, InferResponse
 from precond_client.schemas.errors import PrecondError
 
 InferFn = Callable[[InferRequest], InferResponse]

@@ -19,7 +19,7 @@ from typing import Any
 
 from precond.convert.openai import Converted, Trajectory, convert
 from precond_client.openai_log import Call
-from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest
+from precond_client.schemas import CheckRequest, InferOptions, InferRequest
 
 NOW = "2024-05-15T15:00:00"
 """policy.md: "The current time is 2024-05-15 15:00:00 EST." (reservations' `created_at` is in the same zone)."""

@@ -24,7 +24,7 @@ from typing import Any
 from precond.convert.labels import Label, counted, on_calls, read_labels
 from precond.convert.openai import Converted, Trajectory, convert
 from precond.evaluation.tools_labels import REASONS, Judged, reason_of, scores
-from precond_client.schemas.api import CheckRequest, InferRequest, InferResponse
+from precond_client.schemas import CheckRequest, InferRequest, InferResponse
 
 
 def _json(path: Path) -> Any:

@@ -24,7 +24,7 @@ from typing import Any
 from precond.convert.labels import counterexamples, read_labels
 from precond.convert.openai import Converted, Trajectory
 from precond.evaluation.tools import NOW, WRITES, load
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 RULE_NAMES = ("T1", "T2", "T3", "T4", "T5", "T6", "T7", "T8")
 

@@ -22,7 +22,7 @@ from precond.evaluation.domains import Domain
 from precond.evaluation.metrics import domain_macro
 from precond.evaluation.preconditions import Inference, InferFn, build_request, infer, run_request
 from precond.evaluation.scoring import Satisfaction, score
-from precond_client.schemas.api import PriorSource
+from precond_client.schemas import PriorSource
 
 HEADING = "## Prior rules from the tenant's other services (leave one domain out)"
 TEXT = """Each SGD dev domain is inferred with the default configuration (`{config}`) twice: alone, and with priors =

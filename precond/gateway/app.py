@@ -31,9 +31,9 @@ from precond.gateway.settings import GatewaySettings, get_gateway_settings
 from precond.gateway.worker_view import WorkerView
 from precond.jobs.cache import ResultCache
 from precond.jobs.lifetime import die_with_parent
-from precond.jobs.redis_checkout import check_out_without_read
-from precond.jobs.redis_packing import pack_with_hiredis
-from precond.jobs.redis_sending import send_without_task
+from precond.patches.redis_checkout import check_out_without_read
+from precond.patches.redis_packing import pack_with_hiredis
+from precond.patches.redis_sending import send_without_task
 
 log = logging.getLogger("precond.gateway")
 DESCRIPTION = """Infer verified action preconditions from demonstrations with a code model, pick next actions
@@ -59,36 +59,15 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
         spawner = multiprocessing.parent_process()
         if spawner is not None and spawner.pid is not None:  # one of uvicorn's `--workers`: it ends with
             die_with_parent(spawner.pid)  # uvicorn's supervisor, however that ends
-        dsn = settings.redis_dsn
-        redis: Redis[bytes] = Redis(
-            connection_pool=ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
-        cache_redis: Redis[bytes] = redis
-        if settings.cache_redis_dsn != dsn:  # the cache Redis, which may evict; the queue Redis never does
-            cache_redis = Redis(
-                connection_pool=ConnectionPool.from_url(
-                    settings.cache_redis_dsn, socket_connect_timeout=2, socket_timeout=10
-                )
-            )
-        cache = ResultCache(cache_redis, settings.cache_ttl_s, secret, settings.recent_results_bytes)
-        completions = Completions(dsn)
-        completions.start()
-        auth = AuthLimit(settings.auth_failures_per_s, settings.auth_failure_burst)
-        quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs, auth)
-        queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, settings.tenant_max_jobs,
-                         settings.result_ttl_s)
-        store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes,
-                         settings.max_set_bytes_per_tenant)
-        pool = CheckPool(settings.check_processes, settings.tenant_check_processes)
-        open_rate = SourceBuckets(settings.open_rate_per_s, settings.open_burst)
-        workers = WorkerView(redis)
-        app.state.services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool,
-                                      open_rate, workers)
+        redis, cache_redis = _connections(settings)
+        services, completions = _services(settings, metrics, redis, cache_redis, secret, keys)
+        app.state.services = services
         # What start-up built lives as long as the process; a full collection walked all of it (tens of
         # thousands of objects, milliseconds on the event loop in some request's tail): frozen, it is not.
         gc.freeze()
         yield
-        workers.close()
-        pool.close()
+        services.workers.close()
+        services.checks.close()
         await completions.close()
         for connection in {id(redis): redis, id(cache_redis): cache_redis}.values():
             await connection.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
@@ -106,6 +85,38 @@ def create_app(settings: GatewaySettings | None = None) -> FastAPI:
     app.add_middleware(BlockedSources)  # inside RequestContext: its refusals carry a request id and are counted
     app.add_middleware(RequestContext, metrics=metrics)
     return app
+
+
+def _connections(settings: GatewaySettings) -> tuple[Redis[bytes], Redis[bytes]]:
+    """The queue Redis, and the cache Redis (which may evict; the queue Redis never does): the same connection
+    where they are one server. Nothing connects yet: the gateway starts (and answers 503) while Redis is down."""
+    dsn = settings.redis_dsn
+    redis: Redis[bytes] = Redis(
+        connection_pool=ConnectionPool.from_url(dsn, socket_connect_timeout=2, socket_timeout=10))
+    if settings.cache_redis_dsn == dsn:
+        return redis, redis
+    cache_redis: Redis[bytes] = Redis(connection_pool=ConnectionPool.from_url(
+        settings.cache_redis_dsn, socket_connect_timeout=2, socket_timeout=10))
+    return redis, cache_redis
+
+
+def _services(settings: GatewaySettings, metrics: Metrics, redis: Redis[bytes], cache_redis: Redis[bytes],
+              secret: bytes, keys: KeyStore | None) -> tuple[Services, Completions]:
+    """What every route is served with, and the job-done notices' listener (started here, closed at shutdown)."""
+    cache = ResultCache(cache_redis, settings.cache_ttl_s, secret, settings.recent_results_bytes)
+    completions = Completions(settings.redis_dsn)
+    completions.start()
+    auth = AuthLimit(settings.auth_failures_per_s, settings.auth_failure_burst)
+    quotas = Quotas(redis, settings.tenant_rate_per_s, settings.tenant_burst, settings.tenant_max_jobs, auth)
+    queue = JobQueue(redis, cache, completions, settings.queue_max_jobs, settings.tenant_max_jobs,
+                     settings.result_ttl_s)
+    store = SetStore(redis, settings.max_sets_per_tenant, settings.max_set_versions, settings.max_set_bytes,
+                     settings.max_set_bytes_per_tenant)
+    pool = CheckPool(settings.check_processes, settings.tenant_check_processes)
+    open_rate = SourceBuckets(settings.open_rate_per_s, settings.open_burst)
+    services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool, open_rate,
+                        WorkerView(redis))
+    return services, completions
 
 
 def key_store(settings: GatewaySettings) -> KeyStore | None:

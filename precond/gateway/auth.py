@@ -17,7 +17,7 @@ from precond.gateway.api_keys import KeyStore, unauthorized
 from precond.gateway.caller import Caller
 from precond.gateway.errors import ServiceError
 from precond.jobs.queue.keys import tenant_tag
-from precond_client.schemas.api import ErrorResponse
+from precond_client.schemas import ErrorResponse
 
 if TYPE_CHECKING:
     from precond.gateway.deps import Services

@@ -19,8 +19,8 @@ from redis.exceptions import TimeoutError as RedisTimeoutError
 from starlette.exceptions import HTTPException
 
 from precond.gateway.offload import PoolBroken
+from precond_client.schemas import Blocked, ErrorInfo, ErrorResponse
 from precond_client.schemas import errors as engine_errors
-from precond_client.schemas.api import Blocked, ErrorInfo, ErrorResponse
 
 log = logging.getLogger("precond.gateway")
 
@@ -110,7 +110,7 @@ _PYDANTIC_PREFIX = re.compile(r"^(Value error|Assertion failed), ")
 """How pydantic introduces the message of a validator's ValueError: not the service's words."""
 
 _UNION_TAGS = {"text", "events", "openai"}
-"""pydantic's names for the forms of `history` (schemas.api.History): not part of the field's path."""
+"""pydantic's names for the forms of `history` (schemas.History): not part of the field's path."""
 
 
 def _field(loc: tuple[Any, ...]) -> str:

@@ -21,7 +21,7 @@ from typing import Any
 from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from precond.jobs import patches
+from precond import patches
 
 MAX_REQUEST_HEAD_BYTES = 128 * 1024
 """URL and headers of one request; the longest head a legitimate client of this API sends is a few KiB."""

@@ -31,7 +31,7 @@ from precond.gateway.converted_spec import OpenAISpec, SGDSpec, converted_spec
 from precond_client import rule_interpreter as grammar
 from precond_client.guard import RULE_CHARS, VIOLATION_CHARS, Guard, NotEmbeddable, clean
 from precond_client.rule_interpreter import Evaluate, Frame, WorkExceeded
-from precond_client.schemas.api import rule_status
+from precond_client.schemas import rule_status
 
 JUDGED_BY = "interpreter"
 REMEMBERED_SETS = 64

@@ -21,11 +21,11 @@ from fastapi.routing import APIRoute
 from starlette.datastructures import Headers, MutableHeaders
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from precond import patches
 from precond.gateway import offload
 from precond.gateway.errors import ServiceError, error_response
 from precond.gateway.prometheus import Metrics
-from precond.jobs import patches
-from precond_client.schemas.api import ErrorInfo
+from precond_client.schemas import ErrorInfo
 
 _CLIENT_ID = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 

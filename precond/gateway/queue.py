@@ -29,7 +29,7 @@ from precond.jobs.queue.payloads import (
     decode_progress,
     encode_job,
 )
-from precond_client.schemas.api import ErrorInfo, JobProgress, JobStatus
+from precond_client.schemas import ErrorInfo, JobProgress, JobStatus
 
 SAFETY_POLL_S = 1.0
 """How often a waiting request re-reads its job even while completion notices work (a notice can be lost)."""

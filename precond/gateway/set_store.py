@@ -5,8 +5,8 @@ and is bounded instead: `PRECOND_MAX_SETS_PER_TENANT` sets, `PRECOND_MAX_SET_VER
 `PRECOND_MAX_SET_BYTES` per version. Keys carry the tenant, so another tenant's set is simply not
 there: the same 404 as a set that never existed, without any lookup of owners.
 
-Versions are kept by `precond/jobs/tenant_store.py` (the store trained policies use too) through
-`precond/jobs/precondition_sets.py`, which a worker also uses to append the version a re-inference makes.
+Versions are kept by `precond/store/tenant_store.py` (the store trained policies use too) through
+`precond/store/sets.py`, which a worker also uses to append the version a re-inference makes.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from typing import Any
 from redis.asyncio import Redis
 
 from precond.gateway.errors import ServiceError
-from precond.jobs import tenant_store
-from precond.jobs.precondition_sets import decided, normal, over_bounds, put, summary, tenant_bytes_message
-from precond.jobs.tenant_store import SETS
-from precond_client.schemas.api import (
+from precond.store import tenant_store
+from precond.store.sets import decided, normal, over_bounds, put, summary, tenant_bytes_message
+from precond.store.tenant_store import SETS
+from precond_client.schemas import (
     CandidateReport,
     PreconditionSet,
     PreconditionSetCreate,
@@ -240,7 +240,7 @@ def apply_edits(base: PreconditionSet, edits: list[RuleEdit]) -> tuple[dict[str,
         return normal(rule) in {normal(r) for r in table.get(action, [])}
 
     def drop(table: dict[str, list[str]], action: str, rule: str) -> None:
-        """Every spelling of the rule: `x["a"]` and `x['a']` are one rule (`jobs.precondition_sets.normal`)."""
+        """Every spelling of the rule: `x["a"]` and `x['a']` are one rule (`store.sets.normal`)."""
         if has(table, action, rule):
             table[action] = [r for r in table[action] if normal(r) != normal(rule)]
             if not table[action]:

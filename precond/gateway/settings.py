@@ -8,7 +8,7 @@ from pathlib import Path
 from pydantic import AliasChoices, Field
 
 from precond.jobs.settings import QueueSettings
-from precond_client.schemas.api import MAX_COUNTEREXAMPLE_RUNS
+from precond_client.schemas import MAX_COUNTEREXAMPLE_RUNS
 
 
 class GatewaySettings(QueueSettings):

@@ -15,7 +15,7 @@ from precond.gateway.errors import ServiceError
 from precond.jobs.queue import keys
 from precond.jobs.queue.kinds import tenant_private
 from precond.jobs.queue.steps import QueueFull, TenantFull
-from precond_client.schemas.api import JobKind, JobProgress, JobStatus
+from precond_client.schemas import JobKind, JobProgress, JobStatus
 
 Screen = Callable[[], Awaitable[None]]
 """A check of the request that raises `ServiceError` (422) before anything is queued: run only when the job

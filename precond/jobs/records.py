@@ -15,7 +15,7 @@ from redis.asyncio import Redis
 
 from precond.jobs.queue.keys import STATS_KEY, JobId, progress_key
 from precond.jobs.queue.payloads import encode_progress
-from precond_client.schemas.api import JobKind, JobProgress
+from precond_client.schemas import JobKind, JobProgress
 
 OutcomeState = Literal["succeeded", "failed"]
 

@@ -146,6 +146,12 @@ def hostile_requests(canary_dir: Path) -> list[dict[str, Any]]:
 
 
 def _bodies() -> list[dict[str, Any]]:
+    """Hostile requests: what the wire carries (sizes, nesting, encodings), then what the fields say."""
+    return _wire_bodies() + _field_bodies()
+
+
+def _wire_bodies() -> list[dict[str, Any]]:
+    """Bodies hostile as bytes: too large (declared or streamed), too deep, not UTF-8, not JSON."""
     json_type = {"Content-Type": "application/json"}
     big = json.dumps(infer_body() | {"demonstrations": ["x" * (50 * 1024 * 1024)]}).encode()
 
@@ -160,10 +166,7 @@ def _bodies() -> list[dict[str, Any]]:
     deep_list = b'{"spec": "x", "history": "", "calls": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
     deep_dict = (b'{"spec": "x", "history": "", "calls": ["a.b()"], "preconditions": '
                  + b'{"a": ' * 50_000 + b"1" + b"}" * 50_000 + b"}")
-    deep_python = "x = " + "(" * 150 + "1" + ")" * 150 + "\n" + "y = " + "-" * 100_000 + "1\n"
-    nested_lists = "z = " + "[" * 50_000 + "]" * 50_000 + "\n"
-    huge_name = "A" * 150_000
-    cases: list[dict[str, Any]] = [
+    return [
         {"name": "body:50MB-declared", "method": "POST", "path": "/infer-preconditions", "content": big,
          "headers": json_type, "expect": TOO_LARGE},
         {"name": "body:50MB-chunked", "method": "POST", "path": "/check-actions",
@@ -187,6 +190,15 @@ def _bodies() -> list[dict[str, Any]]:
         {"name": "body:wrong-content-type", "method": "POST", "path": "/check-actions",
          "content": json.dumps(check_body()).encode(), "headers": {"Content-Type": "text/plain"},
          "expect": (*BAD_BODY, 415)},
+    ]
+
+
+def _field_bodies() -> list[dict[str, Any]]:
+    """Well-formed bodies whose fields are hostile: programs too deep, names and keys too long, odd query values."""
+    deep_python = "x = " + "(" * 150 + "1" + ")" * 150 + "\n" + "y = " + "-" * 100_000 + "1\n"
+    nested_lists = "z = " + "[" * 50_000 + "]" * 50_000 + "\n"
+    huge_name = "A" * 150_000
+    return [
         {"name": "body:deep-python-expression", "method": "POST", "path": "/infer-preconditions",
          "json": _infer(infer_body(spec=SPEC + deep_python)), "expect": REJECTED},
         {"name": "body:deep-python-lists", "method": "POST", "path": "/check-actions",
@@ -209,4 +221,3 @@ def _bodies() -> list[dict[str, Any]]:
         {"name": "query:wait-huge", "method": "POST", "path": "/check-actions", "json": check_body(),
          "params": {"wait": "1e308"}, "expect": (200,)},
     ]
-    return cases

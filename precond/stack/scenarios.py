@@ -15,7 +15,8 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -46,38 +47,50 @@ def worker_crashes(stack: Stack, jobs: int, kills: int, millions: int, workers: 
     # One job takes about 0.1 s per million on the CI box; two workers share two cores.
     expected_s = jobs * max(0.4, 0.1 * millions) / workers
 
-    def killer() -> None:
-        gap = expected_s / (kills + 1)
-        for _ in range(kills):
-            if done.wait(gap):
-                return
-            pids = sorted(stack.worker_pids())
-            if not pids:
-                continue
-            victim = random.Random(len(killed)).choice(pids)
-            forks = harness.children(victim)
-            held = harness.claims_of(stack.redis.client(), victim)
-            harness.sigkill(victim)
-            killed.append({"pid": victim, "at": time.monotonic(), "jobs": held})
-            orphans.extend(forks)
-            stack.start_worker()
-
     started = time.monotonic()
-    thread = threading.Thread(target=killer, daemon=True)
+    thread = threading.Thread(target=_killer, args=(stack, kills, expected_s / (kills + 1), done, killed, orphans),
+                              daemon=True)
     thread.start()
-
-    async def run() -> list[dict[str, Any]]:
-        async with httpx.AsyncClient(base_url=stack.base_url, timeout=30) as http:
-            deadline = time.monotonic() + deadline_s
-            return await harness.bounded_gather(clients, [
-                functools.partial(harness.submit_and_follow, http, "/infer-preconditions", b, deadline)
-                for b in bodies
-            ])
-
-    outcomes = asyncio.run(run())
+    outcomes = asyncio.run(_submit_all(stack, bodies, clients, deadline_s))
     done.set()
     thread.join()
     wall = time.monotonic() - started
+    return _crash_report(stack, jobs, outcomes, killed, orphans, wall)
+
+
+def _killer(stack: Stack, kills: int, gap_s: float, done: threading.Event, killed: list[dict[str, Any]],
+            orphans: list[int]) -> None:
+    """SIGKILL a random worker every `gap_s` (`kills` times, until `done`), noting the jobs it held and its
+    sandbox servers, and start a replacement right away."""
+    for _ in range(kills):
+        if done.wait(gap_s):
+            return
+        pids = sorted(stack.worker_pids())
+        if not pids:
+            continue
+        victim = random.Random(len(killed)).choice(pids)
+        forks = harness.children(victim)
+        held = harness.claims_of(stack.redis.client(), victim)
+        harness.sigkill(victim)
+        killed.append({"pid": victim, "at": time.monotonic(), "jobs": held})
+        orphans.extend(forks)
+        stack.start_worker()
+
+
+async def _submit_all(stack: Stack, bodies: list[dict[str, Any]], clients: int, deadline_s: float
+                      ) -> list[dict[str, Any]]:
+    """Every body submitted and followed to its end, `clients` at a time."""
+    async with httpx.AsyncClient(base_url=stack.base_url, timeout=30) as http:
+        deadline = time.monotonic() + deadline_s
+        return await harness.bounded_gather(clients, [
+            functools.partial(harness.submit_and_follow, http, "/infer-preconditions", b, deadline)
+            for b in bodies
+        ])
+
+
+def _crash_report(stack: Stack, jobs: int, outcomes: list[dict[str, Any]], killed: list[dict[str, Any]],
+                  orphans: list[int], wall: float) -> dict[str, Any]:
+    """What the crashes cost: jobs lost or run twice, latencies, the hand-back delay, orphaned servers."""
     client = stack.redis.client()
     ids = [o["id"] for o in outcomes if o["id"]]
     tries = harness.arq_job_tries(client, ids)
@@ -111,6 +124,46 @@ def worker_crashes(stack: Stack, jobs: int, kills: int, millions: int, workers: 
     }
 
 
+def _probe_while_down(http: httpx.Client, job_id: str, until: float, probes: dict[str, list[int]],
+                      retry_after: set[str], latency: list[float]) -> None:
+    """Call every kind of endpoint every 0.2 s until `until`, noting each answer's status, its latency and which
+    answered 503 with a Retry-After."""
+    calls: dict[str, Callable[[], httpx.Response]] = {
+        "POST /check-actions": lambda: http.post("/check-actions", json=check_body("system.REQUEST('area')")),
+        "POST /infer-preconditions": lambda: http.post("/infer-preconditions", json=infer_body(seed=7)),
+        "GET /jobs/{id}": lambda: http.get(f"/jobs/{job_id}"),
+        "GET /ready": lambda: http.get("/ready"),
+        "GET /health": lambda: http.get("/health"),
+    }
+    while time.monotonic() < until:
+        for name, call in calls.items():
+            t = time.monotonic()
+            answer = call()
+            latency.append(time.monotonic() - t)
+            probes.setdefault(name, []).append(answer.status_code)
+            if answer.status_code == 503 and answer.headers.get("Retry-After"):
+                retry_after.add(name)
+        time.sleep(0.2)
+
+
+async def _follow(stack: Stack, accepted: list[str], deadline_s: float) -> list[dict[str, Any]]:
+    """Every accepted job followed to its end (or lost, or past the deadline)."""
+    async with httpx.AsyncClient(base_url=stack.base_url, timeout=30) as http:
+        deadline = time.monotonic() + deadline_s
+
+        async def poll(job_id: str) -> dict[str, Any]:
+            while time.monotonic() < deadline:
+                answer = await http.get(f"/jobs/{job_id}")
+                if answer.status_code == 404:
+                    return {"id": job_id, "state": "lost (404)"}
+                if answer.status_code == 200 and answer.json()["status"] in harness.TERMINAL:
+                    return {"id": job_id, "state": answer.json()["status"]}
+                await asyncio.sleep(0.25)
+            return {"id": job_id, "state": "timed out"}
+
+        return await asyncio.gather(*(poll(j) for j in accepted))
+
+
 # ---- Redis restart ------------------------------------------------------------------------------------
 
 
@@ -139,22 +192,7 @@ def redis_restart(stack: Stack, jobs: int, millions: int, down_s: float, kill: b
         else:
             stack.redis.stop()
         stopped = time.monotonic()
-        calls: dict[str, Callable[[], httpx.Response]] = {
-            "POST /check-actions": lambda: http.post("/check-actions", json=check_body("system.REQUEST('area')")),
-            "POST /infer-preconditions": lambda: http.post("/infer-preconditions", json=infer_body(seed=7)),
-            "GET /jobs/{id}": lambda: http.get(f"/jobs/{accepted[-1]}"),
-            "GET /ready": lambda: http.get("/ready"),
-            "GET /health": lambda: http.get("/health"),
-        }
-        while time.monotonic() - stopped < down_s:
-            for name, call in calls.items():
-                t = time.monotonic()
-                answer = call()
-                probe_latency.append(time.monotonic() - t)
-                probes.setdefault(name, []).append(answer.status_code)
-                if answer.status_code == 503 and answer.headers.get("Retry-After"):
-                    retry_after.add(name)
-            time.sleep(0.2)
+        _probe_while_down(http, accepted[-1], stopped + down_s, probes, retry_after, probe_latency)
         stack.redis.start()
         restarted = time.monotonic()
         wait_until(lambda: http.post("/check-actions", json=check_body("system.REQUEST('city')"),
@@ -164,23 +202,7 @@ def redis_restart(stack: Stack, jobs: int, millions: int, down_s: float, kill: b
         ready_after = time.monotonic() - restarted
         queued_after = int(stack.redis.client().zcard(MODEL_FREE_QUEUE))
 
-    async def follow() -> list[dict[str, Any]]:
-        async with httpx.AsyncClient(base_url=stack.base_url, timeout=30) as http:
-            deadline = time.monotonic() + deadline_s
-
-            async def poll(job_id: str) -> dict[str, Any]:
-                while time.monotonic() < deadline:
-                    answer = await http.get(f"/jobs/{job_id}")
-                    if answer.status_code == 404:
-                        return {"id": job_id, "state": "lost (404)"}
-                    if answer.status_code == 200 and answer.json()["status"] in harness.TERMINAL:
-                        return {"id": job_id, "state": answer.json()["status"]}
-                    await asyncio.sleep(0.25)
-                return {"id": job_id, "state": "timed out"}
-
-            return await asyncio.gather(*(poll(j) for j in accepted))
-
-    outcomes = asyncio.run(follow())
+    outcomes = asyncio.run(_follow(stack, accepted, deadline_s))
     all_done = time.monotonic() - restarted
     return {
         "mode": "SIGKILL" if kill else "SIGTERM",
@@ -354,121 +376,138 @@ def overload(stack: Stack, clients: int, duration_s: float, millions: int, wait_
     """`clients` clients keep posting distinct slow infer jobs at one worker (concurrency 1) for
     `duration_s`, while probes measure cache hits, uncached check-actions and /health, and RSS is sampled."""
     stack.start_worker()
-    gateway, worker = harness.gateway_pid(stack), next(iter(stack.worker_pids()))
-    cached_body = check_body("system.REQUEST('city')")
+    load = _Overload(stack, harness.gateway_pid(stack), next(iter(stack.worker_pids())), clients, duration_s,
+                     millions, wait_s)
     with stack.http() as http:
-        assert http.post("/check-actions", json=cached_body, params={"wait": 10}).status_code == 200
+        assert http.post("/check-actions", json=load.cached_body, params={"wait": 10}).status_code == 200
         for i in range(3):  # warm the worker's engine so "before" is a steady state
             http.post("/infer-preconditions", json=heavy_infer_body(29_000 + i, 1), params={"wait": 30})
-    rss: dict[str, list[int]] = {"gateway": [], "worker": []}
-    mid: dict[str, int] = {}
-
-    def sample() -> None:
-        rss["gateway"].append(harness.rss_kib(gateway))
-        rss["worker"].append(harness.tree_rss_kib(worker))
-
-    sample()
-    before = {k: v[-1] for k, v in rss.items()}
-    statuses: dict[str, int] = {}
-    retry_after_missing = 0
-    post_latency: list[float] = []
-    over_timeout: list[float] = []
-    errors: list[str] = []
-    latencies: dict[str, list[float]] = {"cache_hit": [], "check_actions": [], "health": []}
-    probe_status: dict[str, dict[str, int]] = {k: {} for k in latencies}
-    max_depth = 0
-    counter = iter(range(10**9))
-
-    async def run() -> None:
-        nonlocal retry_after_missing, max_depth
-        end = time.monotonic() + duration_s
-        limits = httpx.Limits(max_connections=clients + 8)
-        async with httpx.AsyncClient(base_url=stack.base_url, timeout=wait_s + 10, limits=limits) as http:
-
-            async def loader(index: int) -> None:
-                nonlocal retry_after_missing
-                while time.monotonic() < end:
-                    body = heavy_infer_body(30_000 + next(counter), millions)
-                    t = time.monotonic()
-                    try:
-                        answer = await http.post("/infer-preconditions", json=body, params={"wait": wait_s})
-                    except httpx.HTTPError as exc:
-                        errors.append(f"{type(exc).__name__}: {exc}")
-                        continue
-                    took = time.monotonic() - t
-                    post_latency.append(took)
-                    if took > wait_s + 2:
-                        over_timeout.append(took)
-                    key = str(answer.status_code)
-                    statuses[key] = statuses.get(key, 0) + 1
-                    if answer.status_code == 429:
-                        if not answer.headers.get("Retry-After", "").isdigit():
-                            retry_after_missing += 1
-                        await asyncio.sleep(0.2)  # impatient clients: far less than Retry-After
-
-            async def probe(name: str, request: Any, period: float) -> None:
-                while time.monotonic() < end:
-                    t = time.monotonic()
-                    try:
-                        answer = await request()
-                        latencies[name].append(time.monotonic() - t)
-                        key = str(answer.status_code)
-                        probe_status[name][key] = probe_status[name].get(key, 0) + 1
-                    except httpx.HTTPError as exc:
-                        errors.append(f"{name}: {type(exc).__name__}: {exc}")
-                    await asyncio.sleep(period)
-
-            def check() -> Any:
-                call = f"system.REQUEST('slot_{next(counter)}')"
-                return http.post("/check-actions", json=check_body(call), params={"wait": wait_s})
-
-            async def monitor() -> None:
-                nonlocal max_depth
-                client = stack.redis.client()
-                half = time.monotonic() + duration_s / 2
-                while time.monotonic() < end:
-                    if half and time.monotonic() >= half:
-                        mid.update(gateway=harness.rss_kib(gateway), worker=harness.tree_rss_kib(worker))
-                        half = 0
-                    max_depth = max(max_depth, int(client.zcard(MODEL_FREE_QUEUE)))
-                    sample()
-                    await asyncio.sleep(0.5)
-
-            await asyncio.gather(
-                *(loader(i) for i in range(clients)),
-                probe("cache_hit", lambda: http.post("/check-actions", json=cached_body), 0.05),
-                probe("check_actions", check, 0.1),
-                probe("health", lambda: http.get("/health"), 0.2),
-                monitor(),
-            )
-
+    load.sample()
+    before = {k: v[-1] for k, v in load.rss.items()}
     started = time.monotonic()
-    asyncio.run(run())
+    asyncio.run(load.run())
     wall = time.monotonic() - started
     time.sleep(1)
-    sample()
-    after = {k: v[-1] for k, v in rss.items()}
-    completed = harness.stats(stack.redis.client()).get("jobs:infer:succeeded", 0)
-    return {
-        "clients": clients,
-        "duration_s": round(wall, 1),
-        "worker_capacity_jobs_per_s": round(completed / wall, 2),
-        "queue_bound": int(stack.env.get("PRECOND_QUEUE_MAX_JOBS", "64")),
-        "max_queue_depth": max_depth,
-        "infer_posts": sum(statuses.values()),
-        "infer_by_status": dict(sorted(statuses.items())),
-        "429_without_retry_after": retry_after_missing,
-        "infer_post_latency": harness.summary_ms(post_latency),
-        "posts_over_wait_plus_2s": len(over_timeout),
-        "client_errors": errors[:10],
-        "client_error_count": len(errors),
-        "cache_hit": harness.summary_ms(latencies["cache_hit"]) | {"status": probe_status["cache_hit"]},
-        "check_actions": harness.summary_ms(latencies["check_actions"]) | {"status": probe_status["check_actions"]},
-        "health": harness.summary_ms(latencies["health"]) | {"status": probe_status["health"]},
-        "rss_mib": {k: {"before": round(before[k] / 1024, 1), "half_time": round(mid.get(k, 0) / 1024, 1),
-                        "peak": round(max(rss[k]) / 1024, 1),
-                        "after": round(after[k] / 1024, 1)} for k in rss},
-    }
+    load.sample()
+    return load.report(wall, before)
+
+
+@dataclass
+class _Overload:
+    """One overload run: its clients, probes and monitor, and what they measured."""
+
+    stack: Stack
+    gateway: int
+    worker: int
+    clients: int
+    duration_s: float
+    millions: int
+    wait_s: float
+    cached_body: dict[str, Any] = field(default_factory=lambda: check_body("system.REQUEST('city')"))
+    rss: dict[str, list[int]] = field(default_factory=lambda: {"gateway": [], "worker": []})
+    mid: dict[str, int] = field(default_factory=dict)
+    statuses: dict[str, int] = field(default_factory=dict)
+    retry_after_missing: int = 0
+    post_latency: list[float] = field(default_factory=list)
+    over_timeout: list[float] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    latencies: dict[str, list[float]] = field(
+        default_factory=lambda: {"cache_hit": [], "check_actions": [], "health": []})
+    probe_status: dict[str, dict[str, int]] = field(
+        default_factory=lambda: {"cache_hit": {}, "check_actions": {}, "health": {}})
+    max_depth: int = 0
+    counter: Iterator[int] = field(default_factory=lambda: iter(range(10**9)))
+    end: float = 0.0
+
+    def sample(self) -> None:
+        self.rss["gateway"].append(harness.rss_kib(self.gateway))
+        self.rss["worker"].append(harness.tree_rss_kib(self.worker))
+
+    async def run(self) -> None:
+        self.end = time.monotonic() + self.duration_s
+        limits = httpx.Limits(max_connections=self.clients + 8)
+        async with httpx.AsyncClient(base_url=self.stack.base_url, timeout=self.wait_s + 10, limits=limits) as http:
+
+            def check() -> Any:
+                call = f"system.REQUEST('slot_{next(self.counter)}')"
+                return http.post("/check-actions", json=check_body(call), params={"wait": self.wait_s})
+
+            await asyncio.gather(
+                *(self.loader(http) for _ in range(self.clients)),
+                self.probe("cache_hit", lambda: http.post("/check-actions", json=self.cached_body), 0.05),
+                self.probe("check_actions", check, 0.1),
+                self.probe("health", lambda: http.get("/health"), 0.2),
+                self.monitor(),
+            )
+
+    async def loader(self, http: httpx.AsyncClient) -> None:
+        """Post distinct slow infer jobs until the end, impatiently after a 429."""
+        while time.monotonic() < self.end:
+            body = heavy_infer_body(30_000 + next(self.counter), self.millions)
+            t = time.monotonic()
+            try:
+                answer = await http.post("/infer-preconditions", json=body, params={"wait": self.wait_s})
+            except httpx.HTTPError as exc:
+                self.errors.append(f"{type(exc).__name__}: {exc}")
+                continue
+            took = time.monotonic() - t
+            self.post_latency.append(took)
+            if took > self.wait_s + 2:
+                self.over_timeout.append(took)
+            key = str(answer.status_code)
+            self.statuses[key] = self.statuses.get(key, 0) + 1
+            if answer.status_code == 429:
+                if not answer.headers.get("Retry-After", "").isdigit():
+                    self.retry_after_missing += 1
+                await asyncio.sleep(0.2)  # impatient clients: far less than Retry-After
+
+    async def probe(self, name: str, request: Any, period: float) -> None:
+        while time.monotonic() < self.end:
+            t = time.monotonic()
+            try:
+                answer = await request()
+                self.latencies[name].append(time.monotonic() - t)
+                key = str(answer.status_code)
+                self.probe_status[name][key] = self.probe_status[name].get(key, 0) + 1
+            except httpx.HTTPError as exc:
+                self.errors.append(f"{name}: {type(exc).__name__}: {exc}")
+            await asyncio.sleep(period)
+
+    async def monitor(self) -> None:
+        """The queue's depth and the processes' RSS every 0.5 s, and their RSS once at half time."""
+        client = self.stack.redis.client()
+        half = time.monotonic() + self.duration_s / 2
+        while time.monotonic() < self.end:
+            if half and time.monotonic() >= half:
+                self.mid.update(gateway=harness.rss_kib(self.gateway), worker=harness.tree_rss_kib(self.worker))
+                half = 0
+            self.max_depth = max(self.max_depth, int(client.zcard(MODEL_FREE_QUEUE)))
+            self.sample()
+            await asyncio.sleep(0.5)
+
+    def report(self, wall: float, before: dict[str, int]) -> dict[str, Any]:
+        after = {k: v[-1] for k, v in self.rss.items()}
+        completed = harness.stats(self.stack.redis.client()).get("jobs:infer:succeeded", 0)
+        probes = {name: harness.summary_ms(self.latencies[name]) | {"status": self.probe_status[name]}
+                  for name in self.latencies}
+        return {
+            "clients": self.clients,
+            "duration_s": round(wall, 1),
+            "worker_capacity_jobs_per_s": round(completed / wall, 2),
+            "queue_bound": int(self.stack.env.get("PRECOND_QUEUE_MAX_JOBS", "64")),
+            "max_queue_depth": self.max_depth,
+            "infer_posts": sum(self.statuses.values()),
+            "infer_by_status": dict(sorted(self.statuses.items())),
+            "429_without_retry_after": self.retry_after_missing,
+            "infer_post_latency": harness.summary_ms(self.post_latency),
+            "posts_over_wait_plus_2s": len(self.over_timeout),
+            "client_errors": self.errors[:10],
+            "client_error_count": len(self.errors),
+            **probes,
+            "rss_mib": {k: {"before": round(before[k] / 1024, 1), "half_time": round(self.mid.get(k, 0) / 1024, 1),
+                            "peak": round(max(self.rss[k]) / 1024, 1),
+                            "after": round(after[k] / 1024, 1)} for k in self.rss},
+        }
 
 
 # ---- graceful shutdown --------------------------------------------------------------------------------

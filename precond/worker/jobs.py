@@ -1,7 +1,7 @@
-"""The arq job: run one engine operation in a thread, report its progress, cache its result.
+"""The job function: run one engine operation in a thread, report its progress, cache its result.
 
 The engine is CPU-bound and synchronous; running it in a thread keeps the worker's event loop free for
-arq's polling, abort checks and the heartbeat. Cancellation crosses the thread boundary as a predicate the
+the queue's polling, abort checks and the heartbeat. Cancellation crosses the thread boundary as a predicate the
 engine polls between steps.
 """
 
@@ -11,7 +11,7 @@ import asyncio
 import json
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from functools import partial
@@ -25,19 +25,15 @@ from precond.engine.scope import scoped
 from precond.jobs.cache import ResultCache
 from precond.jobs.queue.keys import JobId, is_shared
 from precond.jobs.queue.kinds import KINDS
-from precond.jobs.queue.payloads import Outcome, ReinferJob
+from precond.jobs.queue.payloads import Outcome
 from precond.jobs.records import job_counts, record_phase, write_progress
 from precond.worker import policies
 from precond.worker.memory import MemoryGuard
-from precond.worker.queue_worker import JobEnd
-from precond.worker.reinfer import reinfer, store
+from precond.worker.queue_worker import JobContext, JobEnd
+from precond.worker.reinfer import keep as reinfer_keep
+from precond.worker.reinfer import reinfer
 from precond.worker.settings import WorkerSettings
-from precond_client.schemas.api import (
-    ErrorInfo,
-    JobKind,
-    JobProgress,
-    PreconditionSet,
-)
+from precond_client.schemas import ErrorInfo, JobKind, JobProgress
 from precond_client.schemas.errors import PrecondError, ResourceLimit, ResponseTooLarge
 
 ProgressFn = Callable[[str, int, int], None]
@@ -47,7 +43,7 @@ CancelledFn = Callable[[], bool]
 @dataclass
 class JobCounts:
     """The worker's own count of its runs, for its heartbeat: incremented when a run is taken (each try counts)
-    and when it returns its outcome; never derived from arq's internals, never lower."""
+    and when it returns its outcome; never lower."""
 
     started: int = 0
     complete: int = 0
@@ -84,24 +80,38 @@ class ProgressReporter:
         asyncio.run_coroutine_threadsafe(coroutine, self.loop)
 
 
-Runner = Callable[[Engine, Any, ProgressFn, CancelledFn], BaseModel]
+Keep = Callable[[Any, JobId, dict[str, Any], dict[str, Any]], Awaitable[Outcome]]
+
+
+@dataclass(frozen=True)
+class Runner:
+    """What the worker does with one kind's payload: the engine's work (in the job's thread), then, on the event
+    loop, what the kind keeps of a success (a set's next version, a trained policy: its outcome replaces the
+    engine's) and what it leaves behind however the job ends (a training's scratch directory)."""
+
+    run: Callable[[Engine, Any, ProgressFn, CancelledFn], BaseModel]
+    keep: Keep | None = None
+    discard: Callable[[dict[str, Any]], None] | None = None
+
+
 RUNNERS: Final[dict[JobKind, Runner]] = {
-    "infer": lambda engine, job, progress, cancelled: engine.infer(job, progress, cancelled),
-    "next-action": lambda engine, job, progress, cancelled: engine.next_action(job, progress, cancelled),
-    "check": lambda engine, job, _progress, _cancelled: engine.check(job, screened=True),  # by the gateway
-    "validate": lambda engine, job, _progress, _cancelled: engine.validate(
-        job.spec, job.preconditions, job.demonstrations),
-    "reinfer": reinfer,
-    "train-policy": policies.train,
+    "infer": Runner(lambda engine, job, progress, cancelled: engine.infer(job, progress, cancelled)),
+    "next-action": Runner(lambda engine, job, progress, cancelled: engine.next_action(job, progress, cancelled)),
+    "check": Runner(lambda engine, job, _progress, _cancelled: engine.check(job, screened=True)),  # by the gateway
+    "validate": Runner(lambda engine, job, _progress, _cancelled: engine.validate(
+        job.spec, job.preconditions, job.demonstrations)),
+    "reinfer": Runner(reinfer, keep=reinfer_keep),
+    "train-policy": Runner(policies.train, keep=policies.keep, discard=policies.discard),
 }
-"""What the engine does with each kind's payload (`jobs.queue.kinds.KINDS` says which payload that is)."""
+"""What the worker does with each kind's payload (`jobs.queue.kinds.KINDS` says which payload that is)."""
+assert set(RUNNERS) == set(KINDS), "every job kind needs a runner"
 
 
 def _operate(
     engine: Engine, kind: JobKind, body: dict[str, Any], progress: ProgressFn, cancelled: CancelledFn
 ) -> BaseModel:
     job = KINDS[kind].payload.model_validate(body)
-    answer: BaseModel = RUNNERS[kind](engine, job, progress, cancelled)
+    answer: BaseModel = RUNNERS[kind].run(engine, job, progress, cancelled)
     return answer
 
 
@@ -129,70 +139,67 @@ def _outcome(
     return Outcome(status="succeeded", result=result), False
 
 
-async def _store_version(redis: Redis[bytes], job: JobId, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
-    """A re-inference's version, stored (the set's next version) or refused (conflict, bounds): its outcome."""
-    try:
-        stored = await store(redis, job.tenant, ReinferJob.model_validate(body),
-                             PreconditionSet.model_validate(result))
-    except PrecondError as exc:
-        return Outcome.failed(exc)
-    return Outcome(status="succeeded", result=stored.model_dump(mode="json"))
+@dataclass(frozen=True)
+class Serving:
+    """What this worker serves every job with: the engine, its settings, its counts, the result cache, the memory
+    guard and the trained policies' engines."""
+
+    engine: Engine
+    settings: WorkerSettings
+    counts: JobCounts
+    cache: ResultCache
+    memory: MemoryGuard
+    adapted: policies.AdaptedEngines
 
 
 async def run_operation(
-    ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], cache_key: str | None = None
+    serving: Serving, context: JobContext, kind: JobKind, body: dict[str, Any], cache_key: str | None = None
 ) -> JobEnd:
-    """arq entry point. On cancellation (abort, timeout, shutdown) the engine is told and awaited to stop.
-    A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with the
-    job's end (precond/worker/queue_worker.py); a shared one is computed on fresh sandbox children only."""
-    redis: Redis[bytes] = ctx["redis"]
-    job: JobId = ctx["job"]
-    counts: JobCounts = ctx["counts"]
+    """The job function (`QueueWorker`'s, with `serving` bound). On cancellation (abort, timeout, shutdown) the
+    engine is told and awaited to stop. The kind's runner keeps what a success makes and discards what it leaves
+    behind. A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with
+    the job's end (precond/worker/queue_worker.py); a shared one is computed on fresh sandbox children only."""
+    job, runner = context.job, RUNNERS[kind]
     try:
-        engine_of, body = await _engine_for(ctx, job.tenant, kind, body)
-        outcome, sandbox_limit = await _run(ctx, kind, body, engine_of, warm=not is_shared(cache_key or ""))
-        if KINDS[kind].stores_version and outcome.result is not None:
-            outcome = await _store_version(redis, job, body, outcome.result)
-        if KINDS[kind].stores_adapter and outcome.result is not None:
-            outcome = await policies.store(redis, job.tenant, job.value, body, outcome.result)
+        engine_of, body = await _engine_for(serving, context, kind, body)
+        outcome, sandbox_limit = await _run(serving, context, kind, body, engine_of,
+                                            warm=not is_shared(cache_key or ""))
+        if runner.keep is not None and outcome.result is not None:
+            outcome = await runner.keep(context.redis, job, body, outcome.result)
     except PrecondError as exc:
         outcome, sandbox_limit = Outcome.failed(exc), False
     finally:
-        if KINDS[kind].stores_adapter:
-            policies.discard(body)
-    counts.complete += 1
+        if runner.discard is not None:
+            runner.discard(body)
+    serving.counts.complete += 1
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
-    cache: ResultCache = ctx["cache"]
-    writes = () if outcome.result is None else (cache.put(cache_key or job.value, outcome.result),)
+    writes = () if outcome.result is None else (serving.cache.put(cache_key or job.value, outcome.result),)
     return JobEnd(outcome, job_counts(kind, outcome.status, sandbox_limit), writes)
 
 
-async def _engine_for(ctx: dict[str, Any], tag: str, kind: JobKind, body: dict[str, Any]
+async def _engine_for(serving: Serving, context: JobContext, kind: JobKind, body: dict[str, Any]
                       ) -> tuple[Callable[[], Engine], dict[str, Any]]:
     """The engine a job runs on, and its body as it runs: a next action naming a trained policy runs on that
-    policy's engine, read under the job owner's tag (NotFound when it is not the owner's)."""
-    engine: Engine = ctx["engine"]
+    policy's engine, read under the job owner's tenant (NotFound when it is not the owner's)."""
+    engine = serving.engine
     policy = body.get("options", {}).get("policy") if kind == "next-action" else None
     if not policy:
         return (lambda: engine), body
-    stored = await policies.fetch(ctx["redis"], tag, policy)
-    adapted: policies.AdaptedEngines = ctx["policies"]
-    return partial(adapted.engine, engine, stored), policies.with_resolved_policy(body, stored)
+    stored = await policies.fetch(context.redis, context.job.tenant, policy)
+    return partial(serving.adapted.engine, engine, stored), policies.with_resolved_policy(body, stored)
 
 
-async def _run(ctx: dict[str, Any], kind: JobKind, body: dict[str, Any], engine_of: Callable[[], Engine],
-               warm: bool = True) -> tuple[Outcome, bool]:
+async def _run(serving: Serving, context: JobContext, kind: JobKind, body: dict[str, Any],
+               engine_of: Callable[[], Engine], warm: bool = True) -> tuple[Outcome, bool]:
     """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope."""
-    settings: WorkerSettings = ctx["settings"]
-    job: JobId = ctx["job"]
+    settings, job = serving.settings, context.job
     job_id = job.value
-    guard: MemoryGuard = ctx["memory"]
     loop = asyncio.get_running_loop()
-    reporter = ProgressReporter(ctx["redis"], job_id, kind, loop, settings.result_ttl_s)
+    reporter = ProgressReporter(context.redis, job_id, kind, loop, settings.result_ttl_s)
     stop = threading.Event()
     future = loop.run_in_executor(
         None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,
-        job.tenant, partial(guard.running, job_id), warm,
+        job.tenant, partial(serving.memory.running, job_id), warm,
     )
     try:
         return await asyncio.shield(future)

@@ -3,7 +3,7 @@ adapter a next action names.
 
 A training (in a child process, `training_process`) writes its adapter into a scratch directory of this process
 (mode 0700, one per job, removed when the job ends however it ends); the worker then stores the weights and what
-trained them in the queue Redis (`precond/jobs/policy_adapters.py`) under the job's tenant. A next action naming
+trained them in the queue Redis (`precond/store/policies.py`) under the job's tenant. A next action naming
 `adapter:<id>@<n>` is answered by an engine whose model is the served model with that adapter beside the
 projections it changes, unmerged (`engine.models.backend.with_adapter`): the adapter is read under the job's
 tenant, never under anything the payload says, so one tenant's job cannot reach another tenant's adapter even with
@@ -27,8 +27,10 @@ from typing import Any
 from pydantic import ValidationError
 
 from precond.engine.engine import Engine
-from precond.jobs import policy_adapters, tenant_store
+from precond.jobs.queue.keys import JobId
 from precond.jobs.queue.payloads import Outcome, TrainPolicyJob
+from precond.store import policies as policy_adapters
+from precond.store import tenant_store
 from precond.worker import training_process
 from precond.worker.settings import get_worker_settings
 from precond_client.schemas.errors import Conflict, InvalidInput, ModelUnavailable, NotFound
@@ -54,7 +56,7 @@ def scratch_of(job: TrainPolicyJob) -> Path:
 
 
 def train(engine: Engine, job: TrainPolicyJob, progress: ProgressFn, cancelled: CancelledFn) -> TrainPolicyResult:
-    """What trained the adapter, which is left in `scratch_of(job)` for `store`. The training runs in a process
+    """What trained the adapter, which is left in `scratch_of(job)` for `keep`. The training runs in a process
     of its own (`training_process`), bounded by PRECOND_TRAINING_MAX_MEMORY_MB: the worker never holds the
     trainable copy of the model."""
     if not engine.trains:
@@ -89,19 +91,19 @@ _REFUSALS = {
 }
 
 
-async def store(redis: Any, tenant: str, job_id: str, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+async def keep(redis: Any, job_id: JobId, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
     """The trained adapter stored as the tenant's (its `PolicyAdapter` is the job's result), or refused at a
     bound or on a conflict; the scratch directory is removed either way."""
     from precond.engine.models.adapters import WEIGHTS  # not at import: the model code loads torch
 
-    job = TrainPolicyJob.model_validate(body)
+    job, tenant = TrainPolicyJob.model_validate(body), job_id.tenant
     try:
         weights = await asyncio.to_thread((scratch_of(job) / "adapter" / WEIGHTS).read_bytes)
         adapter = PolicyAdapter(id=job.adapter, version=job.version, reference=f"{job.adapter}@{job.version}",
                                 created=datetime.now(UTC).isoformat(timespec="seconds"),
                                 result=TrainPolicyResult.model_validate(result))
         bounds = tenant_store.Bounds(job.max_adapters, job.max_versions, job.max_tenant_bytes)
-        code = await policy_adapters.store(redis, tenant, adapter, weights, job_id, bounds)
+        code = await policy_adapters.store(redis, tenant, adapter, weights, job_id.value, bounds)
     finally:
         discard(body)
     if code < 0:

@@ -37,7 +37,7 @@ from precond.jobs.queue.payloads import (
 )
 from precond.jobs.queue.steps import Claim, Taken
 from precond.jobs.records import queue_time_counts
-from precond_client.schemas.api import JobKind
+from precond_client.schemas import JobKind
 
 log = logging.getLogger("precond.worker")
 NOTICE_WAIT_S = 1.0
@@ -77,8 +77,17 @@ class Claims(Protocol):
     def close(self, job_id: str, token: str, recorded: bool) -> None: ...
 
 
-Operation = Callable[[dict[str, Any], JobKind, dict[str, Any], str], Coroutine[Any, Any, JobEnd]]
-"""The job function: `(ctx, kind, body, cache_key)` of a job's record."""
+@dataclass(frozen=True)
+class JobContext:
+    """What a job function is handed besides its record: the queue Redis of its worker, and the job's identity
+    (its id and tenant). What the worker serves jobs with (the engine, the cache, ...) the job function holds."""
+
+    redis: Redis[bytes]
+    job: JobId
+
+
+Operation = Callable[[JobContext, JobKind, dict[str, Any], str | None], Coroutine[Any, Any, JobEnd]]
+"""The job function: `(context, kind, body, cache_key)` of a job's record."""
 
 
 @dataclass(frozen=True)
@@ -121,12 +130,10 @@ class QueueWorker:
     otherwise (the worker process then starts another, precond/worker/runner.py); `close` waits for the ends of
     the runs it cancelled and closes its connections."""
 
-    def __init__(self, operation: Operation, settings: RunSettings, redis_url: str, claims: Claims,
-                 ctx: dict[str, Any] | None = None) -> None:
+    def __init__(self, operation: Operation, settings: RunSettings, redis_url: str, claims: Claims) -> None:
         self.operation, self.settings, self.claims = operation, settings, claims
         self.queue_name = settings.queue
         self.pool: Redis[bytes] = Redis.from_url(redis_url, socket_connect_timeout=1)
-        self.ctx = {**(ctx or {}), "redis": self.pool}
         self.how = steps.Take(settings.queue, claims.worker_id, settings.read_limit or 2 * settings.max_jobs,
                               int((settings.timeout_s + IN_PROGRESS_EXTRA_S) * 1000))
         self.tasks: dict[str, asyncio.Task[bool]] = {}
@@ -239,11 +246,11 @@ class QueueWorker:
         if refused is not None or job.identity is None or job.record is None:
             return await self._finish(job, claim, True, job.end(self.queue_name, refused), JobEnd())
         record, job_id = job.record, job.id
-        ctx = {**self.ctx, "job": job.identity, "job_try": taken.job_try, "score": taken.score, "claim": claim.token}
+        context = JobContext(self.pool, job.identity)
         waited = queue_time_counts(job.identity, (job.start_ms - record.enqueued_ms) / 1000) \
             if taken.job_try == 1 else {}
         self.job_tasks[job_id] = task = asyncio.get_running_loop().create_task(
-            self.operation(ctx, record.kind, record.body, record.cache_key))
+            self.operation(context, record.kind, record.body, record.cache_key))
         try:
             end: JobEnd = await asyncio.wait_for(task, self.settings.timeout_s)
         except (Exception, asyncio.CancelledError) as exc:

@@ -1,8 +1,9 @@
 """Re-inference of a stored precondition set (job kind `reinfer`): the engine's inference on the set's spec with
-its stored demonstrations and the new ones, merged with the base version (`engine.reinference.merge`: required rules
+its stored demonstrations and the new ones, merged with the base version (`store.reinference.merge`: required rules
 kept, rejected ones kept out), judged against all demonstrations, and stored as the next version.
 
-The computing (`reinfer`) runs in the engine's thread; the storing (`store`) on the event loop, after it.
+The computing (`reinfer`) runs in the engine's thread; the storing (`keep`, over `store.reinference.store`) on the
+event loop, after it.
 """
 
 from __future__ import annotations
@@ -12,14 +13,14 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
-from precond.engine import counterexamples, reinference
+from precond.engine import counterexamples
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec, resolve_actions
-from precond.jobs import precondition_sets as sets
-from precond.jobs import tenant_store
-from precond.jobs.queue.payloads import ReinferJob
-from precond_client.schemas.api import Counterexamples, InferRequest, PreconditionSet, ValidateResponse
-from precond_client.schemas.errors import BlocksDemonstration, Conflict, InvalidInput, PrecondError, SetsLimited
+from precond.jobs.queue.keys import JobId
+from precond.jobs.queue.payloads import Outcome, ReinferJob
+from precond.store import reinference, sets
+from precond_client.schemas import Counterexamples, InferRequest, PreconditionSet, ValidateResponse
+from precond_client.schemas.errors import BlocksDemonstration, InvalidInput, PrecondError
 
 ProgressFn = Callable[[str, int, int], None]
 CancelledFn = Callable[[], bool]
@@ -49,20 +50,7 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
     field = _fields(job, demos)
     labelled: list[Counterexamples] = []
     try:
-        required = {action: rules for action, rules in base.required.items() if rules}
-        if required:
-            progress("validate required", 0, 1)
-            report = engine.validate(base.spec, required, demos)
-            new = [b for b in report.blocked if b.demonstration >= len(base.demonstrations)]
-            if new and not job.force:
-                first = new[0]
-                where = f"demonstrations[{first.demonstration}]"  # of the union: renamed below, like any field
-                more = f", and {len(new) - 1} more demonstrated call(s)" if len(new) > 1 else ""
-                raise BlocksDemonstration(
-                    f"required rule {first.rule!r} of {first.action} would block {field(where)}, line {first.line} "
-                    f"({first.call}){more}; fix the demonstration, un-require the rule, or send force: true",
-                    field=where,
-                )
+        _check_required(engine, job, demos, field, progress)
         options = job.options.model_copy(update={"candidates": "all"})  # the diff's reasons come from them
         spec = parse_spec(base.spec)
         labelled = counterexamples.of_actions(spec, [*base.counterexamples, *job.counterexamples], demos,
@@ -108,6 +96,28 @@ def reinfer(engine: Engine, job: ReinferJob, progress: ProgressFn, cancelled: Ca
     )
 
 
+def _check_required(engine: Engine, job: ReinferJob, demos: list[str], field: Callable[[str | None], str | None],
+                    progress: ProgressFn) -> None:
+    """Refuse (BlocksDemonstration) when a rule the reviewer required would block a new demonstration, unless the
+    request forces the re-inference: the new demonstrations would otherwise contradict the set they extend."""
+    base = job.base
+    required = {action: rules for action, rules in base.required.items() if rules}
+    if not required:
+        return
+    progress("validate required", 0, 1)
+    report = engine.validate(base.spec, required, demos)
+    new = [b for b in report.blocked if b.demonstration >= len(base.demonstrations)]
+    if new and not job.force:
+        first = new[0]
+        where = f"demonstrations[{first.demonstration}]"  # of the union: renamed by the caller, like any field
+        more = f", and {len(new) - 1} more demonstrated call(s)" if len(new) > 1 else ""
+        raise BlocksDemonstration(
+            f"required rule {first.rule!r} of {first.action} would block {field(where)}, line {first.line} "
+            f"({first.call}){more}; fix the demonstration, un-require the rule, or send force: true",
+            field=where,
+        )
+
+
 _LABEL_FIELD = re.compile(r"^counterexamples\[(\d+)\]")
 
 
@@ -131,38 +141,11 @@ def _warnings(job: ReinferJob, rules: dict[str, list[str]], inferred: dict[str, 
     return sets.set_warnings(base.spec, rules, base.rejected, {**kept, **inferred})
 
 
-async def store(redis: Any, tenant: str, job: ReinferJob, version: PreconditionSet) -> PreconditionSet:
-    """Append the version if its base is still the latest; the errors a client can act on otherwise."""
-    record = version.model_dump_json()
-    if len(record.encode()) > job.max_bytes:
-        raise SetsLimited(f"the re-inferred version takes {len(record.encode()):,} bytes, over the bound of "
-                          f"{job.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="demonstrations")
-    bounds = tenant_store.Bounds(records=0, versions=job.max_versions, tenant_bytes=job.max_tenant_bytes or 0)
-    answer = await sets.put(redis, tenant, version, record, bounds)
-    if answer == tenant_store.TOO_MANY_BYTES:
-        raise SetsLimited(sets.tenant_bytes_message(job.max_tenant_bytes or 0))
-    if answer == tenant_store.CONFLICT:
-        mine = await _stored_by_an_earlier_run(redis, tenant, version)
-        if mine is not None:
-            return mine
-    if answer in (tenant_store.CONFLICT, tenant_store.MISSING):
-        raise Conflict(f"precondition set {version.id} got a new version while it was re-inferred from version "
-                       f"{job.base.version}: read the latest and re-infer again")
-    if answer == tenant_store.TOO_MANY_VERSIONS:
-        raise SetsLimited(f"precondition set {version.id} has {job.max_versions} versions, the bound "
-                          "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version")
-    return version.model_copy(update={"latest": answer})
-
-
-async def _stored_by_an_earlier_run(redis: Any, tenant: str, version: PreconditionSet) -> PreconditionSet | None:
-    """The version this job makes, when an earlier run of it stored it already (its worker died before arq
-    recorded the end, and the job was handed back): the same rules, demonstrations and diff at the same number."""
-    raw = await tenant_store.read(redis, tenant_store.SETS, tenant, version.id, version.version)
-    latest = await tenant_store.latest(redis, tenant_store.SETS, tenant, version.id)
-    if raw is None or latest is None:
-        return None
-    stored = PreconditionSet.model_validate_json(raw)
-    same = ("preconditions", "demonstrations", "required", "rejected", "diff")
-    if any(getattr(stored, name) != getattr(version, name) for name in same):
-        return None
-    return stored.model_copy(update={"latest": latest})
+async def keep(redis: Any, job: JobId, body: dict[str, Any], result: dict[str, Any]) -> Outcome:
+    """A re-inference's version, stored (the set's next version) or refused (conflict, bounds): its outcome."""
+    try:
+        stored = await reinference.store(redis, job.tenant, ReinferJob.model_validate(body),
+                                         PreconditionSet.model_validate(result))
+    except PrecondError as exc:
+        return Outcome.failed(exc)
+    return Outcome(status="succeeded", result=stored.model_dump(mode="json"))

@@ -24,6 +24,7 @@ import socket
 import threading
 import uuid
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import uvloop
@@ -44,12 +45,12 @@ from precond.jobs.queue.keys import (
     worker_key,
 )
 from precond.jobs.queue.steps import Claim
-from precond.jobs.redis_checkout import check_out_without_read
-from precond.jobs.redis_packing import pack_with_hiredis
-from precond.jobs.redis_sending import send_without_task
+from precond.patches.redis_checkout import check_out_without_read
+from precond.patches.redis_packing import pack_with_hiredis
+from precond.patches.redis_sending import send_without_task
 from precond.sandbox import SandboxUnavailable
 from precond.worker import logs
-from precond.worker.jobs import JobCounts, run_operation
+from precond.worker.jobs import JobCounts, Serving, run_operation
 from precond.worker.memory import MemoryGuard
 from precond.worker.policies import AdaptedEngines
 from precond.worker.queue_worker import QueueWorker, RunSettings
@@ -181,9 +182,9 @@ class WorkerProcess:
             idle_poll_s=s.worker_poll_s if queue in MODEL_QUEUES else s.check_poll_s,
             drain_s=s.drain_s,
         )
-        ctx = {"engine": engine, "settings": s, "counts": self.counts, "cache": self.cache, "memory": self.memory,
-               "policies": self.policies}
-        return QueueWorker(run_operation, settings, s.redis_dsn, self.claims, ctx)
+        assert self.cache is not None, "the cache is opened in run(), before any queue is served"
+        serving = Serving(engine, s, self.counts, self.cache, self.memory, self.policies)
+        return QueueWorker(partial(run_operation, serving), settings, s.redis_dsn, self.claims)
 
     async def _serve(self, queue: str, engine: Engine) -> None:
         """Run a queue worker on `queue` until drained, starting a new one after each Redis outage."""

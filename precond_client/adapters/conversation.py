@@ -9,7 +9,7 @@ from typing import Any
 
 from precond_client.errors import PrecondError
 from precond_client.guard import GuardSession, Judge
-from precond_client.schemas.api import CallVerdict
+from precond_client.schemas import CallVerdict
 
 ToMessages = Callable[[Sequence[Any]], list[dict[str, Any]]]
 """A framework's items → OpenAI chat messages."""

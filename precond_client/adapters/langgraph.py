@@ -26,7 +26,7 @@ from langgraph.types import Command
 
 from precond_client.adapters.conversation import Conversation
 from precond_client.guard import Judge, refusal
-from precond_client.schemas.api import CallVerdict
+from precond_client.schemas import CallVerdict
 
 MAX_THREADS = 1024
 """Threads whose sessions are kept (the least recently judged go first, and are read again from their

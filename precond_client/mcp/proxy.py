@@ -32,7 +32,7 @@ from precond_client.errors import PrecondError
 from precond_client.guard import GuardSession, Judge, refusal
 from precond_client.mcp.recorder import CallLog, LogFull, Recording, session_name
 from precond_client.mcp.upstreams import Upstream, UpstreamFailure, call, routes
-from precond_client.schemas.api import CallVerdict
+from precond_client.schemas import CallVerdict
 
 Mode = Literal["record", "enforce", "shadow"]
 MAX_SESSIONS = 256

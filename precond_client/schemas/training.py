@@ -11,7 +11,7 @@ from typing import Annotated
 
 from pydantic import Field
 
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     ADAPTER_ID_PATTERN,
     MAX_CALL_CHARS,
     MAX_DEMONSTRATIONS,

@@ -17,7 +17,7 @@ import pytest
 
 from precond.convert import events as events_converter
 from precond.convert import sgd as sgd_converter
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas import InferRequest
 
 ROOT = Path(__file__).resolve().parents[2]
 RAW = ROOT / "tests" / "fixtures" / "sgd_raw"

@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from precond_client.schemas.api import MAX_COUNTEREXAMPLE_RUNS, InferRequest
+from precond_client.schemas import MAX_COUNTEREXAMPLE_RUNS, InferRequest
 from tests.cli.test_convert_openai import ROOT, precond
 
 DOMAINS = ROOT / "tests" / "fixtures" / "tools_domains"

@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas import InferRequest
 from tests.cli.test_convert_openai import TAU, precond
 
 LABELS = [

@@ -19,7 +19,7 @@ import pytest
 
 from precond.convert import openai as openai_converter
 from precond.convert.shape import ConvertError
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas import InferRequest
 
 ROOT = Path(__file__).resolve().parents[2]
 TAU = ROOT / "tests" / "fixtures" / "tau_airline"

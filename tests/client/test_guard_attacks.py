@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from precond.jobs.precondition_sets import check_rule_work
 from precond.programs.checks import WORK_BUDGET, ProgramProblem
+from precond.store.sets import check_rule_work
 from precond_client.rule_interpreter import MAX_INT_BITS, MAX_STEPS
 from tests.client.test_guard import SPEC
 

@@ -30,7 +30,7 @@ from precond.evaluation.settings import DataSettings
 from precond.stack.local import Stack, make_stack, serving
 from precond_client import Client, PreconditionSet
 from precond_client.guard import Guard
-from precond_client.schemas.api import InferOptions, InferRequest
+from precond_client.schemas import InferOptions, InferRequest
 
 TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
 READ = "reservation_id in self.results['get_reservation_details']"

@@ -16,7 +16,7 @@ from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
 from precond_client.guard import Guard, refusal
 from precond_client.openai_log import converter_spec
-from precond_client.schemas.api import CheckRequest
+from precond_client.schemas import CheckRequest
 
 TOOLS = [
     {"type": "function", "function": {"name": "get_order_details", "description": "Read an order.", "parameters": {

@@ -29,7 +29,7 @@ from precond_client import Client
 from precond_client.guard import Guard
 from precond_client.mcp.recorder import CUT, Recording
 from precond_client.mcp.tools import spec_for
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas import InferRequest
 
 pytestmark = pytest.mark.stack  # starts the proxy and MCP servers as processes
 

@@ -75,12 +75,12 @@ def test_service_and_client_install_beside_a_top_level_schemas_and_import_their_
 
     top_level = sorted(p.name for p in purelib.iterdir() if p.suffix in ("", ".py") and not p.name.startswith("_"))
     assert top_level == ["precond", "precond_client", "schemas.py"], top_level
-    code = ("import json, schemas, precond, precond_client, precond_client.schemas.api as api, "
+    code = ("import json, schemas, precond, precond_client, precond_client.schemas as api, "
             "precond.jobs.queue.keys as keys; "
             "print(json.dumps([schemas.WHOSE, precond.__file__, precond_client.__file__, api.__name__, keys.PREFIX]))")
     run = subprocess.run([str(python), "-I", "-c", code], capture_output=True, text=True, timeout=120,
                          cwd=tmp_path, check=False)
     assert run.returncode == 0, run.stderr
     whose, service, client, api_name, prefix = json.loads(run.stdout)
-    assert whose == "another project" and api_name == "precond_client.schemas.api" and prefix == "precond"
+    assert whose == "another project" and api_name == "precond_client.schemas" and prefix == "precond"
     assert service.startswith(str(purelib)) and client.startswith(str(purelib))

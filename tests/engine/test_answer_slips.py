@@ -12,7 +12,7 @@ from pydantic import ValidationError
 
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
+from precond_client.schemas import InferOptions, InferRequest, InferResponse
 
 SPEC = """from collections import defaultdict
 class USER:

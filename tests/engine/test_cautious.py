@@ -9,9 +9,10 @@ from typing import Any
 import pytest
 
 from precond.engine.cautious import polarity
-from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.engine.engine import Engine
+from precond.engine.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
+from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
 
 CARD_SPEC = """from collections import defaultdict
 class USER:

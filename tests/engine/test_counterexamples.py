@@ -13,7 +13,7 @@ from precond.convert.openai import convert
 from precond.engine.counterexamples import _terms, _text
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferRequest, ModelInfo
+from precond_client.schemas import CheckRequest, InferRequest, ModelInfo
 from precond_client.schemas.errors import InvalidInput
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {

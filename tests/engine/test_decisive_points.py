@@ -11,7 +11,7 @@ from precond.engine.decisive import MAX_SAMPLE, decisive_points
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
 from precond.sandbox.types import ActionInfo, Limits, Point, Position, TraceResult
-from precond_client.schemas.api import InferOptions, InferRequest
+from precond_client.schemas import InferOptions, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}

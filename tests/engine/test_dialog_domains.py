@@ -16,7 +16,7 @@ import pytest
 from precond.convert.sgd import Service, spec_program
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest
+from precond_client.schemas import CheckRequest, InferOptions, InferRequest
 
 DOMAINS = Path(__file__).parents[1] / "fixtures" / "dialog_domains"
 NAMES = ("pharmacy", "shop", "clinic")

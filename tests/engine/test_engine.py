@@ -14,7 +14,7 @@ from precond.engine.library import Library
 from precond.engine.scope import scoped
 from precond.engine.spec import parse_spec, skip_statements
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
+from precond_client.schemas import CheckRequest, InferRequest, InferResponse, ModelInfo, NextActionRequest
 from precond_client.schemas.errors import Cancelled, InvalidInput, InvalidProgram, UnknownAction
 from tests.engine.conftest import SHARED
 from tests.sandbox.warm_probe import COUNTING_SPEC

@@ -10,7 +10,7 @@ import pytest
 from precond.engine.engine import Engine
 from precond.engine.models import ModelSettings, load_code_model
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferRequest, NextActionRequest
+from precond_client.schemas import InferRequest, NextActionRequest
 
 pytestmark = pytest.mark.model
 

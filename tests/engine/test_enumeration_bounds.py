@@ -12,7 +12,7 @@ from precond.engine.spec import parse_spec
 from precond.engine.work import COMPILE_POINTS
 from precond.sandbox import Sandbox
 from precond.sandbox.types import ActionInfo, Limits
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas import InferRequest
 
 
 def poison_spec(query_params: int) -> str:

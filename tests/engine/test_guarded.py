@@ -11,7 +11,7 @@ import pytest
 from precond.engine.engine import Engine
 from precond.engine.guarded import default
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
+from precond_client.schemas import InferOptions, InferRequest, InferResponse
 from precond_client.schemas.errors import UnknownAction
 
 SPEC = """from collections import defaultdict

@@ -12,7 +12,7 @@ from precond.engine import judge
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferRequest
+from precond_client.schemas import InferRequest
 
 NEUTRAL = "def check(self):\n    assert"
 

@@ -14,7 +14,7 @@ from precond.convert.openai import convert
 from precond.engine.counterexamples import _smallest, own_task, unseparable
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}

@@ -8,10 +8,11 @@ from typing import Any
 
 import pytest
 
-from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.engine.engine import Engine
 from precond.engine.library import SIGNED, Library, LibrarySource, from_json, shipped, to_json
+from precond.engine.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import InferOptions, InferRequest, InferResponse
+from precond_client.schemas import InferOptions, InferRequest, InferResponse
 
 SPEC = """from collections import defaultdict
 class USER:

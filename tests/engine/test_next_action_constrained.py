@@ -15,7 +15,7 @@ from precond.engine import constrained
 from precond.engine.engine import Engine
 from precond.engine.models import CodeModel, ModelSettings, load_code_model
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, NextActionOptions, NextActionRequest
+from precond_client.schemas import CheckRequest, NextActionOptions, NextActionRequest
 from precond_client.schemas.errors import InvalidInput, UnknownAction
 
 HISTORY = "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('FindRestaurants')\nuser.INFORM('city')\n"

@@ -10,10 +10,11 @@ from typing import Any
 
 import pytest
 
-from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.engine.engine import Engine
 from precond.engine.library import Library
+from precond.engine.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     MAX_PRIOR_RULES,
     CheckRequest,
     InferOptions,

@@ -11,7 +11,7 @@ import pytest
 from precond.engine.engine import Engine
 from precond.engine.library import Library
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
+from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
 
 SPEC = """class PATIENT:
   def __init__(self):

@@ -10,9 +10,10 @@ from typing import Any
 
 import pytest
 
-from precond.engine.engine import UNSEEN_RULE, Engine
+from precond.engine.engine import Engine
+from precond.engine.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     CheckRequest,
     InferOptions,
     InferRequest,

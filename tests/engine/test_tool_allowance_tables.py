@@ -17,7 +17,7 @@ from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
 from precond_client.guard import Guard
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 TYPES = {"guests": "array", "passes": "integer", "paid": "integer"}
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {

@@ -12,7 +12,7 @@ import pytest
 from precond.convert.openai import convert
 from precond.engine.engine import Engine
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 TYPES = {"passengers": "array", "payment_methods": "array", "total_baggages": "integer",
          "nonfree_baggages": "integer"}

@@ -14,7 +14,7 @@ from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
 from precond.sandbox.types import ActionInfo
-from precond_client.schemas.api import InferOptions, InferRequest
+from precond_client.schemas import InferOptions, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}

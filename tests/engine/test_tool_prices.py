@@ -17,7 +17,7 @@ from precond.engine import tool_conditions
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 TYPES = {"amount": "integer", "points": "integer", "lines": "array"}
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {

@@ -20,7 +20,7 @@ from precond.engine.tool_relations import labels_only, relations, runnable
 from precond.sandbox import Sandbox
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import Frame, Scope, compile_rule
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "array" if p == "book_ids" else "string"} for p in params}, "required": list(params)}}}

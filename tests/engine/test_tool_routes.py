@@ -17,7 +17,7 @@ from precond.sandbox import Sandbox
 from precond_client.guard import AGENT_SHAPE
 from precond_client.openai_log import AGENT_STATE, MAX_SEEN, AgentState, StateReader, converter_spec
 from precond_client.rule_interpreter import Frame, Scope, compile_rule
-from precond_client.schemas.api import InferOptions, InferRequest
+from precond_client.schemas import InferOptions, InferRequest
 
 TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
     "properties": {p: {"type": "string" if p in ("reservation_id", "origin", "destination", "date") else "array"}

@@ -7,7 +7,7 @@ import pytest
 from precond.evaluation.configs import expand, parse_config
 from precond.evaluation.domains import Domain
 from precond.evaluation.policy import _predict, action_of, parse_policy_config, receivers, segments, summarize_policy
-from precond_client.schemas.api import CheckRequest, CheckResponse, NextActionRequest, NextActionResponse
+from precond_client.schemas import CheckRequest, CheckResponse, NextActionRequest, NextActionResponse
 
 DIALOG = {
     "program": "user = USER()\nsystem = SYSTEM(user)\nuser.INFORM_INTENT('Find')\nsystem.REQUEST(\"city\")\n"

@@ -13,7 +13,7 @@ from precond.engine.models import Sampling
 from precond.evaluation.cache import JsonCache
 from precond.evaluation.memo import MemoModel
 from precond.evaluation.sized import sample_dialogs, summarize, units
-from precond_client.schemas.api import ModelInfo
+from precond_client.schemas import ModelInfo
 
 
 def _dialog(name: str, system_turns: int) -> dict[str, Any]:
@@ -103,7 +103,7 @@ class CheckOnly:
         raise AssertionError("a cached-only summary predicted")
 
     def check(self, request: Any) -> Any:
-        from precond_client.schemas.api import CallVerdict, CheckResponse
+        from precond_client.schemas import CallVerdict, CheckResponse
 
         return CheckResponse(results=[CallVerdict(call=c, allowed=True) for c in request.calls])
 

@@ -9,7 +9,7 @@ from precond.evaluation.cache import JsonCache
 from precond.evaluation.configs import parse_config
 from precond.evaluation.domains import Domain
 from precond.evaluation.transfer import sources_for
-from precond_client.schemas.api import InferRequest, InferResponse, InferStats, StageCounts
+from precond_client.schemas import InferRequest, InferResponse, InferStats, StageCounts
 
 
 def _domain(name: str) -> Domain:

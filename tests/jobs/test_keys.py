@@ -9,7 +9,7 @@ import pytest
 
 from precond.engine.settings import ModelSettings
 from precond.jobs.queue import keys
-from precond_client.schemas.api import JobKind
+from precond_client.schemas import JobKind
 
 
 def test_the_gateway_reads_the_variables_the_model_settings_read() -> None:

@@ -1,4 +1,4 @@
-"""Each replacement of a library's internals checks that what it replaces is there (precond/jobs/patches.py): on the
+"""Each replacement of a library's internals checks that what it replaces is there (precond/patches/): on the
 versions pyproject.toml allows every one applies; on a library that lacks what one replaces or reads, it leaves the
 library as it is and says so in the log."""
 
@@ -15,7 +15,7 @@ from uvicorn.protocols.http.h11_impl import H11Protocol
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from precond.gateway import http_protocol, middleware
-from precond.jobs import redis_checkout, redis_packing, redis_sending
+from precond.patches import redis_checkout, redis_packing, redis_sending
 
 
 def test_on_the_allowed_versions_every_patch_applies() -> None:

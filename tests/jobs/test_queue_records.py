@@ -28,7 +28,7 @@ from precond.jobs.queue.payloads import (
     encode_job,
     encode_progress,
 )
-from precond_client.schemas.api import JobProgress
+from precond_client.schemas import JobProgress
 
 ROOT = Path(__file__).resolve().parents[2]
 SCHEMA = json.loads((ROOT / "openapi" / "queue-records.schema.json").read_text())

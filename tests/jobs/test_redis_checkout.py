@@ -1,4 +1,5 @@
-"""A connection handed out without redis-py's read (precond/jobs/redis_checkout.py) still never answers a command with
+"""A connection handed out without redis-py's read (precond/patches/redis_checkout.py)
+still never answers a command with
 a reply meant for another, and a connection the server closed is still replaced before it is used; against a
 real redis-server."""
 
@@ -12,7 +13,7 @@ import pytest
 from redis._parsers.hiredis import _AsyncHiredisParser
 from redis.asyncio import Redis
 
-from precond.jobs.redis_checkout import check_out_without_read
+from precond.patches.redis_checkout import check_out_without_read
 from precond.stack.local import RedisServer
 
 

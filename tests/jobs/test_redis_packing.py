@@ -1,4 +1,5 @@
-"""Commands packed by hiredis (precond/jobs/redis_packing.py) are the bytes redis-py's own packer wrote, and values it
+"""Commands packed by hiredis (precond/patches/redis_packing.py)
+are the bytes redis-py's own packer wrote, and values it
 refused are still refused; a real redis-server reads them back as sent."""
 
 from __future__ import annotations
@@ -13,8 +14,8 @@ from redis.asyncio.connection import Connection
 from redis.connection import PythonRespSerializer  # type: ignore[attr-defined]  # types-redis predates it
 from redis.exceptions import DataError
 
-from precond.jobs.redis_packing import pack_with_hiredis
 from precond.jobs.scripts import LuaScript
+from precond.patches.redis_packing import pack_with_hiredis
 from precond.stack.local import RedisServer
 
 ECHO = LuaScript("return ARGV")

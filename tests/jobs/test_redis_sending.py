@@ -1,4 +1,5 @@
-"""A command written without redis-py's task (precond/jobs/redis_sending.py) is still bounded by the socket timeout when
+"""A command written without redis-py's task (precond/patches/redis_sending.py)
+is still bounded by the socket timeout when
 Redis stops reading, still arrives whole when it is larger than the socket takes at once, and a connection the
 server closed still fails or reconnects as with redis-py's own send; against a real redis-server."""
 
@@ -16,8 +17,8 @@ import pytest
 from redis import exceptions
 from redis.asyncio import Redis
 
-from precond.jobs.redis_checkout import check_out_without_read
-from precond.jobs.redis_sending import send_without_task
+from precond.patches.redis_checkout import check_out_without_read
+from precond.patches.redis_sending import send_without_task
 from precond.stack.local import RedisServer
 
 

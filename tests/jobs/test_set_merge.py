@@ -1,6 +1,6 @@
-"""The merge of a re-inference with its base version, as a pure function (precond/jobs/precondition_sets.py): required
+"""The merge of a re-inference with its base version, as a pure function (precond/store/reinference.py): required
 rules kept, rejected ones kept out, and every base rule accounted for in the diff with a reason when it is gone; and the
-worker's store of the version it makes (precond/worker/reinfer.py), on a stand-in for Redis."""
+store of the version it makes (precond/store/reinference.py), on a stand-in for Redis."""
 
 from __future__ import annotations
 
@@ -9,12 +9,12 @@ from types import SimpleNamespace
 
 import pytest
 
-from precond.engine.reinference import explain_removed, merge
-from precond.jobs.precondition_sets import normal, union
 from precond.jobs.queue.payloads import ReinferJob
-from precond.jobs.tenant_store import CONFLICT
-from precond.worker.reinfer import reinfer, store
-from precond_client.schemas.api import CandidateReport, PreconditionSet, ValidateResponse
+from precond.store.reinference import explain_removed, merge, store
+from precond.store.sets import normal, union
+from precond.store.tenant_store import CONFLICT
+from precond.worker.reinfer import reinfer
+from precond_client.schemas import CandidateReport, PreconditionSet, ValidateResponse
 from precond_client.schemas.errors import Conflict, InvalidInput
 
 

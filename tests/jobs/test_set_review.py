@@ -1,4 +1,4 @@
-"""How a stored rule was decided (`jobs.precondition_sets.how_decided`): the engine's word when it gives one,
+"""How a stored rule was decided (`store.sets.how_decided`): the engine's word when it gives one,
 otherwise read from the evidence and the candidate's reason; and the summary the list of sets shows."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
-from precond.jobs.precondition_sets import decided, how_decided, summary
-from precond_client.schemas.api import CandidateReport, PreconditionSet, RuleEvidence
+from precond.store.sets import decided, how_decided, summary
+from precond_client.schemas import CandidateReport, PreconditionSet, RuleEvidence
 
 
 def _evidence(occurrences: int, verdict: str = "held") -> RuleEvidence:

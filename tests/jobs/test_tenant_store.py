@@ -1,4 +1,4 @@
-"""The versioned tenant store (precond/jobs/tenant_store.py) that precondition sets and trained policies share,
+"""The versioned tenant store (precond/store/tenant_store.py) that precondition sets and trained policies share,
 against a redis-server of the test's own: versions in order only, each bound refused with its own code and
 nothing written, a retried job finding its own version, the bytes given back on delete, another tenant seeing
 nothing."""
@@ -7,9 +7,9 @@ from __future__ import annotations
 
 from redis.asyncio import Redis
 
-from precond.jobs import tenant_store as store
-from precond.jobs.tenant_store import POLICIES, SETS, Bounds
 from precond.stack.local import RedisServer
+from precond.store import tenant_store as store
+from precond.store.tenant_store import POLICIES, SETS, Bounds
 
 BOUNDS = Bounds(records=2, versions=3, tenant_bytes=100)
 

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
-from precond.engine.models.backend import cpu_dtype, cpu_flags
 from precond.engine.models.quant import QuantUnavailable, choose_quant
 from precond.engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
+from precond.engine.models.weights import cpu_dtype, cpu_flags
 
 pytestmark = pytest.mark.model
 

@@ -161,7 +161,7 @@ def test_the_serving_load_is_refused_before_any_weight_is_read(
 
 @pytest.mark.model
 def test_the_embedded_models_pinned_weight_count_is_its_converted_files() -> None:
-    from precond.engine.models.backend import _weights_dir
+    from precond.engine.models.weights import _weights_dir
 
     directory, _, _ = _weights_dir(ModelSettings(), "float32")
     assert safetensors_weights(directory) == memory_fit.EMBEDDED_WEIGHTS

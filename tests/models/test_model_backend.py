@@ -10,17 +10,10 @@ from pydantic import ValidationError
 from transformers import DynamicCache
 
 from precond.engine.models import GenerationCancelled, ModelSettings, Sampling, load_code_model
-from precond.engine.models.backend import (
-    PREFILL_CHUNK,
-    WIDE_ROWS,
-    CodeModel,
-    choose_dtype,
-    cpu_dtype,
-    cpu_flags,
-    sample_next,
-)
+from precond.engine.models.backend import PREFILL_CHUNK, WIDE_ROWS, CodeModel, sample_next
 from precond.engine.models.prefixes import Prefix, PrefixStore
 from precond.engine.models.stopping import StopRule, statement_end, stop_index
+from precond.engine.models.weights import choose_dtype, cpu_dtype, cpu_flags
 from precond.engine.scope import scoped
 
 PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12

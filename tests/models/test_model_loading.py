@@ -11,9 +11,9 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
-from precond.engine.models.backend import Weights, load_weights
 from precond.engine.models.loading import check_built
 from precond.engine.models.store import ModelStoreError
+from precond.engine.models.weights import Weights, load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
 from precond.engine.training import train_policy

@@ -10,7 +10,7 @@ from pydantic import ValidationError
 from torch import nn
 
 from precond.engine.models import ModelSettings, Sampling, load_code_model
-from precond.engine.models import backend as backend_module
+from precond.engine.models import weights as weights_module
 from precond.engine.models.quant import Int8Embedding, Int8Linear, QuantUnavailable, choose_quant
 
 CPU = torch.device("cpu")
@@ -69,7 +69,7 @@ def test_a_worker_asked_for_int8_on_a_cpu_without_it_fails_its_load(
     tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """No silent full-width model: the load (at worker start with PRECOND_PRELOAD_MODEL) raises, and says why."""
-    monkeypatch.setattr(backend_module, "cpu_flags", lambda: frozenset({"sse4_2"}))
+    monkeypatch.setattr(weights_module, "cpu_flags", lambda: frozenset({"sse4_2"}))
     settings = ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", quant="int8")
     with pytest.raises(QuantUnavailable, match=r"MODEL_QUANT=int8 .* avx2"):
         load_code_model(settings)
@@ -77,7 +77,7 @@ def test_a_worker_asked_for_int8_on_a_cpu_without_it_fails_its_load(
 
 def test_an_int8_models_rows_do_not_depend_on_their_batch(tiny_model_dir: Path,
                                                           monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(backend_module, "cpu_flags", lambda: VNNI)
+    monkeypatch.setattr(weights_module, "cpu_flags", lambda: VNNI)
     small = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", quant="int8"))
     first = small.tokenizer(PREFIX[:60], return_tensors="pt")["input_ids"]
     ids = torch.cat([first, first.flip(1) * 3 % small.model.config.vocab_size])  # another row, other magnitudes
@@ -88,7 +88,7 @@ def test_an_int8_models_rows_do_not_depend_on_their_batch(tiny_model_dir: Path,
 
 
 def test_an_int8_model_keeps_the_full_models_choices(tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(backend_module, "cpu_flags", lambda: VNNI)
+    monkeypatch.setattr(weights_module, "cpu_flags", lambda: VNNI)
     full = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", quant="none"))
     small = load_code_model(ModelSettings(path=str(tiny_model_dir), device="cpu", dtype="float32", quant="int8"))
     assert (small.info.quant, small.info.quant_reason) == ("int8", "MODEL_QUANT=int8")

@@ -16,9 +16,10 @@ from typer.testing import CliRunner
 
 from precond.cli.main import app
 from precond.engine.models import Sampling
-from precond.engine.models import backend as backend_module
+from precond.engine.models import weights as weights_module
 from precond.engine.models.adapters import RESULT, WEIGHTS, AdapterError, read_result
-from precond.engine.models.backend import Weights, load_code_model, load_weights, with_adapter
+from precond.engine.models.backend import load_code_model, with_adapter
+from precond.engine.models.weights import Weights, load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
 from precond.engine.training import action_spans, closing_head, train_policy, turn_ends
@@ -188,7 +189,7 @@ def test_an_adapter_runs_beside_int8_weights(tiny_model_dir: Path, adapter: Path
                                              monkeypatch: pytest.MonkeyPatch) -> None:
     """An int8 base cannot take a merge; the unmerged adapter over it moves its answers toward the merged
     full-width model's (the rest of the gap is int8's own error on this random tiny model)."""
-    monkeypatch.setattr(backend_module, "cpu_flags", lambda: frozenset({"avx2", "avx512_vnni"}))
+    monkeypatch.setattr(weights_module, "cpu_flags", lambda: frozenset({"avx2", "avx512_vnni"}))
     small = load_code_model(_settings(tiny_model_dir, "int8"))
     adapted, loaded = with_adapter(small, adapter), load_code_model(_settings(tiny_model_dir), adapter)
     ids = small.tokenizer(SPEC + "\n# Current\n" + DEMO, return_tensors="pt")["input_ids"]

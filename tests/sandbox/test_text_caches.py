@@ -15,7 +15,7 @@ import pytest
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.sandbox import Sandbox, astfilter, plain
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 
 class CountingAst:

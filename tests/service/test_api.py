@@ -23,7 +23,7 @@ from precond.stack.local import (
     slow_model_body,
     wait_until,
 )
-from precond_client.schemas.api import CheckRequest
+from precond_client.schemas import CheckRequest
 
 
 def jobs_started(stack: Stack) -> int:

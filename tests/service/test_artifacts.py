@@ -18,7 +18,7 @@ from precond.gateway.server import GATEWAY_ARGS
 from precond.jobs.queue.keys import QUEUES, TRAIN_QUEUE
 from precond.jobs.redis_roles import ROLES, acl_file, password_file
 from precond.worker.settings import WorkerSettings, queue_names
-from precond_client.schemas.api import CheckRequest, InferRequest, NextActionRequest
+from precond_client.schemas import CheckRequest, InferRequest, NextActionRequest
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve().parent

@@ -12,7 +12,7 @@ import pytest
 
 from precond.stack.local import Stack, example, heavy_infer_body, make_stack, serving
 from precond_client import Client
-from precond_client.schemas.api import MAX_SOURCE_CHARS
+from precond_client.schemas import MAX_SOURCE_CHARS
 
 
 @pytest.fixture(scope="module")

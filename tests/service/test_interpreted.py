@@ -20,7 +20,7 @@ from precond.gateway.converted_spec import OpenAISpec, SGDSpec, converted_spec
 from precond.gateway.routes.operations import screened_check
 from precond.programs import checks
 from precond_client.openai_log import Tool, spec_program
-from precond_client.schemas.api import CheckRequest
+from precond_client.schemas import CheckRequest
 
 EXAMPLE = json.loads((Path(__file__).resolve().parents[2] / "examples" / "check-actions.json").read_text())
 SPEC: str = EXAMPLE["spec"]

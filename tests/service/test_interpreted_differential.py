@@ -29,9 +29,9 @@ from precond.engine.scope import scoped
 from precond.evaluation import tools
 from precond.evaluation.settings import DataSettings
 from precond.gateway import offload
-from precond.jobs.precondition_sets import decided
 from precond.sandbox import Sandbox
-from precond_client.schemas.api import CheckRequest, InferOptions, InferRequest, InferResponse
+from precond.store.sets import decided
+from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
 from tests.client.test_guard_differential import CLAUSE, MAX_CALLS, fixture_calls
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"

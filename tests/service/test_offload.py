@@ -17,7 +17,7 @@ from precond.gateway.offload import INLINE_CHARS, CheckPool, rendering_chars
 from precond.gateway.routes.operations import screened_check
 from precond.programs import checks
 from precond.stack.attacks import tool_call_check_body
-from precond_client.schemas.api import CheckRequest
+from precond_client.schemas import CheckRequest
 
 SPEC = "class AGENT:\n    def cancel_reservation(self, reservation_id): pass\n" * 40
 

@@ -10,7 +10,7 @@ from typing import get_args
 from precond.gateway import offload
 from precond.gateway.routes.operations import OPERATIONS
 from precond.programs import checks
-from precond_client.schemas.api import JobKind
+from precond_client.schemas import JobKind
 
 
 def test_every_submitted_kind_has_a_row() -> None:

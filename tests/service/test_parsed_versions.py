@@ -4,7 +4,7 @@ out another's."""
 from __future__ import annotations
 
 from precond.gateway.set_store import ParsedVersions
-from precond_client.schemas.api import PreconditionSet
+from precond_client.schemas import PreconditionSet
 
 
 def version(set_id: str, number: int) -> PreconditionSet:

@@ -13,8 +13,8 @@ import httpx
 import pytest
 
 from precond.jobs.queue.keys import tenant_tag
-from precond.jobs.tenant_store import SETS
 from precond.stack.local import DEMOS, SPEC, Stack, check_body, example, infer_body, make_stack, serving
+from precond.store.tenant_store import SETS
 from tests.service.test_tenants import SECRET, client_for, make_key
 
 EVENTS = [

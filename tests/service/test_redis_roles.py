@@ -43,7 +43,7 @@ from precond.stack.local import (
     serving,
     wait_until,
 )
-from precond_client.schemas.api import CheckRequest, CheckResponse
+from precond_client.schemas import CheckRequest, CheckResponse
 
 PASSWORD = "roles-test-redis-password"
 QUEUE_MAXMEMORY = 64 * 1024 * 1024

@@ -14,10 +14,10 @@ import httpx
 import pytest
 
 from precond.jobs.queue.keys import tenant_tag
-from precond.jobs.tenant_store import SETS
 from precond.stack import browser
 from precond.stack.local import DEMOS, EXAMPLES, SPEC, Stack, make_stack, serving
-from precond_client.schemas.api import rule_status
+from precond.store.tenant_store import SETS
+from precond_client.schemas import rule_status
 from tests.engine.test_counterexamples import CANCEL
 from tests.engine.test_counterexamples import DEMOS as AIRLINE
 from tests.engine.test_counterexamples import run as airline_run

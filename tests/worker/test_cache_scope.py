@@ -9,7 +9,7 @@ from precond.engine.scope import current
 from precond.jobs.queue.keys import JobId, job_id, tenant_tag
 from precond.worker.jobs import _outcome
 from precond.worker.memory import MemoryGuard
-from precond_client.schemas.api import CheckRequest, CheckResponse
+from precond_client.schemas import CheckRequest, CheckResponse
 
 
 class SeesScope:

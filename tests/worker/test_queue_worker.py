@@ -24,7 +24,7 @@ from precond.jobs.queue.notices import notice_channel, read_notice, waiters_key
 from precond.jobs.queue.payloads import EndRecord, Outcome, decode_end, encode_job
 from precond.stack.local import RedisServer
 from precond.worker import queue_worker
-from precond.worker.queue_worker import JobEnd, QueueWorker, RunSettings
+from precond.worker.queue_worker import JobContext, JobEnd, QueueWorker, RunSettings
 from precond.worker.runner import RunClaims
 
 QUEUE = "test:queue"
@@ -47,7 +47,7 @@ def done(n: int) -> Outcome:
     return Outcome(status="succeeded", result={"n": n})
 
 
-async def answer(ctx: dict[str, Any], n: int) -> JobEnd:
+async def answer(ctx: JobContext, n: int) -> JobEnd:
     return JobEnd(done(n), {"jobs:test:succeeded": 1.0})
 
 
@@ -59,7 +59,7 @@ async def enqueue(plain: Redis[bytes], job: str, n: int) -> None:
 
 def long_run(started: asyncio.Event) -> Operation:
     """An operation that says it started, then runs for half a minute (until a shutdown, an abort or a timeout)."""
-    async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+    async def operation(ctx: JobContext, n: int) -> JobEnd:
         started.set()
         await asyncio.sleep(30)
         return JobEnd(done(n))
@@ -111,10 +111,10 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
     seen: dict[str, Any] = {}
 
     async def scenario(plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:  # what holds while the job runs
-            seen["claim"] = await plain.hget(RUNNING_KEY, ctx["job"].value)
+        async def operation(ctx: JobContext, n: int) -> JobEnd:  # what holds while the job runs
+            seen["claim"] = await plain.hget(RUNNING_KEY, ctx.job.value)
             seen["heartbeat"] = await plain.get(worker_key("w1"))
-            seen["in_progress"] = await plain.exists(in_progress_key_prefix + ctx["job"].value)
+            seen["in_progress"] = await plain.exists(in_progress_key_prefix + ctx.job.value)
             return JobEnd(done(n), {"jobs:test:succeeded": 1.0})
 
         job = job_id(1)
@@ -152,8 +152,8 @@ def test_a_finish_releases_its_own_runs_claim_only(redis_server: RedisServer) ->
     claims = RunClaims("w1", heartbeat, 5.0)
 
     async def scenario(plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
-            await plain.hset(RUNNING_KEY, ctx["job"].value, "w2|later")
+        async def operation(ctx: JobContext, n: int) -> JobEnd:
+            await plain.hset(RUNNING_KEY, ctx.job.value, "w2|later")
             return JobEnd(done(n))
 
         job = job_id(2)
@@ -171,7 +171,7 @@ def test_a_job_that_must_not_run_ends_failed_with_the_reason(redis_server: Redis
     ran: list[int] = []
 
     async def scenario(plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+        async def operation(ctx: JobContext, n: int) -> JobEnd:
             ran.append(n)
             return JobEnd(done(n))
 
@@ -212,7 +212,7 @@ def test_a_job_whose_record_fails_its_schema_ends_failed_unrun_and_the_worker_go
     ran: list[int] = []
 
     async def scenario(plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+        async def operation(ctx: JobContext, n: int) -> JobEnd:
             ran.append(n)
             return JobEnd(done(n))
 
@@ -234,7 +234,7 @@ def test_a_job_whose_id_names_no_tenant_ends_failed_without_running(redis_server
     ran: list[int] = []
 
     async def scenario(plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+        async def operation(ctx: JobContext, n: int) -> JobEnd:
             ran.append(n)
             return JobEnd(done(n))
 
@@ -284,7 +284,7 @@ def test_a_run_whose_end_redis_refused_is_handed_back_by_the_next_beat(redis_ser
     claims = RunClaims("w1", heartbeat, 5.0)
 
     async def scenario(plain: Redis[bytes]) -> None:
-        async def operation(ctx: dict[str, Any], n: int) -> JobEnd:
+        async def operation(ctx: JobContext, n: int) -> JobEnd:
             await plain.config_set("maxmemory", 1)  # noeviction refuses every write from here
             return JobEnd(done(n))
 

@@ -22,7 +22,7 @@ from typing import Any, NamedTuple
 
 from pydantic import ValidationError
 
-from precond_client.schemas.api import ModelInfo
+from precond_client.schemas import ModelInfo
 from precond_client.schemas.errors import InvalidInput
 from precond_client.schemas.training import MAX_ADAPTER_BYTES, TrainPolicyResult
 

@@ -11,7 +11,7 @@ from precond.gateway.caller import Caller
 from precond.gateway.deps import ServicesDep
 from precond.gateway.errors import ServiceError
 from precond.jobs.queue.keys import JobId
-from precond_client.schemas.api import ErrorResponse, JobStatus
+from precond_client.schemas import ErrorResponse, JobStatus
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
 NOT_FOUND: dict[int | str, dict[str, Any]] = {

@@ -20,11 +20,11 @@ from precond.gateway.errors import ServiceError, error_response, status_for
 from precond.gateway.examples import openapi_examples
 from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.submission import submit_job
-from precond.jobs import policy_adapters
 from precond.jobs.queue import keys
 from precond.jobs.queue.payloads import ReinferJob, TrainPolicyJob
 from precond.programs import checks
-from precond_client.schemas.api import (
+from precond.store import policies as policy_adapters
+from precond_client.schemas import (
     MAX_SOURCE_CHARS,
     CheckRequest,
     CheckResponse,

@@ -15,10 +15,11 @@ from precond.gateway.deps import Services, ServicesDep
 from precond.gateway.errors import ServiceError
 from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.routes.operations import ERRORS, Wait, answer
-from precond.jobs import policy_adapters, tenant_store
 from precond.jobs.queue.payloads import TrainPolicyJob
-from precond.jobs.tenant_store import POLICIES
-from precond_client.schemas.api import ErrorResponse
+from precond.store import policies as policy_adapters
+from precond.store import tenant_store
+from precond.store.tenant_store import POLICIES
+from precond_client.schemas import ErrorResponse
 from precond_client.schemas.training import PolicyAdapter, PolicyAdapterList, TrainPolicyRequest
 
 router = APIRouter(prefix="/policies", tags=["trained policies"], route_class=OffloadedBodyRoute)

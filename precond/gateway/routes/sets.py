@@ -18,10 +18,10 @@ from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.routes.operations import ERRORS, Wait, answer, with_prior_sets
 from precond.gateway.set_store import Report, apply_edits, blocking_message, new_id, not_found, version_of
 from precond.gateway.submission import submit_job
-from precond.jobs.precondition_sets import check_set, normal, set_warnings, union
 from precond.jobs.queue.payloads import ReinferJob, ValidateRequest
 from precond.programs import checks
-from precond_client.schemas.api import (
+from precond.store.sets import check_set, normal, set_warnings, union
+from precond_client.schemas import (
     MAX_DEMONSTRATIONS,
     MAX_SOURCE_CHARS,
     MAX_SOURCE_NAME_CHARS,
@@ -261,7 +261,7 @@ async def _static_check(services: Services, caller: Caller, spec: str, rules: di
 
 
 def _unique(rules: list[str]) -> list[str]:
-    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `jobs.precondition_sets.normal`), as first
+    """Each rule once, however it is spelled (`x["a"]` is `x['a']`: `store.sets.normal`), as first
     written."""
     first: dict[str, str] = {}
     for rule in rules:

@@ -20,7 +20,7 @@ from typing import Any, Final, get_args
 
 from arq import constants as arq_layout
 
-from precond_client.schemas.api import JobKind
+from precond_client.schemas import JobKind
 
 PREFIX: Final = "precond"
 MODEL_QUEUE: Final = f"{PREFIX}:queue:model"

@@ -1,5 +1,10 @@
 """Every kind of job in one table that each dispatcher reads: the payload a worker parses, the queue it goes
-to, whether it may run without the model, and whether its result becomes a stored set's next version."""
+to, whether it may run without the model, and whether the worker keeps its result as the tenant's.
+
+A kind's name is the API's (`JobKind`, asserted equal to this table's keys); what a worker runs for it is its row
+of `precond/worker/jobs.py:RUNNERS` (checked against this table at import) and, for a kind a route submits through
+the gateway's one `answer`, what the gateway does with its body first is its row of
+`precond/gateway/routes/operations.py:OPERATIONS`: those layers' own tables, as this package imports neither."""
 
 from __future__ import annotations
 
@@ -10,7 +15,7 @@ from pydantic import BaseModel
 
 from precond.jobs.queue.keys import CHECK_QUEUE, MODEL_FREE_QUEUE, MODEL_QUEUE, TRAIN_QUEUE
 from precond.jobs.queue.payloads import ReinferJob, TrainPolicyJob, ValidateRequest
-from precond_client.schemas.api import CheckRequest, InferRequest, JobKind, NextActionRequest
+from precond_client.schemas import CheckRequest, InferRequest, JobKind, NextActionRequest
 
 
 @dataclass(frozen=True)
@@ -21,10 +26,9 @@ class Kind:
     model_free: bool = False
     """Whether a job may leave the model out (`options.generators` without "model"): it then goes to the
     model-free queue, so that it never waits behind model jobs (minutes)."""
-    stores_version: bool = False
-    """The worker stores the result as a precondition set's next version: never shared between tenants."""
-    stores_adapter: bool = False
-    """The worker stores the result as a trained policy of the tenant: never shared between tenants."""
+    keeps: bool = False
+    """The worker keeps the result as the tenant's (a precondition set's next version, a trained policy): never
+    shared between tenants."""
 
 
 KINDS: Final[dict[JobKind, Kind]] = {
@@ -32,8 +36,8 @@ KINDS: Final[dict[JobKind, Kind]] = {
     "next-action": Kind(NextActionRequest, MODEL_QUEUE),
     "check": Kind(CheckRequest, CHECK_QUEUE),
     "validate": Kind(ValidateRequest, CHECK_QUEUE),
-    "reinfer": Kind(ReinferJob, MODEL_QUEUE, model_free=True, stores_version=True),
-    "train-policy": Kind(TrainPolicyJob, TRAIN_QUEUE, stores_adapter=True),
+    "reinfer": Kind(ReinferJob, MODEL_QUEUE, model_free=True, keeps=True),
+    "train-policy": Kind(TrainPolicyJob, TRAIN_QUEUE, keeps=True),
 }
 assert set(KINDS) == set(get_args(JobKind)), "every job kind of the API needs a row here"
 
@@ -51,7 +55,7 @@ def tenant_private(kind: JobKind, body: dict[str, Any]) -> bool:
     """Whether the result is the tenant's alone, never a shared cache entry even where the operator shares
     results: what it stores, and a next action of the tenant's own trained policy."""
     row = KINDS[kind]
-    return row.stores_version or row.stores_adapter or bool(body.get("options", {}).get("policy"))
+    return row.keeps or bool(body.get("options", {}).get("policy"))
 
 
 def queues_of(kind: JobKind) -> tuple[str, ...]:

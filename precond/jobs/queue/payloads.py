@@ -1,5 +1,5 @@
 """What a queued job, a run's progress and a stored end are, as bytes: and the payloads of the jobs the gateway
-makes for itself (never sent by a client, so they are not part of the public API, `precond_client.schemas.api`,
+makes for itself (never sent by a client, so they are not part of the public API, `precond_client.schemas`,
 which ships in the client wheel, but of the wire contract between gateway and worker).
 
 Every record is JSON, validated by a versioned pydantic model on the way in: a job (`JobRecord`), its progress
@@ -16,7 +16,7 @@ from typing import Any, Final, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from precond_client.schemas.api import (
+from precond_client.schemas import (
     ADAPTER_ID_PATTERN,
     MAX_COUNTEREXAMPLE_RUNS,
     MAX_DEMONSTRATIONS,

@@ -1,7 +1,7 @@
 """Replacements of libraries' private internals, each put in place only where what it replaces is there.
 
-Three speed-ups replace methods of redis-py's asyncio connection (`jobs.redis_packing`, `jobs.redis_sending`,
-`jobs.redis_checkout`), and the gateway's HTTP protocol subclasses uvicorn's httptools protocol
+Three speed-ups replace methods of redis-py's asyncio connection (`patches.redis_packing`, `patches.redis_sending`,
+`patches.redis_checkout`), and the gateway's HTTP protocol subclasses uvicorn's httptools protocol
 (`precond/gateway/http_protocol.py`). Each names the attributes it replaces or reads; `apply` checks that they
 exist before it patches, and when one is missing (a library version it was not written against) leaves the
 library as it is and logs one line saying which patch is off and why: the service then runs at the library's own

@@ -18,7 +18,7 @@ from typing import Any
 
 from redis.asyncio.connection import AbstractConnection, ConnectionPool
 
-from precond.jobs import patches
+from precond import patches
 
 _POOL: Any = ConnectionPool  # types-redis predates `ensure_connection`
 _checked_by_redis_py: Any = getattr(_POOL, "ensure_connection", None)

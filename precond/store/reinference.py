@@ -1,16 +1,21 @@
 """A re-inference merged with the base version of a precondition set: every rule marked required is kept,
 no rule marked rejected comes back, and every change is in the diff with its reason (the candidate report's,
-or where a removed rule would have blocked a demonstrated call). Pure: the worker runs it after the inference
-and stores the result (`worker.reinfer`).
+or where a removed rule would have blocked a demonstrated call), and the store of the version it makes: appended
+only if its base is still the latest (`store`, with the refusals a client can act on). The merge is pure: the worker
+runs it after the inference (`worker.reinfer`), then stores its version on the event loop.
 """
 
 from __future__ import annotations
 
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
+from precond.jobs.queue.payloads import ReinferJob
 from precond.programs.checks import normal
-from precond_client.schemas.api import CandidateReport, PreconditionSet, RuleChange, SetDiff
+from precond.store import sets, tenant_store
+from precond_client.schemas import CandidateReport, PreconditionSet, RuleChange, SetDiff
+from precond_client.schemas.errors import Conflict, SetsLimited
 
 
 def _has(table: Mapping[str, Sequence[str]], action: str, rule: str) -> bool:
@@ -94,3 +99,40 @@ def explain_removed(merged: Merged, blocked: Mapping[tuple[str, str], str]) -> S
                       "did not propose or keep it; add it back, or mark it required to keep it")
             removed.append(RuleChange(action=action, rule=rule, reason=reason))
     return merged.diff.model_copy(update={"removed": removed})
+
+
+async def store(redis: Any, tenant: str, job: ReinferJob, version: PreconditionSet) -> PreconditionSet:
+    """Append the version if its base is still the latest; the errors a client can act on otherwise."""
+    record = version.model_dump_json()
+    if len(record.encode()) > job.max_bytes:
+        raise SetsLimited(f"the re-inferred version takes {len(record.encode()):,} bytes, over the bound of "
+                          f"{job.max_bytes:,} (PRECOND_MAX_SET_BYTES)", field="demonstrations")
+    bounds = tenant_store.Bounds(records=0, versions=job.max_versions, tenant_bytes=job.max_tenant_bytes or 0)
+    answer = await sets.put(redis, tenant, version, record, bounds)
+    if answer == tenant_store.TOO_MANY_BYTES:
+        raise SetsLimited(sets.tenant_bytes_message(job.max_tenant_bytes or 0))
+    if answer == tenant_store.CONFLICT:
+        mine = await _stored_by_an_earlier_run(redis, tenant, version)
+        if mine is not None:
+            return mine
+    if answer in (tenant_store.CONFLICT, tenant_store.MISSING):
+        raise Conflict(f"precondition set {version.id} got a new version while it was re-inferred from version "
+                       f"{job.base.version}: read the latest and re-infer again")
+    if answer == tenant_store.TOO_MANY_VERSIONS:
+        raise SetsLimited(f"precondition set {version.id} has {job.max_versions} versions, the bound "
+                          "(PRECOND_MAX_SET_VERSIONS): create a new set from its latest version")
+    return version.model_copy(update={"latest": answer})
+
+
+async def _stored_by_an_earlier_run(redis: Any, tenant: str, version: PreconditionSet) -> PreconditionSet | None:
+    """The version this job makes, when an earlier run of it stored it already (its worker died before arq
+    recorded the end, and the job was handed back): the same rules, demonstrations and diff at the same number."""
+    raw = await tenant_store.read(redis, tenant_store.SETS, tenant, version.id, version.version)
+    latest = await tenant_store.latest(redis, tenant_store.SETS, tenant, version.id)
+    if raw is None or latest is None:
+        return None
+    stored = PreconditionSet.model_validate_json(raw)
+    same = ("preconditions", "demonstrations", "required", "rejected", "diff")
+    if any(getattr(stored, name) != getattr(version, name) for name in same):
+        return None
+    return stored.model_copy(update={"latest": latest})

@@ -21,7 +21,7 @@ from typing import Any
 from redis import exceptions
 from redis.asyncio.connection import AbstractConnection
 
-from precond.jobs import patches
+from precond import patches
 
 _CONNECTION: Any = AbstractConnection  # the method is replaced on the class, as redis-py defines it
 _sent_by_redis_py: Any = getattr(_CONNECTION, "send_packed_command", None)

@@ -1,6 +1,6 @@
 """Trained policies (LoRA adapters) as the gateway and the workers share them: a worker stores what it trained,
 the gateway lists, reads and deletes, a worker reads the weights of the version a next action names. They are
-kept by `precond.jobs.tenant_store` (kind `POLICIES`: `precond:policies:<tenant>`, `precond:policy:<tenant>:<id>`,
+kept by `precond.store.tenant_store` (kind `POLICIES`: `precond:policies:<tenant>`, `precond:policy:<tenant>:<id>`,
 `precond:policy-bytes:<tenant>`), each version's `PolicyAdapter` JSON with its adapter_model.safetensors as the
 counted part `weights`, like precondition sets: another tenant's adapter is simply not there.
 """
@@ -10,9 +10,9 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from precond.jobs import tenant_store
-from precond.jobs.tenant_store import POLICIES
-from precond_client.schemas.api import ADAPTER_REFERENCE
+from precond.store import tenant_store
+from precond.store.tenant_store import POLICIES
+from precond_client.schemas import ADAPTER_REFERENCE
 from precond_client.schemas.training import PolicyAdapter
 
 _REFERENCE = re.compile(ADAPTER_REFERENCE)

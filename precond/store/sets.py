@@ -1,9 +1,9 @@
 """Precondition sets as the gateway and the workers share them: where versions live in the queue Redis, the
 atomic append of a version (the gateway for edits, a worker for re-inference), the review's summary of a
-version and the union of stored and new demonstrations. The merge of a re-inference with its base version is
-the engine's (`engine.reinference`).
+version and the union of stored and new demonstrations. The merge of a re-inference with its base version, and
+its store, are `store.reinference`.
 
-Sets are stored by `precond.jobs.tenant_store` (kind `SETS`: `precond:sets:<tenant>`, `precond:set:<tenant>:<id>`,
+Sets are stored by `precond.store.tenant_store` (kind `SETS`: `precond:sets:<tenant>`, `precond:set:<tenant>:<id>`,
 `precond:set-bytes:<tenant>`), with `created` (of version 1) and `summary` (of the latest) beside the versions.
 """
 
@@ -15,11 +15,11 @@ from typing import Any, Final
 
 from pydantic import TypeAdapter, ValidationError
 
-from precond.jobs import tenant_store
 from precond.programs import checks
 from precond.programs.checks import normal as normal  # re-exported: the sets code compares rules by it
+from precond.store import tenant_store
 from precond_client.rule_interpreter import Frame, constant_work
-from precond_client.schemas.api import CandidateReport, Preconditions, PreconditionSet, RuleEvidence
+from precond_client.schemas import CandidateReport, Preconditions, PreconditionSet, RuleEvidence
 
 RULE_CHARS = 200
 """A rule named in a refusal is cut to this many characters."""

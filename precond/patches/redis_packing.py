@@ -14,7 +14,7 @@ from typing import Any
 
 from redis.typing import EncodableT
 
-from precond.jobs import patches
+from precond import patches
 
 
 def _needs() -> list[str]:
