@@ -20,7 +20,7 @@ from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine import guarded as guarding
 from precond.engine.decisive import decisive_points
 from precond.engine.enumeration import StateModel, enumerate_atoms
-from precond.engine.evidence import thin, too_few
+from precond.engine.evidence import OccurrenceIndex, thin, too_few
 from precond.engine.freshness import writes_at
 from precond.engine.left_out import Traced, trace_judgeable
 from precond.engine.library import Library, shipped
@@ -35,6 +35,7 @@ from precond.engine.ranking import (
 from precond.engine.report import UNSEEN_RULE, Proposals, Ranked, listed, report_of
 from precond.engine.runnable import drop_unrunnable
 from precond.engine.selection import Inference, select_rules
+from precond.engine.shared_rules import shared
 from precond.engine.spec import (
     Spec,
     as_error,
@@ -371,7 +372,9 @@ class Engine:
                 action, ranked[action], evaluated.points.get(action, ()), trace.actions[action].occurrences,
                 counterexamples.demonstrated_points(labelled, trace, action), cases, results, order,
                 policy.get(action), counterexamples.task_of(labelled, demos))
-        return separated
+        unlabelled = {a: (ranked[a], OccurrenceIndex.of(evaluated.points.get(a, ()), trace.actions[a].occurrences))
+                      for a in policy if a not in separated and a in ranked and trace.actions[a].occurrences}
+        return shared(separated, unlabelled)
 
     def _generate(
         self,
