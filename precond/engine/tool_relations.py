@@ -16,12 +16,20 @@ argument against the field of the same name). A policy also relates the call to 
   (`...[order_id]['user_id'] in [self.results['find_user_id_by_email'][k] for k in ...]`: the order's customer is
   the authenticated one), and an argument in an entry of that other read (`payment_method_id in
   self.results['get_user_details'][...[order_id]['user_id']]['payment_methods']`: the owner's payment method);
+- two list arguments whose items are keys of an object field of one read's results, as many on both sides in
+  each result (`variants`: each new item a variant of the product of the item it replaces), at most MAX_VALUES;
+- a string argument among (or, where every call shows it and both are ids, not among) a field of a list the
+  read holds (`payment_method_id in [y['payment_method_id'] for y in ...['payment_history']]`: the original
+  payment method), one per list field and item field (`_list_fields`: two an item);
+- a string argument's kind read off its id (`'gift_card_' in payment_method_id`), where the demonstrated calls
+  show 2 to MAX_KINDS kinds;
 - what the user said last before the call, where the demonstrated calls share it (`self.user.last_said ==
   'yes'`: an explicit confirmation).
 
 Each is proposed only where the demonstrated calls show it holding (the values seen type it: an id is no
 category, a date is compared with a date), except the earlier writes, which the demonstrations cannot show
-refused and the labels decide. At most MAX_RELATIONS an action: a handful per key, read and argument, so a
+refused and the labels decide, and an argument among a listed field and the kinds, which need only hold at some
+call: the labels decide those too. At most MAX_RELATIONS an action: a handful per key, read and argument, so a
 request's search stays within its work budget (`engine.decisive`). Every condition is one the embedded guard
 runs (`runnable`): one it cannot is never proposed.
 """
