@@ -3,6 +3,8 @@
 `tool_conditions` proposes what one read says about the call's key (read before, a field's value, the
 argument against the field of the same name). A policy also relates the call to other calls and other reads:
 
+- what earlier writes' results on the same key show of a field the read holds at one value at every call
+  (`shown_by_writes`: no earlier result of a write shows the order other than 'pending');
 - an earlier write on the same key (`order_id not in self.changes['modify_pending_order_items']`: "can only be
   modified once"; `order_id in self.changes['cancel_pending_order']`: a refund after the cancellation of *that*
   order), for each state-changing tool with a parameter of the same name, both ways;
@@ -26,12 +28,12 @@ argument against the field of the same name). A policy also relates the call to 
 - what the user said last before the call, where the demonstrated calls share it (`self.user.last_said ==
   'yes'`: an explicit confirmation).
 
-Each is proposed only where the demonstrated calls show it holding (the values seen type it: an id is no
-category, a date is compared with a date), except the earlier writes, which the demonstrations cannot show
-refused and the labels decide, and an argument among a listed field and the kinds, which need only hold at some
-call: the labels decide those too. At most MAX_RELATIONS an action: a handful per key, read and argument, so a
-request's search stays within its work budget (`engine.decisive`). Every condition is one the embedded guard
-runs (`runnable`): one it cannot is never proposed.
+Each is proposed only where the demonstrated calls show it holding (the values seen type it: an id is no category, a
+date is compared with a date), except the earlier writes, which the demonstrations cannot show refused and the
+labels decide (and what their results show), and an argument among a listed field and the kinds, which need only
+hold at some call: the labels decide those too. At most MAX_RELATIONS an action: a handful per key, read and
+argument, so a request's search stays within its work budget (`engine.decisive`). Every condition is one the
+embedded guard runs (`runnable`): one it cannot is never proposed.
 """
 
 from __future__ import annotations
@@ -47,19 +49,21 @@ from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import OutsideGrammar, Scope, compile_rule
 
 MAX_RELATIONS = 48
-"""Relation conditions per action, at most: 6 writes x 2 ways, a few categories, joins and containments."""
+"""Relation conditions per action, at most: 6 writes x 2 ways, a few categories, joins, containments and kinds."""
 CHANGES = "self.changes"
 SAID = "self.user.last_said"
 
 
 EARLIER_WRITE = re.compile(r"^\w+ (?:not )?in self\.changes\['\w+'\]$")
+SHOWN = re.compile(r"^all\(self\.changes\[w\]")
 
 
 def labels_only(atom: str) -> bool:
-    """An earlier write on the same key (`earlier_writes`), or the arithmetic of a tool spec
+    """An earlier write on the same key (`earlier_writes`), what earlier writes' results show (`shown_by_writes`),
+    or the arithmetic of a tool spec
     (`tool_conditions.arithmetic`): chosen only to separate labelled calls, never kept from demonstrations alone
     (that a flight change came before every baggage change in the logs is their order, not a requirement)."""
-    return bool(EARLIER_WRITE.match(atom)) or arithmetic(atom)
+    return bool(EARLIER_WRITE.match(atom) or SHOWN.match(atom)) or arithmetic(atom)
 
 
 def relations(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
@@ -70,7 +74,7 @@ def relations(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]
     for key in params:
         for tool, param in sorted(facts.key_param.items()):
             if param == key and tool != action:
-                atoms += _about_read(facts, calls, params, key, tool)
+                atoms += _about_read(facts, calls, params, key, tool) + shown_by_writes(facts, calls, key, tool)
     return runnable(list(dict.fromkeys(atoms)), params)[:MAX_RELATIONS]
 
 
@@ -313,3 +317,24 @@ def _same_entries(call: Seen, a: str, b: str, tool: str, name: str) -> bool:
     first, second = (v if isinstance(v := call.args.get(p), list) else [] for p in (a, b))
     return all(any(x in e for e in entries) for x in first + second) and all(
         sum(x in e for x in first) == sum(x in e for x in second) for e in entries)
+
+
+def shown_by_writes(facts: ToolFacts, calls: Sequence[Seen], key: str, tool: str) -> list[str]:
+    """`all(self.changes[w][order_id]['status'] == 'pending' for w in (...) if order_id in self.changes[w])`: a
+    write's result shows the record too (an order whose items were modified is 'pending (items modified)', a
+    cancelled one 'cancelled'), so a field the read's result holds at one value at every demonstrated call
+    (at most MAX_VALUES values in all) holds it in every earlier result of a write on the same key as well.
+    Each write with a parameter named as the key; one condition per such field. Chosen only to separate labelled
+    calls (`labels_only`): the demonstrations show writes' results no more refused than the writes."""
+    writes = tuple(sorted(w for w in facts.writes if key in facts.params.get(w, ())))
+    read = [c.results.get((tool, c.args.get(key))) for c in calls]
+    if not writes or not read or not all(isinstance(r, dict) for r in read):
+        return []
+    atoms = []
+    for name, counts in sorted(facts.values.get(tool, {}).items()):
+        values = {r.get(name) for r in read if isinstance(r, dict)}
+        value = next(iter(values)) if len(values) == 1 else None
+        if isinstance(value, str) and len(counts) <= MAX_VALUES:
+            atoms.append(f"all({CHANGES}[w][{key}][{name!r}] == {value!r} for w in {writes!r} if {key} in "
+                         f"{CHANGES}[w])")
+    return atoms

@@ -16,7 +16,7 @@ from precond.convert.openai import convert
 from precond.engine import tool_conditions
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
-from precond.engine.tool_relations import relations
+from precond.engine.tool_relations import labels_only, relations
 from precond.sandbox import Sandbox
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import Frame, Scope, compile_rule
@@ -113,3 +113,17 @@ def test_a_condition_one_actions_labels_chose_is_adopted_where_every_call_to_all
     verdict = engine.check(CheckRequest(spec=demos.spec, preconditions=response.preconditions,
                                         history="\n".join(lines[: extend - 1]) + "\n", calls=[lines[extend - 1]]))
     assert not verdict.results[0].allowed  # extending the closed loan: never labelled, refused all the same
+
+
+def test_what_earlier_writes_show_of_a_field_the_read_holds_at_one_value_is_proposed_for_labels() -> None:
+    converted = convert([desk_run(n) for n in range(6)], TOOLS, writes=WRITES)
+    spec = parse_spec(converted.spec)
+    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    found = relations(facts, "extend_loan", spec.methods[EXTEND].positional)
+    shown = ("all(self.changes[w][loan_id]['state'] == 'open' for w in ('extend_loan', 'swap_copies') "
+             "if loan_id in self.changes[w])")
+    assert shown in found and labels_only(shown)  # every loan the calls extend was read open
+    rule = compile_rule(shown, Scope(AGENT_SHAPE, PARAMS["extend_loan"]))
+    state = SimpleNamespace(results={}, changes={"swap_copies": {"L1": {"state": "closed"}, "L2": {"state": "open"}}},
+                            errors={}, seen={}, last_ok=True, user=SimpleNamespace(messages=1, last_said="yes"))
+    assert [rule(Frame(state, (loan,))) for loan in ("L1", "L2", "L3")] == [False, True, True]
