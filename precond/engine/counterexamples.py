@@ -12,7 +12,7 @@ call to refuse and true at as many calls to allow as it can be, each term with a
 evidence needs (one, else two). Beside it the ranking's other rules stay only where they allow every call to
 allow, and an assumed one (a possible correlate) only where it refuses a labelled call: a refusal always has a
 counterexample or an established reason behind it. Last, for a tool spec, an allowance the policy states
-tightens the rule (`_allowance`: one k for every call; `_table`: a k by category, only where one k cannot
+tightens the rule (`allowance_tables`: one k for every call, or a k by category, only where one k cannot
 separate the calls the rest leaves allowed). Nothing here runs untrusted code: the sandbox judged every
 condition at every labelled call (`Labelled.points` are its points).
 """
@@ -20,26 +20,19 @@ condition at every labelled call (`Labelled.points` are its points).
 from __future__ import annotations
 
 import ast
-import itertools
 import re
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import Any
 
+from precond.engine.allowance_tables import Table, best_allowance, held_terms
+from precond.engine.allowance_tables import table as table_of
 from precond.engine.evidence import OccurrenceIndex, gather
 from precond.engine.ranking import Candidate, Cluster
 from precond.engine.report import Ranked
 from precond.engine.spec import Spec
-from precond.engine.tool_conditions import (
-    ALLOWANCES,
-    ARGUMENT_KEY,
-    MAX_CELLS,
-    MAX_KEYS,
-    allowance,
-    allowance_form,
-    arithmetic,
-    key,
-)
+from precond.engine.tool_conditions import ARGUMENT_KEY, allowance, arithmetic
 from precond.sandbox.types import CandidateResult, Point, TraceResult
 from precond_client.schemas import Counterexamples, Decided
 from precond_client.schemas.errors import InvalidInput
@@ -207,6 +200,10 @@ class Separation:
     conflicts: list[str] = field(default_factory=list)
     """Per rule made from the labels that refuses calls demonstrated or labelled 'allow', in words: which of those,
     and which calls labelled 'refuse' it refuses. Such a rule is `assumed` (a human decides), never established."""
+    outcome: Outcome | None = None
+    """Where the judged conditions hold among the examples, and which the labels chose."""
+    made: Made | None = None
+    """The ranking being changed, to adopt more rules (`shared_rules`)."""
 
 
 def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurrences: Sequence[Point],
@@ -216,27 +213,12 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     """The action's rules chosen against its labelled calls (module docstring). `policy`: the conditions
     the separating rules are made of when given (a tool spec's conditions over results and arguments); `tasks`:
     the task a demonstrated call (its point) or a labelled call of another run belongs to (`own_task`)."""
-    examples: list[Example] = []
-    demo_bits: list[int | None] = []
-    for occurrence in dict.fromkeys(occurrences):
-        case = labelled_demos.get(occurrence)
-        examples.append(Example(case, case is not None and case.verdict == REFUSE))
-        demo_bits.append(_index(demo_points, occurrence))
+    examples, demo_bits = _examples(occurrences, labelled_demos, demo_points, case_points)
     case_bits = [_index(case_order, point) for _, point in case_points]
-    examples += [Example(case, case.verdict == REFUSE) for case, _ in case_points]
     positive = sum(1 << k for k, e in enumerate(examples) if not e.refuse)
     negative = sum(1 << k for k, e in enumerate(examples) if e.refuse)
-    truth: dict[str, int] = {}
-    for result in ranked.results:
-        if result.status == "rejected" or (result.expression not in case_results and case_points):
-            continue
-        elsewhere = case_results.get(result.expression)
-        bits = [_bit(result.satisfied, b) for b in demo_bits]
-        bits += [_bit(elsewhere.satisfied if elsewhere and elsewhere.status != "rejected" else 0, b)
-                 for b in case_bits]
-        truth[result.expression] = sum(1 << k for k, held in enumerate(bits) if held)
-    demonstrated = len(examples) - len(case_points)
-    unshown = all(e.refuse for e in examples[:demonstrated])
+    truth = _truth(ranked, demo_bits, case_bits, case_results, bool(case_points))
+    unshown = all(e.refuse for e in examples[:len(examples) - len(case_points)])
     kept, notes = _kept(ranked, truth, positive, negative, unshown)
     remaining = negative & ~_refused_by(kept, truth, negative)
     pool = {e: t for e, t in truth.items() if e in policy and allowance(e) < 0 and not ARGUMENT_KEY.match(e)
@@ -247,19 +229,10 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         if tasks else None
     required, learned = _smallest(pool, positive, remaining, task_of) if positive else (
         _limits(pool, negative, remaining) if policy else [], [])
-    table: Table | None = None
-    if policy and (kept or required or learned):
-        # an allowance only tightens a rule the other conditions give: alone it would open an action whose
-        # labelled calls nothing else separates (one that stays refused, `options.unseen`)
-        left = remaining & ~_refused_by(set(required), truth, remaining)
-        if learned:
-            left &= _held(learned, truth, (1 << len(examples)) - 1)
-        flat = _allowance({e: t for e, t in truth.items() if e in policy and allowance(e) >= 0}, positive,
-                          negative, left)
-        # one allowance for every call, unless only one looked up by category separates the calls it leaves
-        table = _table({e: t for e, t in truth.items() if e in policy}, positive, left, (1 << len(examples)) - 1,
-                       flat) if positive and left & ~_refused_by(set(flat), truth, left) else None
-        required += [] if table else flat
+    every = (1 << len(examples)) - 1
+    table = _tightened(truth, policy, positive, negative, remaining, required, learned, every) \
+        if policy and (kept or required or learned) else None
+    required += table if isinstance(table, list) else []
     chosen = [c for c in ranked.chosen if c.representative.expression in kept]
     by_text = {r.expression: r for r in ranked.results}
     for e in required:
@@ -267,43 +240,130 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         notes[e] = ("kept: holds at every call to allow and refuses calls labelled 'refuse'" if positive else
                     "kept: a limit that refuses calls labelled 'refuse'; no call of the action is labelled 'allow' "
                     "or demonstrated") + _across(negative & ~truth.get(e, 0), negative, task_of)
-    decided_required: dict[str, Decided] = dict.fromkeys(required, "established")
-    results, evidence, verdicts = list(ranked.results), dict(ranked.evidence), dict(ranked.verdicts)
-    decided = {**{e: d for e, d in ranked.decided.items() if e in kept}, **decided_required}
-    reasons = {**ranked.reasons, **notes}
     at_demos = {r.expression: r.satisfied for r in ranked.results}
     added: list[tuple[str, int, int, str]] = []
     """Rules made here: the text, where it holds at the demonstrations and at the examples, the reason."""
     if learned:
-        added.append((_text(learned), _held(learned, at_demos, (1 << len(demo_points)) - 1),
-                      _held(learned, truth, (1 << len(examples)) - 1),
+        added.append((_text(learned), held_terms(learned, at_demos, (1 << len(demo_points)) - 1),
+                      held_terms(learned, truth, every),
                       f"kept: separates the calls labelled 'refuse' from the calls to allow "
                       f"({len(learned)} term{'s' if len(learned) > 1 else ''})"))
-    if table:
-        added.append((table.text, table.held(at_demos, (1 << len(demo_points)) - 1),
-                      table.held(truth, (1 << len(examples)) - 1), table.reason))
+    if isinstance(table, Table):
+        added.append((table.text, table.held(at_demos, (1 << len(demo_points)) - 1), table.held(truth, every),
+                      table.reason))
+    made = Made(ranked, OccurrenceIndex.of(demo_points, occurrences), chosen, {**ranked.reasons, **notes},
+                {**{e: d for e, d in ranked.decided.items() if e in kept}, **dict.fromkeys(required, "established")})
     for expression, satisfied, held, reason in added:
-        index = OccurrenceIndex.of(demo_points, occurrences)
-        if expression not in {r.expression for r in results}:
-            results.append(CandidateResult(expression, "valid", None, satisfied))
-        evidence[expression] = gather(satisfied, index)
-        verdicts[expression] = "held" if not index.mask & ~satisfied else "tolerated"
-        chosen.append(Cluster((Candidate(expression, "enumerate", satisfied),)))
-        decided[expression] = "established"
+        made.adopt(expression, satisfied, reason)
         truth[expression] = held
-        reasons[expression] = reason
-    refuses, wrong = {}, {}
-    for cluster in chosen:
-        e = cluster.representative.expression
-        refuses[e] = [_name(examples[k]) for k in _bits_of(negative & ~truth.get(e, 0))]
-        wrong[e] = [_name(examples[k]) for k in _bits_of(positive & ~truth.get(e, 0))]
-    conflicts = [_conflict(e, wrong[e], refuses[e]) for e, *_ in added if wrong.get(e)]
-    decided.update({e: "assumed" for e, *_ in added if wrong.get(e)})
-    exempt = {p for p, c in labelled_demos.items() if c.verdict == REFUSE}
-    return Separation(replace(ranked, results=results, chosen=chosen, reasons=reasons, evidence=evidence,
-                              verdicts=verdicts, decided=decided), refuses, wrong, exempt,
-                      [_name(examples[k]) for k in _bits_of(negative & ~_refused_by(
-                          {c.representative.expression for c in chosen}, truth, negative))], unshown, conflicts)
+    from_labels = [e for e in [*required, *(c for t in learned for c in t)] if negative & ~truth.get(e, 0)]
+    outcome = Outcome([_name(e) for e in examples], truth, positive, negative, from_labels)
+    return made.separation(outcome, [e for e, *_ in added], {p for p, c in labelled_demos.items()
+                                                             if c.verdict == REFUSE}, unshown)
+
+
+def _examples(occurrences: Sequence[Point], labelled_demos: Mapping[Point, Case], demo_points: Sequence[Point],
+              case_points: Sequence[tuple[Case, Point]]) -> tuple[list[Example], list[int | None]]:
+    """The demonstrated calls (their labels, where named) then the labelled calls of other runs, and per
+    demonstrated call its bit among the demonstrations' points."""
+    examples: list[Example] = []
+    demo_bits: list[int | None] = []
+    for occurrence in dict.fromkeys(occurrences):
+        case = labelled_demos.get(occurrence)
+        examples.append(Example(case, case is not None and case.verdict == REFUSE))
+        demo_bits.append(_index(demo_points, occurrence))
+    examples += [Example(case, case.verdict == REFUSE) for case, _ in case_points]
+    return examples, demo_bits
+
+
+def _truth(ranked: Ranked, demo_bits: Sequence[int | None], case_bits: Sequence[int | None],
+           case_results: Mapping[str, CandidateResult], has_cases: bool) -> dict[str, int]:
+    """Per judged condition, the examples it holds at (bit k: example k)."""
+    truth: dict[str, int] = {}
+    for result in ranked.results:
+        if result.status == "rejected" or (result.expression not in case_results and has_cases):
+            continue
+        elsewhere = case_results.get(result.expression)
+        bits = [_bit(result.satisfied, b) for b in demo_bits]
+        bits += [_bit(elsewhere.satisfied if elsewhere and elsewhere.status != "rejected" else 0, b)
+                 for b in case_bits]
+        truth[result.expression] = sum(1 << k for k, held in enumerate(bits) if held)
+    return truth
+
+
+def _tightened(truth: Mapping[str, int], policy: set[str], positive: int, negative: int, remaining: int,
+               required: Sequence[str], learned: Sequence[Term], every: int) -> Table | list[str]:
+    """The allowance that tightens the rule (`allowance_tables`): a table by category, else one k for every call
+    (a list of at most one). Only a rule the other conditions give is tightened: alone an allowance would open
+    an action whose labelled calls nothing else separates (one that stays refused, `options.unseen`)."""
+    left = remaining & ~_refused_by(set(required), truth, remaining)
+    if learned:
+        left &= held_terms(learned, truth, every)
+    flat = best_allowance({e: t for e, t in truth.items() if e in policy and allowance(e) >= 0}, positive,
+                          negative, left)
+    # one allowance for every call, unless only one looked up by category separates the calls it leaves
+    table = table_of({e: t for e, t in truth.items() if e in policy}, positive, left, every, flat) \
+        if positive and left & ~_refused_by(set(flat), truth, left) else None
+    return table or flat
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """Where an action's judged conditions hold among its examples, and which the labels chose."""
+
+    names: list[str]
+    """Per example (bit k), how a rule's evidence names it."""
+    truth: dict[str, int]
+    positive: int
+    negative: int
+    from_labels: list[str]
+    """The conditions the labels chose here (required, or in a separating term) that refuse calls labelled
+    'refuse': what another action sharing them may adopt (`shared_rules`)."""
+
+    def named(self, mask: int) -> list[str]:
+        return [self.names[k] for k in _bits_of(mask)]
+
+
+@dataclass
+class Made:
+    """An action's ranking as the labels change it: the rules chosen, their reasons and how each was decided."""
+
+    ranked: Ranked
+    index: OccurrenceIndex
+    """The demonstrated calls among the demonstrations' points."""
+    chosen: list[Cluster]
+    reasons: dict[str, str]
+    decided: dict[str, Decided]
+    results: list[CandidateResult] = field(default_factory=list)
+    evidence: dict[str, Any] = field(default_factory=dict)
+    verdicts: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.results = self.results or list(self.ranked.results)
+        self.evidence = self.evidence or dict(self.ranked.evidence)
+        self.verdicts = self.verdicts or dict(self.ranked.verdicts)
+
+    def adopt(self, expression: str, satisfied: int, reason: str) -> None:
+        """One more rule, established, holding at the demonstrations' points `satisfied`."""
+        if expression not in {r.expression for r in self.results}:
+            self.results.append(CandidateResult(expression, "valid", None, satisfied))
+        self.evidence[expression] = gather(satisfied, self.index)
+        self.verdicts[expression] = "held" if not self.index.mask & ~satisfied else "tolerated"
+        self.chosen.append(Cluster((Candidate(expression, "enumerate", satisfied),)))
+        self.decided[expression] = "established"
+        self.reasons[expression] = reason
+
+    def separation(self, outcome: Outcome, made: Sequence[str], exempt: set[Point], unshown: bool) -> Separation:
+        """The separation of these rules; a rule made here (`made`) that refuses a call to allow is assumed."""
+        texts = [c.representative.expression for c in self.chosen]
+        refuses = {e: outcome.named(outcome.negative & ~outcome.truth.get(e, 0)) for e in texts}
+        wrong = {e: outcome.named(outcome.positive & ~outcome.truth.get(e, 0)) for e in texts}
+        conflicts = [_conflict(e, wrong[e], refuses[e]) for e in made if wrong.get(e)]
+        self.decided.update({e: "assumed" for e in made if wrong.get(e)})
+        ranked = replace(self.ranked, results=self.results, chosen=self.chosen, reasons=self.reasons,
+                         evidence=self.evidence, verdicts=self.verdicts, decided=self.decided)
+        unrefused = outcome.named(outcome.negative & ~_refused_by(set(texts), outcome.truth, outcome.negative))
+        return Separation(ranked, refuses, wrong, exempt, unrefused, unshown, conflicts, outcome, self)
 
 
 def _conflict(rule: str, allowed: Sequence[str], refused: Sequence[str]) -> str:
@@ -408,7 +468,7 @@ def _smallest(truth: Mapping[str, int], positive: int, negative: int, task_of: S
         for separated in dict.fromkeys((remaining & ~alone, remaining & ~alone & ~_shadows(truth, positive,
                                                                                            remaining))):
             terms = _terms(truth, positive, separated)
-            allowed = _held(terms, truth, -1) if separated and terms else positive | remaining
+            allowed = held_terms(terms, truth, -1) if separated and terms else positive | remaining
             size = sum(_conditions(e) for e in order[:k]) + sum(_conditions(e) for t in terms for e in t)
             wrong = (positive & ~allowed).bit_count() + (remaining & allowed).bit_count()
             cost = (wrong + CONDITION_COST * size, size)
@@ -448,133 +508,6 @@ def _limits(truth: Mapping[str, int], negative: int, remaining: int) -> list[str
     these calls and every other, and only a call to allow could show it, so none of those forms is learned; and
     a condition no labelled call meets (every saved passenger born after today) says no more than `False`."""
     return _required({e: t for e, t in truth.items() if t & negative and not LIMIT_FORMS.search(e)}, 0, remaining)
-
-
-def _allowance(truth: Mapping[str, int], positive: int, negative: int, remaining: int) -> list[str]:
-    """The largest allowance (the most generous, `tool_conditions.allowance`) that holds at every call to allow (or,
-    with none, at some call labelled 'refuse': one no call meets says no more than `False`) and refuses the most
-    of the calls labelled 'refuse' that the other conditions leave allowed (`remaining`); none if none does.
-    Chosen after the others, so it never replaces a condition that already separates."""
-    best, refused = None, 0
-    for e, t in sorted(truth.items(), key=lambda item: -allowance(item[0])):
-        meets = not positive & ~t if positive else bool(t & negative)
-        if meets and (remaining & ~t).bit_count() > refused:
-            best, refused = e, (remaining & ~t).bit_count()
-    return [best] if best else []
-
-
-Category = tuple[str | None, str]
-"""A table's key (`tool_conditions.key`): the read it needs (None for an argument of the call), the reference."""
-
-
-@dataclass(frozen=True)
-class Table:
-    """An allowance looked up by one or two categories: per k other than the fallback's, the cells that get it
-    (each cell the conditions that place a call in it, `tool_conditions.key`); any other value the fallback."""
-
-    reads: tuple[str, ...]
-    groups: tuple[tuple[tuple[tuple[str, ...], ...], str], ...]
-    """(the cells, the allowance they get), the most generous first."""
-    fallback: str
-    text: str
-    reason: str
-
-    def held(self, values: Mapping[str, int], every: int) -> int:
-        """Where the table holds, from where each condition it is made of holds."""
-        inside = held = 0
-        for cells, allowed in self.groups:
-            member = 0
-            for cell in cells:
-                member |= _held([cell], values, every)
-            inside |= member
-            held |= member & values.get(allowed, 0)
-        held |= every & ~inside & values.get(self.fallback, 0)
-        return _held([self.reads], values, every) & held
-
-
-def _table(truth: Mapping[str, int], positive: int, remaining: int, every: int, flat: Sequence[str]
-           ) -> Table | None:
-    """The allowance looked up by one or two categories (an argument of the call, a field of a read it names:
-    "free bags by tier and cabin") that refuses more of the calls labelled 'refuse' the other conditions leave
-    allowed (`remaining`) than the flat allowance (`flat`, `_allowance`) does; None where none does. Each cell a
-    call to allow or a labelled call shows gets, of the ks consistent with every call to allow in it, the one
-    refusing the most of `remaining` there (then the fallback's, then the most generous); a cell no call shows,
-    and a value none of the reads or calls showed, gets the fallback: the flat allowance's k, else the smallest
-    k of the table (no unseen category gets more than every seen one). At most MAX_KEYS categories (the fewest
-    values first), MAX_CELLS cells a table; the fewer categories, then the shorter text, on a tie."""
-    forms: dict[str, dict[int, str]] = {}
-    categories: dict[Category, dict[str, str]] = {}
-    for e in truth:
-        if allowance(e) >= 0:
-            forms.setdefault(allowance_form(e), {})[allowance(e)] = e
-        found = key(e)
-        if found and (found[0] is None or found[0] in truth):
-            categories.setdefault(found[:2], {})[found[2]] = e
-    usable = sorted((c for c, values in categories.items() if len(values) >= 2),
-                    key=lambda c: (len(categories[c]), c[1]))[:MAX_KEYS]
-    refused = (remaining & ~truth[flat[0]]).bit_count() if flat else 0
-    best: tuple[tuple[int, int, int], Table] | None = None
-    for form, by_k in sorted(forms.items()):
-        fixed = allowance(flat[0]) if flat and allowance_form(flat[0]) == form else None
-        for chosen in [*itertools.combinations(usable, 1), *itertools.combinations(usable, 2)]:
-            cells = list(itertools.product(*(sorted(categories[c].items()) for c in chosen)))
-            table = _filled(truth, positive, remaining, every, by_k, fixed, chosen, cells) \
-                if len(cells) <= MAX_CELLS else None
-            if table is None:
-                continue
-            held = table.held(truth, every)
-            score = (-(remaining & ~held).bit_count(), len(chosen), len(table.text))
-            if not positive & ~held and -score[0] > refused and (best is None or score < best[0]):
-                best = (score, table)
-    return best[1] if best else None
-
-
-def _filled(truth: Mapping[str, int], positive: int, remaining: int, every: int, by_k: Mapping[int, str],
-            fixed: int | None, chosen: Sequence[Category], cells: Sequence[tuple[tuple[str, str], ...]]
-            ) -> Table | None:
-    """The table of one allowance's form over the categories `chosen` (`_table`); None where a cell's calls to
-    allow fit no one k, or every cell gets the fallback (the flat allowance)."""
-    ks: dict[tuple[tuple[str, str], ...], int] = {}
-    for cell in cells:
-        inside = _held([tuple(atom for _, atom in cell)], truth, every)
-        fits = [k for k in ALLOWANCES if k in by_k and not positive & inside & ~truth[by_k[k]]]
-        if not fits:
-            return None
-        if inside:
-            ks[cell] = max(fits, key=lambda k: ((remaining & inside & ~truth[by_k[k]]).bit_count(), k == fixed, k))
-    fallback = fixed if fixed is not None else min(ks.values(), default=-1)
-    if fallback not in by_k or all(k == fallback for k in ks.values()):
-        return None
-    reads = tuple(dict.fromkeys(read for read, _ in chosen if read))
-    refs = [ref for _, ref in chosen]
-    subject = refs[0] if len(refs) == 1 else f"({', '.join(refs)})"
-
-    def values(cell: tuple[tuple[str, str], ...]) -> object:
-        return cell[0][0] if len(cell) == 1 else tuple(value for value, _ in cell)
-
-    groups, terms, given = [], [], []
-    for k in sorted(set(ks.values()) - {fallback}, reverse=True):
-        members = [cell for cell in ks if ks[cell] == k]
-        listed = [values(cell) for cell in members]
-        test = f"{subject} == {listed[0]!r}" if len(listed) == 1 else f"{subject} in {tuple(listed)!r}"
-        groups.append((tuple(tuple(atom for _, atom in cell) for cell in members), by_k[k]))
-        terms.append(f"{test} and {by_k[k]}")
-        given += listed
-    terms.append(f"{subject} not in {tuple(given)!r} and {by_k[fallback]}")
-    text = " or ".join(terms)
-    if reads:
-        text = f"{' and '.join(reads)} and ({text})"
-    names = " and ".join(NAMED.sub(r"\1", ref) for ref in refs)
-    learned = ", ".join(f"{values(cell)!r}: {k}" for cell, k in sorted(ks.items()))
-    reason = (f"kept: an allowance per item by {names}, learned from the labelled calls ({learned}): refuses calls "
-              f"labelled 'refuse' that one allowance for every call does not; a {names} no labelled or "
-              f"demonstrated call shows gets {fallback}, "
-              + ("the allowance every call to allow meets" if fixed is not None else "the smallest of the table"))
-    return Table(reads, tuple(groups), by_k[fallback], text, reason)
-
-
-NAMED = re.compile(r"^self\.results\['\w+'\]\[\w+\]\['(\w+)'\]$")
-"""A read's field named by its own name (`tier`)."""
 
 
 def _has_or(expression: str) -> bool:
@@ -642,15 +575,6 @@ def _text(terms: Sequence[Term]) -> str:
                        for c, t in zip(conjunctions, terms, strict=True))
 
 
-def _held(terms: Sequence[Term], values: Mapping[str, int], every: int) -> int:
-    """Where a disjunction of terms holds, from where each condition holds."""
-    held = 0
-    for term in terms:
-        value = every
-        for e in term:
-            value &= values.get(e, 0)
-        held |= value
-    return held
 
 
 def _index(points: Sequence[Point], point: Point) -> int | None:

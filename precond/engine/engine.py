@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine.checking import Checking
 from precond.engine.enumeration import StateModel, enumerate_atoms
+from precond.engine.evidence import OccurrenceIndex
 from precond.engine.freshness import writes_at
 from precond.engine.inference import (
     Run,
@@ -48,6 +49,7 @@ from precond.engine.report import Proposals, Ranked, listed, report_of
 from precond.engine.runnable import drop_unrunnable
 from precond.engine.sandboxed import history_program, sandbox_call, spec_of
 from precond.engine.selection import Inference, select_rules
+from precond.engine.shared_rules import shared
 from precond.engine.spec import (
     Spec,
     check_preconditions,
@@ -322,7 +324,9 @@ class Engine(Checking):
                 action, ranked[action], evaluated.points.get(action, ()), trace.actions[action].occurrences,
                 counterexamples.demonstrated_points(labelled, trace, action), cases, results, order,
                 policy.get(action), counterexamples.task_of(labelled, demos))
-        return separated
+        unlabelled = {a: (ranked[a], OccurrenceIndex.of(evaluated.points.get(a, ()), trace.actions[a].occurrences))
+                      for a in policy if a not in separated and a in ranked and trace.actions[a].occurrences}
+        return shared(separated, unlabelled)
 
     def _generate(
         self,

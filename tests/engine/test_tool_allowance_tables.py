@@ -1,4 +1,4 @@
-"""Allowances by category (precond/engine/tool_conditions.py `keys`, precond/engine/counterexamples.py `_table`):
+"""Allowances by category (precond/engine/tool_conditions.py `keys`, precond/engine/allowance_tables.py `table`):
 free items per item looked up by a field of a read the call names or an argument of the call, learned from
 labelled calls only where one allowance for every call cannot separate them; a value no call shows falls back."""
 
