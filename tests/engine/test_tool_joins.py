@@ -20,7 +20,7 @@ from precond.engine.tool_relations import labels_only, relations
 from precond.sandbox import Sandbox
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import Frame, Scope, compile_rule
-from precond_client.schemas.api import CheckRequest, InferRequest
+from precond_client.schemas import CheckRequest, InferRequest
 
 PARAMS = {"get_loan": ("loan_id",), "get_title": ("title_id",), "extend_loan": ("loan_id",),
           "swap_copies": ("loan_id", "copy_ids", "new_copy_ids", "card_id")}
