@@ -23,4 +23,5 @@ def test_accepted_jobs_survive_a_redis_restart(tmp_path: Path, tiny_model_dir: P
         assert statuses == ([200] if name == "GET /health" else [503]), figures
     assert len(figures["503_with_retry_after"]) == len(down) - 1, figures
     assert figures["probe_latency_while_down"]["max_ms"] < 3000, figures  # 503 at once, no hanging
-    assert figures["first_200_after_restart_s"] < 15 and figures["ready_after_restart_s"] < 15, figures
+    # Back within the scenario's bound (a hang would fail here); how fast is bench/reliability.py's figure.
+    assert figures["first_200_after_restart_s"] < 60 and figures["ready_after_restart_s"] < 60, figures
