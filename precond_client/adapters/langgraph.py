@@ -12,12 +12,13 @@ thread's guard session as they grow (`Conversation`); a thread is the `thread_id
 
 from __future__ import annotations
 
+import json
 import threading
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
 
-from langchain_core.messages import BaseMessage, ToolMessage
+from langchain_core.messages import AIMessage, BaseMessage, HumanMessage, ToolMessage
 from langchain_core.messages.utils import convert_to_openai_messages
 from langchain_core.tools import BaseTool
 from langgraph.prebuilt import ToolNode
@@ -35,7 +36,37 @@ Result = ToolMessage | Command[Any]
 
 
 def chat_messages(messages: Sequence[BaseMessage]) -> list[dict[str, Any]]:
-    return list(convert_to_openai_messages(list(messages)))
+    """LangChain's `convert_to_openai_messages`, message by message (it reads each message alone); the common
+    ones (`plain_message`) converted here as it converts them, at a fraction of its cost."""
+    converted: list[dict[str, Any]] = []
+    for message in messages:
+        plain = plain_message(message)
+        converted.extend([plain] if plain is not None else convert_to_openai_messages([message]))
+    return converted
+
+
+PLAIN_ROLES: dict[type, str] = {AIMessage: "assistant", HumanMessage: "user", ToolMessage: "tool"}
+
+
+def plain_message(message: Any) -> dict[str, Any] | None:
+    """A human, AI or tool message (those very classes) whose content is a string, as `convert_to_openai_messages`
+    gives it; None for any other message."""
+    role = PLAIN_ROLES.get(type(message))
+    if role is None or type(message.content) is not str:
+        return None
+    converted: dict[str, Any] = {"role": role}
+    if message.name:
+        converted["name"] = message.name
+    if role == "assistant" and message.tool_calls:
+        converted["tool_calls"] = [{"type": "function", "id": call["id"], "function": {
+            "name": call["name"], "arguments": json.dumps(call["args"], ensure_ascii=False)}}
+            for call in message.tool_calls]
+    if message.additional_kwargs.get("refusal"):
+        converted["refusal"] = message.additional_kwargs["refusal"]
+    if role == "tool":
+        converted["tool_call_id"] = message.tool_call_id
+    converted["content"] = message.content
+    return converted
 
 
 class GuardedToolCalls:
@@ -70,11 +101,9 @@ class GuardedToolCalls:
         return conversation
 
     def _messages(self, state: Any) -> Sequence[BaseMessage]:
-        if isinstance(state, dict):
-            return list(state.get(self.messages_key) or [])
-        if isinstance(state, list):
-            return state
-        return list(getattr(state, self.messages_key, None) or [])
+        found = state if isinstance(state, list) else (state.get(self.messages_key) if isinstance(state, dict)
+                                                       else getattr(state, self.messages_key, None))
+        return found if isinstance(found, list) else list(found or [])
 
     def _refused(self, request: ToolCallRequest, verdict: CallVerdict) -> ToolMessage:
         call = request.tool_call
