@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 from precond.convert.openai import convert  # noqa: E402
 from precond_client.guard import Guard, Judge, Session  # noqa: E402
-from precond_client.schemas.api import CallVerdict  # noqa: E402
+from precond_client.schemas import CallVerdict  # noqa: E402
 
 READ = "reservation_id in self.results['get_reservation_details']"
 GOT = "self.results['get_reservation_details'][reservation_id]"
