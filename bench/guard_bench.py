@@ -11,7 +11,8 @@
   and two messages added per call, alone). `guard_in_run_cpu_ms_per_call` is that work timed inside the guarded
   runs (the guard wrapped, `TimedGuard`), and `adapter_own_cpu_us_per_call` the rest of the added CPU: the
   adapter's conversions and bookkeeping and the framework's own guardrail machinery (the figure against the goal
-  of 100 µs per guarded call).
+  of 100 µs per guarded call). `conversion_cpu_us_per_step`: the adapter's conversion of one step's new items (a
+  call and its result), timed alone.
 
 Each figure is wall-clock and CPU time (the thread's for single checks, the process's for runs): on a machine
 shared with other work, wall-clock tails are the other processes' time slices.
@@ -30,6 +31,7 @@ import platform
 import statistics
 import sys
 import time
+import timeit
 from collections.abc import Callable, Mapping
 from functools import partial
 from pathlib import Path
@@ -266,10 +268,29 @@ class TimedSession:
         return self.check(name, arguments)
 
 
+def conversion_us() -> dict[str, float]:
+    """Each adapter's conversion of one step's new items (a call and its result) to chat messages, CPU µs (the
+    best of 5 x 1,000): the part of its own work that grows with what a step adds."""
+    from langchain_core.messages import AIMessage, ToolMessage
+
+    from precond_client.adapters import langgraph, openai_agents
+
+    name, args = script(2)[1]
+    items: list[Any] = [{"type": "function_call", "call_id": "c1", "name": name, "arguments": json.dumps(args)},
+                        {"type": "function_call_output", "call_id": "c1", "output": RESERVATION}]
+    messages = [AIMessage("", tool_calls=[{"name": name, "args": args, "id": "c1"}]),
+                ToolMessage(RESERVATION, tool_call_id="c1", name=name)]
+    steps = {"openai_agents": partial(openai_agents.chat_messages, items),
+             "langgraph": partial(langgraph.chat_messages, messages)}
+    return {framework: min(timeit.repeat(step, timer=time.thread_time, number=1000, repeat=5)) * 1e3
+            for framework, step in steps.items()}
+
+
 def bench_adapters(guard: Guard, calls: int, rounds: int) -> dict[str, Any]:
     own = statistics.median(guard_work(guard, calls) for _ in range(rounds)) / calls
     results: dict[str, Any] = {"calls_per_run": calls, "rounds": rounds, "guard_cpu_ms_per_call": own * 1e3}
     runs: dict[str, Callable[[Any, int], float]] = {"openai_agents": agents_run, "langgraph": langgraph_run}
+    converting = conversion_us()
     for name, run in runs.items():
         run(guard, calls)  # warm-up: imports, the frameworks' first-use work
         timed = TimedGuard(guard)
@@ -279,7 +300,8 @@ def bench_adapters(guard: Guard, calls: int, rounds: int) -> dict[str, Any]:
         in_run = timed.used / rounds / calls * 1e3
         results[name] = {f"{key}_ms_per_call": value for key, value in per_call.items()} | {
             "added_ms_per_call": per_call["guarded"] - per_call["bare"], "added_cpu_ms_per_call": added_cpu,
-            "guard_in_run_cpu_ms_per_call": in_run, "adapter_own_cpu_us_per_call": (added_cpu - in_run) * 1e3}
+            "guard_in_run_cpu_ms_per_call": in_run, "adapter_own_cpu_us_per_call": (added_cpu - in_run) * 1e3,
+            "conversion_cpu_us_per_step": converting[name]}
     return results
 
 

@@ -106,27 +106,32 @@ def same(adapter: dict[str, Any], embedded: dict[str, Any]) -> None:
         assert adapter == embedded
 
 
-SDK_TURN = st.builds(lambda i, n, a, o: [{"type": "function_call", "call_id": i, "name": n, "arguments": a},
-                                         {"type": "function_call_output", "call_id": i, "output": o}],
-                     IDS, NAMES, ARGUMENTS, RESULT)
+def sdk_turn(n: int, name: str, arguments: str, output: str) -> list[dict[str, Any]]:
+    """A call and its output, the call's id its own (as the SDK's are)."""
+    return [{"type": "function_call", "call_id": f"call_{n}", "name": name, "arguments": arguments},
+            {"type": "function_call_output", "call_id": f"call_{n}", "output": output}]
 
 
-@given(st.lists(SDK_TURN, max_size=5), st.lists(st.integers(0, 12), max_size=4))
+@given(st.lists(st.tuples(NAMES, ARGUMENTS, RESULT), max_size=5), st.lists(st.integers(0, 12), max_size=4))
 @settings(max_examples=150, deadline=None)
-def test_the_agents_sdk_adapter_judges_as_the_embedded_guard(turns: list[list[Any]], cuts: list[int]) -> None:
-    history: list[Any] = [{"role": "user", "content": "cancel R1"}, *(i for turn in turns for i in turn)]
+def test_the_agents_sdk_adapter_judges_as_the_embedded_guard(turns: list[tuple[str, str, str]],
+                                                             cuts: list[int]) -> None:
+    history: list[Any] = [{"role": "user", "content": "cancel R1"},
+                          *(i for n, turn in enumerate(turns) for i in sdk_turn(n, *turn))]
     same(verdict_after(history, cuts, openai_agents.chat_messages), whole(sdk_reference(history)))
 
 
-LANGCHAIN_TURN = st.builds(lambda i, n, r, o: [AIMessage("", tool_calls=[{"name": n, "args": {"reservation_id": r},
-                                                                          "id": i}]),
-                                               ToolMessage(o, tool_call_id=i, name=n)],
-                           IDS, NAMES, st.sampled_from(["R1", "R2"]), RESULT)
+def langchain_turn(n: int, name: str, reservation: str, output: str) -> list[BaseMessage]:
+    return [AIMessage("", tool_calls=[{"name": name, "args": {"reservation_id": reservation}, "id": f"call_{n}"}]),
+            ToolMessage(output, tool_call_id=f"call_{n}", name=name)]
 
 
-@given(st.lists(LANGCHAIN_TURN, max_size=5), st.lists(st.integers(0, 12), max_size=4))
+@given(st.lists(st.tuples(NAMES, st.sampled_from(["R1", "R2"]), RESULT), max_size=5),
+       st.lists(st.integers(0, 12), max_size=4))
 @settings(max_examples=150, deadline=None)
-def test_the_langgraph_adapter_judges_as_the_embedded_guard(turns: list[list[Any]], cuts: list[int]) -> None:
-    history: list[Any] = [HumanMessage("cancel R1"), *(m for turn in turns for m in turn)]
+def test_the_langgraph_adapter_judges_as_the_embedded_guard(turns: list[tuple[str, str, str]],
+                                                            cuts: list[int]) -> None:
+    history: list[Any] = [HumanMessage("cancel R1"),
+                          *(m for n, turn in enumerate(turns) for m in langchain_turn(n, *turn))]
     same(verdict_after(history, cuts, langgraph.chat_messages),
          whole(list(convert_to_openai_messages(history))))
