@@ -198,16 +198,16 @@ class Guard:
         if tool is None:
             return _verdict(str(name), False, error=f"{NO_SUCH_TOOL}: {str(name)[:100]!r} (the set's tools: "
                                                     f"{', '.join(sorted(self.tools)[:20])})")
+        given = _parsed(arguments)
         try:
-            call, _ = state.read_call({"name": name, "arguments": arguments}, "calls[0]")
+            call, _ = state.read_call({"name": name, "arguments": given}, "calls[0]")
         except PlaceError as exc:
             return self._unjudged(f"agent.{tool.name}(...)", str(exc))
         line = call_line(call, tool)
         status = self.status(tool.name)
         if len(line) > MAX_CALL_CHARS:
             return _verdict(line, False, error=TOO_LONG, status=status)
-        problem = schema_problem(tool.name, tool.schema, parse_json(arguments) if isinstance(arguments, str)
-                                 and arguments.strip() else arguments or {})
+        problem = schema_problem(tool.name, tool.schema, given if given is not arguments else arguments or {})
         if problem is not None:  # refused before any rule is asked, as the service refuses it
             return _verdict(line, False, error=problem, status=status)
         frame = Frame(state.state, tuple(_tupled(call.arguments.get(p)) for p in tool.params))
@@ -256,6 +256,17 @@ class Guard:
 
     def _unjudged(self, call: str, reason: str) -> CallVerdict:
         return _verdict(call, not self.fail_closed, error=f"not judged: {reason}")
+
+
+def _parsed(arguments: str | Mapping[str, Any]) -> Any:
+    """A call's arguments given as JSON text, parsed once for both the reader and the schema; anything else (and
+    text that does not parse, which the reader then refuses in its own words) as given."""
+    if isinstance(arguments, str) and arguments.strip():
+        try:
+            return parse_json(arguments)
+        except (ValueError, RecursionError):
+            return arguments
+    return arguments
 
 
 def _holds(rule: _Rule, frame: Frame) -> bool:
