@@ -31,11 +31,11 @@ from typing import Any
 
 import torch
 
+from precond.engine.candidates.prompting import inference_prefix, inference_suffix
 from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
 from precond.engine.models.kvcache import growing_cache
 from precond.engine.models.prefixes import Prefix, PrefixStore
 from precond.engine.models.weights import choose_dtype
-from precond.engine.prompting import inference_prefix, inference_suffix
 from precond.engine.spec import parse_spec, resolve_actions
 from precond.evaluation.report import cpu_model
 from precond.evaluation.settings import data_path

@@ -16,10 +16,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from precond.engine.acting.training import train_policy
 from precond.engine.models.weights import load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
-from precond.engine.training import train_policy
 from precond.evaluation.domains import load_sgd
 from precond.evaluation.report import cpu_model
 from precond.evaluation.settings import DataSettings

@@ -3,7 +3,8 @@
 A rule is a Python expression over `self` (the agent's state) and the action's parameters. The service runs it
 in its sandbox; the embedded guard (`precond_client.guard`) cannot, and never runs caller text: it parses the
 rule with `ast` and builds a tree of small closures for exactly the forms the learner writes (the conditions of
-`precond/engine/enumeration.py` and `tool_conditions.py`, and the and/or/not of them that ranking makes). Each
+`precond/engine/candidates/enumeration.py` and `tool_conditions.py`, and the and/or/not of them that ranking makes).
+Each
 closure applies Python's own operator to the values the state holds, the very operation the rule names, so a rule
 answers and raises (`KeyError: 'cabin'`, `TypeError: ...`) as it does in the sandbox. A form outside the grammar
 is refused when the rule is compiled (`OutsideGrammar`, with the node and why), never at a call.

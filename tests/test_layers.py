@@ -22,6 +22,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {f"precond.{name}" for name in ("jobs", "store", "patches", "engine", "programs", "sandbox", "gateway",
                                         "worker", "cli", "evaluation", "stack", "convert")}
+LAYERS |= {"precond.engine.candidates", "precond.engine.judging", "precond.engine.acting"}  # the engine's rooms
 SCHEMAS = "precond_client.schemas"
 OPENAI_LOG = "precond_client.openai_log"
 INTERPRETER = "precond_client.rule_interpreter"
@@ -37,6 +38,8 @@ def p(*names: str) -> set[str]:
 
 
 FORBIDDEN: dict[str, set[str]] = {
+    "precond.engine.candidates": p("engine.judging", "engine.acting"),  # generating never asks the judges
+    "precond.engine.judging": p("engine.acting"),
     "precond.gateway": p("worker", "engine", "cli", "evaluation", "stack"),
     "precond.worker": p("gateway", "cli", "evaluation", "stack"),
     "precond.engine": p("worker", "jobs", "store", "gateway", "cli", "evaluation", "stack"),

@@ -317,10 +317,10 @@ def train_policy(
     from precond_client.schemas.training import TrainPolicyRequest
 
     body = _load(request, TrainPolicyRequest)
+    from precond.engine.acting.training import train_policy as train
     from precond.engine.models.weights import load_weights
     from precond.engine.settings import ModelSettings
     from precond.engine.spec import parse_spec
-    from precond.engine.training import train_policy as train
 
     def run(req: TrainPolicyRequest, progress: Callable[[str, int, int], None]) -> BaseModel:
         return train(lambda: load_weights(ModelSettings()), parse_spec(req.spec), req, out, progress, lambda: False)

@@ -13,11 +13,15 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from precond.engine import counterexamples, judge, priors, prompting, scope
+from precond.engine import scope
+from precond.engine.acting.next_action import NextActionPlanner
+from precond.engine.candidates import prompting
+from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
+from precond.engine.candidates.library import Library, shipped
+from precond.engine.candidates.parsing import parse_samples
+from precond.engine.candidates.tool_conditions import separating, tool_atoms
+from precond.engine.candidates.tool_relations import relations
 from precond.engine.checking import Checking
-from precond.engine.enumeration import StateModel, enumerate_atoms
-from precond.engine.evidence import OccurrenceIndex
-from precond.engine.freshness import writes_at
 from precond.engine.inference import (
     Run,
     Timer,
@@ -37,19 +41,19 @@ from precond.engine.inference import (
     with_separations,
     without_left_out,
 )
-from precond.engine.inference_notes import Findings, inference_warnings
-from precond.engine.left_out import trace_judgeable
-from precond.engine.library import Library, shipped
-from precond.engine.next_action import NextActionPlanner
-from precond.engine.parsing import parse_samples
-from precond.engine.ranking import (
+from precond.engine.judging import counterexamples, judge, priors
+from precond.engine.judging.evidence import OccurrenceIndex
+from precond.engine.judging.freshness import writes_at
+from precond.engine.judging.inference_notes import Findings, inference_warnings
+from precond.engine.judging.ranking import (
     Cluster,
 )
-from precond.engine.report import Proposals, Ranked, listed, report_of
-from precond.engine.runnable import drop_unrunnable
+from precond.engine.judging.report import Proposals, Ranked, listed, report_of
+from precond.engine.judging.runnable import drop_unrunnable
+from precond.engine.judging.selection import Inference, select_rules
+from precond.engine.judging.shared_rules import shared
+from precond.engine.left_out import trace_judgeable
 from precond.engine.sandboxed import history_program, sandbox_call, spec_of
-from precond.engine.selection import Inference, select_rules
-from precond.engine.shared_rules import shared
 from precond.engine.spec import (
     Spec,
     check_preconditions,
@@ -59,8 +63,6 @@ from precond.engine.spec import (
     resolve_actions,
     skip_statements,
 )
-from precond.engine.tool_conditions import separating, tool_atoms
-from precond.engine.tool_relations import relations
 from precond.engine.work import WorkBudget, points_of
 from precond.sandbox.types import (
     EvaluateResult,

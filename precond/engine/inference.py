@@ -12,21 +12,21 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from precond.engine import counterexamples, judge, priors
-from precond.engine import guarded as guarding
-from precond.engine.decisive import decisive_points
-from precond.engine.evidence import thin, too_few
-from precond.engine.left_out import Traced
-from precond.engine.ranking import (
+from precond.engine.candidates.tool_conditions import tool_class
+from precond.engine.judging import counterexamples, judge, priors
+from precond.engine.judging import guarded as guarding
+from precond.engine.judging.decisive import decisive_points
+from precond.engine.judging.evidence import thin, too_few
+from precond.engine.judging.ranking import (
     cluster,
     informative,
 )
-from precond.engine.report import UNSEEN_RULE, Proposals, Ranked
+from precond.engine.judging.report import UNSEEN_RULE, Proposals, Ranked
+from precond.engine.left_out import Traced
 from precond.engine.spec import (
     Spec,
     as_error,
 )
-from precond.engine.tool_conditions import tool_class
 from precond.programs import checks
 from precond.sandbox.types import (
     EvaluateResult,

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import torch
 
+from precond.engine.acting.training import OBJECTIVE, train_policy
 from precond.engine.models.adapters import RESULT, read_result
 from precond.engine.models.weights import load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
-from precond.engine.training import OBJECTIVE, train_policy
 from precond.evaluation.domains import Domain
 from precond_client.schemas.training import TrainPolicyOptions, TrainPolicyRequest, TrainPolicyResult
 

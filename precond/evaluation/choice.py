@@ -39,8 +39,8 @@ class Choice:
 
 CHOICES: tuple[Choice, ...] = (
     Choice("signed notices", "what a failure notice, \"nothing found\" and \"not available\" need of the last result "
-           "(precond/engine/library.py SIGNED; `empty`: an answer that is no success, also before anything was "
-           "asked; `asked`: an answer came and it was no success)",
+           "(precond/engine/candidates/library.py SIGNED; `empty`: an answer that is no success, also before "
+           "anything was asked; `asked`: an answer came and it was no success)",
            {"empty": "notices=empty", "found-asked": "notices=found-asked",
             "found-asked-available": "notices=found-asked-available", "asked": "notices=asked",
             "empty-available": "notices=empty-available", "off": "notices=off"}, "found-asked-available"),

@@ -12,7 +12,7 @@ the request's `options.model_for` (`thin`: the model proposes
 only for actions demonstrated fewer than 3 times), `spp` samples per prompt, `ppa` prompts per action, `dpp`
 demonstrations per prompt, `seed`, `judge=1`, `rules=0` (the model asked about a thin action without
 the rules the evidence settled for the others: the paper's prompt)
-(the code model settles what the evidence leaves open, precond/engine/judge.py), and
+(the code model settles what the evidence leaves open, precond/engine/judging/judge.py), and
 `demos` = how many of the domain's demonstrations the request gets (the first N; default all), and
 `maxrate` = re-rank the same inference's valid candidates with precond/evaluation/ranking_probe.py (a measurement of
 a ranking change, not an engine option), `tol` = the request's `options.tolerance` (0: the paper's strict
@@ -44,9 +44,10 @@ NOTICE_READINGS: dict[str, dict[str, tuple[str, ...]]] = {
     "found-asked-available": {"FAIL": _EMPTY, "NOTHING_FOUND": _ASKED, "NOT_AVAILABLE": _ASKED, **_SUCCESS},
     "empty-available": {"FAIL": _EMPTY, "NOTHING_FOUND": _EMPTY, "NOT_AVAILABLE": _EMPTY, **_SUCCESS},
 }
-"""`notices=<reading>`: the signed notices a `lib=lodo` config's library carries (precond/engine/library.py `SIGNED`):
-what a failure notice, "nothing found" and "not available" need of the last result. `empty`: an answer that is no
-success (also before anything was asked); `asked`: an answer came and it was no success."""
+"""`notices=<reading>`: the signed notices a `lib=lodo` config's library carries
+(precond/engine/candidates/library.py `SIGNED`): what a failure notice, "nothing found" and "not available" need
+of the last result. `empty`: an answer that is no success (also before anything was asked); `asked`: an answer
+came and it was no success."""
 _KEYS = {"spp": "samples_per_prompt", "ppa": "prompts_per_action", "dpp": "demonstrations_per_prompt",
          "seed": "seed", "judge": "judge", "mnt": "max_new_tokens",
          "rules": "show_rules"}

@@ -19,7 +19,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from precond.engine.library import LIBRARY_FILE, SIGNED, Library, LibrarySource, to_json
+from precond.engine.candidates.library import LIBRARY_FILE, SIGNED, Library, LibrarySource, to_json
 from precond.evaluation.cache import JsonCache
 from precond.evaluation.configs import NOTICE_READINGS, InferConfig, parse_config
 from precond.evaluation.domains import Domain

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-from precond.engine.ranking import ActionEvidence, Candidate, Cluster, cluster, rank
-from precond.engine.selection import previous_turns  # the engine's own evidence, so only the new rule differs
+from precond.engine.judging.ranking import ActionEvidence, Candidate, Cluster, cluster, rank
+from precond.engine.judging.selection import previous_turns  # the engine's own evidence, so only the new rule differs
 from precond.evaluation.domains import Domain
 from precond.sandbox import Sandbox
 

@@ -13,8 +13,8 @@ from collections.abc import Callable
 from datetime import UTC, datetime
 from typing import Any
 
-from precond.engine import counterexamples
 from precond.engine.engine import Engine
+from precond.engine.judging import counterexamples
 from precond.engine.spec import parse_spec, resolve_actions
 from precond.jobs.queue.keys import JobId
 from precond.jobs.queue.payloads import Outcome, ReinferJob

@@ -148,9 +148,9 @@ def _child(parent: int) -> None:
     answers = os.fdopen(os.dup(1), "w", buffering=1)
     os.dup2(2, 1)  # before the model code is imported: nothing but `send` writes to the worker's pipe
 
+    from precond.engine.acting.training import train_policy
     from precond.engine.factory import training_weights
     from precond.engine.spec import parse_spec
-    from precond.engine.training import train_policy
 
     def send(**message: Any) -> None:
         answers.write(json.dumps(message) + "\n")

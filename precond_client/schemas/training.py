@@ -58,7 +58,8 @@ class TrainPolicyRequest(StrictBody):
 class TrainPolicyResult(StrictBody):
     """What a training produced and what it cost; stored beside the adapter as `policy.json`."""
 
-    objective: str = Field(max_length=200, description="What the loss was taken on (precond/engine/training.py).")
+    objective: str = Field(max_length=200,
+                           description="What the loss was taken on (precond/engine/acting/training.py).")
     base_model: str
     base_sha256: str | None
     dtype: str

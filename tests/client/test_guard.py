@@ -17,7 +17,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.enumeration import StateModel, enumerate_atoms
+from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
 from precond.engine.spec import parse_spec
 from precond.sandbox.astfilter import MAX_EXPRESSION_CHARS
 from precond.sandbox.child.values import clean as sandbox_clean

@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from precond.engine.cautious import polarity
 from precond.engine.engine import Engine
-from precond.engine.report import UNSEEN_RULE
+from precond.engine.judging.cautious import polarity
+from precond.engine.judging.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
 from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
 

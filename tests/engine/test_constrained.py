@@ -1,11 +1,11 @@
-"""What the constrained mode enumerates (precond/engine/constrained.py): static, no sandbox, no model."""
+"""What the constrained mode enumerates (precond/engine/acting/constrained.py): static, no sandbox, no model."""
 
 from __future__ import annotations
 
 import ast
 import math
 
-from precond.engine import constrained
+from precond.engine.acting import constrained
 from precond.engine.spec import parse_spec
 
 SPEC = """class Env:

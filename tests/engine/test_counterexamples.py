@@ -1,4 +1,4 @@
-"""Labelled calls in an infer request (precond/engine/counterexamples.py): a demonstrated call labelled 'refuse'
+"""Labelled calls in an infer request (precond/engine/judging/counterexamples.py): a demonstrated call labelled 'refuse'
 is evidence against a rule, a run's labelled calls join the evidence, the rules separate the two sides and say
 which labelled calls they refuse; labels that name nothing, or contradict each other, are a 422."""
 
@@ -10,8 +10,8 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.counterexamples import _terms, _text
 from precond.engine.engine import Engine
+from precond.engine.judging.counterexamples import _terms, _text
 from precond.sandbox import Sandbox
 from precond_client.schemas import CheckRequest, InferRequest, ModelInfo
 from precond_client.schemas.errors import InvalidInput

@@ -1,4 +1,4 @@
-"""A tool-calling agent's conditions are judged where they decide something (precond/engine/decisive.py): at the
+"""A tool-calling agent's conditions are judged where they decide something (precond/engine/judging/decisive.py): at the
 calls, at the earlier steps of the same run with the call's arguments, and at a bounded sample of the rest, so
 that many runs leave the work budget to the search instead of to pairing every step with every call's arguments."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import json
 
 from precond.convert.openai import convert
-from precond.engine.decisive import MAX_SAMPLE, decisive_points
 from precond.engine.engine import Engine
+from precond.engine.judging.decisive import MAX_SAMPLE, decisive_points
 from precond.sandbox import Sandbox
 from precond.sandbox.types import ActionInfo, Limits, Point, Position, TraceResult
 from precond_client.schemas import InferOptions, InferRequest

@@ -9,8 +9,8 @@ from typing import Any
 
 import pytest
 
+from precond.engine.candidates.library import Library
 from precond.engine.engine import Engine
-from precond.engine.library import Library
 from precond.engine.scope import scoped
 from precond.engine.spec import parse_spec, skip_statements
 from precond.sandbox import Sandbox

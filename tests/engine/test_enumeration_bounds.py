@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import ast
 
+from precond.engine.candidates.enumeration import MAX_QUERY_CALLS, StateModel, enumerate_atoms
 from precond.engine.engine import Engine
-from precond.engine.enumeration import MAX_QUERY_CALLS, StateModel, enumerate_atoms
 from precond.engine.spec import parse_spec
 from precond.engine.work import COMPILE_POINTS
 from precond.sandbox import Sandbox

@@ -1,4 +1,4 @@
-"""The statistics of evidence-weighted validation (precond/engine/evidence.py), on counts alone."""
+"""The statistics of evidence-weighted validation (precond/engine/judging/evidence.py), on counts alone."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from precond.engine.evidence import (
+from precond.engine.judging.evidence import (
     CHANCE_ALPHA,
     MIN_DIALOGS,
     MIN_OCCURRENCES,

@@ -9,7 +9,7 @@ from typing import Any
 import pytest
 
 from precond.engine.engine import Engine
-from precond.engine.guarded import default
+from precond.engine.judging.guarded import default
 from precond.sandbox import Sandbox
 from precond_client.schemas import InferOptions, InferRequest, InferResponse
 from precond_client.schemas.errors import UnknownAction

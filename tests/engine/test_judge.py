@@ -1,4 +1,4 @@
-"""The code model as judge (precond.engine.judge): what it may decide, and the engine asking it through a real
+"""The code model as judge (precond.engine.judging.judge): what it may decide, and the engine asking it through a real
 sandbox."""
 
 from __future__ import annotations
@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
-from precond.engine import judge
 from precond.engine.engine import Engine
+from precond.engine.judging import judge
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
 from precond_client.schemas import InferRequest

@@ -1,4 +1,5 @@
-"""More labels never give a weaker guard (precond/engine/counterexamples.py): a labelled call left on the wrong side
+"""More labels never give a weaker guard (precond/engine/judging/counterexamples.py): a labelled call left on the wrong
+side
 costs in the choice of the rule, a call labelled 'refuse' that nothing separates is reported and never makes the
 rule drop the conditions that separate the others, and a rule made from the labels that refuses demonstrated calls
 is a conflict a human decides (`assumed`, named in the warning), never silently established."""
@@ -11,8 +12,8 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.counterexamples import _smallest, own_task, unseparable
 from precond.engine.engine import Engine
+from precond.engine.judging.counterexamples import _smallest, own_task, unseparable
 from precond.sandbox import Sandbox
 from precond_client.schemas import CheckRequest, InferRequest
 

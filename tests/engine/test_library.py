@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
+from precond.engine.candidates.library import SIGNED, Library, LibrarySource, from_json, shipped, to_json
 from precond.engine.engine import Engine
-from precond.engine.library import SIGNED, Library, LibrarySource, from_json, shipped, to_json
-from precond.engine.report import UNSEEN_RULE
+from precond.engine.judging.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
 from precond_client.schemas import InferOptions, InferRequest, InferResponse
 

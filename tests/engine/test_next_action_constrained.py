@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from pydantic import ValidationError
 
-from precond.engine import constrained
+from precond.engine.acting import constrained
 from precond.engine.engine import Engine
 from precond.engine.models import CodeModel, ModelSettings, load_code_model
 from precond.sandbox import Sandbox

@@ -1,4 +1,4 @@
-from precond.engine.next_action import append_line, classify
+from precond.engine.acting.next_action import append_line, classify
 
 RECEIVERS = {"user": "USER", "system": "SYSTEM"}
 ACTIONS = {"SYSTEM.REQUEST", "SYSTEM.INFORM"}

@@ -1,4 +1,4 @@
-from precond.engine.parsing import assertions_in, parse_samples
+from precond.engine.candidates.parsing import assertions_in, parse_samples
 
 
 def test_single_assertion_is_normalised() -> None:

@@ -10,9 +10,9 @@ from typing import Any
 
 import pytest
 
+from precond.engine.candidates.library import Library
 from precond.engine.engine import Engine
-from precond.engine.library import Library
-from precond.engine.report import UNSEEN_RULE
+from precond.engine.judging.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
 from precond_client.schemas import (
     MAX_PRIOR_RULES,

@@ -1,4 +1,4 @@
-from precond.engine.ranking import (
+from precond.engine.judging.ranking import (
     ActionEvidence,
     Candidate,
     cluster,

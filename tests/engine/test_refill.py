@@ -8,8 +8,8 @@ from typing import Any
 
 import pytest
 
+from precond.engine.candidates.library import Library
 from precond.engine.engine import Engine
-from precond.engine.library import Library
 from precond.sandbox import Sandbox
 from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
 

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from precond.engine.engine import Engine
-from precond.engine.report import UNSEEN_RULE
+from precond.engine.judging.report import UNSEEN_RULE
 from precond.sandbox import Sandbox
 from precond_client.schemas import (
     CheckRequest,

@@ -3,7 +3,7 @@ from typing import Any
 
 import pytest
 
-from precond.engine.prompting import KNOWN_RULES_CHARS, inference_suffix
+from precond.engine.candidates.prompting import KNOWN_RULES_CHARS, inference_suffix
 from precond.engine.spec import (
     action_header,
     check_preconditions,

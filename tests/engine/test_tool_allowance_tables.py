@@ -1,4 +1,5 @@
-"""Allowances by category (precond/engine/tool_conditions.py `keys`, precond/engine/allowance_tables.py `table`):
+"""Allowances by category (precond/engine/candidates/tool_conditions.py `keys`,
+precond/engine/judging/allowance_tables.py `table`):
 free items per item looked up by a field of a read the call names or an argument of the call, learned from
 labelled calls only where one allowance for every call cannot separate them; a value no call shows falls back."""
 
@@ -12,7 +13,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine import tool_conditions
+from precond.engine.candidates import tool_conditions
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox

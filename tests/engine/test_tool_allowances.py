@@ -1,6 +1,7 @@
-"""Allowances over a tool call's integer arguments (precond/engine/tool_conditions.py `allowances`): proposed only
+"""Allowances over a tool call's integer arguments (precond/engine/candidates/tool_conditions.py `allowances`):
+proposed only
 for actions whose calls carry two integers and a list, chosen only to refuse calls labelled 'refuse' that nothing
-else refuses (precond/engine/counterexamples.py), never kept from demonstrations alone."""
+else refuses (precond/engine/judging/counterexamples.py), never kept from demonstrations alone."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The enumerator's conditions over a tool-calling agent's state (precond/engine/tool_conditions.py), on programs that
+"""The enumerator's conditions over a tool-calling agent's state (precond/engine/candidates/tool_conditions.py), on
+programs that
 `precond/convert/openai.py` writes: reads bound to the call's own argument, result fields with the demonstrated
 values, arguments against the result, disjunctions, and the bound on how many."""
 
@@ -8,9 +9,9 @@ import ast
 import json
 
 from precond.convert.openai import convert
-from precond.engine import tool_conditions
+from precond.engine.candidates import tool_conditions
+from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
 from precond.engine.engine import Engine
-from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
 from precond.sandbox.types import ActionInfo

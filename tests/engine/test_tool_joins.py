@@ -1,6 +1,7 @@
-"""Joins of a call's arguments with what earlier reads returned (precond/engine/tool_relations.py `variants`,
+"""Joins of a call's arguments with what earlier reads returned (precond/engine/candidates/tool_relations.py `variants`,
 `_recorded`, `scalar_kinds`) and conditions one action's labels chose, adopted by another action
-(precond/engine/shared_rules.py), on a library desk agent written from scratch: a member swaps copies of a loan for
+(precond/engine/judging/shared_rules.py), on a library desk agent written from scratch: a member swaps copies of a loan
+for
 other copies of the same title, paying the fee with a card; a loan can be swapped or extended only while open."""
 
 from __future__ import annotations
@@ -13,10 +14,10 @@ from types import SimpleNamespace
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine import tool_conditions
+from precond.engine.candidates import tool_conditions
+from precond.engine.candidates.tool_relations import labels_only, relations
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
-from precond.engine.tool_relations import labels_only, relations
 from precond.sandbox import Sandbox
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import Frame, Scope, compile_rule

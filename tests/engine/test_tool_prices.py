@@ -1,6 +1,7 @@
-"""Amounts priced per item (precond/engine/tool_conditions.py `scaled`): an integer argument equal to a price times
+"""Amounts priced per item (precond/engine/candidates/tool_conditions.py `scaled`): an integer argument equal to a
+price times
 the number of records a list holds, the call's own or one a read returned; proposed with the prices the calls
-show, chosen only to separate labelled calls (precond/engine/counterexamples.py), never kept from demonstrations
+show, chosen only to separate labelled calls (precond/engine/judging/counterexamples.py), never kept from demonstrations
 alone, and never over a count the reads keep or a list of references to what was read."""
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine import tool_conditions
+from precond.engine.candidates import tool_conditions
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox

@@ -1,4 +1,5 @@
-"""Relations between a tool call and what came before it (precond/engine/tool_relations.py), on a library desk agent
+"""Relations between a tool call and what came before it (precond/engine/candidates/tool_relations.py), on a library
+desk agent
 written from scratch: an earlier write on the same loan, an argument among its values, an argument against a date
 the read holds, the books of that loan, the loan's member as the one read and their card, and the user's "yes".
 Every one is a condition the embedded guard runs; one it cannot run is never proposed."""
@@ -13,10 +14,10 @@ from types import SimpleNamespace
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine import tool_conditions
+from precond.engine.candidates import tool_conditions
+from precond.engine.candidates.tool_relations import labels_only, relations, runnable
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
-from precond.engine.tool_relations import labels_only, relations, runnable
 from precond.sandbox import Sandbox
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import Frame, Scope, compile_rule

@@ -10,7 +10,7 @@ from collections import defaultdict
 from typing import Any
 
 from precond.convert.openai import convert
-from precond.engine import tool_conditions
+from precond.engine.candidates import tool_conditions
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from precond.cli import eval_commands
 from precond.cli.main import app
-from precond.engine.library import SIGNED
+from precond.engine.candidates.library import SIGNED
 from precond.evaluation.choice import CHOICES, Choice, by_candidate, decide, noise, pick, raised_against, raises
 from precond.evaluation.configs import NOTICE_READINGS, parse_config
 from precond.evaluation.library import source_config

@@ -11,12 +11,12 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from precond.engine.acting.training import train_policy
 from precond.engine.models.loading import check_built
 from precond.engine.models.store import ModelStoreError
 from precond.engine.models.weights import Weights, load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
-from precond.engine.training import train_policy
 from precond.stack.local import DEMOS, SPEC
 from precond_client.schemas.errors import InvalidInput
 from precond_client.schemas.training import TrainPolicyOptions, TrainPolicyRequest

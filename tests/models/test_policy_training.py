@@ -15,6 +15,7 @@ from safetensors.torch import load_file, save_file
 from typer.testing import CliRunner
 
 from precond.cli.main import app
+from precond.engine.acting.training import action_spans, closing_head, train_policy, turn_ends
 from precond.engine.models import Sampling
 from precond.engine.models import weights as weights_module
 from precond.engine.models.adapters import RESULT, WEIGHTS, AdapterError, read_result
@@ -22,7 +23,6 @@ from precond.engine.models.backend import load_code_model, with_adapter
 from precond.engine.models.weights import Weights, load_weights
 from precond.engine.settings import ModelSettings
 from precond.engine.spec import parse_spec
-from precond.engine.training import action_spans, closing_head, train_policy, turn_ends
 from precond_client.schemas.errors import Cancelled, InvalidInput
 from precond_client.schemas.training import MAX_TRAINING_STEPS, TrainPolicyOptions, TrainPolicyRequest
 
@@ -68,7 +68,7 @@ def test_the_loss_is_taken_on_the_action_lines_and_where_the_turn_ends() -> None
 
 def test_the_dialogs_end_is_trained_as_a_turn_end(tiny_model_dir: Path) -> None:
     """After the closing GOODBYE the policy learns to hand over (`user`), not to say it again."""
-    from precond.engine.training import action_lines, examples
+    from precond.engine.acting.training import action_lines, examples
 
     spec = parse_spec(SPEC)
     tokenizer = load_weights(_settings(tiny_model_dir)).tokenizer

@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
-from precond.engine.evidence import MIN_DIALOGS, MIN_OCCURRENCES, strict, too_few
+from precond.engine.judging.evidence import MIN_DIALOGS, MIN_OCCURRENCES, strict, too_few
 from precond.sandbox.types import Point
 from precond_client.schemas import Decided, InferOptions
 

@@ -14,7 +14,7 @@ import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
-from precond.engine.enumeration import StateModel
+from precond.engine.candidates.enumeration import StateModel
 from precond.engine.spec import Spec
 from precond.sandbox.types import EvaluateResult
 

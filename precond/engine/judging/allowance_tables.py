@@ -13,7 +13,7 @@ import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from precond.engine.tool_conditions import ALLOWANCES, MAX_CELLS, MAX_KEYS, allowance, allowance_form, key
+from precond.engine.candidates.tool_conditions import ALLOWANCES, MAX_CELLS, MAX_KEYS, allowance, allowance_form, key
 
 
 def held_terms(terms: Sequence[tuple[str, ...]], values: Mapping[str, int], every: int) -> int:

@@ -13,11 +13,12 @@ import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
-from precond.engine import cautious, priors
-from precond.engine import guarded as guarding
-from precond.engine.evidence import Evidence, OccurrenceIndex, describe, gather, strict, thin, too_few, verdict
-from precond.engine.freshness import Access
-from precond.engine.ranking import (
+from precond.engine.candidates.tool_relations import labels_only
+from precond.engine.judging import cautious, priors
+from precond.engine.judging import guarded as guarding
+from precond.engine.judging.evidence import Evidence, OccurrenceIndex, describe, gather, strict, thin, too_few, verdict
+from precond.engine.judging.freshness import Access
+from precond.engine.judging.ranking import (
     ActionEvidence,
     Candidate,
     Cluster,
@@ -28,8 +29,7 @@ from precond.engine.ranking import (
     within_budget,
     zero_shot,
 )
-from precond.engine.report import Proposals, Ranked
-from precond.engine.tool_relations import labels_only
+from precond.engine.judging.report import Proposals, Ranked
 from precond.sandbox.types import ActionInfo, CandidateResult, EvaluateResult, TraceResult
 from precond_client.schemas import Decided, InferOptions, Verdict
 

@@ -10,7 +10,8 @@ observations since the agent's previous turn, or, for conditions on the action's
 the episode began ("this slot was not informed yet"). Conditions that merely describe the episode's phase
 ("a search has succeeded", "nothing was selected yet") are dropped.
 
-With evidence-weighted validation (precond/engine/evidence.py) a kept candidate may have exceptions, so subsumption
+With evidence-weighted validation (precond/engine/judging/evidence.py) a kept candidate may have exceptions, so
+subsumption
 compares only rules that agree on the demonstrated calls: a rule that is stricter by refusing calls another
 allows is not "more specific", it is contradicted more often (`ActionEvidence.occurrence_mask`). Under strict
 validation every valid rule holds at every occurrence, and this is the paper's eq. (hopt) unchanged.
@@ -25,8 +26,8 @@ import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-from precond.engine.evidence import Evidence, exception_budget, strict, strongly_separated
-from precond.engine.freshness import Access, reads, refreshed
+from precond.engine.judging.evidence import Evidence, exception_budget, strict, strongly_separated
+from precond.engine.judging.freshness import Access, reads, refreshed
 from precond.sandbox.types import Point
 
 MIN_GAIN = 0.3
@@ -128,7 +129,8 @@ def enabling_rate(c: Cluster, evidence: ActionEvidence, index: Mapping[Point, in
     "a search has succeeded", "nothing was selected yet"), which held at the demonstrated occurrences by the
     episodes' usual order rather than by necessity.
 
-    With `evidence.writes` (the cautious criterion, precond/engine/freshness.py) an observation that wrote the very
+    With `evidence.writes` (the cautious criterion, precond/engine/judging/freshness.py) an observation that wrote the
+    very
     state the condition reads *renews* it (a second "success" before a success notice); renewals count when
     they, with the occurrences it was made true at, are at least half of the occurrences: a condition renewed
     now and then by chance (a "no" that re-set a flag already unset) stays a phase.

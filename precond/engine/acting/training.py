@@ -26,10 +26,10 @@ from typing import Any
 
 import torch
 
-from precond.engine import prompting
+from precond.engine.acting.next_action import classify
+from precond.engine.candidates import prompting
 from precond.engine.models.adapters import save_adapter, with_lora
 from precond.engine.models.weights import Weights
-from precond.engine.next_action import classify
 from precond.engine.spec import Spec, parse_source
 from precond.programs.checks import instance_classes
 from precond_client.schemas import MAX_CALL_CHARS

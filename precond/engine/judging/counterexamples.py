@@ -26,13 +26,13 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from precond.engine.allowance_tables import Table, best_allowance, held_terms
-from precond.engine.allowance_tables import table as table_of
-from precond.engine.evidence import OccurrenceIndex, gather
-from precond.engine.ranking import Candidate, Cluster
-from precond.engine.report import Ranked
+from precond.engine.candidates.tool_conditions import ARGUMENT_KEY, allowance, arithmetic
+from precond.engine.judging.allowance_tables import Table, best_allowance, held_terms
+from precond.engine.judging.allowance_tables import table as table_of
+from precond.engine.judging.evidence import OccurrenceIndex, gather
+from precond.engine.judging.ranking import Candidate, Cluster
+from precond.engine.judging.report import Ranked
 from precond.engine.spec import Spec
-from precond.engine.tool_conditions import ARGUMENT_KEY, allowance, arithmetic
 from precond.sandbox.types import CandidateResult, Point, TraceResult
 from precond_client.schemas import Counterexamples, Decided
 from precond_client.schemas.errors import InvalidInput

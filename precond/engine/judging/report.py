@@ -7,8 +7,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-from precond.engine.evidence import Evidence, describe
-from precond.engine.ranking import Candidate, Cluster
+from precond.engine.judging.evidence import Evidence, describe
+from precond.engine.judging.ranking import Candidate, Cluster
 from precond.sandbox.types import CandidateResult, Point, TraceResult
 from precond_client.schemas import (
     MAX_CALL_CHARS,

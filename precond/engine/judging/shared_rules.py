@@ -19,9 +19,9 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from precond.engine.counterexamples import Made, Outcome, Separation
-from precond.engine.evidence import OccurrenceIndex
-from precond.engine.report import Ranked
+from precond.engine.judging.counterexamples import Made, Outcome, Separation
+from precond.engine.judging.evidence import OccurrenceIndex
+from precond.engine.judging.report import Ranked
 
 
 def shared(separated: Mapping[str, Separation], unlabelled: Mapping[str, tuple[Ranked, OccurrenceIndex]]

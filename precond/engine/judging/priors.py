@@ -19,9 +19,9 @@ import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
-from precond.engine.cautious import Choice
-from precond.engine.library import PREFIX, SIGNED_SOURCE, Library
-from precond.engine.ranking import ActionEvidence, Candidate, Cluster
+from precond.engine.candidates.library import PREFIX, SIGNED_SOURCE, Library
+from precond.engine.judging.cautious import Choice
+from precond.engine.judging.ranking import ActionEvidence, Candidate, Cluster
 from precond.engine.spec import Spec, as_error
 from precond.programs import checks
 from precond.programs.checks import normal

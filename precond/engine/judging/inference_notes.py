@@ -12,10 +12,10 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
-from precond.engine import counterexamples
-from precond.engine import guarded as guarding
-from precond.engine.notices import rule_warnings
-from precond.engine.report import UNSEEN_RULE, Ranked
+from precond.engine.judging import counterexamples
+from precond.engine.judging import guarded as guarding
+from precond.engine.judging.notices import rule_warnings
+from precond.engine.judging.report import UNSEEN_RULE, Ranked
 from precond.sandbox.types import TIMED_OUT, EvaluateResult, TraceResult
 from precond_client.schemas import Decided, InferOptions
 

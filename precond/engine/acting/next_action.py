@@ -7,7 +7,8 @@ attempt and why), or, only when the caller asked for it (`options.fallback: "gre
 returned as an action. The random samples are drawn as one batch and verified in one sandbox call, then read in
 order: the same outcome as drawing them one at a time, at a fraction of the cost.
 
-`constrained` (precond/engine/constrained.py): every call the agent could make is judged in one sandbox call and the
+`constrained` (precond/engine/acting/constrained.py): every call the agent could make is judged in one sandbox call and
+the
 model chooses among the allowed ones by likelihood; no allowed call is answered as such (`nothing_allowed`).
 """
 
@@ -18,7 +19,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from precond.engine import constrained, prompting
+from precond.engine.acting import constrained
+from precond.engine.candidates import prompting
 from precond.engine.spec import Spec
 from precond.programs.checks import instance_classes
 from precond_client.schemas import (

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 
-LIBRARY_FILE = Path(__file__).with_name("data") / "rule_library.json"
+LIBRARY_FILE = Path(__file__).parents[1] / "data" / "rule_library.json"
 PREFIX = "library:"
 MIN_SHARED_ACTIONS = 3
 """A source applies to a spec with at least this many action names in common with it (a dialog vocabulary:

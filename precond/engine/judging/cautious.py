@@ -7,7 +7,8 @@ stated. The demonstrations cannot tell a requirement from a correlate there, so 
 the permissive side silently. For each action it keeps:
 
 1. *Established* rules: the conditions the observations since the agent's previous turn made true or renewed
-   (`ranking.enabling_rate` with `precond/engine/freshness.py`), among themselves subsumption-minimal (a trigger that
+   (`ranking.enabling_rate` with `precond/engine/judging/freshness.py`), among themselves subsumption-minimal (a
+   trigger that
    a phase subsumes on the demonstrated points is still the trigger: a success notice follows the success,
    not the confirmation before it). Conditions on the action's own arguments count as established.
 2. When no single condition is such a trigger at the calls, or the triggers leave some calls unexplained (they
@@ -49,9 +50,9 @@ import ast
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
-from precond.engine.evidence import CHANCE_ALPHA, Evidence
-from precond.engine.freshness import ANY, Access, reads, refreshed
-from precond.engine.ranking import (
+from precond.engine.judging.evidence import CHANCE_ALPHA, Evidence
+from precond.engine.judging.freshness import ANY, Access, reads, refreshed
+from precond.engine.judging.ranking import (
     ActionEvidence,
     Candidate,
     Cluster,
