@@ -25,7 +25,7 @@ sys.path.insert(0, str(ROOT))
 from precond.engine.engine import Engine  # noqa: E402
 from precond.evaluation.settings import DataSettings  # noqa: E402
 from precond.sandbox import Sandbox  # noqa: E402
-from tests.service.test_interpreted_differential import check_sgd_domain  # noqa: E402
+from precond.stack.differential import check_sgd_domain  # noqa: E402
 
 
 def main() -> None:

@@ -16,8 +16,9 @@ import pytest
 from precond.engine.engine import Engine
 from precond.evaluation.settings import DataSettings
 from precond.sandbox import Sandbox
+from precond.stack.differential import check_sgd_domain
 from tests.client.test_guard_differential import CLAUSE
-from tests.service.test_interpreted_differential import check_sgd_domain, check_tau
+from tests.service.test_interpreted_differential import check_tau
 
 PREFIXES = 12
 """Prefixes of a development SGD domain judged (of about 55): every rule set meets a dozen states a domain, and
