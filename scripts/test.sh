@@ -11,8 +11,13 @@ cd "$(dirname "$0")/.."
 ./scripts/install.sh
 . .venv/bin/activate
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 TOKENIZERS_PARALLELISM=false
+# The embedded model's converted copies (MODEL_CACHE_DIR; minutes, once a machine) are built beside the lint and
+# the type check, on a core they leave idle; else the model tests' processes would each build them at once.
+precond prepare-model &
+prepared=$!
 ruff check .
 mypy
+wait "$prepared"
 
 pytest_step() {
   # Exit code 5 means "no tests collected" (e.g. arguments that select no model test): not a failure.

@@ -7,7 +7,8 @@ import json
 from pathlib import Path
 
 from precond.convert import openai as openai_converter
-from tests.cli.test_convert_openai import precond, records, tools
+from tests.cli.inprocess import precond
+from tests.cli.test_convert_openai import records, tools
 
 READ = "reservation_id in self.results['get_reservation_details']"
 

@@ -14,14 +14,10 @@ from pathlib import Path
 import httpx
 import pytest
 
+from tests.cli.inprocess import precond
+
 ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
-
-
-def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True, timeout=300, cwd=ROOT
-    )
 
 
 def test_infer_prints_preconditions_and_a_runnable_program() -> None:

@@ -8,8 +8,6 @@ converter must give back their programs line for line.
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,15 +16,11 @@ import pytest
 from precond.convert import events as events_converter
 from precond.convert import sgd as sgd_converter
 from precond_client.schemas import InferRequest
+from tests.cli.inprocess import precond
 
 ROOT = Path(__file__).resolve().parents[2]
 RAW = ROOT / "tests" / "fixtures" / "sgd_raw"
 DATA = ROOT / "tests" / "fixtures" / "data" / "sgd"
-
-
-def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True,
-                          timeout=300, cwd=ROOT, check=False)
 
 
 def test_sgd_files_become_spec_demonstrations_and_a_request_the_engine_runs(tmp_path: Path) -> None:

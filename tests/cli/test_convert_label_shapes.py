@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from precond_client.schemas import MAX_COUNTEREXAMPLE_RUNS, InferRequest
-from tests.cli.test_convert_openai import ROOT, precond
+from tests.cli.inprocess import ROOT, precond
 
 DOMAINS = ROOT / "tests" / "fixtures" / "tools_domains"
 CARD_WRITES = "freeze_card,unfreeze_card,replace_card,set_card_limit"

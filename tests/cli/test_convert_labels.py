@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from precond_client.schemas import InferRequest
-from tests.cli.test_convert_openai import TAU, precond
+from tests.cli.inprocess import precond
+from tests.cli.test_convert_openai import TAU
 
 LABELS = [
     {"task_id": 30, "trial": 1, "message_index": 24, "tool": "cancel_reservation", "allowed": True},

@@ -10,8 +10,6 @@ import ast
 import copy
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -20,14 +18,10 @@ import pytest
 from precond.convert import openai as openai_converter
 from precond.convert.shape import ConvertError
 from precond_client.schemas import InferRequest
+from tests.cli.inprocess import precond
 
 ROOT = Path(__file__).resolve().parents[2]
 TAU = ROOT / "tests" / "fixtures" / "tau_airline"
-
-
-def precond(*args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "precond.cli", *args], input=stdin, capture_output=True, text=True,
-                          timeout=300, cwd=ROOT, check=False)
 
 
 def records() -> list[dict[str, Any]]:

@@ -9,13 +9,14 @@ limit that a size hits, as a time limit does, but the same on a loaded machine),
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parents[2]
+import pytest
+
+from tests.cli.inprocess import precond
+
 RESULT_LIMIT = "100000"
 
 TOOLS = [
@@ -50,24 +51,23 @@ def shop_runs(count: int, large: set[int]) -> list[list[dict[str, Any]]]:
     return runs
 
 
-def learn(tmp_path: Path, runs: list[list[dict[str, Any]]]) -> subprocess.CompletedProcess[str]:
+def learn(tmp_path: Path, runs: list[list[dict[str, Any]]], monkeypatch: pytest.MonkeyPatch
+          ) -> subprocess.CompletedProcess[str]:
     (tmp_path / "trajectories.json").write_text(json.dumps(runs))
     (tmp_path / "tools.json").write_text(json.dumps(TOOLS))
-    env = {**os.environ, "SANDBOX_RESULT_BYTES": RESULT_LIMIT}
-    converted = subprocess.run([sys.executable, "-m", "precond.cli", "convert", "openai",
-                                str(tmp_path / "trajectories.json"), "--tools", str(tmp_path / "tools.json"),
-                                "--out", str(tmp_path / "shop"), "--writes", "refund_order,cancel_order",
-                                "--guard", "refund_order,cancel_order"],
-                               capture_output=True, text=True, timeout=300, cwd=ROOT, env=env, check=False)
+    monkeypatch.setenv("SANDBOX_RESULT_BYTES", RESULT_LIMIT)
+    converted = precond("convert", "openai", str(tmp_path / "trajectories.json"), "--tools",
+                        str(tmp_path / "tools.json"), "--out", str(tmp_path / "shop"), "--writes",
+                        "refund_order,cancel_order", "--guard", "refund_order,cancel_order")
     assert converted.returncode == 0, converted.stderr
     request = json.loads((tmp_path / "shop" / "request.json").read_text())
     request["options"] = {"generators": ["enumerate"]}
-    return subprocess.run([sys.executable, "-m", "precond.cli", "infer", "-"], input=json.dumps(request),
-                          capture_output=True, text=True, timeout=300, cwd=ROOT, env=env, check=False)
+    return precond("infer", "-", stdin=json.dumps(request))
 
 
-def test_one_oversized_demonstration_is_left_out_by_name_and_the_others_teach_every_action(tmp_path: Path) -> None:
-    done = learn(tmp_path, shop_runs(20, {12}))
+def test_one_oversized_demonstration_is_left_out_by_name_and_the_others_teach_every_action(tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    done = learn(tmp_path, shop_runs(20, {12}), monkeypatch)
     assert done.returncode == 0, done.stderr
     answer = json.loads(done.stdout)
     warning = answer["warnings"]["demonstrations[12]"]
@@ -80,7 +80,8 @@ def test_one_oversized_demonstration_is_left_out_by_name_and_the_others_teach_ev
     assert occurrences == {"AGENT.refund_order": {9}, "AGENT.cancel_order": {10}}  # run 12 (a refund) not counted
 
 
-def test_the_inference_fails_with_the_limit_only_when_no_demonstration_is_left(tmp_path: Path) -> None:
-    done = learn(tmp_path, shop_runs(2, {0, 1}))
+def test_the_inference_fails_with_the_limit_only_when_no_demonstration_is_left(tmp_path: Path,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    done = learn(tmp_path, shop_runs(2, {0, 1}), monkeypatch)
     assert done.returncode == 3
     assert "result limit" in done.stderr and "Traceback" not in done.stderr

@@ -12,7 +12,7 @@ import pytest
 
 from precond.engine.factory import build_engine
 from precond.evaluation import tools_domain
-from tests.cli.test_convert_openai import precond
+from tests.cli.inprocess import precond
 
 DOMAINS = Path(__file__).resolve().parents[1] / "fixtures" / "tools_domains"
 

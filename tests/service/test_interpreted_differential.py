@@ -2,14 +2,14 @@
 (`Engine.check` with the real sandbox): every verdict, violation, error text, `decided` label, `rule_status` and
 `history_violation` equal, field for field, with only `judged_by` telling them apart.
 
-The checks: every SGD fixture domain (and, with the development data, every SGD domain) under every condition the
-enumerator proposes for it (32 an action a set, with hand-written rules that raise and read tables their own call
-fills) and under its learned rules, every system call of its dialogs judged after every prefix (before a system
-call) of its first dialogs, test dialogs first (4 of a fixture, 3 of a development domain); the tau-bench airline
-fixture (and the first runs of the development airline and retail calls) under the learned rules and the
-hand-written clauses of the embedded guard's differential test, each call judged after every prefix of its run.
-A check the interpreter cannot take is answered `offload.Queued`: each case below asserts it was judged here, so a
-shape the recogniser stops accepting fails the test.
+The checks here: every SGD fixture domain under every condition the enumerator proposes for it (32 an action a
+set, with hand-written rules that raise and read tables their own call fills) and under its learned rules, every
+system call of its dialogs judged after every prefix (before a system call) of its first 4 dialogs, test dialogs
+first; the tau-bench airline fixture under the learned rules and the hand-written clauses of the embedded guard's
+differential test, each call judged after every prefix of its run. The development domains (every SGD one, the
+tau-bench airline and retail runs) are judged alike in test_interpreted_differential_development.py.
+A check the interpreter cannot take is answered `offload.Queued`: each comparison (precond/stack/differential.py)
+fails on it, so a shape the recogniser stops accepting fails the test.
 """
 
 from __future__ import annotations
@@ -27,95 +27,17 @@ from precond.engine import engine as engine_module
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.evaluation import tools
-from precond.evaluation.settings import DataSettings
-from precond.gateway import offload
 from precond.sandbox import Sandbox
-from precond.store.sets import decided
-from precond_client.schemas import CheckRequest, InferOptions, InferRequest, InferResponse
+from precond.stack.differential import TAG, check_sgd_domain, compare, labels
+from precond_client.schemas import CheckRequest
 from tests.client.test_guard_differential import CLAUSE, MAX_CALLS, fixture_calls
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SGD_FIXTURES = FIXTURES / "data" / "sgd"
-TAG = "differential"
-HAND = {"SYSTEM.INFORM": ["slot in self.user.requested_slot", "self.user.requested_slot[slot] and slot not in "
-                          "self.user.informed_slot", "self.query_success > 0",  # raises TypeError before a query
-                          "self.user.informed_slot[slot] == self.user.informed_slot['date']"],
-        "SYSTEM.REQUEST": ["not self.user.informed_slot[slot]", "slot not in self.user.informed_slot",
-                           "len(slot) > 3 and slot in self.user.requested_slot"],
-        "SYSTEM.GOODBYE": ["self.user.no_more or self.query_success is False"]}
-CHUNK = 32
-
-
 @pytest.fixture(scope="module")
 def engine() -> Iterator[Engine]:
     with Sandbox(workers=2) as sandbox:
         yield Engine(sandbox, None)
-
-
-def _sandbox(engine: Engine, body: dict[str, Any]) -> dict[str, Any]:
-    with scoped(TAG):
-        return engine.check(CheckRequest.model_validate(body)).model_dump(mode="json")
-
-
-def _interpreted(body: dict[str, Any]) -> dict[str, Any]:
-    outcome = offload.screened_check(body["spec"], body["preconditions"], body.get("decided", {}), body["history"],
-                                     body["calls"], TAG, 1_000_000)
-    assert isinstance(outcome, offload.Judged), f"not judged by the interpreter: {body['preconditions']}, {outcome}"
-    return dict(outcome.answer)
-
-
-def compare(engine: Engine, body: dict[str, Any], seen: Counter[str]) -> None:
-    fast, slow = _interpreted(body), _sandbox(engine, body)
-    assert (fast.pop("judged_by"), slow.pop("judged_by")) == ("interpreter", "sandbox")
-    assert fast == slow, (body["preconditions"], body["history"][-300:] if isinstance(body["history"], str) else
-                          len(body["history"]), body["calls"])
-    for verdict in fast["results"]:
-        seen.update(k for k, field in (("allowed", "allowed"), ("refused", "violations"), ("raised", "error"),
-                                       ("labelled", "decided")) if verdict[field])
-    seen.update(["history broken"] if fast["history_violation"] else [])
-
-
-def _decided(learned: InferResponse) -> dict[str, dict[str, str]]:
-    """How each learned rule was decided, as a stored set labels it."""
-    return decided(learned.preconditions, learned.evidence, learned.candidates)
-
-
-# ---- SGD -----------------------------------------------------------------------------------------------------
-def sgd_rule_sets(engine: Engine, domain: dict[str, Any]) -> list[tuple[dict[str, list[str]], dict[str, Any]]]:
-    """Every enumerated condition (chunks of 32 an action), the learned rules with their labels, the hand ones."""
-    demos = [d["program"] for d in domain["demos"]]
-    with scoped(TAG):
-        every = engine.infer(InferRequest(spec=domain["spec_program"], demonstrations=demos,
-                                          options=InferOptions(generators=["enumerate"], candidates="all",
-                                                               tolerance=0)))
-        learned = engine.infer(InferRequest(spec=domain["spec_program"], demonstrations=demos,
-                                            options=InferOptions(generators=["enumerate"])))
-    atoms = {a: list(dict.fromkeys(c.assertion for c in reports)) for a, reports in every.candidates.items()}
-    chunks = [{a: rules[k: k + CHUNK] for a, rules in atoms.items() if rules[k: k + CHUNK]}
-              for k in range(0, max(len(r) for r in atoms.values()), CHUNK)]
-    return [(chunk, {}) for chunk in chunks] + [(learned.preconditions, _decided(learned)), (HAND, {})]
-
-
-def sgd_checks(domain: dict[str, Any], dialogs: int) -> Iterator[tuple[str, list[str]]]:
-    """(history, calls): every prefix of a dialog that ends before a system call, with every distinct system
-    call of the domain's dialogs (a stub's) as the calls."""
-    programs = [d["program"] for d in [*domain["test"], *domain["demos"]][:dialogs]]
-    stubs = {f"{a}(" for a in domain["system_actions"]}
-    calls = sorted({line.strip() for p in programs for line in p.splitlines()
-                    if line.startswith("system.") and line.partition(".")[2].startswith(tuple(stubs))})
-    for program in programs:
-        lines = program.splitlines(keepends=True)
-        for end, line in enumerate(lines):
-            if line.startswith("system.") and end >= 2:
-                yield "".join(lines[:end]), calls
-
-
-def check_sgd_domain(engine: Engine, path: Path, dialogs: int, seen: Counter[str]) -> None:
-    domain = json.loads(path.read_text())
-    for rules, labels in sgd_rule_sets(engine, domain):
-        for history, calls in sgd_checks(domain, dialogs):
-            compare(engine, {"spec": domain["spec_program"], "preconditions": rules, "decided": labels,
-                             "history": history, "calls": calls}, seen)
 
 
 def test_sgd_fixtures_are_judged_as_the_sandbox_judges_them(engine: Engine) -> None:
@@ -123,19 +45,6 @@ def test_sgd_fixtures_are_judged_as_the_sandbox_judges_them(engine: Engine) -> N
     for path in sorted(SGD_FIXTURES.glob("*.json")):
         check_sgd_domain(engine, path, 4, seen)
     assert min(seen[k] for k in ("allowed", "refused", "raised", "labelled", "history broken")) > 0, seen
-
-
-@pytest.mark.timeout(3600)
-def test_every_development_sgd_domain(engine: Engine) -> None:
-    data = DataSettings().root / "sgd"
-    paths = sorted(data.glob("*_*.json"))
-    if not paths:
-        pytest.skip(f"the development data is not here ({data}; PRECOND_DATA_DIR): the fixture test covers two "
-                    "of its domains")
-    seen: Counter[str] = Counter()
-    for path in paths:
-        check_sgd_domain(engine, path, 3, seen)
-    assert seen["allowed"] and seen["refused"] and seen["history broken"], seen
 
 
 # ---- tau-bench -------------------------------------------------------------------------------------------------
@@ -159,11 +68,6 @@ def tau_checks(runs: list[list[dict[str, Any]]], actions: Collection[str], write
                 yield run[:index], calls[first: first + MAX_CALLS]
 
 
-DEVELOPMENT_RUNS = 40
-"""Runs of a development tau-bench domain learned from and judged (the first ones): enough for every kind of
-verdict, and a bounded time in the suite (all 150 retail runs' inference alone takes minutes on two cores)."""
-
-
 def check_tau(engine: Engine, data: Path, hand: dict[str, list[str]], every_call: bool, seen: Counter[str],
               runs_at_most: int | None = None) -> None:
     """The learned rules (from the successful runs) and the hand-written ones, over the domain's state-changing
@@ -178,9 +82,9 @@ def check_tau(engine: Engine, data: Path, hand: dict[str, list[str]], every_call
     with scoped(TAG):
         learned = engine.infer(request)
     runs = [record["traj"] for record in records]
-    for rules, labels in ((learned.preconditions, _decided(learned)), (hand, {})):
+    for rules, decided in ((learned.preconditions, labels(learned)), (hand, {})):
         for history, calls in tau_checks(runs, list(rules), None if every_call else converted.writes):
-            compare(engine, {"spec": converted.spec, "preconditions": rules, "decided": labels,
+            compare(engine, {"spec": converted.spec, "preconditions": rules, "decided": decided,
                              "history": history, "calls": calls}, seen)
 
 
@@ -188,17 +92,6 @@ def test_the_airline_fixture_is_judged_as_the_sandbox_judges_it(engine: Engine) 
     seen: Counter[str] = Counter()
     check_tau(engine, FIXTURES / "tau_airline", CLAUSE, True, seen)
     assert min(seen[k] for k in ("allowed", "refused", "raised", "labelled", "history broken")) > 0, seen
-
-
-@pytest.mark.timeout(3600)
-@pytest.mark.parametrize("domain", ["tau-airline", "tau-retail"])
-def test_the_development_tau_calls(engine: Engine, domain: str) -> None:
-    data = DataSettings().root / domain
-    if not (data / "trajectories.json").exists():
-        pytest.skip(f"the development data is not here ({data}; PRECOND_DATA_DIR)")
-    seen: Counter[str] = Counter()
-    check_tau(engine, data, CLAUSE if domain == "tau-airline" else {}, False, seen, DEVELOPMENT_RUNS)
-    assert seen["allowed"] or seen["refused"], seen
 
 
 def test_the_worker_does_not_screen_a_check_again(engine: Engine, monkeypatch: pytest.MonkeyPatch) -> None:
