@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from precond.engine import counterexamples, judge, priors, prompting, scope
 from precond.engine.checking import Checking
+from precond.engine.dated_limits import with_dated_limits
 from precond.engine.enumeration import StateModel, enumerate_atoms
 from precond.engine.evidence import OccurrenceIndex
 from precond.engine.freshness import writes_at
@@ -287,6 +288,7 @@ class Engine(Checking):
         with timer.phase("rank"):
             ranked = select_rules(run.actions, Inference(run.trace, evaluated, proposals, options, writes, run.prior),
                                   run.guarded)
+            ranked = {a: with_dated_limits(r, policy[a]) if a in policy else r for a, r in ranked.items()}
         if options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(run.spec, run.actions, run.demos, run.trace, evaluated, ranked, options)
