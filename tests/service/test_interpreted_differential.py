@@ -23,7 +23,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine import engine as engine_module
+from precond.engine import checking as checking_module
 from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.evaluation import tools
@@ -99,8 +99,8 @@ def test_the_worker_does_not_screen_a_check_again(engine: Engine, monkeypatch: p
     def screened_twice(*args: object) -> None:
         raise AssertionError("screened again")
 
-    monkeypatch.setattr(engine_module, "check_calls", screened_twice)
-    monkeypatch.setattr(engine_module, "check_preconditions", screened_twice)
+    monkeypatch.setattr(checking_module, "check_calls", screened_twice)
+    monkeypatch.setattr(checking_module, "check_preconditions", screened_twice)
     body = json.loads((FIXTURES.parent.parent / "examples" / "check-actions.json").read_text())
     with scoped(TAG):
         assert engine.check(CheckRequest.model_validate(body), screened=True).results

@@ -27,6 +27,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from precond.engine.candidates.tool_conditions import ARGUMENT_KEY, allowance, arithmetic
+from precond.engine.judging import run_tasks
 from precond.engine.judging.allowance_tables import Table, best_allowance, held_terms
 from precond.engine.judging.allowance_tables import table as table_of
 from precond.engine.judging.evidence import OccurrenceIndex, gather
@@ -161,18 +162,15 @@ def _at_line(trace: TraceResult, action: str, run: int, line: int) -> Point | No
 
 
 def task_of(labelled: Labelled, demos: Sequence[str]) -> Callable[[Point | Case], str]:
-    """The task of a demonstrated call (its point) or a labelled call: its run's first words of the user (the
-    task's instruction: a run labelled around a violation starts as the successful run of its task did), else
-    the run itself."""
-    def first_words(text: str, run: str) -> str:
-        return next((line.strip() for line in text.splitlines() if ".says(" in line), run)
+    """The task of a demonstrated call (its point) or a labelled call: that of its run (`run_tasks`)."""
+    named = run_tasks.tasks([*demos, *labelled.programs])
 
     def of(where: Point | Case) -> str:
         if isinstance(where, Point):
-            return first_words(demos[where.demo], f"demonstrations[{where.demo}]")
+            return named[where.demo]
         if where.demonstration is not None:
-            return first_words(demos[where.demonstration], f"demonstrations[{where.demonstration}]")
-        return first_words(labelled.programs[where.run], f"run {where.run}")
+            return named[where.demonstration]
+        return named[len(demos) + where.run]
     return of
 
 
