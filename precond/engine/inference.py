@@ -12,7 +12,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from precond.engine.candidates.tool_conditions import tool_class
+from precond.engine.candidates.tool_facts import tool_class
 from precond.engine.judging import counterexamples, judge, priors
 from precond.engine.judging import guarded as guarding
 from precond.engine.judging.decisive import decisive_points

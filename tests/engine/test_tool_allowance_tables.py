@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions
+from precond.engine.candidates import tool_conditions, tool_facts
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
@@ -163,7 +163,7 @@ def test_the_categories_are_arguments_of_a_few_strings_never_an_id_and_never_ran
     converted = convert([booking("gold", 1, 1, 0), booking("basic", 1, 0, 0, "spin"),
                          booking("basic", 2, 2, 2, "spin")], TOOLS)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     found = tool_conditions.keys(facts, "book_session", spec.methods[BOOK].positional)
     assert found == ["session in ('spin',)", "session in ('yoga',)"]
     assert all(tool_conditions.arithmetic(atom) for atom in found)

@@ -9,7 +9,7 @@ import ast
 import json
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions
+from precond.engine.candidates import tool_conditions, tool_facts
 from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
@@ -76,14 +76,14 @@ def test_the_number_of_conditions_is_bounded() -> None:
                 f'{{"reservation_id": "R{i}"}}') for i in range(30)]
     converted = convert(runs, TOOLS)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     assert len(tool_conditions.tool_atoms(facts, "cancel_reservation", ("reservation_id",))) <= \
         tool_conditions.MAX_ATOMS
 
 
 def test_a_spec_without_the_result_observation_gets_none() -> None:
     spec = parse_spec("class SYSTEM:\n  def result(self, x): self.x = x\n  def act(self): pass\n")
-    assert tool_conditions.tool_class(spec) is None
+    assert tool_facts.tool_class(spec) is None
 
 
 FLIGHT_TOOLS = [{"type": "function", "function": {"name": name, "parameters": {
@@ -112,7 +112,7 @@ def test_collections_dates_and_kinds_are_proposed_and_judged() -> None:
             flights_run("B2", "2024-05-01T10:00:00", ["2024-05-10", "2024-05-20"], ["gift_card_3"])]
     converted = convert(runs, FLIGHT_TOOLS)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     params = ("reservation_id", "flights", "payment_methods")
     without_now = tool_conditions.tool_atoms(facts, "update_reservation_flights", params)
     pairs = "{(x['date'], x['flight_number']) for x in flights}"

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions
+from precond.engine.candidates import tool_facts
 from precond.engine.candidates.tool_relations import labels_only, relations
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
@@ -60,7 +60,7 @@ def desk_run(n: int, new: str | None = None, card: str | None = None, state: str
 def swap_relations(runs: list[list[dict[str, object]]]) -> list[str]:
     converted = convert(runs, TOOLS, writes=WRITES)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     return relations(facts, "swap_copies", spec.methods[SWAP].positional)
 
 
@@ -119,7 +119,7 @@ def test_a_condition_one_actions_labels_chose_is_adopted_where_every_call_to_all
 def test_what_earlier_writes_show_of_a_field_the_read_holds_at_one_value_is_proposed_for_labels() -> None:
     converted = convert([desk_run(n) for n in range(6)], TOOLS, writes=WRITES)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     found = relations(facts, "extend_loan", spec.methods[EXTEND].positional)
     shown = ("all(self.changes[w][loan_id]['state'] == 'open' for w in ('extend_loan', 'swap_copies') "
              "if loan_id in self.changes[w])")

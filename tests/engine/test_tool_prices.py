@@ -14,7 +14,7 @@ from typing import Any
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions
+from precond.engine.candidates import tool_conditions, tool_facts
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
@@ -96,7 +96,7 @@ def test_a_price_every_demonstration_meets_is_not_kept_without_labels(engine: En
 def scaled(runs: list[list[dict[str, object]]], action: str) -> list[str]:
     converted = convert(runs, TOOLS)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     return tool_conditions.scaled(facts, action, spec.methods[f"AGENT.{action}"].positional)
 
 

@@ -14,7 +14,7 @@ from types import SimpleNamespace
 import pytest
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions
+from precond.engine.candidates import tool_facts
 from precond.engine.candidates.tool_relations import labels_only, relations, runnable
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
@@ -63,7 +63,7 @@ REASONS = ("exam", "travel", "illness")
 def relations_of(runs: list[list[dict[str, object]]]) -> list[str]:
     converted = convert(runs, TOOLS, writes=WRITES)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     return relations(facts, "renew_loan", spec.methods[RENEW].positional)
 
 

@@ -10,7 +10,7 @@ from collections import defaultdict
 from typing import Any
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions
+from precond.engine.candidates import tool_conditions, tool_facts
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
@@ -96,7 +96,7 @@ def test_the_route_condition_is_proposed_run_by_the_sandbox_and_separates() -> N
     runs = [change(["HAT1"]), change(["HAT3", "HAT4"])]
     converted = convert(runs, TOOLS)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     atoms = tool_conditions.tool_atoms(facts, "update_reservation_flights", PARAMS)
     assert ROUTE in atoms
     with Sandbox(workers=1) as sandbox:
@@ -120,7 +120,7 @@ def test_the_route_condition_is_proposed_run_by_the_sandbox_and_separates() -> N
 def test_the_route_kept_is_proposed_and_refuses_a_new_destination_or_an_open_round_trip() -> None:
     converted = convert([change(["HAT1"]), change(["HAT3", "HAT4"])], TOOLS)
     spec = parse_spec(converted.spec)
-    facts = tool_conditions.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     atoms = tool_conditions.tool_atoms(facts, "update_reservation_flights", PARAMS)
     got = "self.results['get_reservation_details'][reservation_id]"
     found = (f"self.seen['search_direct_flight'] + self.seen['search_onestop_flight'] + {got}['flights'] "

@@ -16,8 +16,9 @@ _SOURCES: dict[str, tuple[str, ...]] = {
     "precond.engine.candidates.prompting": ("inference_prefix", "inference_suffix"),
     "precond.engine.candidates.tool_conditions": (
         "ALLOWANCES", "ARGUMENT_KEY", "MAX_CELLS", "MAX_KEYS", "allowance", "allowance_form", "arithmetic", "key",
-        "separating", "tool_atoms", "tool_class",
+        "separating", "tool_atoms",
     ),
+    "precond.engine.candidates.tool_facts": ("tool_class",),
     "precond.engine.candidates.tool_relations": ("labels_only", "relations"),
 }
 __all__ = sorted(name for names in _SOURCES.values() for name in names)

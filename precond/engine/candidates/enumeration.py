@@ -14,7 +14,8 @@ from collections import defaultdict
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 
-from precond.engine.candidates.tool_conditions import ToolFacts, read_facts, tool_atoms, tool_class
+from precond.engine.candidates.tool_conditions import tool_atoms
+from precond.engine.candidates.tool_facts import ToolFacts, read_facts, tool_class
 from precond.engine.candidates.tool_relations import relations
 from precond.engine.spec import Spec
 from precond.programs import Method, Purity

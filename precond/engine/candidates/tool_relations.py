@@ -44,7 +44,8 @@ import re
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
-from precond.engine.candidates.tool_conditions import KIND, MAX_KINDS, MAX_VALUES, RESULTS, Seen, ToolFacts, arithmetic
+from precond.engine.candidates.tool_conditions import KIND, MAX_KINDS, MAX_VALUES, RESULTS, arithmetic
+from precond.engine.candidates.tool_facts import Seen, ToolFacts
 from precond_client.guard import AGENT_SHAPE
 from precond_client.rule_interpreter import OutsideGrammar, Scope, compile_rule
 
