@@ -53,6 +53,7 @@ from precond.engine.judging.report import Proposals, Ranked, listed, report_of
 from precond.engine.judging.runnable import drop_unrunnable
 from precond.engine.judging.selection import Inference, select_rules
 from precond.engine.judging.shared_rules import shared
+from precond.engine.judging.unseen_shared import assume_shared
 from precond.engine.left_out import trace_judgeable
 from precond.engine.sandboxed import history_program, sandbox_call, spec_of
 from precond.engine.spec import (
@@ -187,6 +188,8 @@ class Engine(Checking):
         progress("rank", 0, 1)
         ranked, separated = self._ranked(run, evaluated, proposals, writes, policy, timer)
         chosen = chosen_rules(run, ranked, separated)
+        ranked = dict(ranked)
+        assume_shared(chosen, ranked, separated, run.guarded, run.spec.methods)
         with timer.phase("verify"):
             program, preconditions, dropped = self._verified_program(run.spec, chosen, run.demos,
                                                                      exempt_points(chosen, ranked, separated))

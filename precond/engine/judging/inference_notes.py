@@ -82,7 +82,7 @@ def _add_cuts(warnings: dict[str, str], f: Findings) -> None:
         said = f.ranked[action].unguarded or (guarding.UNREFUSED if unguarded_rule else "")
         unguarded = "; ".join(w for w in (said, default) if said and w)
         _add(warnings, action, *(w for w in (f.stopped.get(action), f.ranked[action].search,
-                                             f.ranked[action].behind, unguarded) if w))
+                                             f.ranked[action].behind, f.ranked[action].assumed, unguarded) if w))
 
 
 def timed_out(evaluated: EvaluateResult) -> dict[str, int]:

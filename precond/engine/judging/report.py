@@ -69,6 +69,9 @@ class Ranked:
     """The assumed rules a conversational act (not in `options.guarded`) did not keep, in words."""
     behind: str = ""
     """The other party's facts a tool call did not keep because its "yes" came before every call, in words."""
+    assumed: str = ""
+    """The conditions a never-demonstrated action assumed from the other guarded actions (`unseen_shared`), in
+    words."""
 
 
 @dataclass(frozen=True)
