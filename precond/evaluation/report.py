@@ -317,11 +317,11 @@ def noise_section(rows: Sequence[dict[str, Any]], img: Path) -> str:
 
 def write_noise_section(store: JsonCache, out: Path) -> None:
     """Regenerate only the noise and sparsity section of an existing report, from the cached sweep: the rest
-    (model rows, policy) stays as the last full run wrote it."""
+    stays as the last full run wrote it."""
     rows = (store.get("results", "preconditions") or {"rows": []})["rows"]
     img = out.parent / "img"
     img.mkdir(parents=True, exist_ok=True)
-    replace_section(out, NOISE_HEADING, noise_section(rows, img), before="## Policy")
+    replace_section(out, NOISE_HEADING, noise_section(rows, img), before=NEXT_ACTION_HEADING)
 
 
 def replace_section(out: Path, heading: str, section: str, before: str, stop: str | None = None) -> None:
