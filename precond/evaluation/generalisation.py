@@ -174,14 +174,15 @@ def section(rows: Sequence[Mapping[str, Any]], notes: Mapping[str, str] | None =
 
 
 def write_section(rows: Sequence[Mapping[str, Any]], out: Path, notes: Mapping[str, str] | None = None) -> None:
-    """This section first in the report, before the older tables (kept for comparison)."""
+    """This section first in the report; its counterfactual subsection (`precond eval counterfactual`) is kept."""
     import os
 
     from precond.evaluation.report import machine, replace_section
+    from precond.evaluation.safety import HEADING as SAFETY
 
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     where = f"{machine()}\n- load average when written (1, 5, 15 min): {load}"
-    replace_section(out, HEADING, section(rows, notes, where), before="## Precondition inference")
+    replace_section(out, HEADING, section(rows, notes, where), before="## Noise and sparsity", stop=SAFETY)
 
 
 def unsafe_breaches(rows: Sequence[Mapping[str, Any]], bound: float) -> list[str]:

@@ -87,23 +87,6 @@ def noise_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
     return _save(fig, img / "noise_and_sparsity.png")
 
 
-def compatibility_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
-    """GT compatibility and turn F1 per policy config (means over the domains run)."""
-    configs = list(dict.fromkeys(r["config"] for r in rows))
-    if not configs:
-        return None
-    compat = [_weighted(rows, c, "compatibility", "actions") for c in configs]
-    f1 = [_weighted(rows, c, "f1", "turns") for c in configs]
-    fig, ax = plt.subplots(figsize=(9, 4))
-    xs = range(len(configs))
-    ax.bar([x - 0.2 for x in xs], compat, 0.4, label="GT compatibility")
-    ax.bar([x + 0.2 for x in xs], f1, 0.4, label="turn F1")
-    ax.set_xticks(list(xs), configs, rotation=30, ha="right", fontsize=7)
-    ax.set_ylim(0, 1.05)
-    ax.legend(fontsize=8)
-    return _save(fig, img / "policy_compatibility.png")
-
-
 def sized_plot(rows: Sequence[dict[str, Any]], img: Path) -> Path | None:
     """Turn F1 and GT compatibility per configuration of the sized run, with their 95% intervals."""
     if not rows:

@@ -17,14 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from precond.evaluation.cache import JsonCache
-from precond.evaluation.metrics import PRF, macro
 from precond.evaluation.preconditions import summarize
 from precond.evaluation.sweep import Setting, collect
 
 SPEED_DOMAIN = "Restaurants_1"
-PER_ACTION_CONFIGS = ("always", "enumerate/subsumption", "enumerate/recency", "model/recency",
-                      "model+enumerate/recency")
-TABLE_BENCHMARKS = (("sgd", "sgd"), ("alfworld", "alfworld"), ("alfworld-trajectory", "alfworld"))
 
 
 # ---- storage ---------------------------------------------------------------------------------------------
@@ -59,21 +55,10 @@ def _fmt(value: float | None) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
-def _triple(prf: dict[str, float]) -> str:
-    return f"{prf['precision']:.2f} / {prf['recall']:.2f} / {prf['f1']:.2f}"
-
-
 def _markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
     return "\n".join(lines)
-
-
-def _group_macro(rows: Sequence[dict[str, Any]], config: str, group: str) -> PRF | None:
-    """Mean of domain macros of `config` over the domains of `group` (sgd, alfworld, alfworld-trajectory)."""
-    chosen = [PRF(**r["macro"]) for r in rows if r["config"] == config and "macro" in r
-              and (r["domain"] == group if group.startswith("alfworld") else r["benchmark"] == group)]
-    return macro(chosen) if chosen else None
 
 
 def precondition_table(summary: Sequence[dict[str, Any]]) -> str:
@@ -82,59 +67,6 @@ def precondition_table(summary: Sequence[dict[str, Any]]) -> str:
         (_fmt(s["macro"]["precision"]), _fmt(s["macro"]["recall"]), _fmt(s["macro"]["f1"]))
         if s["macro"] else ("–", "–", "–")), "; ".join(s["errors"])] for s in summary]
     return _markdown(["config", "benchmark", "domains", "P", "R", "F1", "errors"], rows)
-
-
-def _measured(rows: Sequence[dict[str, Any]]) -> list[str]:
-    """Configs with at least one scored row, in first-seen order (error-only configs have nothing to show);
-    the sweep's configs (injected errors, sampled demonstrations) have a section of their own."""
-    return list(dict.fromkeys(r["config"] for r in rows if "macro" in r and not _swept(r["config"])))
-
-
-def _swept(config: str) -> bool:
-    return any(part.startswith(("noise=", "sample=")) for part in config.split("/"))
-
-
-def main_table(rows: Sequence[dict[str, Any]]) -> str:
-    configs = _measured(rows)
-    header = ["config"] + [f"{name} {m}" for name, _ in TABLE_BENCHMARKS for m in ("P", "R", "F1")]
-    body = []
-    for config in configs:
-        cells = [f"`{config}`"]
-        for group, _ in TABLE_BENCHMARKS:
-            prf = _group_macro(rows, config, group)
-            cells += [_fmt(prf.precision), _fmt(prf.recall), _fmt(prf.f1)] if prf else ["–"] * 3
-        body.append(cells)
-    return _markdown(header, body)
-
-
-def domain_table(rows: Sequence[dict[str, Any]]) -> str:
-    domains = list(dict.fromkeys(r["domain"] for r in rows))
-    configs = _measured(rows)
-    index = {(r["config"], r["domain"]): r for r in rows}
-    body = []
-    for config in configs:
-        cells = [f"`{config}`"]
-        for domain in domains:
-            row = index.get((config, domain))
-            cells.append(_triple(row["macro"]) if row and "macro" in row else "–")
-        body.append(cells)
-    return _markdown(["config (P / R / F1)", *domains], body)
-
-
-def action_table(rows: Sequence[dict[str, Any]], domain: str) -> str:
-    index = {r["config"]: r for r in rows if r["domain"] == domain and "actions" in r}
-    configs = [c for c in PER_ACTION_CONFIGS if c in index]
-    if not configs:
-        return ""
-    actions = list(index[configs[0]]["actions"])
-    body = []
-    for action in actions:
-        cells = [action.split(".", 1)[1]]
-        for config in configs:
-            s = index[config]["actions"][action]
-            cells.append("–" if s["prf"] is None else _triple(s["prf"]))
-        body.append(cells)
-    return _markdown(["action (P / R / F1)", *(f"`{c}`" for c in configs)], body)
 
 
 def noise_table(rows: Sequence[dict[str, Any]]) -> str:
@@ -169,20 +101,6 @@ def policy_table(rows: Sequence[dict[str, Any]]) -> str:
              f"{r.get('engine_errors', 0)}/{r['requests']}"] for r in rows]
     return _markdown(["domain", "config", "turns", "predictions", "turn F1", "GT compat.",
                       "GT compat. of system actions", "p50 s/request", "p95 s/request", "refused requests"], body)
-
-
-def _policy_overall(rows: Sequence[dict[str, Any]]) -> str:
-    """Per config, means over domains (turn-weighted), the paper's ablation layout."""
-    configs = list(dict.fromkeys(r["config"] for r in rows))
-    body = []
-    for config in configs:
-        members = [r for r in rows if r["config"] == config]
-        turns = sum(r["turns"] for r in members) or 1
-        actions = sum(r["actions"] for r in members) or 1
-        f1 = sum(r["f1"] * r["turns"] for r in members) / turns
-        compat = sum(r["compatibility"] * r["actions"] for r in members) / actions
-        body.append([f"`{config}`", str(len(members)), str(turns), _fmt(f1), _fmt(compat)])
-    return _markdown(["config", "domains", "turns", "turn F1", "GT compat."], body)
 
 
 def _ci(interval: dict[str, float], signed: bool = False) -> str:
@@ -399,59 +317,43 @@ def noise_section(rows: Sequence[dict[str, Any]], img: Path) -> str:
 
 def write_noise_section(store: JsonCache, out: Path) -> None:
     """Regenerate only the noise and sparsity section of an existing report, from the cached sweep: the rest
-    (model rows, policy) stays as the last full run wrote it."""
+    stays as the last full run wrote it."""
     rows = (store.get("results", "preconditions") or {"rows": []})["rows"]
     img = out.parent / "img"
     img.mkdir(parents=True, exist_ok=True)
-    replace_section(out, NOISE_HEADING, noise_section(rows, img), before="## Policy")
+    replace_section(out, NOISE_HEADING, noise_section(rows, img), before=NEXT_ACTION_HEADING)
 
 
-def replace_section(out: Path, heading: str, section: str, before: str) -> None:
+def replace_section(out: Path, heading: str, section: str, before: str, stop: str | None = None) -> None:
     """Write `section` (starting with `heading`) in place of the report's section of that heading, or, when the
-    report has none, in front of the section headed `before` (at the end without one)."""
+    report has none, in front of the section headed `before` (at the end without one). The section ends at the
+    next `## ` heading, or at `stop` where that comes first (a subsection another command writes)."""
     text = out.read_text(encoding="utf-8") if out.exists() else ""
     start = text.find(heading)
     if start < 0:
         anchor = text.find(before)
         start = end = anchor if anchor >= 0 else len(text)
     else:
-        following = text.find("\n## ", start + len(heading))
-        end = following + 1 if following >= 0 else len(text)
+        markers = ["\n## ", *([f"\n{stop}"] if stop else [])]
+        found = [at for at in (text.find(m, start + len(heading)) for m in markers) if at >= 0]
+        end = min(found) + 1 if found else len(text)
     out.write_text(text[:start] + section + "\n" + text[end:], encoding="utf-8")
 
 
-def write_report(store: JsonCache, out: Path, bench: Path) -> None:
-    from precond.evaluation.plots import compatibility_plot, demos_plot, per_action_plot, sized_plot
-    from precond.evaluation.tools_report import tools_plot, tools_section
+HEADER = (
+    "# Evaluation results\n\n"
+    "Generated by `precond eval all` (`precond eval report`: from the cache alone); do not edit by hand.\n"
+    "Definitions: `precond/evaluation/metrics.py` (edge cases), points and argument domains: "
+    "`precond/evaluation/domains.py`.\n"
+    "Each section holds the current table of one benchmark, with the command that regenerates it and how its\n"
+    "configurations were chosen; figures a newer measurement replaced are in CHANGELOG.md (\"Earlier history\").\n")
 
+
+def speed_section(store: JsonCache, bench: Path) -> str:
+    """The inference phases of every cached configuration on one domain, and the sandbox's throughput."""
     pre = (store.get("results", "preconditions") or {"rows": []})["rows"]
-    pol = store.get("results", "policy") or []
-    img = out.parent / "img"
-    img.mkdir(parents=True, exist_ok=True)
-    sized = store.get("results", "next-action")
-    plots = [per_action_plot(pre, img), demos_plot(pre, img), compatibility_plot(pol, img),
-             sized_plot(sized["rows"] if sized else [], img)]
-    sections = [
-        "# Evaluation results\n",
-        "Generated by `precond eval all` (`precond eval report`: from the cache alone); do not edit by hand.",
-        "Definitions: `precond/evaluation/metrics.py` (edge cases), points and argument domains: "
-        "`precond/evaluation/domains.py`.\n",
-        machine(),
-        "\n## Precondition inference (macro over actions; SGD = mean of its 4 domains)\n",
-        main_table(pre),
-        "\nALFWorld is valid_unseen (134 trajectories). `alfworld`: two-argument actions scored on the "
-        "tuples the simulator offered in each state; `alfworld-trajectory`: on every tuple offered anywhere "
-        "in the trajectory (stricter).\n",
-        "## Per domain\n",
-        domain_table(pre),
-        *[f"\n### Per action: {d}\n\n{action_table(pre, d)}" for d in dict.fromkeys(r["domain"] for r in pre)
-          if action_table(pre, d)],
-        "\n" + noise_section(pre, img),
-        *(["## Policy (SGD next-action prediction, the small grid of `precond eval policy`)\n",
-            _policy_overall(pol), "\n" + policy_table(pol)] if pol else []),
-        "\n" + next_action_section(store, plots[-1]),
-        *(["\n" + tools_section(tools, tools_plot(tools, img))] if (tools := store.get("results", "tools")) else []),
-        "\n## Speed\n",
+    return "\n".join([
+        "## Speed\n",
         f"Inference phases on {SPEED_DOMAIN} (seconds, from `InferResponse.stats.seconds`):\n",
         speed_table(pre),
         "\nNext-action latency: see the next-action section. The model runtime (dtypes, threads, and the same "
@@ -459,9 +361,16 @@ def write_report(store: JsonCache, out: Path, bench: Path) -> None:
         "[model-speed.md](model-speed.md).\n",
         "### Sandbox throughput\n",
         sandbox_bench(bench, store),
-        "\n" + ANALYSIS.read_text(encoding="utf-8"),
-        "\n## Plots\n",
-        *[f"![{p.stem}](img/{p.name})" for p in plots if p is not None],
         "",
-    ]
-    out.write_text("\n".join(sections), encoding="utf-8")
+    ])
+
+
+def write_report(store: JsonCache, out: Path, bench: Path) -> None:
+    """The whole report in its layout (precond/evaluation/layout.py), from the cache and the report as it was."""
+    from precond.evaluation.layout import Inputs, sections
+
+    img = out.parent / "img"
+    img.mkdir(parents=True, exist_ok=True)
+    old = out.read_text(encoding="utf-8") if out.exists() else ""
+    body = "".join(sections(Inputs(store, img, bench), old))
+    out.write_text(f"{HEADER}\n{machine()}\n\n{body}".rstrip() + "\n", encoding="utf-8")

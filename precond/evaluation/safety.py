@@ -22,7 +22,7 @@ from precond.evaluation.metrics import domain_macro
 from precond.evaluation.preconditions import InferFn, infer
 from precond.evaluation.scoring import Satisfaction, score
 
-HEADING = "## Safety where the demonstrations are silent (counterfactual states)"
+HEADING = "### Safety where the demonstrations are silent (counterfactual states)"
 DEFAULT_CONFIGS = ("model+enumerate/cautious,model+enumerate/cautious/rules=0,enumerate/cautious,"
                    "model+enumerate/cautious/unseen=allow,enumerate/cautious/unseen=allow,"
                    "model+enumerate/recency/unseen=allow,model+enumerate/recency/unseen=allow/rules=0,"
@@ -119,7 +119,7 @@ def section(rows: Sequence[dict[str, Any]], img: Path, default: str) -> str:
 
 
 def write_section(rows: Sequence[dict[str, Any]], out: Path, default: str) -> None:
-    """Replace (or add, before the noise section) this section of an existing report."""
+    """Replace (or add, before the noise section) this subsection of the domains section of an existing report."""
     from precond.evaluation.report import replace_section
 
     img = out.parent / "img"

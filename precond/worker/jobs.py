@@ -24,7 +24,7 @@ from precond.engine.engine import Engine
 from precond.engine.scope import scoped
 from precond.jobs.cache import ResultCache
 from precond.jobs.queue.keys import JobId, is_shared
-from precond.jobs.queue.kinds import KINDS
+from precond.jobs.queue.kinds import KINDS, covers
 from precond.jobs.queue.payloads import Outcome
 from precond.jobs.records import job_counts, record_phase, write_progress
 from precond.worker import policies
@@ -104,7 +104,7 @@ RUNNERS: Final[dict[JobKind, Runner]] = {
     "train-policy": Runner(policies.train, keep=policies.keep, discard=policies.discard),
 }
 """What the worker does with each kind's payload (`jobs.queue.kinds.KINDS` says which payload that is)."""
-assert set(RUNNERS) == set(KINDS), "every job kind needs a runner"
+covers("precond/worker/jobs.py:RUNNERS", RUNNERS, KINDS)
 
 
 def _operate(

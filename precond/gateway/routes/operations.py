@@ -21,6 +21,7 @@ from precond.gateway.examples import openapi_examples
 from precond.gateway.middleware import OffloadedBodyRoute
 from precond.gateway.submission import submit_job
 from precond.jobs.queue import keys
+from precond.jobs.queue.kinds import KINDS, covers
 from precond.jobs.queue.payloads import ReinferJob, TrainPolicyJob
 from precond.programs import checks
 from precond.store import policies as policy_adapters
@@ -218,14 +219,25 @@ arguments for the check pool: 422 before anything is queued, not a failed job af
 
 @dataclass(frozen=True)
 class Operation(Generic[B]):
-    """What the gateway does with one kind's body before it becomes a job: complete it as a worker runs it,
-    name the model its answer depends on (part of the job id), and check its programs statically."""
+    """What the gateway does with the body of one kind it answers before it becomes a job: complete it as a
+    worker runs it, name the model its answer depends on (part of the job id), and give the arguments of its
+    static check (the check itself is named by the kind's row of `KINDS`)."""
 
     prepare: Callable[[Services, str, B], Awaitable[B]]
     model: Callable[[B], str | None]
-    static_check: Callable[[B, int, str], StaticCheck] | None
-    """None where the route screened the request itself before building the job (a re-inference). Its arguments:
-    the body, the work budget and the caller's tag (what a check may remember is remembered per tenant)."""
+    check_args: Callable[[B, int, str], tuple[Any, ...]] | None
+    """None where the kind's row names no static check (the route screened the request itself: a
+    re-inference). Its arguments: the body, the work budget and the caller's tag (what a check may remember is
+    remembered per tenant)."""
+
+
+def static_check(kind: JobKind, body: BaseModel, max_work_points: int, tag: str) -> StaticCheck | None:
+    """The kind's static check (named by its `KINDS` row) with its arguments from this body, or None."""
+    name, args = KINDS[kind].static_check, OPERATIONS[kind].check_args
+    if name is None or args is None:
+        return None
+    check: Callable[..., None] = getattr(checks, name)
+    return check, args(body, max_work_points, tag)
 
 
 async def _with_prior_sets(services: Services, tag: str, body: InferRequest) -> InferRequest:
@@ -264,18 +276,17 @@ def _model_if_generated(body: InferRequest | ReinferJob) -> str | None:
     return keys.model_identity() if "model" in body.options.generators else None
 
 
-def _infer_check(body: InferRequest, max_work_points: int, _tag: str) -> StaticCheck:
-    return checks.check_infer_with_priors, (body.spec, body.demonstrations, body.actions, max_work_points,
-                                            [(where, rules) for _, where, rules in body.options.priors()])
+def _infer_check(body: InferRequest, max_work_points: int, _tag: str) -> tuple[Any, ...]:
+    return (body.spec, body.demonstrations, body.actions, max_work_points,
+            [(where, rules) for _, where, rules in body.options.priors()])
 
 
-def _next_action_check(body: NextActionRequest, max_work_points: int, _tag: str) -> StaticCheck:
-    return checks.check_next_action, (body.spec_text(), body.preconditions, body.demonstrations,
-                                      _text(body.history), max_work_points)
+def _next_action_check(body: NextActionRequest, max_work_points: int, _tag: str) -> tuple[Any, ...]:
+    return body.spec_text(), body.preconditions, body.demonstrations, _text(body.history), max_work_points
 
 
-def _training_check(body: TrainPolicyJob, max_work_points: int, _tag: str) -> StaticCheck:
-    return checks.check_training, (body.request.spec, body.request.demonstrations)
+def _training_check(body: TrainPolicyJob, max_work_points: int, _tag: str) -> tuple[Any, ...]:
+    return body.request.spec, body.request.demonstrations
 
 
 OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
@@ -284,8 +295,22 @@ OPERATIONS: Final[dict[JobKind, Operation[Any]]] = {
     "reinfer": Operation(_as_sent, _model_if_generated, None),
     "train-policy": Operation(_as_sent, lambda body: keys.model_identity(), _training_check),
 }
-"""Every kind a route submits through `answer` (a set's validation and a check are submitted by their routes
+"""Every kind whose `KINDS` row is `answered` (a set's validation and a check are submitted by their routes
 directly: a check is screened, and judged where it can be, in one trip to the check pool)."""
+
+
+def _check_rows() -> None:
+    """At import: one operation per answered kind, each with check arguments exactly where its row names a
+    static check, and that check a function of `precond.programs.checks`."""
+    covers("precond/gateway/routes/operations.py:OPERATIONS", OPERATIONS,
+           [kind for kind, row in KINDS.items() if row.answered])
+    for kind, operation in OPERATIONS.items():
+        name = KINDS[kind].static_check
+        if (name is None) != (operation.check_args is None) or (name is not None and not hasattr(checks, name)):
+            raise RuntimeError(f"OPERATIONS[{kind!r}]: its check arguments and KINDS' static_check {name!r} disagree")
+
+
+_check_rows()
 
 
 async def answer(
@@ -300,12 +325,12 @@ async def answer(
     programs checked statically only when it must run."""
     operation = OPERATIONS[kind]
     body = await operation.prepare(services, caller.tag, body)
-    static_check = operation.static_check
 
     async def screen() -> None:
-        if static_check is None:
+        found = static_check(kind, body, services.settings.max_work_points, caller.tag)
+        if found is None:
             return
-        check, args = static_check(body, services.settings.max_work_points, caller.tag)
+        check, args = found
         problem = await services.checks.run(caller.tag, _program_chars(body), offload.problem_of, check, *args)
         if problem is not None:
             if problem.type == checks.WORK_BUDGET:
