@@ -17,7 +17,8 @@ from __future__ import annotations
 
 import json
 from collections import Counter
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,7 @@ from precond.evaluation.settings import DataSettings
 from precond.stack.local import Stack, make_stack, serving
 from precond_client import Client, PreconditionSet
 from precond_client.guard import Guard
-from precond_client.schemas import InferOptions, InferRequest
+from precond_client.schemas import InferOptions, InferRequest, InferResponse
 
 TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
 READ = "reservation_id in self.results['get_reservation_details']"
@@ -47,6 +48,7 @@ CLAUSE = {"AGENT.cancel_reservation": [READ, f"{READ} and ({RESERVATION}['cabin'
           "AGENT.send_certificate": ["user_id in self.results['get_user_details']",
                                      "self.results['get_user_details'][user_id]['membership'] != 'regular'"]}
 MAX_CALLS = 64
+INFERRING = 2
 Messages = list[dict[str, Any]]
 CallsAt = Callable[[Messages, int], list[dict[str, Any]]]
 
@@ -56,7 +58,8 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Ite
     """Bodies and sets the size of the airline's 53 successful runs."""
     stack = make_stack(tmp_path_factory.mktemp("guard-stack"), tiny_model_dir, PRECOND_JOB_TIMEOUT_S="600",
                        PRECOND_MAX_BODY_BYTES="16000000", PRECOND_MAX_SET_BYTES="16000000",
-                       PRECOND_MAX_SET_BYTES_PER_TENANT="256000000", PRECOND_TENANT_RATE_PER_S="1000")
+                       PRECOND_MAX_SET_BYTES_PER_TENANT="256000000", PRECOND_TENANT_RATE_PER_S="1000",
+                       PRECOND_WORKER_CONCURRENCY=str(INFERRING), PRECOND_TENANT_MAX_RUNNING=str(INFERRING))
     with serving(stack, workers=1):
         yield stack
 
@@ -71,13 +74,14 @@ def trajectories(data: Path) -> list[Messages]:
     return [record["traj"] for record in json.loads((data / "trajectories.json").read_text())]
 
 
-def learned_sets(client: Client, converted: Converted) -> list[PreconditionSet]:
-    """The rules `precond eval tools` learns under each of its configurations, with the inference's evidence, so
-    that each set labels its rules (`decided`). A call's verdict depends only on its action's rules and labels,
-    so the sets hold every distinct (rules, evidence) of each action once: set k has the k-th of each action."""
+def learned_sets(client: Client, converted: Converted, more: Iterable[InferResponse] = ()) -> list[PreconditionSet]:
+    """The rules `precond eval tools` learns under each of its configurations (and those of `more` inferences),
+    with the inference's evidence, so that each set labels its rules (`decided`). A call's verdict depends only on
+    its action's rules and labels, so the sets hold every distinct (rules, evidence) of each action once: set k has
+    the k-th of each action."""
+    inferences = infer_all(client, [tools.infer_request(converted, config) for config in tools.CONFIGS])
     variants: dict[str, list[tuple[list[str], dict[str, Any]]]] = {}
-    for config in tools.CONFIGS:
-        inferred = client.infer_preconditions(tools.infer_request(converted, config), timeout=600)
+    for inferred in [*inferences, *more]:
         for action in sorted({*inferred.preconditions, *inferred.evidence, *(f"AGENT.{w}" for w in tools.WRITES)}):
             found = (inferred.preconditions.get(action, []),
                      {rule: e.model_dump() for rule, e in inferred.evidence.get(action, {}).items()})
@@ -103,12 +107,24 @@ def every_condition(client: Client, converted: Converted) -> list[PreconditionSe
     return [client.create_set({"spec": converted.spec, "preconditions": chunk, "force": True}) for chunk in chunks]
 
 
+def compare_sets(client: Client, sets: list[PreconditionSet], runs: list[Messages],
+                 calls_for: Callable[[PreconditionSet], CallsAt], history: bool = False
+                 ) -> tuple[list[int], Counter[str]]:
+    """`compare` on each set, `INFERRING` sets at a time (each set's calls and sessions are its own): how many
+    calls each, and the kinds of verdict seen over all."""
+    with ThreadPoolExecutor(INFERRING) as pool:
+        done = list(pool.map(lambda stored: compare(client, stored, runs, calls_for(stored), history), sets))
+    return [compared for compared, _ in done], sum((seen for _, seen in done), Counter())
+
+
 def compare(client: Client, stored: PreconditionSet, runs: list[Messages], calls_at: CallsAt,
-            seen: Counter[str], history: bool = False) -> int:
+            history: bool = False) -> tuple[int, Counter[str]]:
     """Each run's calls judged after each of its histories, by the service and by one embedded session per run
-    that took the run's messages one at a time; how many calls. `history`: also where the history already broke
-    a rule (the session's, and `Guard.check_actions`' whole answer, against the service's `history_violation`)."""
+    that took the run's messages one at a time; how many calls, and the kinds of verdict seen. `history`: also
+    where the history already broke a rule (the session's, and `Guard.check_actions`' whole answer, against the
+    service's `history_violation`)."""
     compared = 0
+    seen: Counter[str] = Counter()
     guard = Guard.from_set(stored)
     for run in runs:
         session = guard.session()
@@ -130,7 +146,7 @@ def compare(client: Client, stored: PreconditionSet, runs: list[Messages], calls
                     seen.update(_kinds(expected.model_dump()))
                     compared += 1
             session.add(message)
-    return compared
+    return compared, seen
 
 
 def _kinds(verdict: dict[str, Any]) -> list[str]:
@@ -152,9 +168,9 @@ def test_the_embedded_guard_judges_the_fixtures_as_the_service_does(client: Clie
     converted = tools.load(TAU)
     runs = trajectories(TAU)
     hand = client.create_set({"spec": converted.spec, "preconditions": CLAUSE})
-    seen: Counter[str] = Counter()
-    for stored in [hand, *learned_sets(client, converted), *every_condition(client, converted)]:
-        compare(client, stored, runs, fixture_calls(runs, set(stored.preconditions)), seen, history=True)
+    sets = [hand, *learned_sets(client, converted), *every_condition(client, converted)]
+    _, seen = compare_sets(client, sets, runs, lambda stored: fixture_calls(runs, set(stored.preconditions)),
+                           history=True)
     assert min(seen[k] for k in ("allowed", "refused", "raised", "labelled", "history broken")) > 0, seen
 
 
@@ -174,23 +190,22 @@ def test_all_state_changing_airline_calls_under_the_learned_rules(client: Client
     converted = tools.load(data)
     runs = trajectories(data)
     assert sum(len(state_changing_calls(run, i)) for run in runs for i in range(len(run))) == 133
-    seen: Counter[str] = Counter()
-    compared = []
-    for stored in [*learned_sets(client, converted), *labelled_sets(client, converted, data)]:
-        calls_at = partial(state_changing_calls, actions=frozenset(stored.preconditions))
-        compared.append(compare(client, stored, runs, calls_at, seen))
+    sets = learned_sets(client, converted, labelled_inferences(client, converted, data))
+    compared, seen = compare_sets(
+        client, sets, runs, lambda stored: partial(state_changing_calls, actions=frozenset(stored.preconditions)))
     assert compared[0] == 133 and seen["allowed"] and seen["refused"], (compared, seen)
 
 
-def labelled_sets(client: Client, converted: Converted, data: Path) -> list[PreconditionSet]:
+def labelled_inferences(client: Client, converted: Converted, data: Path) -> list[InferResponse]:
     """The rules learned with each half of the tasks' labelled calls as counterexamples (`precond eval tools
     --labels`), with `options.now`: separating rules over dates and collections."""
     records = json.loads((data / "labels.json").read_text())
-    sets = []
-    for half in tools_labels.halves(converted):
-        inferred = client.infer_preconditions(
-            tools_labels.infer_request(converted, records, half, True, "labels.json"), timeout=600)
-        evidence = {a: {r: e.model_dump() for r, e in rules.items()} for a, rules in inferred.evidence.items()}
-        sets.append(client.create_set({"spec": converted.spec, "preconditions": inferred.preconditions,
-                                       "evidence": evidence}))
-    return sets
+    return infer_all(client, [tools_labels.infer_request(converted, records, half, True, "labels.json")
+                              for half in tools_labels.halves(converted)])
+
+
+def infer_all(client: Client, requests: list[InferRequest]) -> list[InferResponse]:
+    """The inferences in order, `INFERRING` at a time: they overlap on the worker's slots (what they infer does
+    not depend on which runs beside which)."""
+    with ThreadPoolExecutor(INFERRING) as pool:
+        return list(pool.map(lambda request: client.infer_preconditions(request, timeout=600), requests))

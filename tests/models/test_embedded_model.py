@@ -12,7 +12,7 @@ import torch
 from precond.engine.models import CodeModel, ModelSettings, Sampling, load_code_model
 from precond.engine.models.quant import QuantUnavailable, choose_quant
 from precond.engine.models.store import EMBEDDED_SHA256, find_embedded_parts, join_parts
-from precond.engine.models.weights import cpu_dtype, cpu_flags
+from precond.engine.models.weights import _weights_dir, cpu_dtype, cpu_flags
 
 pytestmark = pytest.mark.model
 
@@ -88,8 +88,14 @@ def test_int8_and_full_width_weights_greedily_write_the_same_assertions(embedded
 
 
 def test_gguf_path_is_converted_once_by_hash(embedded: CodeModel, tmp_path: Path) -> None:
-    """A configured .gguf file is keyed by its sha256: the embedded file's bytes hit the embedded cache."""
+    """A configured .gguf file is keyed by its sha256: the embedded file's bytes hit the embedded cache (the
+    directory the loaded embedded model came from), and nothing is converted again."""
     gguf_file = tmp_path / "qwen-coder.gguf"
     join_parts(find_embedded_parts(), gguf_file, EMBEDDED_SHA256)
-    model = load_code_model(ModelSettings(path=str(gguf_file), device="cpu", cache_dir=embedded_cache_dir()))
-    assert (model.info.name, model.info.sha256) == ("qwen-coder", EMBEDDED_SHA256)
+    cache = embedded_cache_dir()
+    before = sorted(cache.iterdir())
+    settings = ModelSettings(path=str(gguf_file), device="cpu", cache_dir=cache)
+    directory, name, sha256 = _weights_dir(settings, embedded.info.dtype)
+    assert (name, sha256) == ("qwen-coder", EMBEDDED_SHA256)
+    assert directory == _weights_dir(ModelSettings(cache_dir=cache), embedded.info.dtype)[0]
+    assert sorted(cache.iterdir()) == before

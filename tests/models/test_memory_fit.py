@@ -161,9 +161,13 @@ def test_the_serving_load_is_refused_before_any_weight_is_read(
 
 @pytest.mark.model
 def test_the_embedded_models_pinned_weight_count_is_its_converted_files() -> None:
-    from precond.engine.models.weights import _weights_dir
+    """Counted on the copy this machine serves (the one `precond prepare-model` builds): a conversion keeps every
+    weight whatever its dtype, so no other copy has to be built for the count."""
+    from precond.engine.models.weights import _dtype_name, _weights_dir, choose_dtype, resolve_device
 
-    directory, _, _ = _weights_dir(ModelSettings(), "float32")
+    settings = ModelSettings()
+    dtype, _ = choose_dtype(settings.dtype, resolve_device(settings.device))
+    directory, _, _ = _weights_dir(settings, _dtype_name(dtype))
     assert safetensors_weights(directory) == memory_fit.EMBEDDED_WEIGHTS
 
 
