@@ -1,7 +1,7 @@
 """`precond ARGS` run in the test's own process (click's runner): what a command prints on stdout and stderr and
 its exit code, as a `python -m precond.cli` child would give them, without a fresh interpreter's start-up for
 each call. An exception the command lets out is raised here, so a command that would end in a traceback fails
-its test. Commands that must be a real process (serve, a killed child, an unreachable server's exit) start one
+its test. Commands that must be a real process (serve, a killed child) start one
 themselves."""
 
 from __future__ import annotations

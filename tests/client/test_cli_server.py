@@ -3,13 +3,18 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import subprocess
 import sys
 
+import pytest
+
 from precond.stack.keyed import KeyedStack
 from precond.stack.local import ROOT, check_body, infer_body
+from precond_client import _core
+from tests.cli.inprocess import precond as in_process
 
 
 def precond(*args: str, stdin: str, api_key: str | None = None) -> subprocess.CompletedProcess[str]:
@@ -49,9 +54,12 @@ def test_server_errors_exit_2_naming_the_field_or_the_key(keyed: KeyedStack) -> 
     assert unknown.returncode == 2 and "unauthorized" in unknown.stderr and "unknown API key" in unknown.stderr
 
 
-def test_an_unreachable_server_exits_4() -> None:
+def test_an_unreachable_server_exits_4(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every try refused: the client's retries (their delays shortened, their count kept) end in exit 4."""
     from precond.stack.local import free_port
 
-    done = precond("check", "-", "--server", f"http://127.0.0.1:{free_port()}", stdin=json.dumps(check_body()),
-                   api_key="pk_x")
+    monkeypatch.setattr(_core, "Retry", functools.partial(_core.Retry, base_s=0.01, max_s=0.05))
+    monkeypatch.delenv("PRECOND_SERVER", raising=False)
+    monkeypatch.setenv("PRECOND_API_KEY", "pk_x")
+    done = in_process("check", "-", "--server", f"http://127.0.0.1:{free_port()}", stdin=json.dumps(check_body()))
     assert done.returncode == 4 and "cannot reach" in done.stderr
