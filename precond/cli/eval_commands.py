@@ -446,6 +446,9 @@ def domains(
     unsafe_against: Annotated[str | None, typer.Option(
         help="Fail (exit 1, naming each domain) when a config's unsafe share on any domain exceeds this config's "
              "beyond noise (precond/evaluation/choice.py); the config is measured too.")] = None,
+    actions: Annotated[int, typer.Option(min=0, help="Also print, per benchmark, the N actions of the first config "
+                                                     "(not a baseline) that over-refuse most and the N that let "
+                                                     "most through, with their rules.")] = 0,
 ) -> None:
     """Every development domain (SGD, STAR, ALFWorld): per benchmark the mean, the worst domain and the domains at
     or below `always`, for the paper's F1 and the counterfactual metric (precond/evaluation/generalisation.py);
@@ -454,6 +457,8 @@ def domains(
     from precond.evaluation.configs import expand
     from precond.evaluation.generalisation import (
         DEFAULT_CONFIGS,
+        costly_actions,
+        first_measured,
         summarize,
         summary_table,
         unsafe_breaches,
@@ -471,6 +476,8 @@ def domains(
     write_section(rows, out)
     typer.echo(summary_table(summarize(rows)))
     typer.echo(f"\nwrote the twenty-domain section of {out}")
+    if actions and (first := first_measured(rows)) is not None:
+        typer.echo(f"\nthe costliest actions of {first}:\n{costly_actions(rows, first, actions)}")
     breaches = unsafe_breaches(rows, max_unsafe) if max_unsafe is not None else []
     if breaches:
         typer.echo(f"error: {len(breaches)} domain(s) above --max-unsafe:\n  " + "\n  ".join(breaches), err=True)

@@ -199,3 +199,33 @@ def unsafe_breaches(rows: Sequence[Mapping[str, Any]], bound: float) -> list[str
         out.append(f"{r['config']} on {r['benchmark']} {r['domain']}: unsafe {unsafe:.3f} > {bound:.3f} "
                    f"(F1 {_fmt(f1)})")
     return out
+
+
+MEASURES = (("over", "over_refuse", "over", "allows"), ("unsafe", "unsafe_allow", "unsafe", "refusals"))
+"""(name, share, count, points) of each counterfactual measure in an action's row (`safety.evaluate`)."""
+
+
+def costly_actions(rows: Sequence[Mapping[str, Any]], config: str, n: int) -> str:
+    """Per benchmark, the `n` actions of `config` that refuse the largest share of what the ground truth allows in
+    the counterfactual states and the `n` that allow the largest share of what it refuses, each with its domain,
+    counts and rules: a benchmark's mean over-refusal is a mean over actions, so a few of them can make it, and
+    their rules say why. Empty with `n` 0."""
+    if n <= 0:
+        return ""
+    lines = ["| benchmark | measure | domain | action | share (count/points) | rules |", "|---|---|---|---|---|---|"]
+    mine = [r for r in rows if r["config"] == config and r.get("error") is None]
+    for benchmark in dict.fromkeys(r["benchmark"] for r in mine):
+        scored = [(r["domain"], action, s) for r in mine if r["benchmark"] == benchmark
+                  for action, s in r.get("actions", {}).items()]
+        for name, share, count, points in MEASURES:
+            costly = sorted((x for x in scored if x[2].get(count)), key=lambda x: -(x[2].get(share) or 0.0))[:n]
+            for domain, action, s in costly:
+                rules = "; ".join(f"`{r}`" for r in s.get("rules", [])) or "(none)"
+                lines.append(f"| {benchmark} | {name} | {domain} | {action} | {_fmt(s.get(share))} "
+                             f"({s[count]}/{s[points]}) | {rules} |")
+    return "\n".join(lines)
+
+
+def first_measured(rows: Sequence[Mapping[str, Any]]) -> str | None:
+    """The first config of the rows that is not a baseline (`always`, `gt`)."""
+    return next((r["config"] for r in rows if r["config"] not in ("always", "gt")), None)

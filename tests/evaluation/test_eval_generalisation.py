@@ -11,7 +11,14 @@ from typer.testing import CliRunner
 from precond.cli import eval_commands
 from precond.cli.main import app
 from precond.evaluation.configs import parse_config
-from precond.evaluation.generalisation import HOW_CHOSEN, how_chosen, section, summarize, unsafe_breaches
+from precond.evaluation.generalisation import (
+    HOW_CHOSEN,
+    costly_actions,
+    how_chosen,
+    section,
+    summarize,
+    unsafe_breaches,
+)
 from precond.evaluation.library import source_config
 
 
@@ -25,6 +32,37 @@ ROWS = [_row("always", "A", "sgd", 0.5, None, 0.0), _row("always", "B", "sgd", 0
         _row("always", "t", "star", 0.7, None, 0.0),
         _row("x/cautious", "A", "sgd", 0.95, 0.1, 0.2), _row("x/cautious", "B", "sgd", 0.55, 0.3, 0.1),
         _row("x/cautious", "t", "star", 0.9, None, 0.4)]
+
+
+def _scored(over: int, allows: int, unsafe: int, refusals: int, rules: list[str]) -> dict[str, object]:
+    return {"over": over, "allows": allows, "over_refuse": over / allows if allows else None, "unsafe": unsafe,
+            "refusals": refusals, "unsafe_allow": unsafe / refusals if refusals else None, "rules": rules}
+
+
+def _with_actions(row: dict[str, object], actions: dict[str, dict[str, object]]) -> dict[str, object]:
+    return {**row, "actions": actions}
+
+
+ACTED = [
+    _with_actions(_row("x/cautious", "A", "sgd", 0.9), {
+        "S.NOTIFY": _scored(6, 10, 0, 4, ["self.query_success is False"]),
+        "S.GOODBYE": _scored(0, 10, 0, 0, [])}),
+    _with_actions(_row("x/cautious", "B", "sgd", 0.9), {
+        "S.REQUEST": _scored(1, 10, 3, 4, ["not self.user.informed_slot[slot]"]),
+        "S.Book": _scored(2, 10, 1, 10, ["self.user.affirmed"])}),
+    _with_actions(_row("x/cautious", "t", "star", 0.9), {"S.NOTIFY": _scored(0, 10, 0, 10, ["False"])}),
+    _with_actions(_row("always", "A", "sgd", 0.5), {"S.NOTIFY": _scored(0, 10, 4, 4, [])}),
+]
+
+
+def test_the_costliest_actions_of_a_config_are_named_per_benchmark_with_their_counts_and_rules() -> None:
+    text = costly_actions(ACTED, "x/cautious", 1)
+    assert "| sgd | over | A | S.NOTIFY | 0.600 (6/10) | `self.query_success is False` |" in text
+    assert "| sgd | unsafe | B | S.REQUEST | 0.750 (3/4) | `not self.user.informed_slot[slot]` |" in text
+    assert "S.Book" not in text and "S.GOODBYE" not in text  # beyond the first one of each
+    assert "| star | over" not in text and "| star | unsafe" not in text  # nothing over-refused or let through
+    assert "| sgd | unsafe | A | S.NOTIFY" not in text  # another config's actions
+    assert "S.Book" in costly_actions(ACTED, "x/cautious", 2) and costly_actions(ACTED, "x/cautious", 0) == ""
 
 
 def test_the_worst_domain_and_the_domains_at_or_below_always_are_counted_per_benchmark() -> None:
@@ -87,3 +125,17 @@ def test_the_domains_command_fails_a_config_above_the_bound(monkeypatch: pytest.
     assert failed.exit_code == 1 and "x/cautious on sgd B: unsafe 0.300 > 0.200" in failed.output
     assert CliRunner().invoke(app, [*common, "--max-unsafe", "0.3"]).exit_code == 0
     assert CliRunner().invoke(app, [*common, "--max-unsafe", "-1"]).exit_code == 2
+
+
+def test_the_domains_command_prints_the_costliest_actions_of_the_first_config_measured(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from precond.evaluation import safety
+    monkeypatch.setattr(safety, "evaluate", lambda *args, **kwargs: ACTED)
+    monkeypatch.setattr(eval_commands, "_domains", lambda *args: [])
+    monkeypatch.setattr(eval_commands, "_sandbox", lambda: None)
+    monkeypatch.setattr(eval_commands, "_memo_engine", lambda store: (None,))
+    common = ["eval", "domains", "--configs", "always", "--cache", str(tmp_path / "c"), "--out",
+              str(tmp_path / "results.md")]
+    shown = CliRunner().invoke(app, [*common, "--actions", "1"])
+    assert shown.exit_code == 0 and "| sgd | over | A | S.NOTIFY | 0.600 (6/10) |" in shown.output
+    assert "| sgd | over |" not in CliRunner().invoke(app, common).output
