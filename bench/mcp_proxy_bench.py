@@ -10,10 +10,10 @@ older version, e.g. `git worktree add` or `git archive` of a commit) to the same
 DIR, so that two versions are timed under the same load, call by call. `added` is the through-the-proxy time less
 the direct time of the same call: p50/p99. `own_work_ms` is the proxy's own work on a call, from its
 `calls.jsonl` (the call's time less the upstream's: judging, recording, logging), the rest of `added` being the
-second MCP hop (the SDK's transports and dispatch in the proxy process). `proxy_cpu_ms_per_call` is the proxy
-process's CPU time (user + system, from /proc) over the calls, which other processes on a shared machine do not
-add to. Wall-clock figures on a busy machine include other processes' time slices: say so with them (`load` is
-the load average at the start).
+second MCP hop (the proxy's reads, parses and writes of the messages, and the two more process wake-ups).
+`proxy_cpu_ms_per_call` is the proxy process's CPU time (user + system, from /proc) over the calls, which other
+processes on a shared machine do not add to. Wall-clock figures on a busy machine include other processes' time
+slices: say so with them (`load` is the load average at the start).
 """
 
 from __future__ import annotations

@@ -4,18 +4,20 @@ transports), until its client goes (stdio) or it is stopped (HTTP)."""
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 from collections.abc import Callable, Sequence
 from contextlib import AsyncExitStack
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import anyio
 
 from precond_client.guard import Judge
-from precond_client.mcp.proxy import Mode, Proxy
+from precond_client.mcp.proxy import STDIO, Mode, Proxy
 from precond_client.mcp.recorder import CallLog, prepare
 from precond_client.mcp.stdio import serving_stdio
 from precond_client.mcp.tools import function_schema
@@ -59,8 +61,9 @@ async def serve(settings: Settings, make_judge: MakeJudge) -> None:
         stack.callback(proxy.close)
         _write_private(settings.log / "tools.json", json.dumps(schemas, indent=2) + "\n")
         server = proxy.server()
+        _settle()
         if settings.http is None:
-            async with serving_stdio() as (read, write):
+            async with serving_stdio(partial(proxy.call, STDIO)) as (read, write):
                 await server.run(read, write, server.create_initialization_options())
             return
         import uvicorn
@@ -68,6 +71,13 @@ async def serve(settings: Settings, make_judge: MakeJudge) -> None:
         app = server.streamable_http_app(host="127.0.0.1")
         config = uvicorn.Config(app, host="127.0.0.1", port=settings.http, log_level="warning", lifespan="on")
         await uvicorn.Server(config).serve()
+
+
+def _settle() -> None:
+    """The objects made at start (the SDK's and pydantic's schemas, the judge: some 100,000) kept out of the
+    collector's later passes: a full pass over them takes ~100 ms, which the call that triggers it waits."""
+    gc.collect()
+    gc.freeze()
 
 
 def _write_private(path: Path, text: str) -> None:

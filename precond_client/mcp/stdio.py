@@ -1,8 +1,9 @@
 """The proxy's stdio, read and written on the event loop itself. The SDK's `stdio_server` reads and writes the
 process's stdin and stdout through `anyio.wrap_file`: each line read, written and flushed is a hop to a worker
 thread and back, three a call, which on a busy machine cost more than the proxy's own work. Here the wire is two
-non-blocking pipe descriptors the loop waits on, handed to the same `stdio_server` as its streams; anything else
-(a file, a terminal) is left to the SDK as it is.
+non-blocking pipe descriptors the loop waits on, handed to the same `stdio_server` as its streams, less the plain
+`tools/call` requests, which `fastpath` answers beside it on the same wire; anything else (a file, a terminal) is
+left to the SDK as it is.
 
 As the SDK does, the wire is moved off fd 0 and 1 while the proxy serves (fd 0 reads the null device, fd 1 writes
 to stderr), so a stray `print` or a child that inherits them never writes into the protocol; both come back when
@@ -21,6 +22,9 @@ from typing import Any, cast
 
 import anyio
 from mcp.server.stdio import stdio_server
+
+from precond_client.mcp import fastpath
+from precond_client.mcp.fastpath import Call
 
 READ_BYTES = 1 << 16
 MAX_LINE = 1 << 28
@@ -65,18 +69,27 @@ class PipeLines:
 
 
 class PipeWriter:
-    """`await write(text)` on a non-blocking descriptor, whole (`flush` has nothing left to do)."""
+    """`await write(text)` on a non-blocking descriptor, whole (`flush` has nothing left to do). Two writers (the
+    SDK's and the calls answered beside it) never interleave: a message the pipe cannot take at once is finished
+    under a lock the next message waits for."""
 
     def __init__(self, fd: int) -> None:
         self.fd = fd
+        self.lock = anyio.Lock()
 
     async def write(self, text: str) -> None:
         data = memoryview(text.encode("utf-8"))
-        while data:
-            try:
+        if not self.lock.locked():
+            with suppress(BlockingIOError):
                 data = data[os.write(self.fd, data):]
-            except BlockingIOError:
-                await anyio.wait_writable(self.fd)
+            if not data:
+                return
+        async with self.lock:
+            while data:
+                try:
+                    data = data[os.write(self.fd, data):]
+                except BlockingIOError:
+                    await anyio.wait_writable(self.fd)
 
     async def flush(self) -> None:
         return None
@@ -108,8 +121,9 @@ def _claimed(fd: int, diversion: int) -> Any:
 
 
 @asynccontextmanager
-async def serving_stdio() -> AsyncIterator[tuple[Any, Any]]:
-    """The SDK's `stdio_server` streams, over the loop's own pipe reads and writes when fd 0 and 1 are pipes."""
+async def serving_stdio(call: Call) -> AsyncIterator[tuple[Any, Any]]:
+    """The SDK's `stdio_server` streams, over the loop's own pipe reads and writes when fd 0 and 1 are pipes, with
+    the plain `tools/call` requests answered by `call` beside the SDK (`fastpath`)."""
     if not (_is_pipe(0) and _is_pipe(1)):
         async with stdio_server() as streams:
             yield streams
@@ -117,7 +131,10 @@ async def serving_stdio() -> AsyncIterator[tuple[Any, Any]]:
     null = os.open(os.devnull, os.O_RDONLY)
     try:
         with _claimed(0, null) as wire_in, _claimed(1, 2) as wire_out:
-            async with stdio_server(cast(Any, PipeLines(wire_in)), cast(Any, PipeWriter(wire_out))) as streams:
-                yield streams
+            async with anyio.create_task_group() as calls:
+                lines = fastpath.Lines(PipeLines(wire_in), PipeWriter(wire_out), call, calls)
+                async with stdio_server(cast(Any, lines), cast(Any, lines.watched())) as streams:
+                    yield streams
+                calls.cancel_scope.cancel()  # the wire closed: the calls still in flight answered so
     finally:
         os.close(null)

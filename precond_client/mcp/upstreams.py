@@ -7,23 +7,28 @@ that is not a `CallToolResult`) raises `UpstreamFailure` naming the upstream: th
 MCP error and stays up for the other calls and upstreams. An upstream whose connection closed (its process ended,
 its URL stopped answering) is started (or reached) again by the next call to it, within its start timeout; one that
 does not come back fails that call, saying why, and the call after it tries again.
+
+A command's `tools/call` requests go on its pipes directly (`link.Link`): the SDK's session still starts it, lists
+its tools and answers its own requests, and the result is checked as the session's `send_request` checks it.
 """
 
 from __future__ import annotations
 
 import shlex
-import sys
-from contextlib import AsyncExitStack
+from contextlib import AsyncExitStack, suppress
 from dataclasses import dataclass, field
 from typing import Any
 
 import anyio
 from anyio.abc import TaskGroup, TaskStatus
-from mcp import ClientSession, StdioServerParameters, stdio_client
+from mcp import ClientSession
 from mcp import types as mcp_types
+from mcp.client.session import _clamp_inbound_ttl, _later_revision_fields
 from mcp.client.streamable_http import streamable_http_client
 from mcp.shared.exceptions import MCPError
-from pydantic import ValidationError
+from mcp_types import methods
+
+from precond_client.mcp.link import Link, stdio_link
 
 MAX_TOOL_PAGES = 100
 """`tools/list` pages read from one upstream: a server that keeps answering with a cursor is cut off, said."""
@@ -55,6 +60,8 @@ class Upstream:
     """Its connection's task: cancelled when a new connection replaces it (a process that died leaves its pipes
     and the task that read them, ended here)."""
     reviving: anyio.Lock = field(default_factory=anyio.Lock)
+    link: Link | None = None
+    """A command's pipes, where its `tools/call` requests are written (None: a URL, reached through the SDK)."""
 
 
 def is_url(target: str) -> bool:
@@ -72,9 +79,9 @@ async def hold(target: str, timeout: float, start_timeout: float, *,
     try:
         async with AsyncExitStack() as stack:
             scope = stack.enter_context(anyio.CancelScope())
-            read, write = await _transport(stack, target)
+            read, write, link = await _transport(stack, target)
             session = await stack.enter_async_context(ClientSession(read, write))
-            upstream = Upstream(target, session, timeout, start_timeout, scope=scope)
+            upstream = Upstream(target, session, timeout, start_timeout, scope=scope, link=link)
             with anyio.fail_after(start_timeout):
                 await session.initialize()
                 upstream.tools = await _list_tools(session)
@@ -94,14 +101,14 @@ async def hold(target: str, timeout: float, start_timeout: float, *,
             upstream.gone = _said(exc)
 
 
-async def _transport(stack: AsyncExitStack, target: str) -> tuple[Any, Any]:
+async def _transport(stack: AsyncExitStack, target: str) -> tuple[Any, Any, Link | None]:
     if is_url(target):
-        return await stack.enter_async_context(streamable_http_client(target))
+        read, write = await stack.enter_async_context(streamable_http_client(target))
+        return read, write, None
     argv = shlex.split(target)
     if not argv:
         raise StartError("--upstream: an empty command")
-    params = StdioServerParameters(command=argv[0], args=argv[1:])
-    return await stack.enter_async_context(stdio_client(params, errlog=sys.stderr))
+    return await stack.enter_async_context(stdio_link(argv))
 
 
 async def _list_tools(session: ClientSession) -> list[mcp_types.Tool]:
@@ -130,15 +137,13 @@ def routes(upstreams: list[Upstream]) -> dict[str, Upstream]:
 
 async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_types.CallToolResult:
     """The upstream's result, or `UpstreamFailure` naming it. An MCP error the upstream answers (an unknown tool,
-    bad arguments) is its own word and passes as it is, named. The request is sent as it is (`send_request`, not
-    `call_tool`): the result is parsed as a `CallToolResult` but not checked against the tool's output schema,
-    which the client behind the proxy does with the schema it listed (it costs about 1 ms a call)."""
+    bad arguments) is its own word and passes as it is, named. The result is parsed as a `CallToolResult` but not
+    checked against the tool's output schema, which the client behind the proxy does with the schema it listed
+    (it costs about 1 ms a call)."""
     if upstream.gone is not None:
         await revive(upstream)
     try:
-        request = mcp_types.CallToolRequest(params=mcp_types.CallToolRequestParams(name=name, arguments=arguments))
-        return await upstream.session.send_request(request, mcp_types.CallToolResult,
-                                                   request_read_timeout_seconds=upstream.timeout)
+        return await _request(upstream, name, arguments)
     except MCPError as exc:
         if exc.code == mcp_types.CONNECTION_CLOSED:
             upstream.gone = _said(exc)
@@ -147,11 +152,28 @@ async def call(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_
             raise UpstreamFailure(f"upstream {upstream.target!r} did not answer within {upstream.timeout:g} s "
                                   "(--timeout)") from None
         raise UpstreamFailure(f"upstream {upstream.target!r} answered an error: {_said(exc)}") from None
-    except ValidationError as exc:
+    except ValueError as exc:  # pydantic's ValidationError among them
         raise UpstreamFailure(f"upstream {upstream.target!r} answered a malformed result: {_said(exc)}") from None
     except Exception as exc:  # a broken pipe or a closed stream: the upstream is gone
         upstream.gone = _said(exc)
         raise UpstreamFailure(f"upstream {upstream.target!r} is gone: {upstream.gone}") from None
+
+
+async def _request(upstream: Upstream, name: str, arguments: dict[str, Any]) -> mcp_types.CallToolResult:
+    """On a command's pipes, checked as the session's `send_request` checks a result (the negotiated version's
+    result schema, a later version's fields dropped); on a URL, the session's `send_request` itself."""
+    if upstream.link is None:
+        request = mcp_types.CallToolRequest(params=mcp_types.CallToolRequestParams(name=name, arguments=arguments))
+        return await upstream.session.send_request(request, mcp_types.CallToolResult,
+                                                   request_read_timeout_seconds=upstream.timeout)
+    raw = await upstream.link.request("tools/call", {"name": name, "arguments": arguments}, upstream.timeout)
+    _clamp_inbound_ttl(raw)
+    version = upstream.session.protocol_version or "2025-11-25"
+    with suppress(KeyError):
+        methods.validate_server_result("tools/call", version, raw)
+    if not (foreign := _later_revision_fields("tools/call", version)).isdisjoint(raw):
+        raw = {key: value for key, value in raw.items() if key not in foreign}
+    return mcp_types.CallToolResult.model_validate(raw, by_name=False)
 
 
 async def revive(upstream: Upstream) -> None:
@@ -170,7 +192,8 @@ async def revive(upstream: Upstream) -> None:
                                                          upstream.start_timeout)
         except StartError as exc:
             raise UpstreamFailure(f"{failed} and did not start again: {_said(exc)}") from None
-        upstream.session, upstream.scope, upstream.gone = fresh.session, fresh.scope, None
+        upstream.session, upstream.scope, upstream.link = fresh.session, fresh.scope, fresh.link
+        upstream.gone = None
 
 
 def _said(exc: BaseException) -> str:

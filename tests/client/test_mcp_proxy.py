@@ -94,6 +94,38 @@ def test_enforce_over_stdio_refuses_a_call_the_rules_forbid_before_the_upstream(
     assert [line["outcome"] for line in call_lines(log)] == ["refused", "ok", "ok"]
 
 
+
+def test_a_call_answered_beside_the_sdk_is_answered_as_the_sdk_answers_it(tmp_path: Path) -> None:
+    """Differential: each call made plainly (answered by the proxy beside the SDK's server) and again with a
+    `_meta` (which only the SDK's server reads), in one session: the same result, refusal or MCP error."""
+    rules = tmp_path / "rules.json"
+    rules.write_text(json.dumps(REFUND_RULES))
+    calls: Calls = [("get_order", {"order_id": "A100"}), ("get_order", {"order_id": "X1"}),
+                    ("refund_order", {"order_id": "A300", "amount": 1}), ("send_note", {"order_id": "A1", "text": "é"}),
+                    ("echo", {"text": "hi"}), ("malformed", {}), ("no_such_tool", {})]
+
+    async def answered(session: ClientSession, name: str, arguments: dict[str, Any], meta: Any) -> Any:
+        try:
+            return (await session.call_tool(name, arguments, meta=meta)).model_dump()
+        except MCPError as exc:
+            return exc.error.model_dump()
+
+    async def run() -> list[tuple[Any, Any]]:
+        args = proxy_args(tmp_path / "log", "--mode", "enforce", "--rules", str(rules), "--timeout", "5",
+                          upstreams=[DESK, FAULTY])
+        async with stdio_proxy(args) as session:
+            return [(await answered(session, name, arguments, None),
+                     await answered(session, name, arguments, {"progressToken": "sdk"}))
+                    for name, arguments in calls]
+
+    pairs = asyncio.run(run())
+    for (plain, sdk), (name, _) in zip(pairs, calls, strict=True):
+        assert plain == sdk, name
+    assert pairs[2][0]["is_error"] and "order_id in self.results['get_order']" in pairs[2][0]["content"][0]["text"]
+    assert pairs[5][0]["message"].startswith(f"upstream {FAULTY!r} answered a malformed result")
+    assert pairs[6][0]["message"] == "no tool 'no_such_tool' in the upstreams"
+    assert len(call_lines(tmp_path / "log")) == 2 * (len(calls) - 1)  # every call but the unknown tool's, logged
+
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
