@@ -26,9 +26,11 @@ import anyio
 import mcp_types as types
 from anyio.abc import Process
 from anyio.streams.memory import MemoryObjectReceiveStream, MemoryObjectSendStream
-from mcp.client.stdio import _stop_server_process, get_default_environment
+from mcp.client.stdio import get_default_environment
 from mcp.shared.exceptions import MCPError
 from mcp.shared.message import SessionMessage
+
+from precond_client.mcp.sdk_private import stop_server_process
 
 CLOSED = types.ErrorData(code=types.CONNECTION_CLOSED, message="Connection closed")
 PREFIX = "precond-"
@@ -178,5 +180,5 @@ async def stdio_link(argv: list[str]) -> AsyncIterator[tuple[Any, Any, Link]]:
                 read.close()
                 write.close()
                 link.closed = True
-                await _stop_server_process(process)
+                await stop_server_process(process)
             group.cancel_scope.cancel()

@@ -23,12 +23,12 @@ import anyio
 from anyio.abc import TaskGroup, TaskStatus
 from mcp import ClientSession
 from mcp import types as mcp_types
-from mcp.client.session import _clamp_inbound_ttl, _later_revision_fields
 from mcp.client.streamable_http import streamable_http_client
 from mcp.shared.exceptions import MCPError
 from mcp_types import methods
 
 from precond_client.mcp.link import Link, stdio_link
+from precond_client.mcp.sdk_private import clamp_inbound_ttl, later_revision_fields
 
 MAX_TOOL_PAGES = 100
 """`tools/list` pages read from one upstream: a server that keeps answering with a cursor is cut off, said."""
@@ -167,11 +167,11 @@ async def _request(upstream: Upstream, name: str, arguments: dict[str, Any]) -> 
         return await upstream.session.send_request(request, mcp_types.CallToolResult,
                                                    request_read_timeout_seconds=upstream.timeout)
     raw = await upstream.link.request("tools/call", {"name": name, "arguments": arguments}, upstream.timeout)
-    _clamp_inbound_ttl(raw)
+    clamp_inbound_ttl(raw)
     version = upstream.session.protocol_version or "2025-11-25"
     with suppress(KeyError):
         methods.validate_server_result("tools/call", version, raw)
-    if not (foreign := _later_revision_fields("tools/call", version)).isdisjoint(raw):
+    if not (foreign := later_revision_fields("tools/call", version)).isdisjoint(raw):
         raw = {key: value for key, value in raw.items() if key not in foreign}
     return mcp_types.CallToolResult.model_validate(raw, by_name=False)
 

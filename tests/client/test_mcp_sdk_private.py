@@ -1,0 +1,77 @@
+"""What the proxy takes from the MCP SDK's private helpers (precond_client/mcp/sdk_private.py): each does what the
+proxy's own `tools/call` path relies on, on the SDK version installed; a version outside the extra's bounds, or a
+helper that changed, fails here rather than in a user's proxy."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from importlib.metadata import version
+
+import anyio
+import pytest
+
+pytest.importorskip("mcp")
+
+from mcp_types.version import KNOWN_PROTOCOL_VERSIONS
+
+from precond_client.mcp import sdk_private
+
+
+def test_the_installed_sdk_is_the_minor_version_the_helpers_were_read_in() -> None:
+    installed = version("mcp").split(".")
+    assert ".".join(installed[:2]) == sdk_private.SDK_CHECKED
+
+
+def test_a_negative_cache_lifetime_is_floored_and_other_fields_are_left_alone() -> None:
+    raw = {"content": [], "ttlMs": -5, "isError": False}
+    sdk_private.clamp_inbound_ttl(raw)
+    assert raw == {"content": [], "ttlMs": 0, "isError": False}
+    kept = {"content": [], "ttlMs": 7}
+    sdk_private.clamp_inbound_ttl(kept)
+    assert kept == {"content": [], "ttlMs": 7}
+
+
+def test_fields_of_later_revisions_are_named_for_older_sessions_only() -> None:
+    oldest, newest = KNOWN_PROTOCOL_VERSIONS[0], KNOWN_PROTOCOL_VERSIONS[-1]
+    later = sdk_private.later_revision_fields("tools/call", oldest)
+    assert later and not later & {"content", "isError", "structuredContent"}
+    assert sdk_private.later_revision_fields("tools/call", newest) == frozenset()
+
+
+def test_a_process_that_ignores_its_closed_stdin_is_ended_with_its_children(tmp_path) -> None:
+    pids = tmp_path / "pids"
+    script = (
+        "import os, signal, subprocess, sys, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'])\n"
+        f"open({str(pids)!r}, 'w').write(f'{{os.getpid()}} {{child.pid}}')\n"
+        "time.sleep(600)\n"
+    )
+
+    async def run() -> None:
+        process = await anyio.open_process([sys.executable, "-c", script], start_new_session=True)
+        while not pids.exists() or not pids.read_text():
+            await anyio.sleep(0.05)
+        await sdk_private.stop_server_process(process)
+
+    anyio.run(run)
+    for pid in map(int, pids.read_text().split()):
+        for _ in range(100):
+            if not _alive(pid):
+                break
+            time.sleep(0.05)
+        assert not _alive(pid), f"process {pid} outlived the stop"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
