@@ -15,6 +15,7 @@ Every request carries an API key (two tenants, `quiet` and `flood`). Measures
     evaluates, so the gateway judges these checks itself (`judged_by: interpreter`); the row `... sandbox` sends
     the same check with one more rule the interpreter does not evaluate (always true, on an action not called),
     which takes the queue, a worker and the sandbox: the two paths paired by spec, in turn;
+  * check-actions latency, uncached, on the queue path (the `... sandbox` row's body), timed by httpx as the first two;
   * Redis commands per check on the queue path: `INFO commandstats` of the stack's Redis around 50 uncached
     checks that take it (the sandbox row's body), counted per command;
   * next-action latency through the gateway, uncached (a different seed per request);
@@ -232,9 +233,9 @@ def redis_commands_per_check(base: str, tmp: Path, check: dict[str, Any], key: s
     return {"n": n, "per_check": sum(per.values()), "by_command": dict(sorted(per.items(), key=lambda kv: -kv[1]))}
 
 
-def uncached_bodies(check: dict[str, Any], args: argparse.Namespace) -> list[dict[str, Any]]:
+def uncached_bodies(check: dict[str, Any], args: argparse.Namespace, tag: str = "slot") -> list[dict[str, Any]]:
     """check-actions bodies with one new call each: a fresh job every time."""
-    return [{**check, "calls": [f"system.REQUEST('slot_{i}')"]} for i in range(args.check_n + 5)]
+    return [{**check, "calls": [f"system.REQUEST('{tag}_{i}')"]} for i in range(args.check_n + 5)]
 
 
 def interleaved_checks(stacks: list[tuple[str, dict[str, str]]], check: dict[str, Any], args: argparse.Namespace
@@ -244,10 +245,11 @@ def interleaved_checks(stacks: list[tuple[str, dict[str, str]]], check: dict[str
     drift, where measured one after the other a checkout could get a slow phase and another a fast one."""
     clients = [httpx.Client(base_url=base, timeout=300, headers=auth(keys["quiet"])) for base, keys in stacks]
     try:
-        plain = uncached_bodies(check, args)
+        plain, queued = uncached_bodies(check, args), uncached_bodies(sandboxed(check), args, "queued")
         stored = [stored_set_bodies(base, check, args, keys["quiet"]) for base, keys in stacks]
         rows: list[dict[str, dict[str, float]]] = [{} for _ in stacks]
-        for row, bodies in (("check_actions_uncached", [plain] * len(stacks)), ("stored_set_40_events", stored)):
+        for row, bodies in (("check_actions_uncached", [plain] * len(stacks)), ("stored_set_40_events", stored),
+                            ("check_actions_uncached_queue", [queued] * len(stacks))):
             seconds: list[list[float]] = [[] for _ in stacks]
             for i in range(args.check_n + 5):
                 for step in range(len(stacks)):
@@ -493,6 +495,8 @@ def measure(base: str, tmp: Path, keys: dict[str, str], check: dict[str, Any], n
         results["check_actions_uncached"] = latencies(base, "/check-actions", uncached_bodies(check, args), warmup=5,
                                                       key=key)
         results["stored_set_40_events"] = stored_set_checks(base, check, args, key)
+        results["check_actions_uncached_queue"] = latencies(
+            base, "/check-actions", uncached_bodies(sandboxed(check), args, "queued"), warmup=5, key=key)
         if shutil.which("wrk") and args.wrk_seconds > 0:
             results.update(wrk_sequential_rows([(base, keys)], check, args, tmp)[0])
     # next-action, uncached: a new seed per request; 5 sampling attempts of up to 32 tokens (defaults).
@@ -523,6 +527,7 @@ def rows_of(results: dict[str, Any]) -> list[tuple[str, str]]:
              f"{hit['requests_per_s']:.0f} req/s, p50 {hit['p50_ms']:.1f} ms, p99 {hit.get('p99_ms', 0):.1f} ms")]
     for key, label in (("check_actions_uncached", "check-actions, uncached"),
                        ("stored_set_40_events", "check-actions, stored set, 40 events, uncached"),
+                       ("check_actions_uncached_queue", "check-actions, uncached, queue path (sandbox row's body)"),
                        ("check_actions_uncached_wrk", "check-actions, uncached, wrk -c1"),
                        ("check_actions_uncached_sandbox_wrk", "check-actions, uncached, wrk -c1, sandbox"),
                        ("stored_set_40_events_wrk", "check-actions, stored set, 40 events, uncached, wrk -c1"),

@@ -3,11 +3,14 @@
 * Progress: a `ProgressRecord` (the API's `JobProgress`, versioned: precond/jobs/queue/payloads.py) as JSON under
   `progress_key(job id)`.
 * Stats: the workers' counters in one Redis hash (`STATS_KEY`), named by the functions here and read back
-  into a `StatsSnapshot` for /metrics.
+  into a `StatsSnapshot` for /metrics. A worker process adds its jobs' counts up (`PendingCounts`) and its
+  heartbeat writes them, one HINCRBYFLOAT a name per beat (precond/jobs/queue/heartbeats.py), rather than a few
+  commands per job in the script that ends it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -32,9 +35,36 @@ async def write_progress(redis: Redis[bytes], job_id: str, progress: JobProgress
 SANDBOX_FAILURES = "sandbox_failures"
 
 
+class PendingCounts:
+    """Counts a worker process has added up and not yet written to `STATS_KEY`. They are metrics, never a job's
+    state: a SIGKILLed process loses its last beat period's, and a beat whose answer was lost may count them twice
+    (they are added back when a beat fails)."""
+
+    def __init__(self) -> None:
+        self._counts: dict[str, float] = {}
+
+    def add(self, counts: Mapping[str, float]) -> None:
+        for name, value in counts.items():
+            self._counts[name] = self._counts.get(name, 0.0) + value
+
+    def take(self) -> dict[str, float]:
+        """The counts added so far, forgotten here (`add` them back when they could not be written)."""
+        counts, self._counts = self._counts, {}
+        return counts
+
+
+async def write_counts(redis: Redis[bytes], counts: Mapping[str, float]) -> None:
+    """Add `counts` to the workers' stats at once (a worker's last counts, as it stops)."""
+    if counts:
+        async with redis.pipeline(transaction=False) as pipe:
+            for name, value in counts.items():
+                pipe.hincrbyfloat(STATS_KEY, name, value)
+            await pipe.execute()
+
+
 def job_counts(kind: JobKind, status: OutcomeState, sandbox_limit: bool) -> dict[str, float]:
-    """A finished job's counts, by kind and outcome (and whether a sandbox limit stopped it): added by the
-    script that records the job's end (precond/worker/queue_worker.py)."""
+    """A finished job's counts, by kind and outcome (and whether a sandbox limit stopped it): added up by its
+    worker once the job's end is recorded (precond/worker/queue_worker.py)."""
     counts = {f"jobs:{kind}:{status}": 1.0}
     if sandbox_limit:
         counts[SANDBOX_FAILURES] = 1.0

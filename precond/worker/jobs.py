@@ -62,8 +62,11 @@ class ProgressReporter:
         self.redis, self.job_id, self.kind, self.loop, self.ttl_s = redis, job_id, kind, loop, ttl_s
         self.phase: str | None = None
         self.phase_started = time.perf_counter()
+        self.reported = False
+        """Whether the run wrote any progress (its end then reads the last back for the waiting processes)."""
 
     def __call__(self, phase: str, done: int, total: int) -> None:
+        self.reported = True
         if phase != self.phase:
             self.finish_phase()
             self.phase, self.phase_started = phase, time.perf_counter()
@@ -160,9 +163,11 @@ async def run_operation(
     behind. A success is cached under `cache_key` (the gateway's choice: the tenant's own or a shared entry), with
     the job's end (precond/worker/queue_worker.py); a shared one is computed on fresh sandbox children only."""
     job, runner = context.job, RUNNERS[kind]
+    reporter = ProgressReporter(context.redis, job.value, kind, asyncio.get_running_loop(),
+                                serving.settings.result_ttl_s)
     try:
         engine_of, body = await _engine_for(serving, context, kind, body)
-        outcome, sandbox_limit = await _run(serving, context, kind, body, engine_of,
+        outcome, sandbox_limit = await _run(serving, context, reporter, kind, body, engine_of,
                                             warm=not is_shared(cache_key or ""))
         if runner.keep is not None and outcome.result is not None:
             outcome = await runner.keep(context.redis, job, body, outcome.result)
@@ -174,7 +179,7 @@ async def run_operation(
     serving.counts.complete += 1
     # The cache lives in its own Redis (it may evict, or be down): a failed put only costs a later re-run.
     writes = () if outcome.result is None else (serving.cache.put(cache_key or job.value, outcome.result),)
-    return JobEnd(outcome, job_counts(kind, outcome.status, sandbox_limit), writes)
+    return JobEnd(outcome, job_counts(kind, outcome.status, sandbox_limit), writes, reporter.reported)
 
 
 async def _engine_for(serving: Serving, context: JobContext, kind: JobKind, body: dict[str, Any]
@@ -189,13 +194,13 @@ async def _engine_for(serving: Serving, context: JobContext, kind: JobKind, body
     return partial(serving.adapted.engine, engine, stored), policies.with_resolved_policy(body, stored)
 
 
-async def _run(serving: Serving, context: JobContext, kind: JobKind, body: dict[str, Any],
-               engine_of: Callable[[], Engine], warm: bool = True) -> tuple[Outcome, bool]:
-    """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope."""
+async def _run(serving: Serving, context: JobContext, reporter: ProgressReporter, kind: JobKind,
+               body: dict[str, Any], engine_of: Callable[[], Engine], warm: bool = True) -> tuple[Outcome, bool]:
+    """The engine's work in a thread of the worker, under the job's memory bound and its tenant's cache scope,
+    reporting its progress to `reporter`."""
     settings, job = serving.settings, context.job
     job_id = job.value
     loop = asyncio.get_running_loop()
-    reporter = ProgressReporter(context.redis, job_id, kind, loop, settings.result_ttl_s)
     stop = threading.Event()
     future = loop.run_in_executor(
         None, _outcome, engine_of, kind, body, reporter, stop.is_set, settings.max_response_bytes,

@@ -36,7 +36,7 @@ from precond.jobs.queue.payloads import (
     encode_end,
 )
 from precond.jobs.queue.steps import Claim, Taken
-from precond.jobs.records import queue_time_counts
+from precond.jobs.records import PendingCounts, queue_time_counts
 from precond_client.schemas import JobKind
 
 log = logging.getLogger("precond.worker")
@@ -55,11 +55,13 @@ IN_PROGRESS_EXTRA_S = 10
 class JobEnd:
     """What a job function returns to its worker: `outcome`, stored as the job's end (None for a run that
     returned none); `counts`, stats to add (jobs/records.py); `writes`, what goes out with the end (the result
-    cache, on its own Redis)."""
+    cache, on its own Redis); `progressed`, whether the run may have written progress (a run that never did, a
+    check, spares its end the read of the progress key)."""
 
     outcome: Outcome | None = None
     counts: dict[str, float] = field(default_factory=dict)
     writes: tuple[Awaitable[Any], ...] = ()
+    progressed: bool = True
 
 
 class Claims(Protocol):
@@ -128,10 +130,12 @@ class QueueWorker:
 
     `run` returns once a drain (`drain`) or a stop (`stop`) ends it, and raises the Redis error that ends it
     otherwise (the worker process then starts another, precond/worker/runner.py); `close` waits for the ends of
-    the runs it cancelled and closes its connections."""
+    the runs it cancelled and closes its connections. The counts of the runs whose end it recorded go to `stats`,
+    which the worker process's heartbeat writes."""
 
-    def __init__(self, operation: Operation, settings: RunSettings, redis_url: str, claims: Claims) -> None:
-        self.operation, self.settings, self.claims = operation, settings, claims
+    def __init__(self, operation: Operation, settings: RunSettings, redis_url: str, claims: Claims,
+                 stats: PendingCounts) -> None:
+        self.operation, self.settings, self.claims, self.stats = operation, settings, claims, stats
         self.queue_name = settings.queue
         self.pool: Redis[bytes] = Redis.from_url(redis_url, socket_connect_timeout=1)
         self.how = steps.Take(settings.queue, claims.worker_id, settings.read_limit or 2 * settings.max_jobs,
@@ -260,7 +264,7 @@ class QueueWorker:
         finally:
             del self.job_tasks[job_id]
         return await self._finish(job, claim, True, job.end(self.queue_name, end.outcome),
-                                  JobEnd(end.outcome, {**end.counts, **waited}, end.writes))
+                                  JobEnd(end.outcome, {**end.counts, **waited}, end.writes, end.progressed))
 
     def _refusal(self, job: _Job) -> Failure | None:
         """Why a taken job must end without running; None when it runs. A record that fails its schema (or is
@@ -297,7 +301,7 @@ class QueueWorker:
         whether other jobs wait in the queue (a slot freed here may be exactly what one waits for)."""
         finish = steps.finish(self.pool, steps.Finish(
             self.queue_name, job.id, claim.token, finished, stored, int(self.settings.keep_result_s * 1000),
-            end.counts))
+            end.progressed))
         # the other writes go out first: a client answered from the notice then finds its result cached
         *written, recorded = await _unstoppable(asyncio.gather(*end.writes, finish, return_exceptions=True))
         for outcome in written:
@@ -307,6 +311,7 @@ class QueueWorker:
             self.claims.close(job.id, claim.token, recorded=False)
             raise recorded
         self.claims.close(job.id, claim.token, recorded=True)
+        self.stats.add(end.counts)
         return int(recorded) > 0
 
     def _slot_freed(self, task: asyncio.Task[bool]) -> None:

@@ -45,6 +45,7 @@ from precond.jobs.queue.keys import (
     worker_key,
 )
 from precond.jobs.queue.steps import Claim
+from precond.jobs.records import PendingCounts, write_counts
 from precond.patches.redis_checkout import check_out_without_read
 from precond.patches.redis_packing import pack_with_hiredis
 from precond.patches.redis_sending import send_without_task
@@ -117,6 +118,7 @@ class WorkerProcess:
         self.workers: dict[str, QueueWorker] = {}
         self.retired: list[QueueWorker] = []  # workers ended by a Redis outage whose jobs may still be ending
         self.counts = JobCounts()  # counted here, as jobs start and end, so they never go down
+        self.stats = PendingCounts()  # the runs' stats, written by the next beat
         self.claims = RunClaims(self.id, self._heartbeat_body, settings.heartbeat_lease_s, self.counts)
         self.stopping = asyncio.Event()
         self.model_error: str | None = None
@@ -184,7 +186,7 @@ class WorkerProcess:
         )
         assert self.cache is not None, "the cache is opened in run(), before any queue is served"
         serving = Serving(engine, s, self.counts, self.cache, self.memory, self.policies)
-        return QueueWorker(partial(run_operation, serving), settings, s.redis_dsn, self.claims)
+        return QueueWorker(partial(run_operation, serving), settings, s.redis_dsn, self.claims, self.stats)
 
     async def _serve(self, queue: str, engine: Engine) -> None:
         """Run a queue worker on `queue` until drained, starting a new one after each Redis outage."""
@@ -235,10 +237,13 @@ class WorkerProcess:
         return dict(self.claims.live)
 
     async def _beat(self, redis: Redis[bytes]) -> None:
-        running, dropped = self._running(), set(self.claims.dropped)
-        released = await beat(
-            redis, self._heartbeat_body(), self.settings.heartbeat_lease_s, running=running, dropped=dropped
-        )
+        running, dropped, counts = self._running(), set(self.claims.dropped), self.stats.take()
+        try:
+            released = await beat(redis, self._heartbeat_body(), self.settings.heartbeat_lease_s, running=running,
+                                  dropped=dropped, counts=counts)
+        except BaseException:
+            self.stats.add(counts)  # for the next beat
+            raise
         self.claims.dropped -= dropped
         if released:
             log.warning("handed back to the queue (their run is gone): %s", ", ".join(released))
@@ -258,7 +263,9 @@ class WorkerProcess:
                 log.exception("heartbeat failed")
 
     async def _forget(self, redis: Redis[bytes]) -> None:
+        """The last runs' counts written, and this worker's heartbeat gone."""
         with contextlib.suppress(RedisError, OSError):
+            await write_counts(redis, self.stats.take())
             await redis.delete(worker_key(self.id))
         await redis.aclose()  # type: ignore[attr-defined]  # types-redis predates aclose
 

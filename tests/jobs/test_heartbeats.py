@@ -10,7 +10,7 @@ from arq.constants import in_progress_key_prefix, result_key_prefix
 from redis.asyncio import Redis
 
 from precond.jobs.queue.heartbeats import Heartbeat, beat, live_workers, new_claim
-from precond.jobs.queue.keys import CHECK_QUEUE, RUNNING_KEY, UNCLAIMED_KEY, worker_key
+from precond.jobs.queue.keys import CHECK_QUEUE, RUNNING_KEY, STATS_KEY, UNCLAIMED_KEY, worker_key
 from precond.stack.local import RedisServer
 
 TTL_S = 0.5
@@ -50,6 +50,23 @@ def test_a_dead_workers_unfinished_job_goes_back_and_a_live_workers_stays(redis_
         assert not await redis.exists(in_progress_key_prefix + "dead-job")  # any worker's next poll runs it
         assert await redis.exists(in_progress_key_prefix + "live-job")
         assert set(await redis.hkeys(RUNNING_KEY)) == {b"live-job"}  # the finished job's claim is dropped too
+
+    redis_server.run(scenario)
+
+
+def test_a_beat_adds_the_counts_its_worker_added_up_and_keeps_its_claims(redis_server: RedisServer) -> None:
+    """The stats of the runs a worker ended since its last beat go with the beat, beside its running claims."""
+    async def scenario(redis: Redis[bytes]) -> None:
+        await redis.hset(STATS_KEY, "jobs:check:succeeded", 2)
+        await started(redis, "running")
+        token = new_claim("w1")
+        counts = {"jobs:check:succeeded": 3.0, "queue_sum:t:check": 0.25}
+        assert await beat(redis, heartbeat("w1"), 60, running={"running": token}, counts=counts) == []
+        stats = await redis.hgetall(STATS_KEY)
+        assert float(stats[b"jobs:check:succeeded"]) == 5.0 and float(stats[b"queue_sum:t:check"]) == 0.25
+        assert await redis.hget(RUNNING_KEY, "running") == token.encode()
+        await beat(redis, heartbeat("w1"), 60)  # nothing added up: nothing added
+        assert float(await redis.hget(STATS_KEY, "jobs:check:succeeded") or 0) == 5.0
 
     redis_server.run(scenario)
 

@@ -65,8 +65,7 @@ async def finish(redis: Redis[bytes], taken: steps.Taken, by: steps.Claim, resul
     stored = encode_end(EndRecord(version=RECORD_VERSION, job_id=taken.id, queue=CHECK_QUEUE, job_try=taken.job_try,
                                   enqueued_ms=0, start_ms=1, finish_ms=2,
                                   outcome=Outcome(status="succeeded", result=result)))
-    return await steps.finish(redis, steps.Finish(CHECK_QUEUE, taken.id, by.token, True, stored, 60_000,
-                                                  {"jobs:check:succeeded": 1.0}))
+    return await steps.finish(redis, steps.Finish(CHECK_QUEUE, taken.id, by.token, True, stored, 60_000))
 
 
 def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server: RedisServer) -> None:
@@ -98,6 +97,7 @@ def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server
         assert end.outcome is not None and end.outcome.result == {"verdict": "ok"}
         assert not await redis.exists(JOB_PREFIX + first, IN_PROGRESS_PREFIX + first)
         assert not await redis.hexists(RUNNING_KEY, first)
+        assert await redis.zscore(tenant_jobs_key(TAG), first) is None  # no longer counted as the tenant's
         noticed = await next_notice(notices)
         assert noticed[0] == first and noticed[2] is not None and decode_end(noticed[2]) == end
         assert not await submit(redis, first, 1)  # its stored end answers an identical request
@@ -108,6 +108,7 @@ def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server
         assert await steps.cancel_queued(redis, CHECK_QUEUE, second, cancelled, 60_000)
         assert not await steps.cancel_queued(redis, CHECK_QUEUE, second, cancelled, 60_000)
         assert await redis.zscore(CHECK_QUEUE, second) is None
+        assert await redis.zscore(tenant_jobs_key(TAG), second) is None
         failure = decode_end(await redis.get(RESULT_PREFIX + second) or b"").failure
         assert failure is not None and failure.reason == "cancelled"
         assert (await next_notice(notices))[0] == second
@@ -131,6 +132,24 @@ def test_a_job_goes_through_submit_take_finish_cancel_and_hand_back(redis_server
         end = decode_end(await redis.get(RESULT_PREFIX + third) or b"")
         assert end.outcome is not None and end.job_try == 2
         await notices.aclose()  # type: ignore[attr-defined]
+
+    redis_server.run(scenario)
+
+
+def test_a_tenant_at_its_cap_is_refused_until_its_vanished_jobs_leave_its_count(redis_server: RedisServer) -> None:
+    """A job whose bytes vanished without an end (expired) still counts until the tenant looks full; then the
+    submit drops it from the count, and an identical request for a job the tenant has is never refused."""
+    async def scenario(redis: Redis[bytes]) -> None:
+        first, second, third = job_id(1), job_id(2), job_id(3)
+        assert await submit(redis, first, 1, tenant_max_jobs=2)
+        assert await submit(redis, second, 2, tenant_max_jobs=2)
+        assert not await submit(redis, second, 2, tenant_max_jobs=2)
+        with pytest.raises(steps.TenantFull) as full:
+            await submit(redis, third, 3, tenant_max_jobs=2)
+        assert full.value.count == 2
+        await redis.delete(JOB_PREFIX + first)
+        assert await submit(redis, third, 3, tenant_max_jobs=2)
+        assert await redis.zscore(tenant_jobs_key(TAG), first) is None
 
     redis_server.run(scenario)
 

@@ -1,7 +1,7 @@
 """The queue worker's loop (precond/worker/queue_worker.py) against a real redis-server: a job is claimed with its
-in-progress key in one step, ends with its stored end, the counts, the claim's release and the notice in one step,
-and every way a run ends (expired, aborted before it started, out of tries, timed out, cancelled by a shutdown)
-ends as its stored end record says."""
+in-progress key in one step, ends with its stored end, the claim's release and the notice in one step (its counts
+kept for the worker's next heartbeat), and every way a run ends (expired, aborted before it started, out of tries,
+timed out, cancelled by a shutdown) ends as its stored end record says."""
 
 from __future__ import annotations
 
@@ -19,9 +19,10 @@ from redis.exceptions import RedisError
 
 from precond.jobs.queue import keys, steps
 from precond.jobs.queue.heartbeats import Heartbeat, beat
-from precond.jobs.queue.keys import RUNNING_KEY, STATS_KEY, wake_channel, worker_key
+from precond.jobs.queue.keys import RUNNING_KEY, wake_channel, worker_key
 from precond.jobs.queue.notices import notice_channel, read_notice, waiters_key
 from precond.jobs.queue.payloads import EndRecord, Outcome, decode_end, encode_job
+from precond.jobs.records import PendingCounts
 from precond.stack.local import RedisServer
 from precond.worker import queue_worker
 from precond.worker.queue_worker import JobContext, JobEnd, QueueWorker, RunSettings
@@ -85,7 +86,7 @@ async def worker(redis_server: RedisServer, operation: Operation = answer, timeo
     settings = RunSettings(QUEUE, max_jobs=2, tenant_slots=2, timeout_s=timeout_s, keep_result_s=60,
                            max_tries=max_tries, idle_poll_s=idle_poll_s)
     queue_worker = QueueWorker(lambda ctx, kind, body, cache_key: operation(ctx, body["n"]), settings,
-                               redis_server.url, claims)
+                               redis_server.url, claims, PendingCounts())
     task = asyncio.create_task(queue_worker.run())
     try:
         yield queue_worker
@@ -122,7 +123,7 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
         await notices.subscribe(notice_channel("gateway-1"))
         await enqueue(plain, job, 7)
         await plain.sadd(waiters_key(job), notice_channel("gateway-1"))  # as the gateway's submission does
-        async with worker(redis_server, operation):
+        async with worker(redis_server, operation) as running:
             info = await result_of(plain, job)
         assert info.outcome == done(7) and info.job_try == 1
         assert seen["claim"].decode().startswith("w1|") and seen["in_progress"] == 1
@@ -132,9 +133,8 @@ def test_a_run_is_claimed_with_its_start_and_ends_in_one_step(redis_server: Redi
             assert not await plain.exists(key + job)
         assert await plain.zscore(QUEUE, job) is None
         assert not await plain.hexists(RUNNING_KEY, job)  # the claim went with the end
-        stats = await plain.hgetall(STATS_KEY)
-        assert float(stats[b"jobs:test:succeeded"]) == 1.0
-        assert float(stats[f"queue_count:{TAG}:check".encode()]) == 1.0
+        stats = running.stats.take()  # added up for the process's next heartbeat
+        assert stats["jobs:test:succeeded"] == 1.0 and stats[f"queue_count:{TAG}:check"] == 1.0
         messages = [await notices.get_message(timeout=1) for _ in range(2)]  # the subscription's, then the notice
         assert [m["type"] for m in messages if m] == ["subscribe", "message"], messages
         noticed, progress, end = read_notice(messages[1]["data"])  # the end as stored, carried
@@ -162,6 +162,33 @@ def test_a_finish_releases_its_own_runs_claim_only(redis_server: RedisServer) ->
             await result_of(plain, job)
         assert await plain.hget(RUNNING_KEY, job) == b"w2|later"
         assert claims.live == {} and claims.dropped == set()
+
+    run(redis_server, scenario)
+
+
+@pytest.mark.parametrize("progressed", [True, False])
+def test_a_notice_carries_the_progress_of_a_run_that_wrote_some(redis_server: RedisServer, progressed: bool) -> None:
+    """The end's notice carries the job's last progress as stored; a run that wrote none has its end spare the
+    read, and its notice carries none."""
+    stored = b'{"version":1,"phase":"judge","done":2,"total":3}'
+
+    async def scenario(plain: Redis[bytes]) -> None:
+        async def operation(ctx: JobContext, n: int) -> JobEnd:
+            await plain.set(keys.progress_key(ctx.job.value), stored)
+            return JobEnd(done(n), progressed=progressed)
+
+        job = job_id(4)
+        notices = plain.pubsub()
+        await notices.subscribe(notice_channel("gateway-1"))
+        await enqueue(plain, job, 1)
+        await plain.sadd(waiters_key(job), notice_channel("gateway-1"))
+        async with worker(redis_server, operation):
+            await result_of(plain, job)
+        messages = [await notices.get_message(timeout=1) for _ in range(2)]
+        assert messages[1] is not None, messages
+        noticed, progress, end = read_notice(messages[1]["data"])
+        assert noticed == job and end is not None and progress == (stored if progressed else b"")
+        await notices.aclose()  # type: ignore[attr-defined]
 
     run(redis_server, scenario)
 

@@ -13,7 +13,8 @@ takes the job (`steps.take`: in one step with the job's in-progress key), and re
 records its end. On each beat a worker runs `_BEAT`, one Lua script (Redis runs it atomically, so two
 workers never both act on one claim):
 
-1. it rewrites its own heartbeat key;
+1. it rewrites its own heartbeat key, and adds the counts of the runs it ended since its last beat to the
+   workers' stats (precond/jobs/records.py);
 2. it re-registers the jobs it is running whose claims are gone (Redis restarted without them), never over
    another worker's claim;
 3. it hands back the jobs it dropped itself, named by their runs' claims: runs that ended without their end
@@ -39,7 +40,7 @@ loop and the engine in a thread (precond/worker/jobs.py), so a long job does not
 from __future__ import annotations
 
 import uuid
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from typing import Any
 
 from pydantic import BaseModel
@@ -50,11 +51,13 @@ from precond.jobs.queue.keys import (
     QUEUES,
     RESULT_PREFIX,
     RUNNING_KEY,
+    STATS_KEY,
     UNCLAIMED_KEY,
     WORKER_PREFIX,
     WORKERS_PATTERN,
     worker_key,
 )
+from precond.jobs.scripts import LuaScript
 
 
 class Heartbeat(BaseModel):
@@ -73,8 +76,8 @@ class Heartbeat(BaseModel):
     """Runs that returned an outcome (a succeeded or a failed request); never decreases."""
 
 
-_BEAT = """
-local running, me = KEYS[2], ARGV[1]
+_BEAT = LuaScript("""
+local running, me, stats = KEYS[2], ARGV[1], KEYS[4]
 local worker_prefix, progress_prefix, result_prefix = ARGV[4], ARGV[5], ARGV[6]
 redis.call('SET', KEYS[1], ARGV[2], 'PX', ARGV[3])
 local function unfinished(job)
@@ -87,7 +90,11 @@ local function hand_back(job)
 end
 local queues = {}
 for q = 1, tonumber(ARGV[8]) do queues[q] = ARGV[8 + q] end
-local i = 9 + #queues
+local i = 10 + #queues
+for _ = 1, tonumber(ARGV[9 + #queues]) do  -- the counts this worker added up since its last beat
+  redis.call('HINCRBYFLOAT', stats, ARGV[i], ARGV[i + 1])
+  i = i + 2
+end
 for _ = 1, tonumber(ARGV[7]) do  -- jobs this worker runs: re-register those whose claim Redis lost
   if unfinished(ARGV[i]) then redis.call('HSETNX', running, ARGV[i], ARGV[i + 1]) end
   i = i + 2
@@ -130,14 +137,14 @@ for j = 1, #claims, 2 do
   end
 end
 return released
-"""
+""")
 
 def new_claim(worker_id: str) -> str:
     return f"{worker_id}|{uuid.uuid4().hex[:12]}"
 
 
-def _pairs(claims: dict[str, str]) -> list[str]:
-    return [item for pair in claims.items() for item in pair]
+def _pairs(items: Mapping[str, Any]) -> list[Any]:
+    return [item for pair in items.items() for item in pair]
 
 
 async def beat(
@@ -146,13 +153,14 @@ async def beat(
     ttl_s: float,
     running: dict[str, str] | None = None,
     dropped: Collection[str] = (),
+    counts: Mapping[str, float] | None = None,
 ) -> list[str]:
     """One heartbeat (steps 1-5 above). `running` maps job ids to this worker's claims on them; `dropped` are
-    claims of this worker's runs to hand back.
+    claims of this worker's runs to hand back; `counts` are stats to add (records.PendingCounts).
 
     Returns the ids of the jobs handed back to the queue (a dead worker's, or dropped ones).
     """
-    running = running or {}
+    running, counts = running or {}, counts or {}
     args: list[Any] = [
         heartbeat.id,
         heartbeat.model_dump_json(),
@@ -163,10 +171,12 @@ async def beat(
         len(running),
         len(QUEUES),
         *QUEUES,
+        len(counts),
+        *_pairs(counts),
         *_pairs(running),
         *dropped,
     ]
-    released = await redis.eval(_BEAT, 3, worker_key(heartbeat.id), RUNNING_KEY, UNCLAIMED_KEY, *args)  # type: ignore[no-untyped-call]
+    released = await _BEAT(redis, [worker_key(heartbeat.id), RUNNING_KEY, UNCLAIMED_KEY, STATS_KEY], args)
     return [job.decode() for job in released]
 
 

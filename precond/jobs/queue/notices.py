@@ -37,11 +37,11 @@ def notice_channel(process: str) -> str:
 
 NOTIFY_FUNCTION: Final = """
 local function notify(waiters, record)
-  for _, channel in ipairs(redis.call('SMEMBERS', waiters)) do redis.call('PUBLISH', channel, record) end
-  redis.call('DEL', waiters)
+  for _, channel in ipairs(redis.call('SPOP', waiters, 2147483647)) do redis.call('PUBLISH', channel, record) end
 end
 """
-"""Lua: publish `record` (`record` below, or the job id alone) to every waiter of a job, then forget them."""
+"""Lua: publish `record` (`record` below, or the job id alone) to every waiter of a job, forgetting them in the
+same command (an SPOP of the whole set, which deletes it)."""
 
 RECORD_FUNCTION: Final = """
 local function record(id, progress, result, max_bytes)

@@ -2,7 +2,7 @@
 
 submit (the gateway: bound, fair place, enqueue, waiter, wake-up), cancel a queued job (the gateway), mark a
 running one for abort (the gateway), take the next job (a worker: in-progress mark, try count and claim under a
-fresh heartbeat), finish a run (a worker: its end, the counts, the claim's release and the completion notice).
+fresh heartbeat), finish a run (a worker: its end, the claim's release and the completion notice).
 The hand-back of a dead worker's jobs is the heartbeat's script (`precond.jobs.queue.heartbeats`). Every write to
 a queue's keys is one of these; tests/jobs/test_queue_contract.py runs them in order against a real Redis.
 """
@@ -23,7 +23,7 @@ from precond.jobs.queue.keys import (
     RETRY_PREFIX,
     RUNNING_KEY,
     STATE_TTL_S,
-    STATS_KEY,
+    JobId,
     fair_key,
     progress_key,
     tenant_jobs_key,
@@ -42,11 +42,12 @@ CANCEL_GUARD: Final = b"cancelled"
 CANCEL_GUARD_MS: Final = 2000
 
 # A tenant's unfinished jobs: the count of the tenant's live jobs when it has `limit` already, else -1 (a job
-# the tenant already has, an identical request, is free). Ids whose job key is gone (done, failed, cancelled)
-# leave the set on the way.
+# the tenant already has, an identical request, is free). The step that ends a job takes it out of the set; ids
+# whose job key is gone without one (a job's bytes that expired) leave the set only once it looks full, so that
+# the common case, a tenant under its cap, costs one ZCARD.
 TENANT_JOBS_FUNCTION: Final = """
 local function tenant_full(jobs, id, limit, job_prefix)
-  if redis.call('ZSCORE', jobs, id) then return -1 end
+  if redis.call('ZCARD', jobs) < tonumber(limit) or redis.call('ZSCORE', jobs, id) then return -1 end
   for _, other in ipairs(redis.call('ZRANGE', jobs, 0, -1)) do
     if redis.call('EXISTS', job_prefix .. other) == 0 then redis.call('ZREM', jobs, other) end
   end
@@ -63,12 +64,13 @@ end
 FAIR_SCORE_FUNCTION: Final = """
 local function fair_score(queue, fair, tag, epoch, ttl)
   local head = redis.call('ZRANGE', queue, 0, 0, 'WITHSCORES')
-  local highest = tonumber(redis.call('HGET', fair, '~max') or epoch)
+  local last = redis.call('HMGET', fair, '~max', tag)
+  local highest = tonumber(last[1] or epoch)
   local clock = highest
   if head[2] then
     clock = tonumber(head[2])
   end
-  local score = math.max(clock, tonumber(redis.call('HGET', fair, tag) or 0)) + 1
+  local score = math.max(clock, tonumber(last[2] or 0)) + 1
   redis.call('HSET', fair, tag, score, '~max', math.max(highest, score))
   redis.call('EXPIRE', fair, ttl)
   return score
@@ -78,8 +80,8 @@ end
 _SUBMIT = LuaScript("#!lua\n" + FAIR_SCORE_FUNCTION + TENANT_JOBS_FUNCTION + """
 local full = tenant_full(KEYS[6], ARGV[1], ARGV[9], ARGV[10])
 if full >= 0 then return -2 - full end
-if redis.call('exists', KEYS[4]) == 1 then return 0 end
-if redis.call('exists', KEYS[3]) == 1 then
+if redis.call('exists', KEYS[4], KEYS[3]) > 0 then
+  if redis.call('exists', KEYS[4]) == 1 then return 0 end
   redis.call('sadd', KEYS[7], ARGV[12])
   redis.call('expire', KEYS[7], ARGV[13])
   return 0
@@ -116,13 +118,14 @@ if redis.call('exists', KEYS[3]) == 1 or redis.call('exists', KEYS[5]) == 1 then
 if redis.call('zrem', KEYS[1], ARGV[1]) == 0 then return 0 end
 redis.call('del', KEYS[2], KEYS[4])
 redis.call('zrem', KEYS[6], ARGV[1])
+redis.call('zrem', KEYS[8], ARGV[1])
 redis.call('set', KEYS[3], ARGV[4], 'PX', ARGV[5])
 redis.call('set', KEYS[5], ARGV[2], 'PX', ARGV[3])
 notify(KEYS[7], ARGV[1])
 return 1
 """)
-"""Out of its queue, its result `cancelled`, its waiters told. The in-progress key is set briefly to a guard value,
-so that a worker's take, which starts only jobs without one, cannot start it."""
+"""Out of its queue and its tenant's jobs, its result `cancelled`, its waiters told. The in-progress key is set
+briefly to a guard value, so that a worker's take, which starts only jobs without one, cannot start it."""
 
 _TAKE = LuaScript("""
 local aborts = redis.call('ZRANGE', KEYS[2], 0, -1)
@@ -132,12 +135,15 @@ for i = 12, #ARGV do skip[ARGV[i]] = true end
 local queued = redis.call('ZRANGEBYSCORE', KEYS[1], '-inf', ARGV[1], 'WITHSCORES', 'LIMIT', 0, ARGV[6])
 for n = 1, #queued, 2 do
   local id = queued[n]
-  if not skip[string.match(id, '%-([^-]+)%-[^-]+$')] and redis.call('EXISTS', ARGV[8] .. id) == 0 then
-    redis.call('PSETEX', ARGV[8] .. id, ARGV[2], '1')
+  local tenant = string.match(id, '%-([^-]+)%-[^-]+$')
+  if not skip[tenant] and redis.call('SET', ARGV[8] .. id, '1', 'PX', ARGV[2], 'NX') then
     local job = redis.call('GET', ARGV[9] .. id)
     local try = redis.call('INCR', ARGV[10] .. id)
     redis.call('EXPIRE', ARGV[10] .. id, ARGV[7])
-    local aborted = redis.call('ZREM', KEYS[2], id)
+    local aborted = 0
+    for _, mark in ipairs(aborts) do
+      if mark == id then aborted = redis.call('ZREM', KEYS[2], id) end
+    end
     redis.call('SET', KEYS[3], ARGV[3], 'PX', ARGV[4])
     redis.call('HSET', KEYS[4], id, ARGV[5])
     return {aborts, id, queued[n + 1], job, try, aborted, #queued > 2 and 1 or 0}
@@ -149,10 +155,11 @@ return {aborts}
 may start, taken: the first of the queue's due jobs (in fair-score order, up to the read limit) that no worker
 started (no in-progress key: none runs it, no cancellation guards it) and whose tenant is not skipped (ARGV[12..]:
 the tenants at their share in the worker; the tenant is the id's part between its last two dashes, keys.job_id).
-The take sets the in-progress key, counts the try and claims the job under a fresh heartbeat (heartbeats.py) in
-one step, so no worker can die between the two and leave a started job that no claim names. Returns the abort
-marks, then the job's id, score, bytes (false once expired), try, whether an abort mark waited for it, and whether
-the read saw other jobs."""
+The take sets the in-progress key (where none is: one SET NX), counts the try and claims the job under a fresh
+heartbeat (heartbeats.py) in one step, so no worker can die between the two and leave a started job that no claim
+names; the job's own abort mark, if any, is found among the marks read and forgotten. Returns the abort marks,
+then the job's id, score, bytes (false once expired), try, whether an abort mark waited for it, and whether the
+read saw other jobs."""
 
 _FINISH = LuaScript(NOTIFY_FUNCTION + RECORD_FUNCTION + """
 if ARGV[2] == '1' then
@@ -160,20 +167,22 @@ if ARGV[2] == '1' then
   redis.call('DEL', KEYS[2], KEYS[3], KEYS[4])
   redis.call('ZREM', KEYS[5], ARGV[1])
   redis.call('ZREM', KEYS[6], ARGV[1])
+  redis.call('ZREM', KEYS[10], ARGV[1])
 else
   redis.call('DEL', KEYS[2])
 end
-for i = 7, #ARGV, 2 do redis.call('HINCRBYFLOAT', KEYS[8], ARGV[i], ARGV[i + 1]) end
 if redis.call('HGET', KEYS[7], ARGV[1]) == ARGV[5] then redis.call('HDEL', KEYS[7], ARGV[1]) end
 local result = false
 if ARGV[2] == '1' and ARGV[3] ~= '' then result = ARGV[3] end
-notify(KEYS[10], record(ARGV[1], redis.call('GET', KEYS[9]), result, ARGV[6]))
+local progress = false
+if ARGV[7] == '1' then progress = redis.call('GET', KEYS[8]) end
+notify(KEYS[9], record(ARGV[1], progress, result, ARGV[6]))
 return redis.call('ZCARD', KEYS[6])
 """)
-"""Finished: its result stored and its keys gone; not finished (a shutdown cancelled it): its in-progress key gone,
-so that the job, still queued, runs again. With it, the counts, this run's claim released (not a later run's), and
-the notice to the gateway processes that wait on the job, carrying its end as stored (notices.py). Returns how many
-jobs the queue holds now (queued, or running elsewhere)."""
+"""Finished: its result stored, its keys gone and it no longer its tenant's; not finished (a shutdown cancelled it):
+its in-progress key gone, so that the job, still queued, runs again. With it, this run's claim released (not a
+later run's), and the notice to the gateway processes that wait on the job, carrying its end as stored
+(notices.py). Returns how many jobs the queue holds now (queued, or running elsewhere)."""
 
 
 class QueueFull(Exception):
@@ -230,7 +239,7 @@ async def cancel_queued(redis: Redis[bytes], queue: str, job_id: str, cancelled:
     return bool(await _CANCEL_QUEUED(
         redis,
         [queue, JOB_PREFIX + job_id, IN_PROGRESS_PREFIX + job_id, RETRY_PREFIX + job_id, RESULT_PREFIX + job_id,
-         ABORTS_KEY, waiters_key(job_id)],
+         ABORTS_KEY, waiters_key(job_id), _tenant_jobs_of(job_id)],
         [job_id, cancelled, result_ttl_ms, CANCEL_GUARD, CANCEL_GUARD_MS],
     ))
 
@@ -297,7 +306,9 @@ async def take(redis: Redis[bytes], how: Take, now_ms: int, claim: Claim | None,
 @dataclass(frozen=True)
 class Finish:
     """A run's end: `finished` False hands the job back to its queue (a shutdown cancelled the run); `stored` is
-    its end (payloads.encode_result), kept `keep_result_ms`; `counts` are stats to add (records.py)."""
+    its end (payloads.encode_result), kept `keep_result_ms`; `progressed` False for a run that wrote no progress
+    (its notice then carries none, unread). The run's stats go with the worker's next heartbeat
+    (records.PendingCounts), not with its end."""
 
     queue: str
     job_id: str
@@ -305,17 +316,23 @@ class Finish:
     finished: bool
     stored: bytes | None
     keep_result_ms: int
-    counts: dict[str, float]
+    progressed: bool = True
 
 
 async def finish(redis: Redis[bytes], end: Finish) -> int:
     """Record a run's end (`_FINISH`); how many jobs its queue holds now."""
     job_id = end.job_id
-    counts = [item for pair in end.counts.items() for item in pair]
     return int(await _FINISH(
         redis,
         [RESULT_PREFIX + job_id, IN_PROGRESS_PREFIX + job_id, RETRY_PREFIX + job_id, JOB_PREFIX + job_id,
-         ABORTS_KEY, end.queue, RUNNING_KEY, STATS_KEY, progress_key(job_id), waiters_key(job_id)],
+         ABORTS_KEY, end.queue, RUNNING_KEY, progress_key(job_id), waiters_key(job_id), _tenant_jobs_of(job_id)],
         [job_id, "1" if end.finished else "0", end.stored or b"", end.keep_result_ms, end.claim_token,
-         RECORD_MAX_BYTES, *counts],
+         RECORD_MAX_BYTES, "1" if end.progressed else "0"],
     ))
+
+
+def _tenant_jobs_of(job_id: str) -> str:
+    """The set of the unfinished jobs of the id's tenant (an id this service never hands out names no tenant's,
+    and was never counted as one's)."""
+    identity = JobId.read(job_id)
+    return tenant_jobs_key(identity.tenant if identity else "")
