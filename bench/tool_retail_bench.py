@@ -1,6 +1,6 @@
 """The tool-call guard learned from tau-bench retail's development runs and their labels, split by task.
 
-    python bench/tool_retail_bench.py [--data ../shared/data/tau-retail] [--json out.json] [--skip-all]
+    python bench/tool_retail_bench.py [--data ../shared/data/tau-retail] [--json out.json] [--skip-all] [--no-labels]
 
 The 150 tasks are split in two halves (sorted ids, alternately). Rules are inferred model-free from one half's
 successful runs, with that half's labelled policy-breaking runs as counterexamples (the labels of the calls
@@ -9,6 +9,8 @@ the history before it; then the halves swap, so each call is judged once by rule
 Reports unsafe (calls labelled refused that the guard allows, over those calls) and over-refusal (calls labelled
 allowed that it refuses, over those calls), per tool and per rule of tau-retail/LABELS.md (R1-R10), the rules, and the
 inference's seconds; then (unless --skip-all) the seconds of one inference of all 150 runs with every label.
+With --no-labels, the rules are inferred from the successful runs alone (no counterexamples): what the
+demonstrations teach without a label.
 """
 
 from __future__ import annotations
@@ -38,11 +40,13 @@ def task(name: str) -> str:
     return name.split("-trial", 1)[0]
 
 
-def request(converted: Converted, records: list[dict[str, Any]], train: set[str] | None) -> InferRequest:
-    """The successful runs of `train` (None: all) and the labels of its policy-breaking runs."""
+def request(converted: Converted, records: list[dict[str, Any]], train: set[str] | None,
+            labelled: bool = True) -> InferRequest:
+    """The successful runs of `train` (None: all) and, where `labelled`, the labels of its policy-breaking runs."""
     demos = [t for t in converted.trajectories if t.reward == 1.0 and (train is None or task(t.name) in train)]
     mine = [r for r in records if r["trial"] != 0 and (train is None or f"task{r['task_id']}" in train)]
-    runs = counterexamples(converted, read_labels(mine, "labels.json", {t.name for t in converted.tools}), demos)
+    runs = counterexamples(converted, read_labels(mine, "labels.json", {t.name for t in converted.tools}), demos) \
+        if labelled else []
     return InferRequest.model_validate({
         "spec": converted.spec, "demonstrations": [t.program for t in demos], "actions": [f"AGENT.{w}" for w in WRITES],
         "counterexamples": runs, "options": {"generators": ["enumerate"], "candidates": "none"}})
@@ -71,6 +75,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "tau-retail")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--skip-all", action="store_true")
+    parser.add_argument("--no-labels", action="store_true", help="infer from the successful runs alone")
     args = parser.parse_args()
     trajectories = json.loads((args.data / "trajectories.json").read_text(encoding="utf-8"))
     tools = json.loads((args.data / "tools.json").read_text(encoding="utf-8"))
@@ -83,7 +88,7 @@ def main() -> None:
     out: dict[str, Any] = {"rules": [], "infer_s": []}
     for train, test in ((halves[0], halves[1]), (halves[1], halves[0])):
         started = time.perf_counter()
-        inferred = engine.infer(request(converted, records, train))
+        inferred = engine.infer(request(converted, records, train, not args.no_labels))
         out["infer_s"].append(round(time.perf_counter() - started, 1))
         out["rules"].append(inferred.preconditions)
         calls += judged(engine, converted, records, test, inferred)
@@ -94,9 +99,9 @@ def main() -> None:
     print(json.dumps({k: out[k] for k in ("total", "per_tool", "per_rule", "infer_s")}, indent=1), flush=True)
     if not args.skip_all:
         started = time.perf_counter()
-        engine.infer(request(converted, records, None))
+        engine.infer(request(converted, records, None, not args.no_labels))
         out["all_150_infer_s"] = round(time.perf_counter() - started, 1)
-        print(f"all 150 runs with labels: infer {out['all_150_infer_s']} s", flush=True)
+        print(f"all 150 runs{'' if args.no_labels else ' with labels'}: infer {out['all_150_infer_s']} s", flush=True)
     if args.json:
         args.json.write_text(json.dumps(out, indent=1), encoding="utf-8")
 

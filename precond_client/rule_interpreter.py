@@ -12,7 +12,8 @@ is refused when the rule is compiled (`OutsideGrammar`, with the node and why), 
 The grammar, one entry of `FORMS` per node type: constants (None, booleans, numbers, strings); the names `self`
 and the parameters; attributes the state's `Shape` declares; subscripts (a table of the state, or a value);
 comparisons (`is`/`is not` only against None, True or False, whose identity is the language's); `and`, `or`,
-`not`, unary minus and plus; `+`, `-`, `*`; calls of the functions in `FUNCTIONS`; tuples; list, set and generator
+`not`, unary minus and plus; `+`, `-`, `*`; calls of the functions in `FUNCTIONS` (`sum` of one argument: a start would
+concatenate lists); tuples; list, set and generator
 comprehensions with one `for` over a value (`{(f['flight_number'], f['date']) for f in flights}`,
 `all(f['date'] >= '2024-05-15' for f in ...)`). A new form of the learner is one entry.
 
@@ -51,6 +52,7 @@ from precond_client.rule_work import (
     Frame,
     SetBuilder,
     WorkExceeded,
+    added,
     alike_of,
     arithmetic_cost,
     call_cost,
@@ -112,7 +114,7 @@ class Scope:
     max_nesting: int = MAX_NESTING
 
 
-FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any, "max": max, "min": min}
+FUNCTIONS: dict[str, Callable[..., Any]] = {"len": len, "all": all, "any": any, "max": max, "min": min, "sum": sum}
 """Builtins a rule may call; each gets values only."""
 ARITHMETIC: dict[type[ast.operator], Callable[[Any, Any], Any]] = {
     ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul,
@@ -402,17 +404,31 @@ def _call(node: ast.expr, scope: Scope) -> Compiled:
     function = FUNCTIONS.get(node.func.id) if isinstance(node.func, ast.Name) else None
     if function is None or node.keywords or any(isinstance(a, ast.Starred) for a in node.args):
         raise OutsideGrammar(f"{_text(node)}: calls {', '.join(FUNCTIONS)} only, with plain arguments")
+    if function is sum and len(node.args) != 1:
+        raise OutsideGrammar(f"{_text(node)}: sum of one argument only (a start would concatenate lists)")
     args = [_value(a, scope) for a in node.args]
     compares = function is max or function is min
 
     def call(frame: Frame) -> Any:
         values = [a(frame) for a in args]
+        if function is sum:
+            return _sum(values[0], frame)
         frame.charge(call_cost(function, values, frame))
         if compares and len(values) == 1 and type(values[0]) not in CONTAINER_TYPES and type(values[0]) is not str:
             return function(weighed(values[0], frame))  # a generator's items: charged as they come
         return function(*values)
 
     return VALUE, call
+
+
+def _sum(values: Any, frame: Frame) -> Any:
+    """`sum(values)` as Python sums them (the same items in the same order, floats included), each addition charged
+    before it is made (`rule_work.added`); an integer total past MAX_INT_BITS is refused, as `a + b`'s is."""
+    frame.charge(1)
+    total = sum(added(values, frame))
+    if type(total) is int and total.bit_length() > MAX_INT_BITS:
+        raise too_large()
+    return total
 
 
 def _tuple(node: ast.expr, scope: Scope) -> Compiled:

@@ -1,15 +1,15 @@
 """What the embedded guard's interpreter (`rule_interpreter`) charges for the work a rule does, before it does it.
 
 A call's rules take at most `Frame.budget` steps, a step being at most about half a microsecond of work on the
-slowest path: an item of a comprehension costs the expressions its body evaluates; a comparison, `in`, a
-subscript's key, hashing into a set and `max`/`min` cost the full size of the values they walk (`weight`: every
-nested element, a string per CHARS_PER_STEP characters, an integer per BITS_PER_STEP bits); integer arithmetic
-costs by the operands' bits, and an integer past MAX_INT_BITS is refused. Values the guard did not build (a tool's
-result, or whoever feeds it) can be made to hash alike (`n` and `n + 2**61 - 1` do, as do tuples of them): a set of
-them (`SetBuilder`) costs each comparison Python's set makes among them, found and charged before the set is
-built, and each later lookup in it as many (`Frame.alike`); the keys a call's rules read from a table that lacks
-them are kept by hash, a comparison charged each (`Frame.remember`). Over the budget, `WorkExceeded`: the call is
-refused, never allowed. Standard library only, as the interpreter.
+slowest path: an item of a comprehension costs the expressions its body evaluates; a comparison, `in`, a subscript's
+key, hashing into a set and `max`/`min` cost the full size of the values they walk (`weight`: every nested element,
+a string per CHARS_PER_STEP characters, an integer per BITS_PER_STEP bits); integer arithmetic costs by the
+operands' bits (`sum`: each addition, `added`), and an integer past MAX_INT_BITS is refused. Values the guard did
+not build (a tool's result, or whoever feeds it) can be made to hash alike (`n` and `n + 2**61 - 1` do, as do tuples
+of them): a set of them (`SetBuilder`) costs each comparison Python's set makes among them, found and charged before
+the set is built, and each later lookup in it as many (`Frame.alike`); the keys a call's rules read from a table
+that lacks them are kept by hash, a comparison charged each (`Frame.remember`). Over the budget, `WorkExceeded`: the
+call is refused, never allowed. Standard library only, as the interpreter.
 """
 
 from __future__ import annotations
@@ -189,6 +189,19 @@ def weighed(items: Iterable[Any], frame: Frame) -> Iterator[Any]:
         yield item
 
 
+def added(items: Iterable[Any], frame: Frame) -> Iterator[Any]:
+    """The items `sum` adds, each charged before it is added: a step, and an integer by the bits of the larger of it
+    and the total so far (kept as a bound: a total grows a bit an addition at most)."""
+    bits = 0
+    for item in items:
+        if type(item) is int:
+            bits = max(bits, item.bit_length()) + 1
+            frame.charge(1 + bits // BITS_PER_STEP)
+        else:
+            frame.charge(1)
+        yield item
+
+
 def built_size(value: Any) -> int:
     return len(value) if isinstance(value, SIZED) else 0
 
@@ -215,7 +228,7 @@ def arithmetic_cost(a: Any, b: Any, repeats: bool, frame: Frame) -> int:
 
 
 def call_cost(function: Callable[..., Any], values: list[Any], frame: Frame) -> int:
-    """`len` one step; `all`/`any` an element each; `max`/`min` the size of what they compare."""
+    """`len` one step; `all`/`any` an element each; `max`/`min` the size of what they compare (`sum`: `added`)."""
     if function is len:
         return 1
     if function is all or function is any:

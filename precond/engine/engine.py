@@ -316,15 +316,16 @@ class Engine(Checking):
             raise InvalidProgram(str(exc).replace("demonstration", "counterexample run"),
                                  field="counterexamples") from exc
         where = counterexamples.points(labelled, runs) if runs is not None else {}
+        asked = {a: [p for _, p in where[a]] for a in sorted(labelled.actions()) if where.get(a)}
+        judged = sandbox_call(self._sandbox.evaluate, spec.source, labelled.programs,
+                              {a: separable(ranked[a], policy.get(a)) for a in asked}, asked,
+                              scope=scope.current()) if asked else None  # every action's in one run of the runs
         separated = {}
         for action in sorted(labelled.actions()):
             cases = where.get(action, [])
             results: dict[str, Any] = {}
             order: list[Any] = [p for _, p in cases]
-            if cases:
-                expressions = separable(ranked[action], policy.get(action))
-                judged = sandbox_call(self._sandbox.evaluate, spec.source, labelled.programs, {action: expressions},
-                                      {action: order}, scope=scope.current())
+            if cases and judged is not None:
                 results = {r.expression: r for r in judged.results.get(action, ())}
                 order = list(judged.points.get(action, order))
             separated[action] = counterexamples.separate(

@@ -153,7 +153,7 @@ def labelled_run(spec: str, history: str | Sequence[Mapping[str, Any]], call: st
     return run, len(run.splitlines()), action
 
 
-ITERATING = re.compile(r"\bfor\b|\b(?:all|any|max|min)\s*\(|[*+-]")
+ITERATING = re.compile(r"\bfor\b|\b(?:all|any|max|min|sum)\s*\(|[*+-]")
 """What makes a rule's evaluation grow with more than the collections it reads: a comprehension, a call that walks
 its arguments, arithmetic that builds a sequence (`slot * 100000`). The interpreter bounds each call's rules at
 `rule_interpreter.MAX_STEPS` (some 0.1 s), which the event loop must never spend: a check with such a rule is

@@ -24,6 +24,29 @@ MAX_LINES = 2000
 """Longer programs are parsed whole (a reader's store keeps a few thousand entries)."""
 
 
+def source_segments(source: str, nodes: typing.Sequence[ast.AST]) -> list[str | None]:
+    """`ast.get_source_segment(source, node)` of each node, the text split once (`get_source_segment` splits all
+    of it, character by character, for each node: quadratic in a long program's statements)."""
+    parts = LINE_BREAKS.split(source)
+    breaks = LINE_BREAKS.findall(source)
+    lines = [part + brk for part, brk in zip(parts, breaks, strict=False)] + ([parts[-1]] if parts[-1] else [])
+    return [_segment(lines, node) for node in nodes]
+
+
+def _segment(lines: list[str], node: ast.AST) -> str | None:
+    """`ast.get_source_segment` (unpadded) of one node over the text's lines, each with its line break."""
+    lineno, end_lineno = getattr(node, "lineno", None), getattr(node, "end_lineno", None)
+    col, end_col = getattr(node, "col_offset", None), getattr(node, "end_col_offset", None)
+    if lineno is None or end_lineno is None or col is None or end_col is None:
+        return None
+    first, last = int(lineno) - 1, int(end_lineno) - 1
+    col, end_col = int(col), int(end_col)
+    if first == last:
+        return lines[first].encode()[col:end_col].decode()
+    return "".join([lines[first].encode()[col:].decode(), *lines[first + 1:last],
+                    lines[last].encode()[:end_col].decode()])
+
+
 def line_statements(lines: typing.Sequence[str], remember: Remember) -> list[ast.stmt] | None:
     """The statements of the program whose lines (`LINE_BREAKS.split(source)`) these are, each line parsed on
     its own and remembered under its number and text; None when the text must be parsed whole (above)."""

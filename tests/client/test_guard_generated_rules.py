@@ -6,7 +6,7 @@ CPU a call in a child of its own). A rule outside the guard's grammar makes a se
 verdict to compare, but one that `constant_work` refuses when a set is stored is counted apart.
 
 The rules are made of the grammar's forms (constants, the parameters, the state's tables and values, subscripts,
-comparisons and their chains, and/or/not, arithmetic, `len`/`all`/`any`/`max`/`min`, tuples, list, set and
+comparisons and their chains, and/or/not, arithmetic, `len`/`all`/`any`/`max`/`min`/`sum`, tuples, list, set and
 generator comprehensions whose variables shadow each other and the parameters); the states of JSON values
 (integers that hash alike among them) and tuples for a call's arrays, as the guard reads them. The corpus holds
 the attacks' rules (`test_guard_attacks`). `--guard-cases N` runs N generated cases (the suite: 150; the
@@ -107,7 +107,7 @@ def expressions(draw: st.DrawFn, depth: int = 3, bound: tuple[str, ...] = ()) ->
     if form == "arith":
         return ast.BinOp(draw(sub), draw(st.sampled_from([ast.Add(), ast.Sub(), ast.Mult()])), draw(sub))
     if form == "call":
-        name = draw(st.sampled_from(["len", "all", "any", "max", "min"]))
+        name = draw(st.sampled_from(["len", "all", "any", "max", "min", "sum"]))
         count = draw(st.integers(1, 2)) if name in ("max", "min") else 1
         return ast.Call(ast.Name(name), [draw(sub) for _ in range(count)], [])
     if form == "tuple":
@@ -179,7 +179,7 @@ def python_outcome(case: Case) -> Outcome:
     with warnings.catch_warnings():  # `(1, 2)[0]`-like constants: Python's compile warns, as in the sandbox
         warnings.simplefilter("ignore", SyntaxWarning)
         code = compile(ast.fix_missing_locations(ast.Expression(ast.Lambda(arguments, body))), "<pre>", "eval")
-    names = {name: getattr(builtins, name) for name in ("len", "all", "any", "max", "min")}
+    names = {name: getattr(builtins, name) for name in ("len", "all", "any", "max", "min", "sum")}
     function = eval(code, {"__builtins__": names})  # the generated rule, never caller text
     try:
         return ("value", bool(function(State(case.results, case.seen, case.last_ok, True), *case.args)))
@@ -241,6 +241,16 @@ def corpus(large: bool) -> list[Case]:
     for rule in (generators, last):
         for first in ("2024-05-01", "2024-05-20"):
             found.append(Case(rule, {}, {}, None, (tuple(_flights([1, 2], first)), "r", 0)))
+    total = "sum([x['n'] for x in self.results['t'][b]['flights']]) - sum(a) <= c"
+    tables = {"t": {"r": {"flights": alike}, 7 + P: 1, 7: 2}}
+    found += [  # a balance against a total: integers that hash alike, floats as Python sums them, large integers
+        Case(total, tables, {}, None, ((0.1, 0.2, 2**70), "r", 0.6)),
+        Case(total, {"t": {"r": {"flights": _flights([0.1, 0.2, 0.3])}}}, {}, None, ((0.6,), "r", 0)),
+        Case(total, {"t": {"r": {"flights": _flights(["x"])}}}, {}, None, ((), "r", 0)),  # raises: 0 + 'x'
+        Case("sum(x['n'] for x in a if x['date'] >= '2024-05-15') >= c", {}, {}, None,
+             (tuple(_flights([0.1, 0.2, 0.3], "2024-05-01")), "r", 0.5)),
+        Case("sum(self.results['t']) > 0", tables, {}, None, ((), "r", 0)),  # a table's keys: raises, 0 + 'r'
+        Case("sum(a) == c", {}, {}, None, ((2**70, -(2**70), 1), "r", 1))]
     if large:
         many = _flights([7 + i * P for i in range(30_000)])
         found.append(Case(pairs.replace("[b]", "[b]['flights']"), {"t": {"r": {"flights": many}}}, {}, None,
@@ -261,7 +271,7 @@ def test_generated_rules_are_judged_by_the_guard_as_python_judges_them(pytestcon
 
     for case in corpus(large=count >= 1000):
         judged(case)
-    assert outcomes["refused when stored"] == 1 and outcomes["judged"] >= 8, outcomes
+    assert outcomes["refused when stored"] == 1 and outcomes["judged"] >= 12, outcomes
     settings(max_examples=count, deadline=None, database=None,
              suppress_health_check=list(HealthCheck))(given(cases())(judged))()
     print(f"\nguard vs Python: {sum(outcomes.values()):,} cases, {len(disagreements)} disagreements; {dict(outcomes)}")

@@ -30,6 +30,12 @@ RULES = [
     f"{R}['total_baggages'] - {R}['missing'] >= 0",  # raises KeyError, as in the sandbox
     f"len(flights) * {R}['flights'] == {R}['flights'] + {R}['flights']",  # a sequence repeated, as Python does
     "max(flights) == 0",  # raises TypeError (dicts are not ordered), as in the sandbox
+    # a total: the prices of a list, against a balance
+    f"sum([len(x['date']) for x in {R}['flights']]) - {R}['total_baggages'] <= 17",
+    "sum(len(x['payment_id']) for x in payment_methods) >= 13",  # a generator's items, as they come
+    f"sum(({R}['total_baggages'], 0.1, 0.2, len(flights))) > 6.3",  # floats summed as Python sums them
+    "sum([x['date'] for x in flights]) == 0",  # raises TypeError (0 + a string), as in the sandbox
+    f"sum({R}['total_baggages']) > 0",  # raises TypeError (an int is not iterable), as in the sandbox
 ]
 
 
@@ -90,3 +96,15 @@ def test_what_arithmetic_would_build_is_charged_before_it_is_built() -> None:
     assert compile_rule("len(flights * 3) == 6", scope)(Frame(State({}), [FLIGHTS]))
     with pytest.raises(OutsideGrammar, match="Div"):
         compile_rule("len(flights) / 2 > 0", scope)
+
+
+def test_a_sum_is_charged_each_item_and_takes_one_argument() -> None:
+    scope = Scope(AGENT_SHAPE, ("flights",))
+    with pytest.raises(OutsideGrammar, match="one argument"):
+        compile_rule("sum(flights, []) == []", scope)  # a start would concatenate lists: quadratic
+    total = compile_rule("sum(flights) >= 0", scope)
+    assert total(Frame(State({}), [list(range(1000))]))
+    with pytest.raises(WorkExceeded):
+        total(Frame(State({}), [[1] * 1000], budget=500))  # an item a step: past the budget, refused
+    with pytest.raises(WorkExceeded):  # an integer of 2**17 bits added 100 times: its bits charged each time
+        total(Frame(State({}), [[1 << (1 << 17)] * 100], budget=2000))

@@ -128,3 +128,30 @@ def test_what_earlier_writes_show_of_a_field_the_read_holds_at_one_value_is_prop
     state = SimpleNamespace(results={}, changes={"swap_copies": {"L1": {"state": "closed"}, "L2": {"state": "open"}}},
                             errors={}, seen={}, last_ok=True, user=SimpleNamespace(messages=1, last_said="yes"))
     assert [rule(Frame(state, (loan,))) for loan in ("L1", "L2", "L3")] == [False, True, True]
+
+
+def test_the_labelled_calls_of_every_action_are_judged_in_one_run_of_the_labelled_runs(engine: Engine) -> None:
+    demos = convert([desk_run(n) for n in range(6)], TOOLS, writes=WRITES)
+    closed = convert([desk_run(n, state="closed") for n in (8, 9)], TOOLS, writes=WRITES).trajectories
+    lines = closed[0].program.splitlines()
+    at = {name: next(k for k, line in enumerate(lines, 1) if f".{name}(" in line) for name in ("swap_copies",
+                                                                                                "extend_loan")}
+    labels = [{"program": t.program, "calls": [{"line": line, "verdict": "refuse", "name": f"{name} {t.name}"}
+                                               for name, line in at.items()]} for t in closed]
+    runs: list[int] = []
+    evaluate = engine._sandbox.evaluate
+
+    def counted(spec: str, programs: list[str], *args: object, **kwargs: object) -> object:
+        runs.append(len(programs))
+        return evaluate(spec, programs, *args, **kwargs)  # type: ignore[arg-type]
+
+    engine._sandbox.evaluate = counted  # type: ignore[method-assign]
+    try:
+        response = engine.infer(InferRequest.model_validate({
+            "spec": demos.spec, "demonstrations": [t.program for t in demos.trajectories],
+            "actions": [SWAP, EXTEND], "options": {"generators": ["enumerate"]}, "counterexamples": labels}))
+    finally:
+        del engine._sandbox.evaluate
+    assert runs.count(len(labels)) == 1, runs  # both actions' conditions at their labelled calls: one run
+    open_loan = "loan_id in self.results['get_loan'] and self.results['get_loan'][loan_id]['state'] == 'open'"
+    assert open_loan in response.preconditions[EXTEND] and open_loan in response.preconditions[SWAP]

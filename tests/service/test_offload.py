@@ -70,3 +70,11 @@ def test_a_tool_call_checks_spec_is_read_off_the_loop_or_once_per_tenant(monkeyp
         asyncio.run(scenario())
     finally:
         pool.close()
+
+
+def test_a_rule_that_walks_a_collection_is_judged_in_the_pool() -> None:
+    walking = ["sum(self.results['get_order_details'][order_id]['prices']) <= 10",
+               "max(self.results['get_order_details'][order_id]['prices']) <= 10",
+               "all(x for x in self.results['get_order_details'][order_id]['prices'])"]
+    assert all(offload.iterating_rules({"AGENT.pay": [rule]}) for rule in walking)
+    assert not offload.iterating_rules({"AGENT.pay": ["order_id in self.results['get_order_details']"]})

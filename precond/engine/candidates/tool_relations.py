@@ -17,7 +17,9 @@ argument against the field of the same name). A policy also relates the call to 
 - a join of two reads: a field of the read the call names is a key of another read, or an id a lookup found
   (`...[order_id]['user_id'] in [self.results['find_user_id_by_email'][k] for k in ...]`: the order's customer is
   the authenticated one), and an argument in an entry of that other read (`payment_method_id in
-  self.results['get_user_details'][...[order_id]['user_id']]['payment_methods']`: the owner's payment method);
+  self.results['get_user_details'][...[order_id]['user_id']]['payment_methods']`: the owner's payment method),
+  and an amount the call states or prices covered by a numeric field of that entry (`tool_amounts.covered`: the
+  price difference within the gift card's balance);
 - two list arguments whose items are keys of an object field of one read's results, as many on both sides in
   each result (`variants`: each new item a variant of the product of the item it replaces), at most MAX_VALUES;
 - a string argument among (or, where every call shows it and both are ids, not among) a field of a list the
@@ -44,6 +46,7 @@ import re
 from collections.abc import Callable, Iterable, Sequence
 from typing import Any
 
+from precond.engine.candidates.tool_amounts import covered
 from precond.engine.candidates.tool_conditions import KIND, MAX_KINDS, MAX_VALUES, RESULTS, arithmetic
 from precond.engine.candidates.tool_facts import Seen, ToolFacts
 from precond_client.guard import AGENT_SHAPE
@@ -137,6 +140,7 @@ def _about_read(facts: ToolFacts, calls: Sequence[Seen], params: Sequence[str], 
         joined = render.format(f"{got}[{name!r}]")
         atoms.append(f"{has} and {joined}")
         atoms += [f"{has} and {joined} and {a}" for a in _owned(facts, at, params, key, name, other, got)]
+        atoms += covered(facts, at, params, key, got, f"{has} and {joined}", name, other)
     return atoms
 
 

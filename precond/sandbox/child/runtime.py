@@ -20,7 +20,7 @@ import types
 import typing
 
 from precond.programs import Method, Purity, main_body, read_methods
-from precond.programs.lines import LINE_BREAKS, line_statements
+from precond.programs.lines import LINE_BREAKS, line_statements, source_segments
 
 from .framing import Reporter
 from .values import FATAL, Failure, OutputLimit, clean, describe
@@ -266,7 +266,8 @@ class Program:
         self.snapshots: list[dict[str, object]] = []
 
     def positions(self) -> list[list[object]]:
-        return [[s.lineno, clean(ast.get_source_segment(self.source, s) or "", 2000)] for s in self.body]
+        return [[s.lineno, clean(text or "", 2000)]
+                for s, text in zip(self.body, source_segments(self.source, self.body), strict=True)]
 
     def variables(self) -> dict[str, object]:
         base = self.base
