@@ -3,26 +3,37 @@
 # two steps: the fast suite (`-m "not model and not stack"`), then the tests that start real stacks, pod
 # simulations and fresh installs (`-m stack`) together with those that run the real embedded model (`-m model`):
 # the model's tests are single-threaded and CPU-bound, the stacks' tests mostly wait for processes, so they share
-# the cores. Each step runs on every core (pytest-xdist, `-n auto`; PYTEST_XDIST_AUTO_NUM_WORKERS sets how many),
-# a test file per process (`--dist loadfile`: a module's stack is started once, in the process that runs it).
+# the cores. Each step runs two test processes a core (pytest-xdist `-n`; PYTEST_XDIST_AUTO_NUM_WORKERS sets how
+# many): much of either step waits (for child processes, sockets, the sandbox's wall-clock limits), and a core's
+# second process fills those waits. A test file per process (`--dist loadfile`: a module's stack is started once,
+# in the process that runs it).
 # One step alone: `python -m pytest -q -m "not model and not stack"` after `. .venv/bin/activate` (add `-n auto`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/install.sh
 . .venv/bin/activate
 export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 TOKENIZERS_PARALLELISM=false
+# Compiled modules, pytest's rewritten test modules among them, are kept (__pycache__/, ignored by git): every
+# pytest process and every process a stack starts reads them instead of compiling the sources again.
+unset PYTHONDONTWRITEBYTECODE
 # The embedded model's converted copies (MODEL_CACHE_DIR; minutes, once a machine) are built beside the lint and
 # the type check, on a core they leave idle; else the model tests' processes would each build them at once.
 precond prepare-model &
 prepared=$!
+# One collection beside them writes those compiled modules before the steps' processes each need them (a
+# collection error is reported by the steps).
+python -m pytest --collect-only -q -p no:xdist >/dev/null 2>&1 &
+collected=$!
 ruff check .
 mypy
 wait "$prepared"
+wait "$collected" || true
 
+processes=${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}
 pytest_step() {
   # Exit code 5 means "no tests collected" (e.g. arguments that select no model test): not a failure.
   local code=0
-  python -m pytest -q -n auto --dist loadfile "$@" || code=$?
+  python -m pytest -q -n "$processes" --dist loadfile "$@" || code=$?
   if [ "$code" -eq 5 ]; then
     code=0
   fi

@@ -1,16 +1,18 @@
 from __future__ import annotations
 
+import fcntl
+import os
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-import torch
 
 from precond.stack.local import RedisServer
-from precond.stack.tiny_model import build_tiny_model
 
-# Two threads on two busy cores run torch ~10x slower than one.
-torch.set_num_threads(1)
+# Two threads on two busy cores run torch ~10x slower than one. torch is imported by the tests that use it, not
+# here: collecting (in every pytest-xdist process) stays cheap. It reads this when it is imported...
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 STACK_FIXTURES = frozenset({"stack", "own_stack", "unconfinable", "rate_limited", "small_answers", "redis_down",
                             "keyed", "guessed"})
@@ -25,6 +27,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
                           "(tests/client/test_guard_generated_rules.py)")
 
 
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    """...and is held to one thread here whatever the environment says."""
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if STACK_FIXTURES & set(getattr(item, "fixturenames", ())):
@@ -33,7 +42,19 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 @pytest.fixture(scope="session")
 def tiny_model_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return build_tiny_model(tmp_path_factory.mktemp("tiny-model"))
+    """Built once a run: the processes of one pytest-xdist run share the first one's copy (no test writes into
+    it), so the others import neither torch nor transformers to build their own."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    directory = shared / "tiny-model"
+    with (shared / "tiny-model.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (shared / "tiny-model.done").exists():
+            from precond.stack.tiny_model import build_tiny_model
+
+            build_tiny_model(directory)
+            (shared / "tiny-model.done").touch()
+    return directory
 
 
 @pytest.fixture()

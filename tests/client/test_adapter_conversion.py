@@ -8,14 +8,13 @@ import json
 from pathlib import Path
 from typing import Any
 
-from agents.models.chatcmpl_converter import Converter
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from langchain_core.messages import AIMessage, BaseMessage, HumanMessage, SystemMessage, ToolMessage
 from langchain_core.messages.utils import convert_to_openai_messages
 
 from precond.evaluation import tools
-from precond_client.adapters import langgraph, openai_agents
+from precond_client.adapters import langgraph
 from precond_client.adapters.conversation import Conversation
 from precond_client.errors import PrecondError
 from precond_client.guard import Guard
@@ -33,7 +32,10 @@ RESULT = st.sampled_from([json.dumps({"reservation_id": r, "user_id": "u1", "cab
 
 
 def sdk_reference(items: list[Any]) -> list[dict[str, Any]]:
-    """The SDK's converter over the whole list, each tool result named after its call."""
+    """The SDK's converter over the whole list, each tool result named after its call (the SDK is imported by
+    the tests that use it: collecting this module, in every test process, stays cheap)."""
+    from agents.models.chatcmpl_converter import Converter
+
     names = {i["call_id"]: i["name"] for i in items if isinstance(i, dict) and i.get("type") == "function_call"}
     messages = [dict(m) for m in Converter.items_to_messages(list(items))]
     for message in messages:
@@ -56,6 +58,8 @@ SDK_ITEMS = st.lists(st.one_of(SDK_CALL, SDK_OUTPUT, SDK_CALL, SDK_OUTPUT, SDK_O
 @given(SDK_ITEMS)
 @settings(max_examples=300, deadline=None)
 def test_the_agents_sdk_items_convert_as_the_sdk_converts_them(items: list[Any]) -> None:
+    from precond_client.adapters import openai_agents
+
     assert openai_agents.chat_messages(items) == sdk_reference(items)
 
 
@@ -116,6 +120,8 @@ def sdk_turn(n: int, name: str, arguments: str, output: str) -> list[dict[str, A
 @settings(max_examples=150, deadline=None)
 def test_the_agents_sdk_adapter_judges_as_the_embedded_guard(turns: list[tuple[str, str, str]],
                                                              cuts: list[int]) -> None:
+    from precond_client.adapters import openai_agents
+
     history: list[Any] = [{"role": "user", "content": "cancel R1"},
                           *(i for n, turn in enumerate(turns) for i in sdk_turn(n, *turn))]
     same(verdict_after(history, cuts, openai_agents.chat_messages), whole(sdk_reference(history)))

@@ -14,25 +14,20 @@ import asyncio
 import json
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import pytest
-from agents import Agent, Runner, function_tool
-from agents.testing import ScriptedModel, assistant_message, function_call
-from langchain.agents import create_agent
-from langchain_core.language_models.fake_chat_models import GenericFakeChatModel
-from langchain_core.messages import AIMessage, BaseMessage, HumanMessage, ToolMessage
-from langchain_core.tools import tool
-from langgraph.graph import START, MessagesState, StateGraph
-from langgraph.prebuilt import tools_condition
 
 from precond.evaluation import tools
 from precond.stack.keyed import KeyedStack
 from precond_client import AsyncClient, Client, PreconditionSet
-from precond_client.adapters.langchain_agents import GuardMiddleware
-from precond_client.adapters.langgraph import guarded_tool_node
-from precond_client.adapters.openai_agents import protect
 from precond_client.guard import Guard, Judge, ServiceGuard
+
+if TYPE_CHECKING:
+    from langchain_core.messages import BaseMessage
+    from langgraph.graph import MessagesState
+
+# Each test imports its framework itself: collecting this module (in every test process) stays cheap.
 
 TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
 READ = "reservation_id in self.results['get_reservation_details']"
@@ -78,6 +73,11 @@ def airline_tools(decorator: Callable[[Callable[[str], str]], Any], ran: list[st
 
 
 def test_the_agents_sdk_guardrail_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
+    from agents import Agent, Runner, function_tool
+    from agents.testing import ScriptedModel, assistant_message, function_call
+
+    from precond_client.adapters.openai_agents import protect
+
     ran: list[str] = []
     get_reservation_details, cancel_reservation = airline_tools(function_tool, ran)
 
@@ -95,6 +95,14 @@ def test_the_agents_sdk_guardrail_refuses_before_the_tool_runs_and_tells_the_mod
 
 
 def test_the_langgraph_tool_node_refuses_before_the_tool_runs_and_tells_the_model(judge: Judge) -> None:
+    from langchain_core.language_models.fake_chat_models import GenericFakeChatModel
+    from langchain_core.messages import AIMessage, HumanMessage, ToolMessage
+    from langchain_core.tools import tool
+    from langgraph.graph import START, MessagesState, StateGraph
+    from langgraph.prebuilt import tools_condition
+
+    from precond_client.adapters.langgraph import guarded_tool_node
+
     ran: list[str] = []
     get_reservation_details, cancel_reservation = airline_tools(tool, ran)
 
@@ -124,17 +132,23 @@ def test_the_langgraph_tool_node_refuses_before_the_tool_runs_and_tells_the_mode
     assert "cancelled" in str(seen[3][-1].content)
 
 
-class _ToolCallingFake(GenericFakeChatModel):
-    """`create_agent` binds the tools to its model; the fake's answers already name them."""
-
-    def bind_tools(self, tools: Any, **kwargs: Any) -> Any:
-        return self
-
-
 @pytest.mark.parametrize("run", ["invoke", "ainvoke"])
 def test_the_create_agent_middleware_refuses_before_the_tool_runs_and_tells_the_model(
     judge: Judge, run: str, keyed: KeyedStack
 ) -> None:
+    from langchain.agents import create_agent
+    from langchain_core.language_models.fake_chat_models import GenericFakeChatModel
+    from langchain_core.messages import AIMessage, HumanMessage, ToolMessage
+    from langchain_core.tools import tool
+
+    from precond_client.adapters.langchain_agents import GuardMiddleware
+
+    class _ToolCallingFake(GenericFakeChatModel):
+        """`create_agent` binds the tools to its model; the fake's answers already name them."""
+
+        def bind_tools(self, tools: Any, **kwargs: Any) -> Any:
+            return self
+
     ran: list[str] = []
     get_reservation_details, cancel_reservation = airline_tools(tool, ran)
 

@@ -14,7 +14,6 @@ from typing import Any
 from precond.engine.factory import build_engine
 from precond.evaluation import tools
 from precond.evaluation.cache import JsonCache
-from precond.evaluation.tools_report import TOOLS_HEADING, write_tools_section
 from precond_client.openai_log import Call
 
 TAU = Path(__file__).resolve().parents[1] / "fixtures" / "tau_airline"
@@ -82,6 +81,8 @@ def test_the_guard_from_successful_runs_refuses_a_write_without_its_read(tmp_pat
     assert (read["breaking"], read["refused_breaking"]) == (1, 1)  # the unread cancellation is refused
     assert summary["keeping"] == summary["allowed_keeping"] == 6
     assert summary["counterfactual"]["stopped_at_first_breaking_call"] == 1
+
+    from precond.evaluation.tools_report import TOOLS_HEADING, write_tools_section  # matplotlib: only here
 
     store = JsonCache(tmp_path / "cache")
     store.put(result, "results", "tools")

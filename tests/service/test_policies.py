@@ -34,7 +34,8 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path,
           keys: tuple[Path, dict[str, str]]) -> Iterator[Stack]:
     stack = make_stack(tmp_path_factory.mktemp("policies"), tiny_model_dir, PRECOND_API_KEYS_FILE=str(keys[0]),
                        PRECOND_MAX_TRAINING_STEPS="300", PRECOND_MAX_POLICIES_PER_TENANT="2",
-                       PRECOND_MAX_POLICY_VERSIONS="2", PRECOND_JOB_TIMEOUT_S="300")
+                       PRECOND_MAX_POLICY_VERSIONS="2", PRECOND_JOB_TIMEOUT_S="300",
+                       PRECOND_WAIT_MAX_S="120")  # the trainings' `?wait=120` waits that long on a busy machine
     with serving(stack, workers=1):
         yield stack
 

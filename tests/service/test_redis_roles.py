@@ -73,6 +73,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory, tiny_model_dir: Path) -> Ite
         password=PASSWORD,
         PRECOND_QUEUE_MAX_JOBS=str(QUEUE_MAX_JOBS),
         PRECOND_RETRY_AFTER_S=RETRY_AFTER_S,
+        PRECOND_WAIT_MAX_S="60",  # a `?wait=60` waits that long on a busy machine (a training, an inference)
     )
     with serving(stack):
         yield stack
