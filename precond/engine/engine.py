@@ -53,7 +53,7 @@ from precond.engine.judging.report import Proposals, Ranked, listed, report_of
 from precond.engine.judging.runnable import drop_unrunnable
 from precond.engine.judging.selection import Inference, select_rules
 from precond.engine.judging.shared_rules import shared
-from precond.engine.judging.unseen_shared import assume_shared
+from precond.engine.judging.unseen_shared import Calls, assume_shared
 from precond.engine.left_out import trace_judgeable
 from precond.engine.sandboxed import history_program, sandbox_call, spec_of
 from precond.engine.spec import (
@@ -189,7 +189,8 @@ class Engine(Checking):
         ranked, separated = self._ranked(run, evaluated, proposals, writes, policy, timer)
         chosen = chosen_rules(run, ranked, separated)
         ranked = dict(ranked)
-        assume_shared(chosen, ranked, separated, run.guarded, run.spec.methods)
+        assume_shared(chosen, ranked, separated, run.guarded, run.spec.methods,
+                      Calls(evaluated.points, {a: info.occurrences for a, info in run.trace.actions.items()}))
         with timer.phase("verify"):
             program, preconditions, dropped = self._verified_program(run.spec, chosen, run.demos,
                                                                      exempt_points(chosen, ranked, separated))

@@ -19,7 +19,7 @@ _SOURCES: dict[str, tuple[str, ...]] = {
     "precond.engine.judging.runnable": ("drop_unrunnable",),
     "precond.engine.judging.selection": ("Inference", "previous_turns", "select_rules"),
     "precond.engine.judging.shared_rules": ("shared",),
-    "precond.engine.judging.unseen_shared": ("assume_shared",),
+    "precond.engine.judging.unseen_shared": ("Calls", "assume_shared"),
 }
 __all__ = sorted(name for names in _SOURCES.values() for name in names)
 __getattr__ = lazy(__name__, _SOURCES)

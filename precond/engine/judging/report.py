@@ -70,8 +70,8 @@ class Ranked:
     behind: str = ""
     """The other party's facts a tool call did not keep because its "yes" came before every call, in words."""
     assumed: str = ""
-    """The conditions a never-demonstrated action assumed from the other guarded actions (`unseen_shared`), in
-    words."""
+    """The conditions a never-demonstrated action assumed from the other guarded actions (`unseen_shared`), or
+    why it assumed none although they share some, in words."""
 
 
 @dataclass(frozen=True)
