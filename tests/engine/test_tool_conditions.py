@@ -11,6 +11,7 @@ import json
 from precond.convert.openai import convert
 from precond.engine.candidates import tool_conditions, tool_facts
 from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
+from precond.engine.candidates.tool_relations import runnable
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
@@ -141,3 +142,29 @@ def test_labelled_calls_are_separated_by_what_a_policy_names_not_by_the_compleme
     assert tool_conditions.separating(atoms) == {
         READ, f"{READ} and {GOT}['cabin'] == 'business'", f"{READ} and total_baggages != {GOT}['total_baggages']",
         f"{READ} and len(passengers) != len({GOT}['passengers'])"}
+
+
+def test_an_argument_listed_in_an_earlier_reads_record_is_the_callers_own() -> None:
+    # every cancellation names a reservation the user's profile lists: "only the user's own reservations"
+    tools = [*TOOLS, {"type": "function", "function": {"name": "get_user_details", "parameters": {
+        "properties": {"user_id": {"type": "string"}}, "required": ["user_id"]}}}]
+
+    def owner_run(uid: str, rid: str) -> list[dict[str, object]]:
+        profile = json.dumps({"user_id": uid, "reservations": [rid, f"{rid}X"]})
+        return [{"role": "user", "content": "cancel"},
+                {"role": "assistant", "tool_calls": [{"function": {"name": "get_user_details",
+                                                                   "arguments": json.dumps({"user_id": uid})}}]},
+                {"role": "tool", "content": profile},
+                *run(rid, "business", "no", 1, "cancel_reservation", json.dumps({"reservation_id": rid}))[1:]]
+
+    converted = convert([owner_run(u, r) for u, r in (("u1", "A1"), ("u2", "B2"), ("u3", "C3"))], tools)
+    spec = parse_spec(converted.spec)
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    owned = "any(reservation_id in y['reservations'] for y in self.seen['get_user_details'])"
+    assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == [owned]
+    assert owned in tool_conditions.tool_atoms(facts, "cancel_reservation", ("self", "reservation_id"))
+    assert runnable([owned], ("reservation_id",)) == [owned]  # the embedded guard runs it too
+    stranger = convert([owner_run("u1", "A1"), [*owner_run("u2", "B2")[:3], *run(
+        "Z9", "business", "no", 1, "cancel_reservation", json.dumps({"reservation_id": "Z9"}))[1:]]], tools)
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in stranger.trajectories])
+    assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == []
