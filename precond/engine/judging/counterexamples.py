@@ -9,9 +9,9 @@ must allow.
 For an action with labelled calls the rules are chosen by what separates the two sides: a small disjunction
 of conjunctions (`separate`) of the conditions already judged (the enumerator's, the model's), false at every
 call to refuse and true at as many calls to allow as it can be, each term with as few conditions as the
-evidence needs (one, else two). Beside it the ranking's other rules stay only where they allow every call to
-allow, and an assumed one (a possible correlate) only where it refuses a labelled call: a refusal always has a
-counterexample or an established reason behind it. Last, for a tool spec, an allowance the policy states
+evidence needs (one, else two). Beside it the ranking's other rules stay where they allow every call to allow,
+an assumed one (a possible correlate) too: more labels never leave a guard weaker than the demonstrations alone
+made it, and a refusal by an assumed rule says it is assumed. Last, for a tool spec, an allowance the policy states
 tightens the rule (`allowance_tables`: one k for every call, or a k by category, only where one k cannot
 separate the calls the rest leaves allowed). Nothing here runs untrusted code: the sandbox judged every
 condition at every labelled call (`Labelled.points` are its points).
@@ -378,8 +378,9 @@ def _conflict(rule: str, allowed: Sequence[str], refused: Sequence[str]) -> str:
 
 def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int, unshown: bool = False
           ) -> tuple[set[str], dict[str, str]]:
-    """The ranking's rules that allow every call to allow; an assumed one only if it refuses a labelled call,
-    and so every one when each demonstrated call is labelled 'refuse' (`unshown`): they rest on those calls."""
+    """The ranking's rules that allow every call to allow, assumed ones too (labels that never contradict a rule
+    do not drop it); when each demonstrated call is labelled 'refuse' (`unshown`), only those that refuse a
+    labelled call: they rest on those calls."""
     kept, notes = set(), {}
     for cluster in ranked.chosen:
         e = cluster.representative.expression
@@ -388,8 +389,6 @@ def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
             continue
         if positive & ~held:
             notes[e] = f"dropped: refuses {(positive & ~held).bit_count()} call(s) labelled or demonstrated to allow"
-        elif ranked.decided.get(e) == "assumed" and not negative & ~held:
-            notes[e] = "dropped: assumed, and refuses none of the calls labelled 'refuse' (a correlate, not a reason)"
         elif unshown and not negative & ~held:
             notes[e] = ("dropped: every demonstrated call it rests on is labelled 'refuse', and it refuses none of "
                         "them (evidence against it, not for)")
