@@ -168,3 +168,27 @@ def test_an_argument_listed_in_an_earlier_reads_record_is_the_callers_own() -> N
         "Z9", "business", "no", 1, "cancel_reservation", json.dumps({"reservation_id": "Z9"}))[1:]]], tools)
     facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in stranger.trajectories])
     assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == []
+
+
+def test_an_argument_that_is_a_field_of_a_record_a_search_listed_was_offered() -> None:
+    # every move names a slot the search listed, though the argument is `new_slot` and the field `slot_id`
+    tools = [{"type": "function", "function": {"name": name, "parameters": {
+        "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}
+        for name, params in (("search_slots", ("day",)), ("move_visit", ("visit_id", "new_slot")))]
+
+    def move(day: str, chosen: int) -> list[dict[str, object]]:
+        slots = [{"slot_id": f"{day}-{h}", "hour": str(h)} for h in (9, 11, 15)]
+        return [{"role": "user", "content": "move it"},
+                {"role": "assistant", "tool_calls": [{"function": {"name": "search_slots",
+                                                                   "arguments": json.dumps({"day": day})}}]},
+                {"role": "tool", "content": json.dumps(slots)},
+                {"role": "assistant", "tool_calls": [{"function": {"name": "move_visit", "arguments": json.dumps(
+                    {"visit_id": f"V{day}", "new_slot": slots[chosen]["slot_id"]})}}]},
+                {"role": "tool", "content": "{}"}]
+
+    converted = convert([move("d1", 0), move("d2", 2), move("d3", 1)], tools)
+    spec = parse_spec(converted.spec)
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    offered = "new_slot in [y['slot_id'] for y in self.seen['search_slots']]"
+    assert tool_conditions.offered(facts, "move_visit", ("self", "visit_id", "new_slot")) == [offered]
+    assert runnable([offered], ("visit_id", "new_slot")) == [offered]

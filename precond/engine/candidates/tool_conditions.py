@@ -32,6 +32,8 @@ so this module adds, for an action whose parameter names the key of an earlier t
   These only separate labelled calls (`arithmetic`, `counterexamples`);
 - a string argument listed, at every demonstrated call, in a list field of a record an earlier read returned
   (`any(reservation_id in y['reservations'] for y in self.seen['get_user_details'])`: the user's own records).
+- a string argument that, at every demonstrated call, is one field of a record an earlier read listed
+  (`slot_id in [y['slot_id'] for y in self.seen['search_available_slots']]`: only what was offered).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
 which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
@@ -279,8 +281,28 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
     atoms += allowances(facts, action, params)
     atoms += scaled(facts, action, params)
     atoms += keys(facts, action, params)
-    atoms += owned(facts, action, params)
+    atoms += owned(facts, action, params) + offered(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
+
+
+def offered(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """`slot_id in [y['slot_id'] for y in self.seen['search_available_slots']]`: a string argument that, at every
+    demonstrated call, is the value of one field of a record an earlier read listed (a field every record of that
+    tool holds): only what was offered, whatever the argument is named (`new_slot_id`), at most MAX_SOURCES an
+    argument."""
+    calls = facts.seen.get(action, [])
+    atoms: list[str] = []
+    for param in params:
+        found: set[tuple[str, str]] | None = None
+        for call in calls:
+            value = call.args.get(param)
+            here = {(tool, name) for tool, rows in call.listed.items() if tool != action
+                    for row in rows for name, item in row.items() if isinstance(value, str) and item == value
+                    and facts.records.get(tool, Counter())[name] == facts.records.get(tool, Counter())[""]}
+            found = here if found is None else found & here
+        atoms += [f"{param} in [y[{name!r}] for y in {SEEN}[{tool!r}]]" for tool, name in sorted(found or ())
+                  ][:MAX_SOURCES]
+    return atoms
 
 
 def owned(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
