@@ -42,6 +42,7 @@ from precond.engine.inference import (
     without_left_out,
 )
 from precond.engine.judging import counterexamples, judge, priors
+from precond.engine.judging.call_facts import about_the_call
 from precond.engine.judging.dated_limits import with_dated_limits
 from precond.engine.judging.evidence import OccurrenceIndex
 from precond.engine.judging.freshness import writes_at
@@ -294,7 +295,8 @@ class Engine(Checking):
         with timer.phase("rank"):
             ranked = select_rules(run.actions, Inference(run.trace, evaluated, proposals, options, writes, run.prior),
                                   run.guarded)
-            ranked = {a: with_dated_limits(r, policy[a]) if a in policy else r for a, r in ranked.items()}
+            ranked = {a: about_the_call(with_dated_limits(r, policy[a]), run.spec.methods[a].positional)
+                      if a in policy else r for a, r in ranked.items()}
         if options.judge:
             with timer.phase("judge"):
                 ranked = self._judge(run.spec, run.actions, run.demos, run.trace, evaluated, ranked, options)

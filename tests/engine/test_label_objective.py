@@ -13,7 +13,10 @@ import pytest
 
 from precond.convert.openai import convert
 from precond.engine.engine import Engine
-from precond.engine.judging.counterexamples import _smallest, own_task, unseparable
+from precond.engine.judging.counterexamples import _kept, _smallest, unseparable
+from precond.engine.judging.ranking import Candidate, Cluster
+from precond.engine.judging.report import Ranked
+from precond.engine.judging.run_tasks import own_task
 from precond.sandbox import Sandbox
 from precond_client.schemas import CheckRequest, InferRequest
 
@@ -62,6 +65,31 @@ def test_a_condition_that_separates_only_its_own_task_is_not_chosen() -> None:
     required, terms = _smallest(truth, 0b111, 0b11111000, tasks)
     assert "only_a" not in required and not any("only_a" in t for t in terms) and (required or terms)
     assert not own_task(0b00111000, 0b00111000 | 0b01000000, ["a"] * 3 + ["a", "a", "a", "b", "b"])  # 2 tasks
+
+
+def test_a_condition_refusing_one_task_alone_of_every_call_labelled_refuse_is_not_chosen() -> None:
+    # bits 0-2 to allow (tasks a, b, c), 3-6 to refuse (tasks a, a, b, c); the rules kept already refuse 5 and 6,
+    # leaving task a's two. `only_a` refuses those alone, `reason` (two comparisons: dearer) refuses every call
+    # labelled 'refuse': judged across every task's refused calls, only `reason` is one, although the calls left
+    # are all one task's
+    tasks = ["a", "b", "c", "a", "a", "b", "c"]
+    truth = {"only_a": 0b1100111, "x == 1 and y == 2": 0b0000111}
+    required, terms = _smallest(truth, 0b111, 0b0011000, tasks, 0b1111000)
+    assert "only_a" not in required and not any("only_a" in t for t in terms)
+    assert "x == 1 and y == 2" in required or ("x == 1 and y == 2",) in terms
+
+
+def test_an_assumed_rule_no_label_contradicts_stays_with_labels() -> None:
+    # bits 0-1 to allow, 2-3 to refuse: `owned` (assumed) holds at all four, `status` (established) refuses 2-3.
+    # Without labels both are the guard; the labels refute neither, so neither is dropped (more labels never make
+    # the guard weaker), while `wrong` (assumed), which refuses call 1 to allow, goes
+    chosen = [Cluster((Candidate(e, "enumerate", 0b1),)) for e in ("owned", "status", "wrong")]
+    ranked = Ranked(results=[], valid=[], clusters=chosen, chosen=chosen,
+                    decided={"owned": "assumed", "status": "established", "wrong": "assumed"})
+    kept, notes = _kept(ranked, {"owned": 0b1111, "status": 0b0011, "wrong": 0b1101}, 0b0011, 0b1100)
+    assert kept == {"owned", "status"} and notes["wrong"].startswith("dropped")
+    kept, _ = _kept(ranked, {"owned": 0b1111, "status": 0b0011, "wrong": 0b1101}, 0b0011, 0b1100, unshown=True)
+    assert kept == {"status"}  # every demonstrated call labelled 'refuse': only what refuses them rests on them
 
 
 DEMOS = convert([run("A1", "lost", "no"), run("B2", "delivered", "yes"), run("C3", "lost", "yes"),

@@ -11,6 +11,7 @@ import json
 from precond.convert.openai import convert
 from precond.engine.candidates import tool_conditions, tool_facts
 from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
+from precond.engine.candidates.tool_relations import runnable
 from precond.engine.engine import Engine
 from precond.engine.spec import parse_spec
 from precond.sandbox import Sandbox
@@ -141,3 +142,53 @@ def test_labelled_calls_are_separated_by_what_a_policy_names_not_by_the_compleme
     assert tool_conditions.separating(atoms) == {
         READ, f"{READ} and {GOT}['cabin'] == 'business'", f"{READ} and total_baggages != {GOT}['total_baggages']",
         f"{READ} and len(passengers) != len({GOT}['passengers'])"}
+
+
+def test_an_argument_listed_in_an_earlier_reads_record_is_the_callers_own() -> None:
+    # every cancellation names a reservation the user's profile lists: "only the user's own reservations"
+    tools = [*TOOLS, {"type": "function", "function": {"name": "get_user_details", "parameters": {
+        "properties": {"user_id": {"type": "string"}}, "required": ["user_id"]}}}]
+
+    def owner_run(uid: str, rid: str) -> list[dict[str, object]]:
+        profile = json.dumps({"user_id": uid, "reservations": [rid, f"{rid}X"]})
+        return [{"role": "user", "content": "cancel"},
+                {"role": "assistant", "tool_calls": [{"function": {"name": "get_user_details",
+                                                                   "arguments": json.dumps({"user_id": uid})}}]},
+                {"role": "tool", "content": profile},
+                *run(rid, "business", "no", 1, "cancel_reservation", json.dumps({"reservation_id": rid}))[1:]]
+
+    converted = convert([owner_run(u, r) for u, r in (("u1", "A1"), ("u2", "B2"), ("u3", "C3"))], tools)
+    spec = parse_spec(converted.spec)
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    owned = "any(reservation_id in y['reservations'] for y in self.seen['get_user_details'])"
+    assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == [owned]
+    assert owned in tool_conditions.tool_atoms(facts, "cancel_reservation", ("self", "reservation_id"))
+    assert runnable([owned], ("reservation_id",)) == [owned]  # the embedded guard runs it too
+    stranger = convert([owner_run("u1", "A1"), [*owner_run("u2", "B2")[:3], *run(
+        "Z9", "business", "no", 1, "cancel_reservation", json.dumps({"reservation_id": "Z9"}))[1:]]], tools)
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in stranger.trajectories])
+    assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == []
+
+
+def test_an_argument_that_is_a_field_of_a_record_a_search_listed_was_offered() -> None:
+    # every move names a slot the search listed, though the argument is `new_slot` and the field `slot_id`
+    tools = [{"type": "function", "function": {"name": name, "parameters": {
+        "properties": {p: {"type": "string"} for p in params}, "required": list(params)}}}
+        for name, params in (("search_slots", ("day",)), ("move_visit", ("visit_id", "new_slot")))]
+
+    def move(day: str, chosen: int) -> list[dict[str, object]]:
+        slots = [{"slot_id": f"{day}-{h}", "hour": str(h)} for h in (9, 11, 15)]
+        return [{"role": "user", "content": "move it"},
+                {"role": "assistant", "tool_calls": [{"function": {"name": "search_slots",
+                                                                   "arguments": json.dumps({"day": day})}}]},
+                {"role": "tool", "content": json.dumps(slots)},
+                {"role": "assistant", "tool_calls": [{"function": {"name": "move_visit", "arguments": json.dumps(
+                    {"visit_id": f"V{day}", "new_slot": slots[chosen]["slot_id"]})}}]},
+                {"role": "tool", "content": "{}"}]
+
+    converted = convert([move("d1", 0), move("d2", 2), move("d3", 1)], tools)
+    spec = parse_spec(converted.spec)
+    facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
+    offered = "new_slot in [y['slot_id'] for y in self.seen['search_slots']]"
+    assert tool_conditions.offered(facts, "move_visit", ("self", "visit_id", "new_slot")) == [offered]
+    assert runnable([offered], ("visit_id", "new_slot")) == [offered]

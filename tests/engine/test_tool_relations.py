@@ -81,6 +81,14 @@ def test_each_relation_kind_is_proposed_from_what_the_demonstrated_calls_show() 
     assert len(found) <= 48
 
 
+def test_an_action_never_requires_its_own_earlier_success_on_the_key() -> None:
+    # "renew only a loan already renewed" refuses every loan's first renewal: no policy says it, so it is never
+    # proposed, although the labels of each run's first renewal, refused for another reason, would fit it
+    found = relations_of([desk_run(n, REASONS[n % 3]) for n in range(6)])
+    assert "loan_id in self.changes['renew_loan']" not in found
+    assert "loan_id not in self.changes['renew_loan']" in found
+
+
 def test_a_relation_a_demonstrated_call_breaks_is_not_proposed() -> None:
     found = relations_of([desk_run(n, REASONS[n % 3]) for n in range(5)] + [desk_run(9, "exam", book="zz")])
     assert not any("for x in book_ids" in a for a in found)  # one renewal named a book not on its loan

@@ -29,7 +29,11 @@ so this module adds, for an action whose parameter names the key of an earlier t
   self.results['get_reservation_details'])`: "$100 times the number of passengers" of a reservation read);
   and an argument's few values (`cabin in ('economy',)`), the cells of a table of allowances by category, the k
   of each cell learned from labelled calls (`counterexamples`: free bags by tier and cabin).
-  These only separate labelled calls (`arithmetic`, `counterexamples`).
+  These only separate labelled calls (`arithmetic`, `counterexamples`);
+- a string argument listed, at every demonstrated call, in a list field of a record an earlier read returned
+  (`any(reservation_id in y['reservations'] for y in self.seen['get_user_details'])`: the user's own records).
+- a string argument that, at every demonstrated call, is one field of a record an earlier read listed
+  (`slot_id in [y['slot_id'] for y in self.seen['search_available_slots']]`: only what was offered).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
 which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
@@ -277,7 +281,48 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
     atoms += allowances(facts, action, params)
     atoms += scaled(facts, action, params)
     atoms += keys(facts, action, params)
+    atoms += owned(facts, action, params) + offered(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
+
+
+def offered(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """`slot_id in [y['slot_id'] for y in self.seen['search_available_slots']]`: a string argument that, at every
+    demonstrated call, is the value of one field of a record an earlier read listed (a field every record of that
+    tool holds): only what was offered, whatever the argument is named (`new_slot_id`), at most MAX_SOURCES an
+    argument."""
+    calls = facts.seen.get(action, [])
+    atoms: list[str] = []
+    for param in params:
+        found: set[tuple[str, str]] | None = None
+        for call in calls:
+            value = call.args.get(param)
+            here = {(tool, name) for tool, rows in call.listed.items() if tool != action
+                    for row in rows for name, item in row.items() if isinstance(value, str) and item == value
+                    and facts.records.get(tool, Counter())[name] == facts.records.get(tool, Counter())[""]}
+            found = here if found is None else found & here
+        atoms += [f"{param} in [y[{name!r}] for y in {SEEN}[{tool!r}]]" for tool, name in sorted(found or ())
+                  ][:MAX_SOURCES]
+    return atoms
+
+
+def owned(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
+    """`any(card_id in y['card_ids'] for y in self.seen['get_customer_profile'])`: a string argument listed, at every
+    demonstrated call, in a list field of a record an earlier read returned (a dict, so every record holds its
+    fields): the caller's own records ("only cards listed in the verified customer's profile"), at most
+    MAX_SOURCES an argument. Not the read the argument itself keys: its result is the record, not its owner."""
+    calls = facts.seen.get(action, [])
+    atoms: list[str] = []
+    for param in params:
+        found: set[tuple[str, str]] | None = None
+        for call in calls:
+            value = call.args.get(param)
+            here = {(tool, name) for (tool, _), result in call.results.items() if isinstance(result, dict)
+                    for name, item in result.items() if isinstance(item, list) and isinstance(value, str)
+                    and value in item and facts.key_param.get(tool) != param and tool not in facts.records}
+            found = here if found is None else found & here
+        atoms += [f"any({param} in y[{name!r}] for y in {SEEN}[{tool!r}])" for tool, name in sorted(found or ())
+                  ][:MAX_SOURCES]
+    return atoms
 
 
 def _item_names(facts: ToolFacts, action: str, param: str) -> list[str]:

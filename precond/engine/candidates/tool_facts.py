@@ -30,6 +30,8 @@ class Seen:
     """What the user said last before the call (`USER.says`)."""
     run: int = 0
     """The index of the run it was read from."""
+    listed: dict[str, list[dict[str, object]]] = field(default_factory=dict)
+    """tool → the records (dicts) its successful list results held so far (`self.seen`'s list results)."""
 
 
 @dataclass
@@ -96,6 +98,7 @@ class _Replay:
         self.results: dict[tuple[str, object], object] = {}
         self.pending: list[tuple[str, dict[str, object]]] = []
         self.said: object = None
+        self.listed: dict[str, list[dict[str, object]]] = {}
 
     def statement(self, node: ast.stmt) -> None:
         call = node.value if isinstance(node, ast.Expr) else None
@@ -111,7 +114,8 @@ class _Replay:
             self.said = values[0]
         elif call.func.attr in self.params:
             args = dict(zip(self.params[call.func.attr], values, strict=False))
-            self.facts.seen.setdefault(call.func.attr, []).append(Seen(args, dict(self.results), self.said, self.run))
+            self.facts.seen.setdefault(call.func.attr, []).append(Seen(args, dict(self.results), self.said, self.run,
+                                                                     {t: list(r) for t, r in self.listed.items()}))
             self.pending.append((call.func.attr, args))
 
     def result(self, tool: object, key: object, ok: object, value: object) -> None:
@@ -133,6 +137,8 @@ class _Replay:
             counts = self.facts.records.setdefault(tool, Counter())
             for record in records(value):
                 counts[""] += 1
+                if isinstance(record, dict):
+                    self.listed.setdefault(tool, []).append(record)
                 if isinstance(record, dict):
                     counts.update(k for k, v in record.items() if isinstance(k, str) and isinstance(v, str | int))
 

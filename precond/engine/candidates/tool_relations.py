@@ -73,7 +73,7 @@ def labels_only(atom: str) -> bool:
 def relations(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
     """The relation conditions of one action (module docstring), each runnable by the embedded guard."""
     calls = [c for c in facts.seen.get(action, []) if facts.demonstrated is None or c.run < facts.demonstrated]
-    atoms = [*earlier_writes(facts, params), *categories(facts, calls, params), *confirmation(calls),
+    atoms = [*earlier_writes(facts, params, action), *categories(facts, calls, params), *confirmation(calls),
              *variants(facts, calls, params), *scalar_kinds(calls, params)]
     for key in params:
         for tool, param in sorted(facts.key_param.items()):
@@ -95,13 +95,15 @@ def runnable(atoms: Iterable[str], params: Sequence[str]) -> list[str]:
     return kept
 
 
-def earlier_writes(facts: ToolFacts, params: Sequence[str]) -> list[str]:
-    """`key in / not in self.changes[W]` for each write W with a parameter named as one of the call's keys."""
+def earlier_writes(facts: ToolFacts, params: Sequence[str], action: str = "") -> list[str]:
+    """`key in / not in self.changes[W]` for each write W with a parameter named as one of the call's keys; of the
+    action itself only `not in` ("once per key"): requiring its own earlier success would refuse the first call
+    on every key, so no policy can state it, however well it fits calls labelled 'refuse' (each run's first)."""
     keys = set(facts.key_param.values())
     atoms = []
     for key in (p for p in params if p in keys):
         for write in sorted(w for w in facts.writes if key in facts.params.get(w, ())):
-            atoms += [f"{key} not in {CHANGES}[{write!r}]", f"{key} in {CHANGES}[{write!r}]"]
+            atoms += [f"{key} not in {CHANGES}[{write!r}]"] + ([f"{key} in {CHANGES}[{write!r}]"] * (write != action))
     return atoms
 
 

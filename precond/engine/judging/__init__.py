@@ -9,6 +9,7 @@ from __future__ import annotations
 from precond.engine.faces import lazy
 
 _SOURCES: dict[str, tuple[str, ...]] = {
+    "precond.engine.judging.call_facts": ("about_the_call",),
     "precond.engine.judging.dated_limits": ("with_dated_limits",),
     "precond.engine.judging.decisive": ("decisive_points",),
     "precond.engine.judging.evidence": ("OccurrenceIndex", "thin", "too_few"),

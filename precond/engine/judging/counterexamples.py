@@ -9,9 +9,9 @@ must allow.
 For an action with labelled calls the rules are chosen by what separates the two sides: a small disjunction
 of conjunctions (`separate`) of the conditions already judged (the enumerator's, the model's), false at every
 call to refuse and true at as many calls to allow as it can be, each term with as few conditions as the
-evidence needs (one, else two). Beside it the ranking's other rules stay only where they allow every call to
-allow, and an assumed one (a possible correlate) only where it refuses a labelled call: a refusal always has a
-counterexample or an established reason behind it. Last, for a tool spec, an allowance the policy states
+evidence needs (one, else two). Beside it the ranking's other rules stay where they allow every call to allow,
+an assumed one (a possible correlate) too: more labels never leave a guard weaker than the demonstrations alone
+made it, and a refusal by an assumed rule says it is assumed. Last, for a tool spec, an allowance the policy states
 tightens the rule (`allowance_tables`: one k for every call, or a k by category, only where one k cannot
 separate the calls the rest leaves allowed). Nothing here runs untrusted code: the sandbox judged every
 condition at every labelled call (`Labelled.points` are its points).
@@ -210,7 +210,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
              policy: set[str] | None = None, tasks: Callable[[Point | Case], str] | None = None) -> Separation:
     """The action's rules chosen against its labelled calls (module docstring). `policy`: the conditions
     the separating rules are made of when given (a tool spec's conditions over results and arguments); `tasks`:
-    the task a demonstrated call (its point) or a labelled call of another run belongs to (`own_task`)."""
+    the task a demonstrated call (its point) or a labelled call of another run belongs to (`run_tasks.own_task`)."""
     examples, demo_bits = _examples(occurrences, labelled_demos, demo_points, case_points)
     case_bits = [_index(case_order, point) for _, point in case_points]
     positive = sum(1 << k for k, e in enumerate(examples) if not e.refuse)
@@ -225,7 +225,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     # from above: only the limits a tool's policy states are learned from the calls to refuse (`_limits`)
     task_of = [tasks(case or occurrence) for case, occurrence in _sources(examples, occurrences, case_points)] \
         if tasks else None
-    required, learned = _smallest(pool, positive, remaining, task_of) if positive else (
+    required, learned = _smallest(pool, positive, remaining, task_of, negative) if positive else (
         _limits(pool, negative, remaining) if policy else [], [])
     every = (1 << len(examples)) - 1
     table = _tightened(truth, policy, positive, negative, remaining, required, learned, every) \
@@ -237,7 +237,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
         chosen.append(Cluster((Candidate(e, "enumerate", by_text[e].satisfied),)))
         notes[e] = ("kept: holds at every call to allow and refuses calls labelled 'refuse'" if positive else
                     "kept: a limit that refuses calls labelled 'refuse'; no call of the action is labelled 'allow' "
-                    "or demonstrated") + _across(negative & ~truth.get(e, 0), negative, task_of)
+                    "or demonstrated") + run_tasks.across(negative & ~truth.get(e, 0), negative, task_of)
     at_demos = {r.expression: r.satisfied for r in ranked.results}
     added: list[tuple[str, int, int, str]] = []
     """Rules made here: the text, where it holds at the demonstrations and at the examples, the reason."""
@@ -378,8 +378,9 @@ def _conflict(rule: str, allowed: Sequence[str], refused: Sequence[str]) -> str:
 
 def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int, unshown: bool = False
           ) -> tuple[set[str], dict[str, str]]:
-    """The ranking's rules that allow every call to allow; an assumed one only if it refuses a labelled call,
-    and so every one when each demonstrated call is labelled 'refuse' (`unshown`): they rest on those calls."""
+    """The ranking's rules that allow every call to allow, assumed ones too (labels that never contradict a rule
+    do not drop it); when each demonstrated call is labelled 'refuse' (`unshown`), only those that refuse a
+    labelled call: they rest on those calls."""
     kept, notes = set(), {}
     for cluster in ranked.chosen:
         e = cluster.representative.expression
@@ -388,8 +389,6 @@ def _kept(ranked: Ranked, truth: Mapping[str, int], positive: int, negative: int
             continue
         if positive & ~held:
             notes[e] = f"dropped: refuses {(positive & ~held).bit_count()} call(s) labelled or demonstrated to allow"
-        elif ranked.decided.get(e) == "assumed" and not negative & ~held:
-            notes[e] = "dropped: assumed, and refuses none of the calls labelled 'refuse' (a correlate, not a reason)"
         elif unshown and not negative & ~held:
             notes[e] = ("dropped: every demonstrated call it rests on is labelled 'refuse', and it refuses none of "
                         "them (evidence against it, not for)")
@@ -425,40 +424,35 @@ def _sources(examples: Sequence[Example], occurrences: Sequence[Point], case_poi
         [(case, point) for case, point in case_points]
 
 
-MIN_TASKS = 3
-"""Tasks whose calls labelled 'refuse' a condition must be judged across before one task's are too few
-(`own_task`)."""
+def _smallest(truth: Mapping[str, int], positive: int, negative: int, task_of: Sequence[str] | None = None,
+              labelled: int | None = None) -> tuple[list[str], list[Term]]:
+    """Required conditions and separating terms (`_cheapest`) of conditions that never refuse one task's calls
+    labelled 'refuse' alone (`run_tasks.own_task`). `labelled`: every call labelled 'refuse', `negative` being
+    those the rules kept leave allowed: the calls left may all be one task's, and a condition refusing only them
+    passes for a reason although no other task's refused call shows it. So a rule of conditions each refusing
+    calls of several tasks among `labelled` (what a leave-one-task-out choice still finds) is preferred wherever
+    it leaves no more labelled calls on the wrong side than a rule judged on the calls left alone; else the
+    latter is taken (with one labelled call a task, every reason refuses one task's calls)."""
+    lenient = {e: t for e, t in truth.items() if not run_tasks.own_task(negative & ~t, negative, task_of)}
+    wrong, found = _cheapest(lenient, positive, negative)
+    if labelled is None or task_of is None:
+        return found
+    every = labelled | negative
+    strict = {e: t for e, t in lenient.items() if not run_tasks.own_task(every & ~t, every, task_of)}
+    shared_wrong, shared = _cheapest(strict, positive, negative)
+    return shared if shared_wrong <= wrong else found
 
 
-def _across(refused: int, negative: int, task_of: Sequence[str] | None) -> str:
-    """How many tasks' labelled calls a condition refuses, for its reason: why a leave-one-task-out choice kept it."""
-    if task_of is None or len({task_of[k] for k in _bits_of(negative)}) < MIN_TASKS:
-        return ""
-    return (f" (of {len({task_of[k] for k in _bits_of(refused)})} tasks; chosen leave-one-task-out: a condition "
-            "refusing one task's calls alone is not)")
-
-
-def own_task(refused: int, negative: int, task_of: Sequence[str] | None) -> bool:
-    """Whether the calls labelled 'refuse' a condition refuses (`refused`) all come from one task while the
-    labelled calls span at least MIN_TASKS tasks: left out, that task's calls would never have chosen it, so a
-    leave-one-task-out choice never keeps it (it separates only its own task, as a value only that task shows)."""
-    if task_of is None or not refused:
-        return False
-    spanned = {task_of[k] for k in _bits_of(negative)}
-    return len(spanned) >= MIN_TASKS and len({task_of[k] for k in _bits_of(refused)}) == 1
-
-
-def _smallest(truth: Mapping[str, int], positive: int, negative: int, task_of: Sequence[str] | None = None
-              ) -> tuple[list[str], list[Term]]:
+def _cheapest(truth: Mapping[str, int], positive: int, negative: int) -> tuple[int, tuple[list[str], list[Term]]]:
     """Required conditions (the first k of `_required`'s order) and the terms that separate what they leave:
     the k whose labelled calls left on the wrong side (calls to allow refused, calls labelled 'refuse' allowed),
-    plus CONDITION_COST per condition, are fewest. A call labelled 'refuse' that no condition holding at some call
-    to allow refuses (`unseparable`) is left out of the terms' search: it stays allowed and is reported, and
-    the terms still separate the others (one such label never costs the rule that refuses the rest)."""
-    truth = {e: t for e, t in truth.items() if not own_task(negative & ~t, negative, task_of)}
+    plus CONDITION_COST per condition, are fewest; with how many are on the wrong side. A call labelled 'refuse'
+    that no condition holding at some call to allow refuses (`unseparable`) is left out of the terms' search: it
+    stays allowed and is reported, and the terms still separate the others (one such label never costs the rule
+    that refuses the rest)."""
     order = _required(truth, positive, negative)
     alone = unseparable(truth, positive, negative)
-    best: tuple[tuple[float, int], list[str], list[Term]] | None = None
+    best: tuple[tuple[float, int], int, list[str], list[Term]] | None = None
     for k in range(len(order) + 1):
         remaining = negative
         for e in order[:k]:
@@ -471,8 +465,8 @@ def _smallest(truth: Mapping[str, int], positive: int, negative: int, task_of: S
             wrong = (positive & ~allowed).bit_count() + (remaining & allowed).bit_count()
             cost = (wrong + CONDITION_COST * size, size)
             if best is None or cost < best[0]:
-                best = (cost, order[:k], terms)
-    return (best[1], best[2]) if best else ([], [])
+                best = (cost, wrong, order[:k], terms)
+    return (best[1], (best[2], best[3])) if best else (negative.bit_count(), ([], []))
 
 
 def _shadows(truth: Mapping[str, int], positive: int, negative: int) -> int:

@@ -2,7 +2,7 @@
 
 A request's runs carry no task ids, yet choosing a rule from labelled calls must know them: a condition that
 refuses only one task's calls labelled 'refuse' is a value that task shows, not a reason
-(`counterexamples.own_task`). Runs of one task deal with the same user or record: the arguments of a run's first
+(`own_task`). Runs of one task deal with the same user or record: the arguments of a run's first
 tool call (`agent.get_user_details('mia_li_3668')`) show up among the calls of every other run of its task, while
 a simulated user's first words differ from run to run. So two runs are one task where the constant arguments of
 one's first call all occur among the other's calls' constant arguments, and tasks are the connected groups; a
@@ -39,6 +39,33 @@ def tasks(programs: Sequence[str]) -> list[str]:
             if s != r and first <= seen[s]:
                 parent[root(r)] = root(s)
     return [_key(programs[root(k)], k) for k in range(len(programs))]
+
+
+MIN_TASKS = 3
+"""Tasks whose calls labelled 'refuse' a condition must be judged across before one task's are too few
+(`own_task`)."""
+
+
+def across(refused: int, negative: int, task_of: Sequence[str] | None) -> str:
+    """How many tasks' labelled calls a condition refuses, for its reason: why a leave-one-task-out choice kept it."""
+    if task_of is None or len({task_of[k] for k in _bits(negative)}) < MIN_TASKS:
+        return ""
+    return (f" (of {len({task_of[k] for k in _bits(refused)})} tasks; chosen leave-one-task-out: a condition "
+            "refusing one task's calls alone is not)")
+
+
+def own_task(refused: int, negative: int, task_of: Sequence[str] | None) -> bool:
+    """Whether the calls labelled 'refuse' a condition refuses (`refused`) all come from one task while the
+    labelled calls span at least MIN_TASKS tasks: left out, that task's calls would never have chosen it, so a
+    leave-one-task-out choice never keeps it (it separates only its own task, as a value only that task shows)."""
+    if task_of is None or not refused:
+        return False
+    spanned = {task_of[k] for k in _bits(negative)}
+    return len(spanned) >= MIN_TASKS and len({task_of[k] for k in _bits(refused)}) == 1
+
+
+def _bits(mask: int) -> list[int]:
+    return [k for k in range(mask.bit_length()) if (mask >> k) & 1]
 
 
 def _calls(program: str) -> list[frozenset[str]]:
