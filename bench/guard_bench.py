@@ -1,6 +1,7 @@
 """The embedded guard (`precond_client.guard.Guard`) and its adapters, on tau-bench's airline runs.
 
     python bench/guard_bench.py [--data ../shared/data/tau-airline] [--repeat 2000] [--calls 40] [--json out.json]
+    SANDBOX_TIMEOUT_S=30 python bench/guard_bench.py --retail ../shared/data/tau-retail [--repeat 200]
 
 - `check`: a state-changing call judged after a history of about 12 KB (its messages as JSON), the state already
   built: every such call of the runs, each judged `--repeat` times; p50/p99 of single checks.
@@ -17,7 +18,11 @@
 Each figure is wall-clock and CPU time (the thread's for single checks, the process's for runs): on a machine
 shared with other work, wall-clock tails are the other processes' time slices.
 
-The rules are the forms the learner writes, for the state-changing tools: the read before the write, fields of
+- `retail_check` (with `--retail`, in place of the rest): the rules the learner infers from tau-bench retail's 150
+  runs with every label (bench/tool_retail_bench.py's request), then every labelled state-changing call judged
+  `--repeat` times on the history before it: p50/p99 of single checks.
+
+The airline rules are the forms the learner writes, for the state-changing tools: the read before the write, fields of
 the read result (the cancellation clause's disjunction), the call's arguments against them. The service's path
 (`/check-actions`, a queue round trip) is bench/tool_check_bench.py.
 """
@@ -99,10 +104,14 @@ def guarded_points(guard: Guard, runs: list[list[dict[str, Any]]]) -> list[tuple
 
 
 def bench_check(guard: Guard, runs: list[list[dict[str, Any]]], repeat: int) -> dict[str, Any]:
+    return timed_checks(guarded_points(guard, runs), repeat)
+
+
+def timed_checks(points: list[tuple[Session, dict[str, Any]]], repeat: int) -> dict[str, Any]:
+    """Each call judged `repeat` times after its history: the verdicts, p50/p99 of single checks."""
     samples: list[float] = []
     cpu: list[float] = []
     verdicts = {"allowed": 0, "refused": 0}
-    points = guarded_points(guard, runs)
     for session, call in points:
         verdict = session.check(call["name"], call["arguments"])
         verdicts["allowed" if verdict.allowed else "refused"] += 1
@@ -305,6 +314,34 @@ def bench_adapters(guard: Guard, calls: int, rounds: int) -> dict[str, Any]:
     return results
 
 
+def retail_points(guard: Guard, data: Path) -> list[tuple[Session, dict[str, Any]]]:
+    """(the session after the history, the call) for each labelled state-changing call of tau-retail's runs."""
+    runs = {(r["task_id"], r["trial"]): r["traj"] for r in json.loads((data / "trajectories.json").read_text())}
+    points = []
+    for label in json.loads((data / "labels.json").read_text()):
+        run = runs[(label["task_id"], label["trial"])]
+        at = label["message_index"]
+        call = next(c["function"] for c in run[at]["tool_calls"] if c["function"]["name"] == label["tool"])
+        points.append((guard.session(run[:at]), call))
+    return points
+
+
+def bench_retail(data: Path, repeat: int) -> dict[str, Any]:
+    """The retail rules inferred once (all runs, every label), then `bench_check`'s timing on the labelled calls."""
+    from tool_retail_bench import WRITES as RETAIL_WRITES
+    from tool_retail_bench import request
+
+    from precond.engine.factory import build_engine
+
+    records = json.loads((data / "trajectories.json").read_text())
+    converted = convert(records, json.loads((data / "tools.json").read_text()), "trajectories.json",
+                        "tools.json", set(RETAIL_WRITES))
+    labels = json.loads((data / "labels.json").read_text())
+    rules = build_engine(with_model=False).infer(request(converted, labels, None)).preconditions
+    guard = Guard(converted.spec, rules)
+    return {"rules": sum(len(r) for r in rules.values()), **timed_checks(retail_points(guard, data), repeat)}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "tau-airline")
@@ -312,7 +349,13 @@ def main() -> None:
     parser.add_argument("--calls", type=int, default=40, help="tool calls per scripted adapter run")
     parser.add_argument("--rounds", type=int, default=15, help="alternated bare/guarded adapter runs")
     parser.add_argument("--json", type=Path, help="also write the results here")
+    parser.add_argument("--retail", type=Path, help="time the check on the rules inferred from this tau-retail data")
     args = parser.parse_args()
+    if args.retail:
+        results = {"cpu": cpu(), "python": platform.python_version(), "retail_check": bench_retail(args.retail,
+                                                                                                    args.repeat)}
+        print(json.dumps(results, indent=1))
+        return
     records = json.loads((args.data / "trajectories.json").read_text())
     converted = convert(records, json.loads((args.data / "tools.json").read_text()))
     guard = Guard(converted.spec, RULES)

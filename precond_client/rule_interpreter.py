@@ -57,8 +57,9 @@ from precond_client.rule_work import (
     arithmetic_cost,
     call_cost,
     charge_key,
-    compare_cost,
-    membership_cost,
+    charged,
+    compared,
+    comparison_cost,
     too_large,
     weigh,
     weighed,
@@ -240,6 +241,8 @@ def _attribute(node: ast.expr, scope: Scope) -> Compiled:
     if found is None:
         raise OutsideGrammar(f"{_text(node)}: {node.attr!r} is not an attribute of the state")
     name = node.attr
+    if isinstance(node.value, ast.Name) and node.value.id == "self" and "self" not in scope.bound:
+        return found, lambda frame: getattr(frame.state, name)  # `self.results`: the state read at once
     return found, lambda frame: getattr(owner(frame), name)
 
 
@@ -249,13 +252,16 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
         raise OutsideGrammar(f"{_text(node)}: a slice")
     shape, container = _compile(node.value, scope)
     key = _value(node.slice, scope)
+    known = node.slice.value if isinstance(node.slice, ast.Constant) and type(node.slice.value) is str else None
     if shape.kind == "table":
         path, empty = ast.unparse(node.value), list if shape.lists else dict
 
         def read(frame: Frame) -> Any:
-            table, wanted = container(frame), key(frame)
-            if type(wanted) is not str:  # a string's hash is kept with it
-                charge_key(wanted, frame)
+            table, wanted = container(frame), known
+            if wanted is None:  # `x['key']`, the common form, reads its key without a call (a string: no charge)
+                wanted = key(frame)
+                if type(wanted) is not str:  # a string's hash is kept with it
+                    charge_key(wanted, frame)
             try:
                 return table[wanted]
             except KeyError:
@@ -265,6 +271,8 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
         return VALUE, read
     if shape.kind != "value":
         raise OutsideGrammar(f"{_text(node)}: the state's {shape.kind} is not subscripted")
+    if known is not None:
+        return VALUE, lambda frame: container(frame)[known]
 
     def item(frame: Frame) -> Any:
         value, wanted = container(frame), key(frame)
@@ -273,21 +281,6 @@ def _subscript(node: ast.expr, scope: Scope) -> Compiled:
         return value[wanted]
 
     return VALUE, item
-
-
-def _charged(op: ast.cmpop) -> Callable[[Any, Any, Frame], Any]:
-    """The comparison, its cost charged first (`rule_work.compare_cost`, `membership_cost`; `is` is one step)."""
-    test = COMPARE[type(op)]
-    if isinstance(op, ast.Is | ast.IsNot):
-        return lambda left, right, frame: test(left, right)
-    cost = (membership_cost if isinstance(op, ast.In | ast.NotIn)
-            else compare_cost(sized=isinstance(op, ast.Eq | ast.NotEq)))
-
-    def compare(left: Any, right: Any, frame: Frame) -> Any:
-        frame.charge(cost(left, right, frame))
-        return test(left, right)
-
-    return compare
 
 
 def _contains(path: str, table: Evaluate, negated: bool) -> Callable[[Any, Frame], Any]:
@@ -316,12 +309,12 @@ def _compare(node: ast.expr, scope: Scope) -> Compiled:
         if isinstance(op, ast.Is | ast.IsNot) and not (isinstance(right, ast.Constant) and any(
                 right.value is s for s in SINGLETONS)):
             raise OutsideGrammar(f"{_text(node)}: `is` compares with None, True or False only")
-        steps.append((evaluate, _charged(op)))
+        steps.append((evaluate, charged(COMPARE[type(op)], comparison_cost(op))))
     if len(steps) == 1:
         (right_value, test), = steps
         if right_value is None:
             return VALUE, lambda frame: test(left(frame), frame)
-        return VALUE, lambda frame: test(left(frame), right_value(frame), frame)
+        return VALUE, compared(left, right_value, COMPARE[type(node.ops[0])], comparison_cost(node.ops[0]))
 
     def chained(frame: Frame) -> Any:
         current, result = left(frame), True

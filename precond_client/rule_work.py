@@ -14,6 +14,7 @@ call is refused, never allowed. Standard library only, as the interpreter.
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import Any
 
@@ -158,6 +159,42 @@ def compare_cost(sized: bool) -> Callable[[Any, Any, Frame], int]:
         return 1 + weigh(right, frame)
 
     return cost
+
+
+def comparison_cost(op: ast.cmpop) -> Callable[[Any, Any, Frame], int] | None:
+    """What a comparison costs (None: `is`, the one step of its node)."""
+    if isinstance(op, ast.Is | ast.IsNot):
+        return None
+    if isinstance(op, ast.In | ast.NotIn):
+        return membership_cost
+    return compare_cost(sized=isinstance(op, ast.Eq | ast.NotEq))
+
+
+def charged(test: Callable[[Any, Any], Any], cost: Callable[[Any, Any, Frame], int] | None
+            ) -> Callable[[Any, Any, Frame], Any]:
+    """The comparison `test`, its `cost` charged first (`compare_cost`, `membership_cost`)."""
+    if cost is None:
+        return lambda left, right, frame: test(left, right)
+
+    def compare(left: Any, right: Any, frame: Frame) -> Any:
+        frame.charge(cost(left, right, frame))
+        return test(left, right)
+
+    return compare
+
+
+def compared(left: Callable[[Frame], Any], right: Callable[[Frame], Any], test: Callable[[Any, Any], Any],
+             cost: Callable[[Any, Any, Frame], int] | None) -> Callable[[Frame], Any]:
+    """One comparison of two values (the common form): `charged`'s charge and test without a call between."""
+    if cost is None:
+        return lambda frame: test(left(frame), right(frame))
+
+    def compare(frame: Frame) -> Any:
+        first, second = left(frame), right(frame)
+        frame.charge(cost(first, second, frame))
+        return test(first, second)
+
+    return compare
 
 
 def membership_cost(item: Any, container: Any, frame: Frame) -> int:

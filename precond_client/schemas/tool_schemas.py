@@ -43,6 +43,8 @@ def schema_problem(tool: str, schema: dict[str, Any] | None, arguments: Any) -> 
 
     try:
         checker = _validator(json.dumps(schema, sort_keys=True))
+        if _plainly_kept(schema, arguments):
+            return None
         error = exceptions.best_match(checker.iter_errors(arguments))
     except Exception as exc:  # not a schema, a reference it does not hold, ...: the call is refused (fail closed)
         return f"{tool}'s JSON Schema cannot be checked: {_clean(str(exc).splitlines()[0] if str(exc) else exc)}"
@@ -62,6 +64,36 @@ def _validator(schema_text: str) -> Validator:
     cls.check_schema(schema)
     unchecked = validators.extend(cls, {keyword: None for keyword in UNCHECKED})
     return unchecked(schema)
+
+
+PLAIN = frozenset({"type", "properties", "required", "items", "enum", "description", "title"})
+"""The keywords `_plainly_kept` reads (what tool schemas mostly hold); a schema with any other goes to jsonschema."""
+_PLAIN_TYPES = {"string": (str,), "boolean": (bool,), "integer": (int,), "number": (int, float), "array": (list,),
+                "object": (dict,), "null": (type(None),)}
+
+
+def _plainly_kept(schema: Any, value: Any) -> bool:
+    """True only where `value` surely keeps `schema` (as jsonschema would say) by the `PLAIN` keywords alone: the
+    common call is then not walked by jsonschema's validator (most of a guard's check). False is "not sure": the
+    caller asks jsonschema, whose words a refusal says. Types are matched exactly (`type(value)`, no bool for an
+    integer, no float for one), enums only for text, so that it never says kept where jsonschema says broken."""
+    if not isinstance(schema, dict) or not PLAIN.issuperset(schema):
+        return False
+    kind = schema.get("type")
+    if kind is not None and (not isinstance(kind, str) or type(value) not in _PLAIN_TYPES.get(kind, ())):
+        return False
+    if "enum" in schema and not (type(value) is str and isinstance(schema["enum"], list)
+                                 and any(type(e) is str and e == value for e in schema["enum"])):
+        return False
+    if type(value) is dict:
+        required, properties = schema.get("required", []), schema.get("properties", {})
+        if not isinstance(required, list) or not isinstance(properties, dict) or any(r not in value for r in required):
+            return False
+        if not all(_plainly_kept(properties[k], v) for k, v in value.items() if k in properties):
+            return False
+    if type(value) is list and "items" in schema:
+        return all(_plainly_kept(schema["items"], v) for v in value)
+    return True
 
 
 def _clean(text: object) -> str:
