@@ -114,6 +114,8 @@ def _service_judge(reference: str | None, server: str | None, api_key: str | Non
 
 def _run(upstreams: list[str], mode: str, log: Path, http: int | None, timeouts: tuple[float, float],
          bounds: tuple[int, int], make: Any) -> None:
+    """The proxy on uvloop's event loop (as the gateway and the worker): the loop's turns, pipe reads and writes
+    and the upstreams' processes are most of what a call costs the proxy beyond its own work."""
     import anyio
 
     from precond_client.mcp.serve import Settings, StartError, serve
@@ -121,7 +123,7 @@ def _run(upstreams: list[str], mode: str, log: Path, http: int | None, timeouts:
     settings = Settings(upstreams, mode, log, http, timeout=timeouts[0], start_timeout=timeouts[1],  # type: ignore[arg-type]
                         max_log_bytes=bounds[0], max_calls_bytes=bounds[1])
     try:
-        anyio.run(serve, settings, make)
+        anyio.run(serve, settings, make, backend_options={"use_uvloop": True})
     except* StartError as group:
         _fail("; ".join(str(e) for e in _leaves(group)))
     except* OSError as group:
