@@ -16,8 +16,8 @@ export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 TOKENIZERS_PARALLELISM=false
 # Compiled modules, pytest's rewritten test modules among them, are kept (__pycache__/, ignored by git): every
 # pytest process and every process a stack starts reads them instead of compiling the sources again.
 unset PYTHONDONTWRITEBYTECODE
-# The embedded model's converted copies (MODEL_CACHE_DIR; minutes, once a machine) are built beside the lint and
-# the type check, on a core they leave idle; else the model tests' processes would each build them at once.
+# The embedded model's converted copies (MODEL_CACHE_DIR; minutes, once a machine) are built beside the lint, the
+# type check and the fast step; else the model tests' processes would each build them at once.
 precond prepare-model &
 prepared=$!
 # One collection beside them writes those compiled modules before the steps' processes each need them (a
@@ -25,8 +25,13 @@ prepared=$!
 python -m pytest --collect-only -q -p no:xdist >/dev/null 2>&1 &
 collected=$!
 ruff check .
-mypy
-wait "$prepared"
+# mypy is one process on one core (a minute without its cache, as on a fresh clone): the fast step runs beside
+# it on the other cores; mypy's report is printed once that step is done, and a mypy failure ends the run there,
+# before the second step, with mypy's exit code.
+typecheck_log=$(mktemp)
+trap 'rm -f "$typecheck_log"' EXIT
+mypy >"$typecheck_log" 2>&1 &
+typed=$!
 wait "$collected" || true
 
 processes=${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}
@@ -40,5 +45,17 @@ pytest_step() {
   return "$code"
 }
 
-pytest_step -m "not model and not stack" "$@"
+fast=0
+pytest_step -m "not model and not stack" "$@" || fast=$?
+typecheck=0
+wait "$typed" || typecheck=$?
+cat "$typecheck_log"
+if [ "$typecheck" -ne 0 ]; then
+  echo "mypy failed (exit $typecheck)" >&2
+  exit "$typecheck"
+fi
+if [ "$fast" -ne 0 ]; then
+  exit "$fast"
+fi
+wait "$prepared"
 pytest_step -m "stack or model" "$@"
