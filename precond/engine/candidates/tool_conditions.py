@@ -290,19 +290,14 @@ def offered(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
     demonstrated call, is the value of one field of a record an earlier read listed (a field every record of that
     tool holds): only what was offered, whatever the argument is named (`new_slot_id`), at most MAX_SOURCES an
     argument."""
-    calls = facts.seen.get(action, [])
-    atoms: list[str] = []
-    for param in params:
-        found: set[tuple[str, str]] | None = None
-        for call in calls:
-            value = call.args.get(param)
-            here = {(tool, name) for tool, rows in call.listed.items() if tool != action
-                    for row in rows for name, item in row.items() if isinstance(value, str) and item == value
-                    and facts.records.get(tool, Counter())[name] == facts.records.get(tool, Counter())[""]}
-            found = here if found is None else found & here
-        atoms += [f"{param} in [y[{name!r}] for y in {SEEN}[{tool!r}]]" for tool, name in sorted(found or ())
-                  ][:MAX_SOURCES]
-    return atoms
+    def sources(call: Seen, param: str) -> set[tuple[str, str]]:
+        value = call.args.get(param)
+        return {(tool, name) for tool, rows in call.listed.items() if tool != action
+                for row in rows for name, item in row.items() if isinstance(value, str) and item == value
+                and facts.records.get(tool, Counter())[name] == facts.records.get(tool, Counter())[""]}
+
+    return _at_every_call(facts.seen.get(action, []), params, sources,
+                          lambda param, tool, name: f"{param} in [y[{name!r}] for y in {SEEN}[{tool!r}]]")
 
 
 def owned(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
@@ -310,19 +305,14 @@ def owned(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
     demonstrated call, in a list field of a record an earlier read returned (a dict, so every record holds its
     fields): the caller's own records ("only cards listed in the verified customer's profile"), at most
     MAX_SOURCES an argument. Not the read the argument itself keys: its result is the record, not its owner."""
-    calls = facts.seen.get(action, [])
-    atoms: list[str] = []
-    for param in params:
-        found: set[tuple[str, str]] | None = None
-        for call in calls:
-            value = call.args.get(param)
-            here = {(tool, name) for (tool, _), result in call.results.items() if isinstance(result, dict)
-                    for name, item in result.items() if isinstance(item, list) and isinstance(value, str)
-                    and value in item and facts.key_param.get(tool) != param and tool not in facts.records}
-            found = here if found is None else found & here
-        atoms += [f"any({param} in y[{name!r}] for y in {SEEN}[{tool!r}])" for tool, name in sorted(found or ())
-                  ][:MAX_SOURCES]
-    return atoms
+    def sources(call: Seen, param: str) -> set[tuple[str, str]]:
+        value = call.args.get(param)
+        return {(tool, name) for (tool, _), result in call.results.items() if isinstance(result, dict)
+                for name, item in result.items() if isinstance(item, list) and isinstance(value, str)
+                and value in item and facts.key_param.get(tool) != param and tool not in facts.records}
+
+    return _at_every_call(facts.seen.get(action, []), params, sources,
+                          lambda param, tool, name: f"any({param} in y[{name!r}] for y in {SEEN}[{tool!r}])")
 
 
 def _item_names(facts: ToolFacts, action: str, param: str) -> list[str]:
@@ -567,3 +557,18 @@ def _moment(text: str | None) -> datetime | None:
         return datetime.fromisoformat(text) if text else None
     except ValueError:
         return None
+
+
+def _at_every_call(calls: Sequence[Seen], params: Sequence[str],
+                   sources: Callable[[Seen, str], set[tuple[str, str]]],
+                   atom: Callable[[str, str, str], str]) -> list[str]:
+    """For each argument, the (tool, field) sources `sources` finds at every one of `calls` (none when there is no
+    call), written as atoms, at most MAX_SOURCES an argument."""
+    atoms: list[str] = []
+    for param in params:
+        found: set[tuple[str, str]] | None = None
+        for call in calls:
+            here = sources(call, param)
+            found = here if found is None else found & here
+        atoms += [atom(param, tool, name) for tool, name in sorted(found or ())][:MAX_SOURCES]
+    return atoms
