@@ -4,7 +4,6 @@ helper that changed, fails here rather than in a user's proxy."""
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from importlib.metadata import version
@@ -16,6 +15,7 @@ pytest.importorskip("mcp")
 
 from mcp_types.version import KNOWN_PROTOCOL_VERSIONS
 
+from precond.stack.harness import alive
 from precond_client.mcp import sdk_private
 
 
@@ -59,19 +59,7 @@ def test_a_process_that_ignores_its_closed_stdin_is_ended_with_its_children(tmp_
     anyio.run(run)
     for pid in map(int, pids.read_text().split()):
         for _ in range(100):
-            if not _alive(pid):
+            if not alive(pid):
                 break
             time.sleep(0.05)
-        assert not _alive(pid), f"process {pid} outlived the stop"
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    try:
-        with open(f"/proc/{pid}/stat") as stat:
-            return stat.read().split(")")[-1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
+        assert not alive(pid), f"process {pid} outlived the stop"
