@@ -333,22 +333,55 @@ def holds_schemas(spec: str) -> bool:
 
 def call_schema_problems(spec: str, calls: Sequence[str | Mapping[str, Any]], scope: str = "") -> list[str | None]:
     """Per proposed call, why its arguments break its tool's JSON Schema (`tool_schemas`), None when they keep it
-    (or it is code, or its tool has none); a spec whose `SCHEMAS` cannot be read refuses every tool call (fail
-    closed). The calls have been read (`call_lines`): each names a tool of the spec, with a JSON object."""
-    schemas = _schemas_of(scope, spec) if any(not isinstance(c, str) for c in calls) else {}
+    (or its tool has none, or it is code other than one call of a tool with literal arguments); a spec whose
+    `SCHEMAS` cannot be read refuses every tool call (fail closed). The calls have been read (`call_lines`): each
+    names a tool of the spec, with a JSON object, or is code. A call sent as code (`agent.cancel_order('#W1',
+    'too_expensive')`) is the same call as its JSON form, and keeps the same schema."""
+    if not holds_schemas(spec):
+        return [None] * len(calls)
+    schemas = _schemas_of(scope, spec)
     problems: list[str | None] = []
     for call in calls:
-        function = call.get("function", call) if not isinstance(call, str) else None
-        if not isinstance(function, Mapping):
+        found = _code_call(spec, call, scope) if isinstance(call, str) else _json_call(call)
+        if found is None:
             problems.append(None)
             continue
-        name = python_name(function["name"]) if isinstance(function.get("name"), str) else ""
-        arguments = function.get("arguments", {})
-        if isinstance(arguments, str):
-            arguments = parse_json(arguments) if arguments.strip() else {}
+        name, arguments = found
         problems.append(schemas if isinstance(schemas, str) else
                         schema_problem(name, schemas[name], arguments) if name in schemas else None)
     return problems
+
+
+def _json_call(call: Mapping[str, Any]) -> tuple[str, Any] | None:
+    function = call.get("function", call)
+    if not isinstance(function, Mapping):
+        return None
+    name = python_name(function["name"]) if isinstance(function.get("name"), str) else ""
+    arguments = function.get("arguments", {})
+    if isinstance(arguments, str):
+        arguments = parse_json(arguments) if arguments.strip() else {}
+    return name, arguments
+
+
+def _code_call(spec: str, line: str, scope: str) -> tuple[str, dict[str, Any]] | None:
+    """`<object>.<tool>(<literals>)` as the tool's name and its arguments by parameter name (an optional parameter
+    given None is left out, as the renderer writes an absent one); None for any other code. Read, never run."""
+    try:
+        node = ast.parse(line.strip(), mode="eval").body
+    except (SyntaxError, ValueError, RecursionError, MemoryError):
+        return None
+    tools = {t.name: t for t in _tools_of(spec, scope) or ()}
+    if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in tools):
+        return None
+    tool = tools[node.func.attr]
+    try:
+        given = dict(zip(tool.params, (ast.literal_eval(a) for a in node.args), strict=False))
+        given |= {k.arg: ast.literal_eval(k.value) for k in node.keywords if k.arg in tool.params}
+    except (ValueError, TypeError, SyntaxError, RecursionError, MemoryError):
+        return None
+    if len(node.args) > len(tool.params) or any(k.arg not in tool.params for k in node.keywords):
+        return None
+    return tool.name, {k: v for k, v in given.items() if v is not None or k in tool.required}
 
 
 @lru_cache(maxsize=64)

@@ -44,14 +44,15 @@ def load(domain: Path) -> tuple[Converted, list[Label], Converted, list[dict[str
     return train, labels, test, _json(domain / "test_verdicts.json")
 
 
-def infer_request(train: Converted, labels: Sequence[Label]) -> InferRequest:
-    """Demonstrations: the runs no label refuses a call of (a labelled run is a failed one: it travels as its
-    program, beside them)."""
+def infer_request(train: Converted, labels: Sequence[Label], taught: Sequence[Label]) -> InferRequest:
+    """Demonstrations: the runs no label of the domain (`labels`) refuses a call of, the good runs, whichever
+    labels teach; a labelled run is a failed one. `taught`: the labels given to the learner, whose runs travel as
+    programs beside the demonstrations (none: learning from the good runs alone)."""
     refused = {label.run for label in labels if not label.allowed}
     demos = [t for t in train.trajectories if t.name not in refused and t.reward in (None, 1.0)]
     return InferRequest.model_validate({
         "spec": train.spec, "demonstrations": [t.program for t in demos],
-        "actions": [f"AGENT.{t}" for t in sorted(train.guarded)], "counterexamples": counted(train, labels, demos).runs,
+        "actions": [f"AGENT.{t}" for t in sorted(train.guarded)], "counterexamples": counted(train, taught, demos).runs,
         "options": {"generators": ["enumerate"], "candidates": "none"}})
 
 
@@ -94,7 +95,7 @@ def held_out_labels(engine: Any, train: Converted, labels: Sequence[Label]) -> d
     runs = {t.name: t for t in train.trajectories}
     judged = []
     for run in sorted({label.run for label in labels}):
-        inferred = engine.infer(infer_request(train, [label for label in labels if label.run != run]))
+        inferred = engine.infer(infer_request(train, labels, [label for label in labels if label.run != run]))
         judged += [judge_at(engine, train.spec, runs[run], label.message, inferred, label.allowed)
                    for label in labels if label.run == run]
     return scores(judged)
@@ -106,7 +107,7 @@ def run(engine: Any, domain: Path, progress: Callable[[str], None]) -> dict[str,
                            "test_calls": len(verdicts), "guarded": sorted(train.guarded)}
     for mode, given in (("without labels", []), ("with labels", list(labels))):
         started = time.perf_counter()
-        inferred = engine.infer(infer_request(train, given))
+        inferred = engine.infer(infer_request(train, labels, given))
         infer_s = time.perf_counter() - started
         judged = judge_test(engine, test, verdicts, inferred)
         out[mode] = {**summary(judged), "rules": inferred.preconditions, "infer_s": round(infer_s, 2),

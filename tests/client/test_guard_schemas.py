@@ -109,3 +109,16 @@ def test_the_models_hint_names_only_what_a_call_can_change(spec: str) -> None:
     assert "Make the rule hold" not in hint and "get_order_details for" not in hint
     broken = guard.check(delivered, "refund_order", {"order_id": "O1", "amount": "5"})
     assert refusal(broken, "g").endswith("Call it again with arguments that keep the tool's schema.")
+
+
+def test_a_call_sent_as_code_keeps_its_tools_schema_as_its_json_form_does(spec: str, engine: Engine) -> None:
+    # `agent.refund_order('O1', '29.99', None)` is the call `{"amount": "29.99"}`: the service refuses it alike
+    lines = [v.call for v in engine.check(CheckRequest.model_validate(
+        {"spec": spec, "preconditions": RULES, "history": HISTORY, "calls": CALLS})).results]
+    as_code = engine.check(CheckRequest.model_validate(
+        {"spec": spec, "preconditions": RULES, "history": HISTORY, "calls": lines}))
+    assert [(v.allowed, v.error) for v in as_code.results] == EXPECTED
+    keywords = engine.check(CheckRequest.model_validate({"spec": spec, "preconditions": RULES, "history": HISTORY,
+                                                         "calls": ["agent.refund_order('O1', amount='1')"]}))
+    assert keywords.results[0].error == ("arguments break refund_order's JSON Schema: amount: '1' is not of type "
+                                         "'number'")

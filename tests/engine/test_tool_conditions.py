@@ -9,7 +9,7 @@ import ast
 import json
 
 from precond.convert.openai import convert
-from precond.engine.candidates import tool_conditions, tool_facts
+from precond.engine.candidates import tool_conditions, tool_facts, tool_sources
 from precond.engine.candidates.enumeration import StateModel, enumerate_atoms
 from precond.engine.candidates.tool_relations import runnable
 from precond.engine.engine import Engine
@@ -161,13 +161,13 @@ def test_an_argument_listed_in_an_earlier_reads_record_is_the_callers_own() -> N
     spec = parse_spec(converted.spec)
     facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     owned = "any(reservation_id in y['reservations'] for y in self.seen['get_user_details'])"
-    assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == [owned]
+    assert tool_sources.owned(facts, "cancel_reservation", ("self", "reservation_id")) == [owned]
     assert owned in tool_conditions.tool_atoms(facts, "cancel_reservation", ("self", "reservation_id"))
     assert runnable([owned], ("reservation_id",)) == [owned]  # the embedded guard runs it too
     stranger = convert([owner_run("u1", "A1"), [*owner_run("u2", "B2")[:3], *run(
         "Z9", "business", "no", 1, "cancel_reservation", json.dumps({"reservation_id": "Z9"}))[1:]]], tools)
     facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in stranger.trajectories])
-    assert tool_conditions.owned(facts, "cancel_reservation", ("self", "reservation_id")) == []
+    assert tool_sources.owned(facts, "cancel_reservation", ("self", "reservation_id")) == []
 
 
 def test_an_argument_that_is_a_field_of_a_record_a_search_listed_was_offered() -> None:
@@ -190,5 +190,5 @@ def test_an_argument_that_is_a_field_of_a_record_a_search_listed_was_offered() -
     spec = parse_spec(converted.spec)
     facts = tool_facts.read_facts(spec, "AGENT", [ast.parse(t.program) for t in converted.trajectories])
     offered = "new_slot in [y['slot_id'] for y in self.seen['search_slots']]"
-    assert tool_conditions.offered(facts, "move_visit", ("self", "visit_id", "new_slot")) == [offered]
+    assert tool_sources.offered(facts, "move_visit", ("self", "visit_id", "new_slot")) == [offered]
     assert runnable([offered], ("visit_id", "new_slot")) == [offered]

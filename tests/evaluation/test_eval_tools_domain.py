@@ -43,3 +43,14 @@ def test_the_command_scores_a_domain_and_a_missing_test_set_exits_2(tmp_path: Pa
     (tmp_path / "trajectories.json").write_text((DOMAINS / "cards" / "trajectories.json").read_text())
     done = precond("eval", "tools", "--domain", str(tmp_path), "--cache", str(tmp_path / "cache"))
     assert done.returncode == 2 and "test.json: no such file" in done.stderr, done.stderr
+
+
+def test_without_labels_the_learner_reads_the_good_runs_alone() -> None:
+    # a run that ends in a labelled bad call is no demonstration, whether its label is given or left out
+    train, labels, _, _ = tools_domain.load(DOMAINS / "cards")
+    refused = {label.run for label in labels if not label.allowed}
+    good = [t.program for t in train.trajectories if t.name not in refused]
+    for taught in ([], labels[1:], labels):
+        request = tools_domain.infer_request(train, labels, taught)
+        assert request.demonstrations == good
+        assert len(request.counterexamples) == len({label.run for label in taught})

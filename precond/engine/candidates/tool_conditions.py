@@ -30,10 +30,9 @@ so this module adds, for an action whose parameter names the key of an earlier t
   and an argument's few values (`cabin in ('economy',)`), the cells of a table of allowances by category, the k
   of each cell learned from labelled calls (`counterexamples`: free bags by tier and cabin).
   These only separate labelled calls (`arithmetic`, `counterexamples`);
-- a string argument listed, at every demonstrated call, in a list field of a record an earlier read returned
-  (`any(reservation_id in y['reservations'] for y in self.seen['get_user_details'])`: the user's own records).
-- a string argument that, at every demonstrated call, is one field of a record an earlier read listed
-  (`slot_id in [y['slot_id'] for y in self.seen['search_available_slots']]`: only what was offered).
+- where a string argument came from, at every demonstrated call (`tool_sources`): the caller's own records,
+  only what was offered, the id a look-up found;
+- the state a write moves its record out of at every demonstrated call (`tool_transitions`).
 
 The demonstrations are read statically (their literals replayed, never run): which values a field takes and
 which a demonstrated call saw only choose what to propose; the sandbox validates every atom like any other.
@@ -51,6 +50,8 @@ from dataclasses import dataclass
 from datetime import datetime, timedelta
 
 from precond.engine.candidates.tool_facts import Scalar, Seen, ToolFacts
+from precond.engine.candidates.tool_sources import provenance
+from precond.engine.candidates.tool_transitions import transitions
 
 RESULTS = "self.results"
 SEEN = "self.seen"
@@ -281,38 +282,8 @@ def tool_atoms(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str
     atoms += allowances(facts, action, params)
     atoms += scaled(facts, action, params)
     atoms += keys(facts, action, params)
-    atoms += owned(facts, action, params) + offered(facts, action, params)
+    atoms += provenance(facts, action, params) + transitions(facts, action, params)
     return list(dict.fromkeys(atoms))[:MAX_ATOMS]
-
-
-def offered(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
-    """`slot_id in [y['slot_id'] for y in self.seen['search_available_slots']]`: a string argument that, at every
-    demonstrated call, is the value of one field of a record an earlier read listed (a field every record of that
-    tool holds): only what was offered, whatever the argument is named (`new_slot_id`), at most MAX_SOURCES an
-    argument."""
-    def sources(call: Seen, param: str) -> set[tuple[str, str]]:
-        value = call.args.get(param)
-        return {(tool, name) for tool, rows in call.listed.items() if tool != action
-                for row in rows for name, item in row.items() if isinstance(value, str) and item == value
-                and facts.records.get(tool, Counter())[name] == facts.records.get(tool, Counter())[""]}
-
-    return _at_every_call(facts.seen.get(action, []), params, sources,
-                          lambda param, tool, name: f"{param} in [y[{name!r}] for y in {SEEN}[{tool!r}]]")
-
-
-def owned(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
-    """`any(card_id in y['card_ids'] for y in self.seen['get_customer_profile'])`: a string argument listed, at every
-    demonstrated call, in a list field of a record an earlier read returned (a dict, so every record holds its
-    fields): the caller's own records ("only cards listed in the verified customer's profile"), at most
-    MAX_SOURCES an argument. Not the read the argument itself keys: its result is the record, not its owner."""
-    def sources(call: Seen, param: str) -> set[tuple[str, str]]:
-        value = call.args.get(param)
-        return {(tool, name) for (tool, _), result in call.results.items() if isinstance(result, dict)
-                for name, item in result.items() if isinstance(item, list) and isinstance(value, str)
-                and value in item and facts.key_param.get(tool) != param and tool not in facts.records}
-
-    return _at_every_call(facts.seen.get(action, []), params, sources,
-                          lambda param, tool, name: f"any({param} in y[{name!r}] for y in {SEEN}[{tool!r}])")
 
 
 def _item_names(facts: ToolFacts, action: str, param: str) -> list[str]:
@@ -557,18 +528,3 @@ def _moment(text: str | None) -> datetime | None:
         return datetime.fromisoformat(text) if text else None
     except ValueError:
         return None
-
-
-def _at_every_call(calls: Sequence[Seen], params: Sequence[str],
-                   sources: Callable[[Seen, str], set[tuple[str, str]]],
-                   atom: Callable[[str, str, str], str]) -> list[str]:
-    """For each argument, the (tool, field) sources `sources` finds at every one of `calls` (none when there is no
-    call), written as atoms, at most MAX_SOURCES an argument."""
-    atoms: list[str] = []
-    for param in params:
-        found: set[tuple[str, str]] | None = None
-        for call in calls:
-            here = sources(call, param)
-            found = here if found is None else found & here
-        atoms += [atom(param, tool, name) for tool, name in sorted(found or ())][:MAX_SOURCES]
-    return atoms

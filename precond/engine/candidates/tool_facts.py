@@ -34,6 +34,17 @@ class Seen:
     """tool → the records (dicts) its successful list results held so far (`self.seen`'s list results)."""
 
 
+@dataclass(frozen=True)
+class Move:
+    """One field of a record a write's result showed: the value read before the write, the value after."""
+
+    run: int
+    read: str
+    name: str
+    before: str
+    after: object
+
+
 @dataclass
 class ToolFacts:
     key_param: dict[str, str] = field(default_factory=dict)
@@ -53,6 +64,12 @@ class ToolFacts:
     records: dict[str, Counter[str]] = field(default_factory=dict)
     """tool → how many of its listed records (`self.seen[tool]`, dicts) hold each field, with the count of
     records under the empty name: a field every record holds can be read off all of them."""
+    moves: dict[str, list[Move]] = field(default_factory=dict)
+    """write → the string fields of the records read under its key, as read and as its successful result showed
+    them, one per field and call."""
+    dict_results: Counter[str] = field(default_factory=Counter)
+    """tool → how many of its successful results were objects (dicts): a field every one of them held can be read
+    off any of them in `self.seen[tool]`."""
     entries: set[str] = field(default_factory=set)
     """The names of the entries of the objects reads returned (a profile's payment methods by id), at most
     MAX_ENTRIES: what an item naming one of them refers to."""
@@ -63,6 +80,11 @@ class ToolFacts:
     demonstrated: int | None = None
     """How many of the runs read are demonstrations (the first ones; the others are runs of labelled calls);
     None: all of them."""
+
+    def demonstrated_calls(self, action: str) -> list[Seen]:
+        """The action's calls in demonstrations, not in the runs of labelled calls: what "at every demonstrated
+        call" is about (a labelled call to refuse is where a condition fails, by design)."""
+        return [c for c in self.seen.get(action, []) if self.demonstrated is None or c.run < self.demonstrated]
 
 
 def tool_class(spec: Spec) -> str | None:
@@ -122,6 +144,8 @@ class _Replay:
         if not self.pending or not isinstance(tool, str):
             return
         called, args = self.pending.pop(0)
+        if called == tool and tool in self.writes and ok is True and isinstance(value, dict):
+            self._note_moves(tool, key, value)
         if called != tool or tool in self.writes:
             return
         if key is not None and tool not in self.facts.key_param:
@@ -130,6 +154,7 @@ class _Replay:
                 self.facts.key_param[tool] = param
         if ok is True and isinstance(value, dict):
             self.results[(tool, key)] = value
+            self.facts.dict_results[tool] += 1
             self._note_fields(tool, value)
         elif ok is True and isinstance(value, str | int) and not isinstance(value, bool):
             self.results[(tool, key)] = value  # an id a lookup found (`find_user_id_by_email`)
@@ -141,6 +166,15 @@ class _Replay:
                     self.listed.setdefault(tool, []).append(record)
                 if isinstance(record, dict):
                     counts.update(k for k, v in record.items() if isinstance(k, str) and isinstance(v, str | int))
+
+    def _note_moves(self, write: str, key: object, value: dict[object, object]) -> None:
+        """The fields of the records read under the write's key, with the value read and the one its result
+        shows."""
+        for (read, read_key), record in self.results.items():
+            if read_key == key and key is not None and isinstance(record, dict):
+                for name, before in record.items():
+                    if isinstance(name, str) and isinstance(before, str) and name in value:
+                        self.facts.moves.setdefault(write, []).append(Move(self.run, read, name, before, value[name]))
 
     def _note_fields(self, tool: str, value: dict[object, object]) -> None:
         counts = self.facts.values.setdefault(tool, {})

@@ -72,7 +72,7 @@ def labels_only(atom: str) -> bool:
 
 def relations(facts: ToolFacts, action: str, params: Sequence[str]) -> list[str]:
     """The relation conditions of one action (module docstring), each runnable by the embedded guard."""
-    calls = [c for c in facts.seen.get(action, []) if facts.demonstrated is None or c.run < facts.demonstrated]
+    calls = facts.demonstrated_calls(action)
     atoms = [*earlier_writes(facts, params, action), *categories(facts, calls, params), *confirmation(calls),
              *variants(facts, calls, params), *scalar_kinds(calls, params)]
     for key in params:

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from precond.engine.candidates.tool_conditions import ARGUMENT_KEY, allowance, arithmetic
-from precond.engine.judging import run_tasks
+from precond.engine.judging import categorical, run_tasks
 from precond.engine.judging.allowance_tables import Table, best_allowance, held_terms
 from precond.engine.judging.allowance_tables import table as table_of
 from precond.engine.judging.evidence import OccurrenceIndex, gather
@@ -218,7 +218,7 @@ def separate(action: str, ranked: Ranked, demo_points: Sequence[Point], occurren
     truth = _truth(ranked, demo_bits, case_bits, case_results, bool(case_points))
     unshown = all(e.refuse for e in examples[:len(examples) - len(case_points)])
     kept, notes = _kept(ranked, truth, positive, negative, unshown)
-    remaining = negative & ~_refused_by(kept, truth, negative)
+    remaining = negative & ~_refused_by(kept - categorical.refinements(ranked.reasons), truth, negative)
     pool = {e: t for e, t in truth.items() if e in policy and allowance(e) < 0 and not ARGUMENT_KEY.match(e)
             } if policy else truth
     # with no call to allow (none demonstrated or labelled 'allow'), nothing bounds a separating rule

@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 from precond.engine.candidates.tool_relations import labels_only
-from precond.engine.judging import cautious, priors
+from precond.engine.judging import categorical, cautious, priors
 from precond.engine.judging import guarded as guarding
 from precond.engine.judging.evidence import Evidence, OccurrenceIndex, describe, gather, strict, thin, too_few, verdict
 from precond.engine.judging.freshness import Access
@@ -113,6 +113,8 @@ def _select(action: str, inference: Inference, turns: Mapping[tuple[int, int], i
     votes = inference.proposals.votes.get(action, {})
     chosen = _choose(seen, evidence, options, votes, info, tool_call, conversational, follow_up)
     choice = chosen.choice
+    if tool_call and options.ranking == "cautious" and not conversational:
+        choice = categorical.refined(choice)
     if not evidence.thin and too_few(info.occurrences):  # strict validation on one or two calls: not established
         choice = replace(choice, decided={e: "assumed" if d == "established" else d for e, d in choice.decided.items()})
     transferred: dict[str, str] = {}
