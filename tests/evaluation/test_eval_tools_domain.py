@@ -17,7 +17,7 @@ from tests.cli.inprocess import precond
 DOMAINS = Path(__file__).resolve().parents[1] / "fixtures" / "tools_domains"
 
 
-@pytest.mark.parametrize("name", ["clinic", "cards"])
+@pytest.mark.parametrize("name", ["clinic", "cards", "rental"])
 def test_a_domain_from_scratch_is_converted_inferred_and_scored(name: str) -> None:
     result = tools_domain.run(build_engine(with_model=False), DOMAINS / name, print)
     print(tools_domain.table(result))
