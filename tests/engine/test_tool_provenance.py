@@ -107,3 +107,14 @@ def test_the_cards_domain_learns_who_the_caller_is_and_which_state_a_change_need
     taught = engine.infer(tools_domain.infer_request(train, labels, labels)).preconditions
     assert any("new_limit <= self.results['get_card_details'][card_id]['max_limit']" in r
                for r in taught["AGENT.set_card_limit"])
+
+
+def test_a_write_that_keeps_its_record_in_a_state_another_write_leaves_needs_that_state() -> None:
+    # freezes move cards out of `active`; every pin change found its card active: the state is theirs too
+    moved = "card_id in self.results['get_card'] and self.results['get_card'][card_id]['status'] in ('active',)"
+    runs = [card_run("C1", "K1", "active"), card_run("C2", "K2", "active"),
+            card_run("C3", "K3", "active", "set_pin", "active"), card_run("C4", "K4", "active", "set_pin", "active")]
+    assert tool_transitions.transitions(facts_of(runs), "set_pin", ("self", "card_id")) == [moved]
+    # a pin changed on a blocked card as well: the logs show it outside that state, so no condition
+    runs[3] = card_run("C4", "K4", "blocked", "set_pin", "blocked")
+    assert tool_transitions.transitions(facts_of(runs), "set_pin", ("self", "card_id")) == []
