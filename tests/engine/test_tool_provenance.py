@@ -118,3 +118,12 @@ def test_a_write_that_keeps_its_record_in_a_state_another_write_leaves_needs_tha
     # a pin changed on a blocked card as well: the logs show it outside that state, so no condition
     runs[3] = card_run("C4", "K4", "blocked", "set_pin", "blocked")
     assert tool_transitions.transitions(facts_of(runs), "set_pin", ("self", "card_id")) == []
+
+
+def test_an_argument_within_a_capacity_of_its_record_is_kept_beside_the_read() -> None:
+    read = "card_id in self.results['get_card']"
+    capped = f"{read} and new_limit <= self.results['get_card'][card_id]['max_limit']"
+    current = f"{read} and new_limit >= self.results['get_card'][card_id]['limit']"  # a correlate: no capacity
+    group = Cluster(tuple(Candidate(e, "enumerate", 0b11) for e in (read, capped, current)))
+    refined = categorical.refined(Choice([group], {read: "assumed"}))
+    assert [c.representative.expression for c in refined.chosen] == [read, capped]
