@@ -297,6 +297,58 @@ def test_no_call_is_answered_beside_the_sdk_before_the_handshake() -> None:
     assert len(anyio.run(run)) == 1
 
 
+async def handshaken(wire: Wire, proxy_call: fastpath.Call) -> fastpath.Lines:
+    """The agent's lines with the handshake done (the SDK's `initialize` answer written as it writes it)."""
+    reader = fastpath.Lines(wire, proxy_call)  # type: ignore[arg-type]
+    for line in HANDSHAKE:
+        reader.feed((json.dumps(line) + "\n").encode())
+        if line is HANDSHAKE[0]:  # `initialize`
+            await anext(reader)
+            await reader.watched().write(json.dumps({"jsonrpc": "2.0", "id": 0, "result": {
+                "protocolVersion": "2025-11-25", "capabilities": {}, "serverInfo": {"name": "p", "version": "1"}}}))
+    await anext(reader)
+    return reader
+
+
+@pytest.mark.parametrize("ending", ["cancelled", "closed"])
+def test_a_call_the_agent_cancels_has_no_answer_and_one_in_flight_at_the_end_is_answered_closed(
+        ending: str) -> None:
+    """A `notifications/cancelled` ends the call's task with no answer (the spec); the wire closing while a call is
+    in flight answers it `Connection closed`, as the SDK answers its own."""
+    stopped: list[str] = []
+
+    async def hanging(name: str, arguments: dict[str, Any]) -> types.CallToolResult:
+        try:
+            await anyio.sleep_forever()
+        finally:
+            stopped.append(name)
+        raise AssertionError("answered")
+
+    async def run() -> Wire:
+        wire = Wire()
+        reader = await handshaken(wire, hanging)
+        call = {"jsonrpc": "2.0", "id": 7, "method": "tools/call", "params": {"name": "get_order"}}
+        reader.feed((json.dumps(call) + "\n").encode())
+        await anyio.sleep(0.01)
+        assert list(reader.in_flight) == [7]
+        if ending == "cancelled":
+            reader.feed((json.dumps({"jsonrpc": "2.0", "method": "notifications/cancelled",
+                                     "params": {"requestId": 7}}) + "\n").encode())
+            await anyio.sleep(0.01)
+        else:
+            await reader.close()
+        assert not reader.in_flight
+        return wire
+
+    written = anyio.run(run).written[1:]  # after the SDK's answer to `initialize`
+    assert stopped == ["get_order"]
+    if ending == "cancelled":
+        assert written == []
+    else:
+        assert written == [{"jsonrpc": "2.0", "id": 7, "error": {"code": types.CONNECTION_CLOSED,
+                                                                 "message": "Connection closed"}}]
+
+
 def test_answers_cut_anywhere_into_reads_are_each_their_calls() -> None:
     """The upstream's stdout read in pieces of any size: two answers in one read, one answer over many."""
     to_upstream, requests = anyio.create_memory_object_stream[bytes](16)
