@@ -108,8 +108,9 @@ class Link:
         await self.writer.write(text + "\n")
 
     def received(self, line: bytes) -> None:
-        """A line of the upstream's stdout: an answer to its waiter, anything else queued for the session."""
-        if self._answered(line):
+        """A line of the upstream's stdout: an answer to its waiter, anything else queued for the session (a last
+        line without its newline is dropped, as `stdio_client` drops it)."""
+        if not line.endswith(b"\n") or self._answered(line):
             return
         self.backlog.put_nowait(line)
         if self.backlog.qsize() == BACKLOG:
