@@ -15,10 +15,12 @@ result with the call before it, as an agent's log does.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import sys
 import time
 from collections import OrderedDict
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -47,6 +49,18 @@ class Session:
     guard: GuardSession | None
     lock: anyio.Lock = field(default_factory=lambda: anyio.Lock(fast_acquire=True))
     """A session's calls one at a time (taken with no trip through the loop when free)."""
+    untold: list[dict[str, Any]] = field(default_factory=list)
+    """Messages recorded and not yet given to the guard: given once the call's answer is written (off its path),
+    and before the next call is judged at the latest."""
+
+    def catch_up(self) -> None:
+        """The guard given the messages recorded so far, so that it judges on the history the record shows."""
+        untold, self.untold, guard = self.untold, [], self.guard
+        if guard is None:
+            return
+        for message in untold:
+            with suppress(PrecondError):  # the guard session keeps why: its later calls are judged unreadable
+                guard.add(message)
 
 
 class Proxy:
@@ -151,6 +165,7 @@ class Proxy:
     async def _judge(self, session: Session, name: str, arguments: dict[str, Any]) -> CallVerdict | None:
         if session.guard is None:
             return None
+        session.catch_up()
         try:
             return await session.guard.acheck(name, arguments)
         except PrecondError as exc:  # the service's guard answers errors as verdicts; anything else fails closed
@@ -160,11 +175,8 @@ class Proxy:
     def _record(self, session: Session, asked: dict[str, Any], call_id: str, name: str, content: str) -> None:
         told = session.recording.result(call_id, name, content)
         if session.guard is not None:
-            try:
-                session.guard.add(asked)
-                session.guard.add(told)
-            except PrecondError:
-                pass  # the guard session keeps why: its later calls are judged unreadable (refused)
+            session.untold += [asked, told]
+            asyncio.get_running_loop().call_soon(session.catch_up)  # runs once this task has written the answer
 
     def _log(self, entry: dict[str, Any], started: float, **said: Any) -> None:
         entry.update(said, ms=round((time.perf_counter() - started) * 1000, 3))

@@ -19,7 +19,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mcp import ClientSession
 
-from precond_client.mcp import fastpath, stdio
+from precond_client.mcp import fastpath, pipes
 from precond_client.mcp.link import Link, _parsed
 from precond_client.mcp.upstreams import Upstream, UpstreamFailure, call
 
@@ -27,12 +27,25 @@ Answer = Callable[[dict[str, Any]], Awaitable[dict[str, Any] | None]]
 """A stand-in upstream: a request → the JSON-RPC answer it writes (None: none)."""
 
 
-class Pipes:
-    """What `Link` reads of a process: its stdin and stdout, here memory streams of bytes."""
+class Stdin:
+    """The upstream's stdin as `Link` writes it, here a memory stream of bytes."""
 
-    def __init__(self, stdin: MemoryObjectSendStream[bytes], stdout: MemoryObjectReceiveStream[bytes]) -> None:
-        self.stdin = stdin
-        self.stdout = stdout
+    def __init__(self, stream: MemoryObjectSendStream[bytes]) -> None:
+        self.stream = stream
+
+    async def write(self, text: str) -> None:
+        await self.stream.send(text.encode())
+
+
+async def pump(link: Link, stdout: MemoryObjectReceiveStream[bytes]) -> None:
+    """The upstream's stdout as the loop reads it: each chunk to the link's line reader as it comes, then its
+    end."""
+    reader = pipes.LineReader(link.received, link.ended, "up")
+    async with stdout:
+        async for chunk in stdout:
+            reader.data_received(chunk)
+    reader.eof_received()
+    reader.connection_lost(None)
 
 
 async def serve_pipe(requests: MemoryObjectReceiveStream[bytes], answers: MemoryObjectSendStream[bytes],
@@ -61,12 +74,12 @@ async def serve_session(requests: MemoryObjectReceiveStream[Any], answers: Memor
 async def through_link(answer: Answer, name: str = "tool") -> types.CallToolResult | str:
     to_upstream, requests = anyio.create_memory_object_stream[bytes](16)
     answers, from_upstream = anyio.create_memory_object_stream[bytes](16)
-    link = Link(Pipes(to_upstream, from_upstream))  # type: ignore[arg-type]
+    link = Link(Stdin(to_upstream))  # type: ignore[arg-type]
     upstream = Upstream("up", Unnegotiated(), 5.0, 5.0, link=link)  # type: ignore[arg-type]
     said: types.CallToolResult | str = "no answer"
     async with anyio.create_task_group() as group:
         group.start_soon(serve_pipe, requests, answers, answer)
-        group.start_soon(link.read, anyio.create_memory_object_stream[Any](16)[0])
+        group.start_soon(pump, link, from_upstream)
         try:
             said = await call(upstream, name, {"a": 1})
         except UpstreamFailure as exc:
@@ -147,7 +160,7 @@ def test_concurrent_calls_on_one_upstream_each_get_their_own_answer_in_any_order
     """Several sessions' calls in flight on one upstream, answered last first: each call its own result."""
     to_upstream, requests = anyio.create_memory_object_stream[bytes](16)
     answers, from_upstream = anyio.create_memory_object_stream[bytes](16)
-    link = Link(Pipes(to_upstream, from_upstream))  # type: ignore[arg-type]
+    link = Link(Stdin(to_upstream))  # type: ignore[arg-type]
     upstream = Upstream("up", Unnegotiated(), 5.0, 5.0, link=link)  # type: ignore[arg-type]
     arrived = anyio.Event()
     seen: list[str] = []
@@ -170,7 +183,7 @@ def test_concurrent_calls_on_one_upstream_each_get_their_own_answer_in_any_order
 
         async with anyio.create_task_group() as group:
             group.start_soon(serve_pipe, requests, answers, answer)
-            group.start_soon(link.read, anyio.create_memory_object_stream[Any](16)[0])
+            group.start_soon(pump, link, from_upstream)
             async with anyio.create_task_group() as calls:
                 for n in range(5):
                     calls.start_soon(one, n)
@@ -188,10 +201,10 @@ def test_an_upstream_whose_pipe_ends_fails_the_call_in_flight_as_gone() -> None:
     async def run() -> str:
         to_upstream, requests = anyio.create_memory_object_stream[bytes](16)
         answers, from_upstream = anyio.create_memory_object_stream[bytes](16)
-        link = Link(Pipes(to_upstream, from_upstream))  # type: ignore[arg-type]
+        link = Link(Stdin(to_upstream))  # type: ignore[arg-type]
         upstream = Upstream("up", Unnegotiated(), 5.0, 5.0, link=link)  # type: ignore[arg-type]
         async with anyio.create_task_group() as group:
-            group.start_soon(link.read, anyio.create_memory_object_stream[Any](16)[0])
+            group.start_soon(pump, link, from_upstream)
 
             async def end() -> None:
                 await requests.receive()
@@ -212,6 +225,10 @@ HANDSHAKE = [
         "protocolVersion": "2025-11-25", "capabilities": {}, "clientInfo": {"name": "t", "version": "1"}}},
     {"jsonrpc": "2.0", "method": "notifications/initialized"},
 ]
+
+
+async def no_call(name: str, arguments: dict[str, Any]) -> types.CallToolResult:
+    raise AssertionError("called")
 
 
 class Wire:
@@ -243,21 +260,20 @@ def test_only_a_plain_call_after_the_handshake_is_answered_beside_the_sdk(messag
 
     async def run() -> tuple[list[str], Wire]:
         wire = Wire()
-        lines = [json.dumps(line) + "\n" for line in [*HANDSHAKE, request]]
-
-        async def feed() -> Any:
-            for line in lines:
-                yield line
-
-        async with anyio.create_task_group() as group:
-            reader = fastpath.Lines(feed(), wire, proxy_call, group)  # type: ignore[arg-type]
-            sdk: list[str] = []
-            async for line in reader:
-                sdk.append(line)
-                if json.loads(line).get("method") == "initialize":  # the SDK's answer, as it writes it
+        reader = fastpath.Lines(wire, proxy_call)  # type: ignore[arg-type]
+        sdk: list[str] = []
+        for line in [*HANDSHAKE, request]:
+            reader.feed((json.dumps(line) + "\n").encode())
+            while reader.queued:  # what the SDK reads, in order
+                sdk.append(await anext(reader))
+                if json.loads(sdk[-1]).get("method") == "initialize":  # the SDK's answer, as it writes it
                     await reader.watched().write(json.dumps({"jsonrpc": "2.0", "id": 0, "result": {
                         "protocolVersion": "2025-11-25", "capabilities": {},
                         "serverInfo": {"name": "p", "version": "1"}}}) + "\n")
+        reader.end()
+        sdk += [line async for line in reader]
+        while reader.in_flight:
+            await anyio.sleep(0)
         return sdk, wire
 
     sdk, wire = anyio.run(run)
@@ -271,24 +287,73 @@ def test_only_a_plain_call_after_the_handshake_is_answered_beside_the_sdk(messag
 
 
 def test_no_call_is_answered_beside_the_sdk_before_the_handshake() -> None:
-    async def proxy_call(name: str, arguments: dict[str, Any]) -> types.CallToolResult:
-        raise AssertionError("called")
-
     async def run() -> list[str]:
-        async def feed() -> Any:
-            yield json.dumps({"jsonrpc": "2.0", "id": 1, "method": "tools/call", "params": {"name": "x"}}) + "\n"
-
-        async with anyio.create_task_group() as group:
-            return [line async for line in fastpath.Lines(feed(), Wire(), proxy_call, group)]  # type: ignore[arg-type]
+        reader = fastpath.Lines(Wire(), no_call)  # type: ignore[arg-type]
+        call = {"jsonrpc": "2.0", "id": 1, "method": "tools/call", "params": {"name": "x"}}
+        reader.feed((json.dumps(call) + "\n").encode())
+        reader.end()
+        return [line async for line in reader]
 
     assert len(anyio.run(run)) == 1
+
+
+async def handshaken(wire: Wire, proxy_call: fastpath.Call) -> fastpath.Lines:
+    """The agent's lines with the handshake done (the SDK's `initialize` answer written as it writes it)."""
+    reader = fastpath.Lines(wire, proxy_call)  # type: ignore[arg-type]
+    for line in HANDSHAKE:
+        reader.feed((json.dumps(line) + "\n").encode())
+        if line is HANDSHAKE[0]:  # `initialize`
+            await anext(reader)
+            await reader.watched().write(json.dumps({"jsonrpc": "2.0", "id": 0, "result": {
+                "protocolVersion": "2025-11-25", "capabilities": {}, "serverInfo": {"name": "p", "version": "1"}}}))
+    await anext(reader)
+    return reader
+
+
+@pytest.mark.parametrize("ending", ["cancelled", "closed"])
+def test_a_call_the_agent_cancels_has_no_answer_and_one_in_flight_at_the_end_is_answered_closed(
+        ending: str) -> None:
+    """A `notifications/cancelled` ends the call's task with no answer (the spec); the wire closing while a call is
+    in flight answers it `Connection closed`, as the SDK answers its own."""
+    stopped: list[str] = []
+
+    async def hanging(name: str, arguments: dict[str, Any]) -> types.CallToolResult:
+        try:
+            await anyio.sleep_forever()
+        finally:
+            stopped.append(name)
+        raise AssertionError("answered")
+
+    async def run() -> Wire:
+        wire = Wire()
+        reader = await handshaken(wire, hanging)
+        call = {"jsonrpc": "2.0", "id": 7, "method": "tools/call", "params": {"name": "get_order"}}
+        reader.feed((json.dumps(call) + "\n").encode())
+        await anyio.sleep(0.01)
+        assert list(reader.in_flight) == [7]
+        if ending == "cancelled":
+            reader.feed((json.dumps({"jsonrpc": "2.0", "method": "notifications/cancelled",
+                                     "params": {"requestId": 7}}) + "\n").encode())
+            await anyio.sleep(0.01)
+        else:
+            await reader.close()
+        assert not reader.in_flight
+        return wire
+
+    written = anyio.run(run).written[1:]  # after the SDK's answer to `initialize`
+    assert stopped == ["get_order"]
+    if ending == "cancelled":
+        assert written == []
+    else:
+        assert written == [{"jsonrpc": "2.0", "id": 7, "error": {"code": types.CONNECTION_CLOSED,
+                                                                 "message": "Connection closed"}}]
 
 
 def test_answers_cut_anywhere_into_reads_are_each_their_calls() -> None:
     """The upstream's stdout read in pieces of any size: two answers in one read, one answer over many."""
     to_upstream, requests = anyio.create_memory_object_stream[bytes](16)
     answers, from_upstream = anyio.create_memory_object_stream[bytes](16)
-    link = Link(Pipes(to_upstream, from_upstream))  # type: ignore[arg-type]
+    link = Link(Stdin(to_upstream))  # type: ignore[arg-type]
     upstream = Upstream("up", Unnegotiated(), 5.0, 5.0, link=link)  # type: ignore[arg-type]
 
     async def upstream_side() -> None:
@@ -311,7 +376,7 @@ def test_answers_cut_anywhere_into_reads_are_each_their_calls() -> None:
 
         async with anyio.create_task_group() as group:
             group.start_soon(upstream_side)
-            group.start_soon(link.read, anyio.create_memory_object_stream[Any](16)[0])
+            group.start_soon(pump, link, from_upstream)
             async with anyio.create_task_group() as calls:
                 for n in range(3):
                     calls.start_soon(one, n)
@@ -329,11 +394,12 @@ def test_two_writers_on_the_wire_never_interleave_their_messages() -> None:
     messages = [json.dumps({"n": n, "pad": str(n) * (3 << 20)}) + "\n" for n in range(3)]
 
     async def run() -> list[str]:
-        writer = stdio.PipeWriter(sink)
-        async with anyio.create_task_group() as group:
+        writer = pipes.PipeWriter(sink)
+        lines = fastpath.Lines(Wire(), no_call)  # type: ignore[arg-type]
+        reader = pipes.LineReader(lines.feed, lines.end, "the wire")
+        async with anyio.create_task_group() as group, pipes.reading(outbound, reader):
             for message in messages:
                 group.start_soon(writer.write, message)
-            lines = stdio.PipeLines(outbound)
             return [await anext(lines) for _ in messages]
 
     try:

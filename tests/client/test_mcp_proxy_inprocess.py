@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from mcp import types as mcp_types
 
 from precond_client.guard import Guard
-from precond_client.mcp import stdio
+from precond_client.mcp import fastpath, pipes
 from precond_client.mcp.proxy import Mode, Proxy
 from precond_client.mcp.recorder import CallLog, prepare
 from precond_client.mcp.tools import function_schema, spec_for
@@ -133,6 +133,10 @@ def test_calls_jsonl_moved_away_at_its_bound_is_started_again(tmp_path: Path) ->
     assert len(lines(tmp_path)) == 1
 
 
+async def unused(name: str, arguments: dict[str, Any]) -> mcp_types.CallToolResult:
+    raise AssertionError("called")
+
+
 def test_the_stdio_wire_is_read_in_lines_and_written_whole_on_the_loop(monkeypatch: pytest.MonkeyPatch,
                                                                       capsys: pytest.CaptureFixture[str]) -> None:
     """The proxy's own pipe reads and writes: lines as the SDK reads them (bad UTF-8 replaced, a last line without
@@ -144,7 +148,9 @@ def test_the_stdio_wire_is_read_in_lines_and_written_whole_on_the_loop(monkeypat
     os.close(feed)
 
     async def read_all(fd: int) -> list[str]:
-        return [line async for line in stdio.PipeLines(fd)]
+        lines = fastpath.Lines(pipes.PipeWriter(-1), unused)
+        async with pipes.reading(fd, pipes.LineReader(lines.feed, lines.end, "the wire")):
+            return [line async for line in lines]
 
     assert anyio.run(read_all, inbound) == ['{"a": 1}\n', '{"b": "\ufffd"}\n', "partial"]
     os.close(inbound)
@@ -154,16 +160,18 @@ def test_the_stdio_wire_is_read_in_lines_and_written_whole_on_the_loop(monkeypat
     big = "x" * (4 << 20) + "\n"
 
     async def write_and_read() -> str:
-        async with anyio.create_task_group() as group:
-            group.start_soon(stdio.PipeWriter(sink).write, big)
-            return await anext(stdio.PipeLines(outbound))
+        lines = fastpath.Lines(pipes.PipeWriter(-1), unused)
+        reader = pipes.LineReader(lines.feed, lines.end, "the wire")
+        async with anyio.create_task_group() as group, pipes.reading(outbound, reader):
+            group.start_soon(pipes.PipeWriter(sink).write, big)
+            return await anext(lines)
 
     os.set_blocking(outbound, False)
     assert anyio.run(write_and_read) == big
     os.close(sink)
     os.close(outbound)
 
-    monkeypatch.setattr(stdio, "MAX_LINE", 1024)
+    monkeypatch.setattr(pipes, "MAX_LINE", 1024)
     endless, feed = os.pipe()
     os.set_blocking(endless, False)
     os.write(feed, b"y" * 4096)

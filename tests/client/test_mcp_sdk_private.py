@@ -4,6 +4,7 @@ helper that changed, fails here rather than in a user's proxy."""
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from importlib.metadata import version
@@ -57,6 +58,43 @@ def test_a_process_that_ignores_its_closed_stdin_is_ended_with_its_children(tmp_
         await sdk_private.stop_server_process(process)
 
     anyio.run(run)
+    for pid in map(int, pids.read_text().split()):
+        for _ in range(100):
+            if not alive(pid):
+                break
+            time.sleep(0.05)
+        assert not alive(pid), f"process {pid} outlived the stop"
+
+
+def test_a_process_on_the_callers_own_pipes_is_stopped_as_the_sdk_stops_one(tmp_path) -> None:
+    """`stop_piped_process`: the SDK's stop, handed the caller's pipes: stdin closed first (a process that exits at
+    its end of input goes in the grace period), stdout after, and one that ignores both is ended with its
+    children."""
+    pids = tmp_path / "pids"
+    script = (
+        "import os, signal, subprocess, sys, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'])\n"
+        f"open({str(pids)!r}, 'w').write(f'{{os.getpid()}} {{child.pid}}')\n"
+        "time.sleep(600)\n"
+    )
+    closed: list[str] = []
+
+    async def stop(code: str) -> float:
+        stdin, to_child = os.pipe()
+        process = await anyio.open_process([sys.executable, "-c", code], stdin=stdin, start_new_session=True)
+        os.close(stdin)
+        while code == script and (not pids.exists() or not pids.read_text()):
+            await anyio.sleep(0.05)
+        started = time.monotonic()
+        await sdk_private.stop_piped_process(process, lambda: (closed.append("stdin"), os.close(to_child)),
+                                             lambda: closed.append("stdout"))
+        assert process.returncode is not None
+        return time.monotonic() - started
+
+    assert anyio.run(stop, "import sys; sys.stdin.read()") < 1.5
+    assert closed == ["stdin", "stdout"]
+    anyio.run(stop, script)
     for pid in map(int, pids.read_text().split()):
         for _ in range(100):
             if not alive(pid):
