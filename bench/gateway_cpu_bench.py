@@ -46,12 +46,10 @@ def gateway_processes(base: str) -> list[psutil.Process]:
     raise SystemExit(f"no uvicorn process on port {port}")
 
 
-def cpu_seconds(processes: list[psutil.Process]) -> float:
-    total = 0.0
-    for process in processes:
-        times = process.cpu_times()
-        total += times.user + times.system
-    return total
+def cpu_seconds(processes: list[psutil.Process]) -> tuple[float, float]:
+    """User and system seconds of `processes` so far."""
+    times = [process.cpu_times() for process in processes]
+    return sum(t.user for t in times), sum(t.system for t in times)
 
 
 def wrk(argv: list[str]) -> tuple[int, float]:
@@ -98,7 +96,7 @@ def main() -> None:
         for root in roots:
             base, tmp, keys = start(root, argparse.Namespace(**{**vars(options), "root": root}), running)
             stacks.append((base, scripts(base, tmp, keys["quiet"], check)))
-        samples: dict[tuple[int, str], list[tuple[float, float]]] = {}
+        samples: dict[tuple[int, str], list[tuple[float, float, float]]] = {}
         for r in range(args.rounds):
             for row in args.rows:
                 for step in range(len(stacks)):
@@ -110,17 +108,18 @@ def main() -> None:
                     tail = [f"cpu{k}-{r}-{time.time()}"] if row == "interpreter" else []
                     done, rate = wrk(["wrk", "-t2", f"-c{args.connections}", f"-d{args.seconds}s", *commands[row],
                                       *tail])
-                    spent = cpu_seconds(processes) - before
-                    samples.setdefault((k, row), []).append((spent / done * 1000, rate))
+                    after = cpu_seconds(processes)
+                    user, system = ((a - b) / done * 1000 for a, b in zip(after, before, strict=True))
+                    samples.setdefault((k, row), []).append((user, system, rate))
     load = psutil.getloadavg()
     print(f"gateway processes: {args.gateway_processes}; wrk -t2 -c{args.connections} -d{args.seconds}s x "
           f"{args.rounds} rounds; load average at the end {load[0]:.1f} / {load[1]:.1f} / {load[2]:.1f}")
     for (k, row), taken in sorted(samples.items()):
-        ms = [m for m, _ in taken]
-        rates = [q for _, q in taken]
-        print(f"{roots[k]}  {row:12s}  CPU ms/request median {statistics.median(ms):.3f} "
-              f"(runs {', '.join(f'{m:.3f}' for m in ms)});  req/s (contended) "
-              f"{', '.join(f'{q:.0f}' for q in rates)}")
+        ms = [user + system for user, system, _ in taken]
+        system_ms = statistics.median(system for _, system, _ in taken)
+        print(f"{roots[k]}  {row:12s}  CPU ms/request median {statistics.median(ms):.3f} (system "
+              f"{system_ms:.3f}; runs {', '.join(f'{m:.3f}' for m in ms)});  req/s (contended) "
+              f"{', '.join(f'{q:.0f}' for _, _, q in taken)}")
 
 
 if __name__ == "__main__":

@@ -106,6 +106,6 @@ async def answer(request: Request, body: bytes, authenticate: Callable[[Request]
             return response
     try:
         check = CheckRequest.model_validate(json.loads(body))
-    except (ValueError, ValidationError):  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-        return None
+    except (ValueError, RecursionError, ValidationError):  # JSONDecodeError, UnicodeDecodeError: ValueErrors;
+        return None  # deep nesting: RecursionError (FastAPI answers each its own way)
     return await endpoint(check, request, caller, wait)

@@ -59,6 +59,8 @@ BODIES: dict[str, Any] = {
     "wrong type": {**check_body(), "calls": "system.REQUEST('date')"},
     "not json": b"{not json",
     "empty": b"",
+    "nested": b"[" * 20_000 + b"]" * 20_000,
+    "not utf-8": b'{"spec": "\xff\xfe"}',
 }
 
 

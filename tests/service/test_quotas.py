@@ -139,6 +139,22 @@ def test_concurrent_requests_spend_the_lease_on_its_way_rather_than_ask_redis(re
     assert evals <= 640 / 16, f"{evals} Lua calls for {allowed} requests"
 
 
+def test_a_request_cancelled_while_waiting_for_the_lease_cancels_no_other(redis_server: RedisServer) -> None:
+    """A client gone while its request waited for the tenant's lease on its way: the lease is still taken and
+    the other requests waiting for it are let through."""
+
+    async def run() -> list[object]:
+        quotas = _quotas(redis_server, rate=100_000, burst=100_000)
+        tasks = [asyncio.create_task(quotas.take_request(Caller("a", "tag-a"))) for _ in range(8)]
+        await asyncio.sleep(0)  # every one started: the first takes the lease, the others wait for it
+        tasks[1].cancel()
+        return await asyncio.gather(*tasks, return_exceptions=True)
+
+    answers = asyncio.run(run())
+    assert isinstance(answers[1], asyncio.CancelledError)
+    assert [answer for i, answer in enumerate(answers) if i != 1] == [None] * 7, answers
+
+
 def test_a_tenant_of_a_low_rate_takes_one_token_a_request(redis_server: RedisServer) -> None:
     async def run() -> tuple[int, float]:
         quotas = _quotas(redis_server, rate=20, burst=100)  # 20/s refills 5 tokens in a lease's time: no more
