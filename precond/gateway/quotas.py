@@ -171,12 +171,15 @@ class Quotas:
                 return self._rate_refusal(caller, until - now)
             on_its_way = self._leasing.get(caller.tag)
             if on_its_way is None:
+                granted, wait = await self._take_for(caller.tag, lease, now)
+                break
+            if self._largest_lease == 1:  # a lease is the one token of the request that took it: none to share
+                granted, wait = await self._take(_rate_key(caller.tag), self.rate_per_s, self.burst)
                 break
             # then spend the lease it brought, or take the next one (shielded: a waiter cancelled, its client
             # gone, must not cancel what the others wait for)
             await asyncio.shield(on_its_way)
             now = datetime.now(UTC).timestamp()
-        granted, wait = await self._take_for(caller.tag, lease, now)
         if granted:
             return None
         _remember(self._empty, caller.tag, now + wait, now)
@@ -189,10 +192,10 @@ class Quotas:
     async def _take_for(self, tag: str, lease: Lease | None, now: float) -> tuple[int, float]:
         """Tokens for a request that found no lease to spend, taken as the tenant's next lease (its grant
         replaces the spent or ended lease). One take at a time per tenant: the requests that come while it is
-        on the way wait for it (`take_request`) and spend its tokens, so that concurrent requests neither
-        hoard the bucket nor overwrite each other's leases (whose tokens, taken from the bucket, would then be
-        lost), nor each take a token of their own in a round trip to Redis (32 connections of one tenant
-        made most requests such a round trip whenever a lease ran out)."""
+        on the way wait for it (`take_request`; where a lease may hold more than one token) and spend its
+        tokens, so that concurrent requests neither hoard the bucket nor overwrite each other's leases (whose
+        tokens, taken from the bucket, would then be lost), nor each take a token of their own in a round trip
+        to Redis (32 connections of one tenant made most requests such a round trip whenever a lease ran out)."""
         on_its_way: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._leasing[tag] = on_its_way
         try:
