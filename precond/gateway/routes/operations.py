@@ -130,10 +130,10 @@ async def check_actions(
     calls = body.calls if holds_schemas(body.spec_text()) else outcome.lines
     payload = body.model_copy(update={"history": outcome.program, "calls": calls}).model_dump(mode="json")
     status = await submit_job(services, caller, "check", payload, None, wait)
-    if status.status == "succeeded" and not named_set:  # the next time, found by the body's digest
-        job, cache_key = job_keys(services, caller, "check", payload, None)
-        services.check_memo.put(caller.tag, fast_check.digest(await request.body()),
-                                fast_check.Known(job.value, cache_key))
+    raw = await request.body()
+    if status.status == "succeeded" and not named_set and len(raw) <= offload.INLINE_BODY_BYTES:
+        job, cache_key = job_keys(services, caller, "check", payload, None)  # the next time, found by digest
+        services.check_memo.put(caller.tag, fast_check.digest(raw), fast_check.Known(job.value, cache_key))
     return respond(request, status, services.settings.wait_max_s)
 
 
