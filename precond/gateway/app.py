@@ -19,6 +19,7 @@ from precond.gateway import errors
 from precond.gateway.api_keys import KeyStore
 from precond.gateway.completions import Completions
 from precond.gateway.deps import Services
+from precond.gateway.fast_check import CheckMemo
 from precond.gateway.middleware import BlockedSources, BodyLimit, RequestContext
 from precond.gateway.offload import CheckPool
 from precond.gateway.prometheus import Metrics
@@ -115,7 +116,7 @@ def _services(settings: GatewaySettings, metrics: Metrics, redis: Redis[bytes], 
     pool = CheckPool(settings.check_processes, settings.tenant_check_processes)
     open_rate = SourceBuckets(settings.open_rate_per_s, settings.open_burst)
     services = Services(settings, redis, cache, queue, metrics, quotas, secret, keys, store, pool, open_rate,
-                        WorkerView(redis))
+                        WorkerView(redis), CheckMemo())
     return services, completions
 
 

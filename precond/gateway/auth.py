@@ -74,14 +74,19 @@ class ApiKeyBearer(HTTPBearer):
     solving."""
 
     async def __call__(self, request: Request) -> Caller:  # type: ignore[override]  # as FastAPI's HTTPBasic
-        return await authenticate(request, await super().__call__(request))
+        """The caller, worked out once per request: a route that authenticated before handing the request to
+        FastAPI's handler (`fast_check`) left it on the request, its token taken and its failures counted."""
+        known = getattr(request.state, "caller", None)
+        if isinstance(known, Caller):
+            return known
+        caller = await authenticate(request, await super().__call__(request))
+        request.state.caller = caller
+        return caller
 
 
-CurrentCaller = Annotated[
-    Caller,
-    Depends(ApiKeyBearer(auto_error=False, scheme_name="HTTPBearer",
-                         description="An API key made by `precond keys create`.")),
-]
+bearer = ApiKeyBearer(auto_error=False, scheme_name="HTTPBearer",
+                      description="An API key made by `precond keys create`.")
+CurrentCaller = Annotated[Caller, Depends(bearer)]
 
 RATE_LIMITED: dict[str, Any] = {
     "model": ErrorResponse,

@@ -9,6 +9,7 @@ from fastapi import Depends, Request
 from redis.asyncio import Redis
 
 from precond.gateway.api_keys import KeyStore
+from precond.gateway.fast_check import CheckMemo
 from precond.gateway.offload import CheckPool
 from precond.gateway.prometheus import Metrics
 from precond.gateway.queue import JobQueue
@@ -33,6 +34,7 @@ class Services:
     checks: CheckPool
     open_rate: SourceBuckets
     workers: WorkerView
+    check_memo: CheckMemo
 
 
 async def _services(request: Request) -> Services:

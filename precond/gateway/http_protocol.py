@@ -16,6 +16,7 @@ speaks h11 instead (`GatewayHttpProtocol`, with a log line): slower, with h11's 
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -39,10 +40,58 @@ class HeadTooLarge(ValueError):
     """Raised inside the parser's callback: httptools stops, uvicorn answers 400 and closes."""
 
 
+class HeadWithBody:
+    """The connection's transport, holding a response's head until its body is written, to the end of the loop's
+    turn at most, so that both leave in one write: uvicorn writes the head when the app starts the response
+    and the body when it sends it, two `send` system calls and two TCP segments a request, where the gateway's
+    answers (a few hundred bytes, sent at once) need one. A quarter of the gateway's CPU per check, sampled,
+    was these writes.
+
+    Everything else is the transport's own (`__getattr__`); what would put bytes after the head, or end the
+    connection, writes the head first."""
+
+    def __init__(self, transport: asyncio.Transport) -> None:
+        self._transport = transport
+        self._head = b""
+
+    def write(self, data: bytes | bytearray | memoryview) -> None:
+        if self._head:
+            data, self._head = self._head + bytes(data), b""
+        elif data[:9] == b"HTTP/1.1 " and data[-4:] == b"\r\n\r\n":
+            self._head = bytes(data)
+            asyncio.get_running_loop().call_soon(self.flush)  # a body that is not sent at once (a stream, HEAD)
+            return
+        self._transport.write(data)
+
+    def flush(self) -> None:
+        if self._head:
+            head, self._head = self._head, b""
+            if not self._transport.is_closing():
+                self._transport.write(head)
+
+    def writelines(self, lines: Any) -> None:
+        self.flush()
+        self._transport.writelines(lines)
+
+    def write_eof(self) -> None:
+        self.flush()
+        self._transport.write_eof()
+
+    def close(self) -> None:
+        self.flush()
+        self._transport.close()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._transport, name)
+
+
 class BoundedHttpToolsProtocol(HttpToolsProtocol):
     _in_head = False
     _head_bytes = 0
     _head_reads = 0
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(HeadWithBody(transport))  # type: ignore[arg-type]
 
     def on_message_begin(self) -> None:
         super().on_message_begin()

@@ -19,6 +19,7 @@ places and enqueues a job in one step.
 
 from __future__ import annotations
 
+import asyncio
 import math
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -141,7 +142,7 @@ class Quotas:
         self._blocked: dict[str, float] = {}  # source -> until (this process's view of the shared buckets)
         self._empty: dict[str, float] = {}  # tenant tag -> until its rate bucket has a token again
         self._leases: dict[str, Lease] = {}  # tenant tag -> its tokens taken ahead (bounded as `_remember` is)
-        self._leasing: set[str] = set()  # tenant tags whose lease is being taken now
+        self._leasing: dict[str, asyncio.Future[None]] = {}  # tenant tag -> its lease being taken now
         self._largest_lease = max(1, min(MAX_LEASE, burst // 4, math.floor(rate_per_s * LEASE_S)))
 
     async def _take(self, key: str, rate: float, burst: int, want: int = 1) -> tuple[int, float]:
@@ -160,36 +161,51 @@ class Quotas:
         shared bucket. While this process knows the bucket is empty, the refusal costs no Redis round trip: a
         tenant flooding past its rate must not cost the others the shared Redis's time."""
         now = datetime.now(UTC).timestamp()
-        lease = self._leases.get(caller.tag)
-        if lease is not None and lease.tokens > 0 and now <= lease.until:
-            lease.tokens -= 1
-            return None
-        until = self._empty.get(caller.tag, 0.0)
-        if until > now:
-            wait = until - now
-        else:
-            granted, wait = await self._take_for(caller.tag, lease, now)
-            if granted:
+        while True:
+            lease = self._leases.get(caller.tag)
+            if lease is not None and lease.tokens > 0 and now <= lease.until:
+                lease.tokens -= 1
                 return None
-            _remember(self._empty, caller.tag, now + wait, now)
+            until = self._empty.get(caller.tag, 0.0)
+            if until > now:
+                return self._rate_refusal(caller, until - now)
+            on_its_way = self._leasing.get(caller.tag)
+            if on_its_way is None:
+                granted, wait = await self._take_for(caller.tag, lease, now)
+                break
+            if self._largest_lease == 1:  # a lease is the one token of the request that took it: none to share
+                granted, wait = await self._take(_rate_key(caller.tag), self.rate_per_s, self.burst)
+                break
+            # then spend the lease it brought, or take the next one (shielded: a waiter cancelled, its client
+            # gone, must not cancel what the others wait for)
+            await asyncio.shield(on_its_way)
+            now = datetime.now(UTC).timestamp()
+        if granted:
+            return None
+        _remember(self._empty, caller.tag, now + wait, now)
+        return self._rate_refusal(caller, wait)
+
+    def _rate_refusal(self, caller: Caller, wait: float) -> Refusal:
         return Refusal("rate", f"rate limit: tenant {caller.name!r} may send {self.rate_per_s:g} requests/s "
                                f"(bursts of {self.burst})", max(1, math.ceil(wait)))
 
     async def _take_for(self, tag: str, lease: Lease | None, now: float) -> tuple[int, float]:
-        """Tokens for a request that found no lease to spend. One take at a time per tenant leases (its grant
-        replaces the spent or ended lease); requests that come while it is on the way take one token each, so
-        that concurrent requests neither hoard the bucket nor overwrite each other's leases (whose tokens,
-        taken from the bucket, would then be lost)."""
-        if tag in self._leasing:
-            return await self._take(_rate_key(tag), self.rate_per_s, self.burst)
-        self._leasing.add(tag)
+        """Tokens for a request that found no lease to spend, taken as the tenant's next lease (its grant
+        replaces the spent or ended lease). One take at a time per tenant: the requests that come while it is
+        on the way wait for it (`take_request`; where a lease may hold more than one token) and spend its
+        tokens, so that concurrent requests neither hoard the bucket nor overwrite each other's leases (whose
+        tokens, taken from the bucket, would then be lost), nor each take a token of their own in a round trip
+        to Redis (32 connections of one tenant made most requests such a round trip whenever a lease ran out)."""
+        on_its_way: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._leasing[tag] = on_its_way
         try:
             want = 1 if lease is None else lease.next_size(now, self._largest_lease)
             granted, wait = await self._take(_rate_key(tag), self.rate_per_s, self.burst, want)
+            if granted:
+                self._lease(tag, Lease(granted, granted - 1, now + LEASE_S), now)
         finally:
-            self._leasing.discard(tag)
-        if granted:
-            self._lease(tag, Lease(granted, granted - 1, now + LEASE_S), now)
+            del self._leasing[tag]
+            on_its_way.set_result(None)
         return granted, wait
 
     def auth_blocked(self, source: str) -> Refusal | None:

@@ -22,6 +22,26 @@ Screen = Callable[[], Awaitable[None]]
 must run, since a cached result passed it already."""
 
 
+def job_keys(services: Services, caller: Caller, kind: JobKind, payload: dict[str, Any],
+             model: str | None) -> tuple[keys.JobId, str]:
+    """The request's job, and where its result is cached: under the job id, each tenant's own, unless the
+    operator lets tenants share results (`PRECOND_SHARE_CACHE`) and the kind's result is not the tenant's alone."""
+    job = keys.JobId(kind, caller.tag, keys.job_id(kind, payload, model, services.secret, caller.tag))
+    shared = services.settings.share_cache and not tenant_private(kind, payload)
+    return job, keys.cache_id(kind, payload, model, services.secret) if shared else job.value
+
+
+async def cached_status(services: Services, kind: JobKind, job_id: str, cache_key: str) -> JobStatus | None:
+    """The job's state when its result is cached (`succeeded`, counted as a cache hit), else None (not counted:
+    the caller counts the miss once it goes on to submit)."""
+    cached = await services.cache.get(cache_key)
+    if cached is None:
+        return None
+    services.metrics.cache.labels(kind, "hit").inc()
+    done = JobProgress(phase="done", done=1, total=1)
+    return JobStatus.model_construct(id=job_id, kind=kind, status="succeeded", progress=done, result=cached)
+
+
 async def submit_job(
     services: Services,
     caller: Caller,
@@ -34,14 +54,11 @@ async def submit_job(
     """The job's state after waiting up to `wait_s` (capped by `PRECOND_WAIT_MAX_S`; None: the cap):
     `succeeded` with its result at once when the result is cached."""
     settings = services.settings
-    job = keys.JobId(kind, caller.tag, keys.job_id(kind, payload, model, services.secret, caller.tag))
-    shared = settings.share_cache and not tenant_private(kind, payload)
-    cache_key = keys.cache_id(kind, payload, model, services.secret) if shared else job.value
-    cached = await services.cache.get(cache_key)
-    services.metrics.cache.labels(kind, "miss" if cached is None else "hit").inc()
+    job, cache_key = job_keys(services, caller, kind, payload, model)
+    cached = await cached_status(services, kind, job.value, cache_key)
     if cached is not None:  # only a request that passed the screen and ran has a cached result
-        done = JobProgress(phase="done", done=1, total=1)
-        return JobStatus.model_construct(id=job.value, kind=kind, status="succeeded", progress=done, result=cached)
+        return cached
+    services.metrics.cache.labels(kind, "miss").inc()
     if screen is not None:
         await screen()
     timeout = settings.wait_max_s if wait_s is None else min(wait_s, settings.wait_max_s)

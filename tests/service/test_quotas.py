@@ -25,6 +25,12 @@ def _evals(server: RedisServer) -> int:
     return int(server.client().info("commandstats").get("cmdstat_eval", {}).get("calls", 0))
 
 
+def _lua_calls(server: RedisServer) -> int:
+    """Lua calls so far: by its text (EVAL) or, once Redis has it, by its digest (EVALSHA, `LuaScript`)."""
+    stats = server.client().info("commandstats")
+    return sum(int(stats.get(f"cmdstat_{name}", {}).get("calls", 0)) for name in ("eval", "evalsha"))
+
+
 def test_a_tenant_past_its_rate_is_refused_without_asking_redis_again(redis_server: RedisServer) -> None:
     async def flood() -> tuple[list[bool], int]:
         quotas = _quotas(redis_server, rate=2, burst=3)
@@ -113,6 +119,40 @@ def test_concurrent_requests_of_a_tenant_lose_no_token_they_took(redis_server: R
 
     taken, allowed, left = asyncio.run(run())
     assert taken == allowed + left, f"{taken} tokens taken, {allowed} requests let through, {left} left"
+
+
+def test_concurrent_requests_spend_the_lease_on_its_way_rather_than_ask_redis(redis_server: RedisServer) -> None:
+    """Thirty-two requests of a busy tenant at a time (a gateway process under load): those that come while
+    its lease is being taken wait for it and spend its tokens; each one asking Redis for a token of its own
+    cost the gateway a round trip per request."""
+
+    async def run() -> tuple[int, int]:
+        quotas = _quotas(redis_server, rate=100_000, burst=100_000)
+        allowed = 0
+        for _ in range(20):
+            answers = await asyncio.gather(*(quotas.take_request(Caller("a", "tag-a")) for _ in range(32)))
+            allowed += sum(answer is None for answer in answers)
+        return allowed, _lua_calls(redis_server)
+
+    allowed, evals = asyncio.run(run())
+    assert allowed == 640
+    assert evals <= 640 / 16, f"{evals} Lua calls for {allowed} requests"
+
+
+def test_a_request_cancelled_while_waiting_for_the_lease_cancels_no_other(redis_server: RedisServer) -> None:
+    """A client gone while its request waited for the tenant's lease on its way: the lease is still taken and
+    the other requests waiting for it are let through."""
+
+    async def run() -> list[object]:
+        quotas = _quotas(redis_server, rate=100_000, burst=100_000)
+        tasks = [asyncio.create_task(quotas.take_request(Caller("a", "tag-a"))) for _ in range(8)]
+        await asyncio.sleep(0)  # every one started: the first takes the lease, the others wait for it
+        tasks[1].cancel()
+        return await asyncio.gather(*tasks, return_exceptions=True)
+
+    answers = asyncio.run(run())
+    assert isinstance(answers[1], asyncio.CancelledError)
+    assert [answer for i, answer in enumerate(answers) if i != 1] == [None] * 7, answers
 
 
 def test_a_tenant_of_a_low_rate_takes_one_token_a_request(redis_server: RedisServer) -> None:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import dataclass
 from typing import Annotated, Any, Final, Generic, TypeVar
 
@@ -12,14 +12,14 @@ from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel, ValidationError
 
 from precond.convert.openai import holds_schemas
-from precond.gateway import offload
-from precond.gateway.auth import CurrentCaller
+from precond.gateway import fast_check, offload
+from precond.gateway.auth import CurrentCaller, bearer
 from precond.gateway.caller import Caller
 from precond.gateway.deps import Services, ServicesDep
 from precond.gateway.errors import ServiceError, error_response, status_for
 from precond.gateway.examples import openapi_examples
 from precond.gateway.middleware import OffloadedBodyRoute
-from precond.gateway.submission import submit_job
+from precond.gateway.submission import cached_status, job_keys, submit_job
 from precond.jobs.queue import keys
 from precond.jobs.queue.kinds import KINDS, covers
 from precond.jobs.queue.payloads import ReinferJob, TrainPolicyJob
@@ -105,11 +105,9 @@ async def next_action(
     return await answer(services, request, caller, "next-action", body, wait)
 
 
-@router.post("/check-actions", response_model=CheckResponse, responses=ERRORS)
 async def check_actions(
     body: Annotated[CheckRequest, Body(openapi_examples=openapi_examples("check-actions"))],
     request: Request,
-    services: ServicesDep,
     caller: CurrentCaller,
     wait: Wait = None,
 ) -> Response:
@@ -118,6 +116,8 @@ async def check_actions(
     and the exception; `violations` lists the rules that do not hold. No model, never queued behind model jobs.
     A spec a converter writes with rules the restricted interpreter evaluates is judged by the gateway at once
     (`judged_by: "interpreter"`, no job); any other check runs in the sandbox (`judged_by: "sandbox"`)."""
+    services: Services = request.app.state.services
+    named_set = body.precondition_set is not None
     body = await _with_set(services, caller.tag, body)
     outcome = await screened_check(services, caller.tag, body)
     if isinstance(outcome, checks.Problem):
@@ -130,7 +130,43 @@ async def check_actions(
     calls = body.calls if holds_schemas(body.spec_text()) else outcome.lines
     payload = body.model_copy(update={"history": outcome.program, "calls": calls}).model_dump(mode="json")
     status = await submit_job(services, caller, "check", payload, None, wait)
+    raw = await request.body()
+    if status.status == "succeeded" and not named_set and len(raw) <= offload.INLINE_BODY_BYTES:
+        job, cache_key = job_keys(services, caller, "check", payload, None)  # the next time, found by digest
+        services.check_memo.put(caller.tag, fast_check.digest(raw), fast_check.Known(job.value, cache_key))
     return respond(request, status, services.settings.wait_max_s)
+
+
+async def _cached_check(request: Request, caller: Caller, known: fast_check.Known) -> Response | None:
+    """The answer of a check whose body's digest leads to its job (`fast_check`), when its result is cached:
+    what `check_actions` answers for it."""
+    services: Services = request.app.state.services
+    status = await cached_status(services, "check", known.job_id, known.cache_key)
+    if status is None:
+        return None
+    request.scope["state"]["judged_by"] = "sandbox"
+    return respond(request, status, services.settings.wait_max_s)
+
+
+class CheckRoute(OffloadedBodyRoute):
+    """The check route, answered by `fast_check` where it can be, else by FastAPI's handler."""
+
+    def get_route_handler(self) -> Callable[[Request], Coroutine[Any, Any, Response]]:
+        handler = super().get_route_handler()
+
+        async def short(request: Request) -> Response:
+            body = await request.body()
+            if len(body) <= offload.INLINE_BODY_BYTES:
+                response = await fast_check.answer(request, body, bearer, _cached_check, check_actions)
+                if response is not None:
+                    return response
+            return await handler(request)
+
+        return short
+
+
+router.add_api_route("/check-actions", check_actions, methods=["POST"], response_model=CheckResponse,
+                     responses=ERRORS, route_class_override=CheckRoute)
 
 
 async def screened_check(services: Services, tag: str,

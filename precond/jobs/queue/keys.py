@@ -124,8 +124,10 @@ class JobId:
             return None
 
 
+@lru_cache(maxsize=4096)
 def tenant_tag(secret: bytes, tenant: str) -> str:
-    """A tenant's name in ids and Redis keys: stable, fixed-length, and not the name itself."""
+    """A tenant's name in ids and Redis keys: stable, fixed-length, and not the name itself. Kept for the
+    tenants seen last: the gateway works it out for every request."""
     return hmac.new(secret, b"tenant\0" + tenant.encode(), hashlib.sha256).hexdigest()[:TAG_CHARS]
 
 
