@@ -3,10 +3,16 @@
 # two steps: the fast suite (`-m "not model and not stack"`), then the tests that start real stacks, pod
 # simulations and fresh installs (`-m stack`) together with those that run the real embedded model (`-m model`):
 # the model's tests are single-threaded and CPU-bound, the stacks' tests mostly wait for processes, so they share
-# the cores. Each step runs two test processes a core (pytest-xdist `-n`; PYTEST_XDIST_AUTO_NUM_WORKERS sets how
-# many): much of either step waits (for child processes, sockets, the sandbox's wall-clock limits), and a core's
-# second process fills those waits. A test file per process (`--dist loadfile`: a module's stack is started once,
-# in the process that runs it).
+# the cores. The property tests that draw many hypothesis examples (`-m generated`) run a tenth of them in the
+# fast step and all of them in the second.
+# The fast step runs one test process a core (pytest-xdist `-n`): its tests mostly compute, and each further
+# process costs its own collection (about 6 CPU s) and more contention than the waits it would fill; mypy and the
+# model's conversion, beside it, take what waits there are. The second step runs two a core: much of it waits
+# (for child processes, sockets, the sandbox's wall-clock limits), and a core's second process fills those waits.
+# PYTEST_XDIST_AUTO_NUM_WORKERS sets both. A test file per process (`--dist loadfile`: a module's stack is
+# started once, in the process that runs it); the fast step hands them out in the order collected
+# (`--no-loadscope-reorder`), the files marked `long` first (tests/conftest.py), so that none of them starts last
+# and ends the step alone on one core.
 # One step alone: `python -m pytest -q -m "not model and not stack"` after `. .venv/bin/activate` (add `-n auto`).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -34,10 +40,11 @@ mypy >"$typecheck_log" 2>&1 &
 typed=$!
 wait "$collected" || true
 
-processes=${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}
 pytest_step() {
-  # Exit code 5 means "no tests collected" (e.g. arguments that select no model test): not a failure.
-  local code=0
+  # $1: test processes. Exit code 5 means "no tests collected" (e.g. arguments that select no model test): not a
+  # failure.
+  local processes=$1 code=0
+  shift
   python -m pytest -q -n "$processes" --dist loadfile "$@" || code=$?
   if [ "$code" -eq 5 ]; then
     code=0
@@ -46,7 +53,8 @@ pytest_step() {
 }
 
 fast=0
-pytest_step -m "not model and not stack" "$@" || fast=$?
+pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$(nproc)}" --no-loadscope-reorder -m "not model and not stack" \
+  --examples-share 0.1 "$@" || fast=$?
 typecheck=0
 wait "$typed" || typecheck=$?
 cat "$typecheck_log"
@@ -58,4 +66,4 @@ if [ "$fast" -ne 0 ]; then
   exit "$fast"
 fi
 wait "$prepared"
-pytest_step -m "stack or model" "$@"
+pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}" -m "stack or model or generated" "$@"

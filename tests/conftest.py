@@ -1,9 +1,10 @@
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -19,12 +20,18 @@ STACK_FIXTURES = frozenset({"stack", "own_stack", "unconfinable", "rate_limited"
 """Fixtures that start a stack (Redis, gateway and worker processes: precond.stack.local). A test that uses one,
 directly or through another fixture, is marked `stack` and runs in the test command's second step; a test that
 starts processes itself says so with `@pytest.mark.stack`."""
+GENERATED_FIXTURES = frozenset({"examples"})
+"""A test that draws its cases with hypothesis and sizes their number with `examples` is marked `generated`: the
+test command's fast step runs a tenth of its examples, its second step all of them."""
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption("--guard-cases", type=int, default=150,
                      help="generated rules and states the embedded guard is compared with Python on "
                           "(tests/client/test_guard_generated_rules.py)")
+    parser.addoption("--examples-share", type=float, default=1.0,
+                     help="the share of each generated test's hypothesis examples that is run (the `examples` "
+                          "fixture; at least one): scripts/test.sh's fast step runs 0.1, its second step all")
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
@@ -35,9 +42,25 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Marks the stack and generated tests, and puts the files marked `long` first: pytest-xdist hands out files
+    in this order when it is told not to reorder them (scripts/test.sh's fast step: `--no-loadscope-reorder`), so
+    a long file starts early instead of ending the step alone on one core."""
     for item in items:
-        if STACK_FIXTURES & set(getattr(item, "fixturenames", ())):
+        fixtures = set(getattr(item, "fixturenames", ()))
+        if STACK_FIXTURES & fixtures:
             item.add_marker(pytest.mark.stack)
+        if GENERATED_FIXTURES & fixtures:
+            item.add_marker(pytest.mark.generated)
+    # stable: the other files keep their order behind the long ones
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+
+
+@pytest.fixture()
+def examples(pytestconfig: pytest.Config) -> Callable[[int], int]:
+    """`examples(full)`: how many of a property test's `full` hypothesis examples run, `--examples-share` of them.
+    A quick run draws fewer cases of the same property; the test command's second step draws them all."""
+    share = float(pytestconfig.getoption("examples_share"))
+    return lambda full: max(1, math.ceil(full * share))
 
 
 @pytest.fixture(scope="session")

@@ -5,6 +5,7 @@ history: drawn histories of reads, cancellations and their results, split into s
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -55,12 +56,15 @@ SDK_OTHER = st.one_of(
 SDK_ITEMS = st.lists(st.one_of(SDK_CALL, SDK_OUTPUT, SDK_CALL, SDK_OUTPUT, SDK_OTHER), max_size=8)
 
 
-@given(SDK_ITEMS)
-@settings(max_examples=300, deadline=None)
-def test_the_agents_sdk_items_convert_as_the_sdk_converts_them(items: list[Any]) -> None:
+def test_the_agents_sdk_items_convert_as_the_sdk_converts_them(examples: Callable[[int], int]) -> None:
     from precond_client.adapters import openai_agents
 
-    assert openai_agents.chat_messages(items) == sdk_reference(items)
+    @given(SDK_ITEMS)
+    @settings(max_examples=examples(300), deadline=None)
+    def converted_as_the_sdk_converts(items: list[Any]) -> None:
+        assert openai_agents.chat_messages(items) == sdk_reference(items)
+
+    converted_as_the_sdk_converts()
 
 
 TOOL_CALL = st.builds(lambda i, n, r: {"name": n, "args": {"reservation_id": r}, "id": i, "type": "tool_call"},
@@ -77,10 +81,13 @@ LANGCHAIN_MESSAGES = st.lists(st.one_of(
     st.builds(SystemMessage, TEXT)), max_size=8)
 
 
-@given(LANGCHAIN_MESSAGES)
-@settings(max_examples=300, deadline=None)
-def test_langchain_messages_convert_as_langchain_converts_them(messages: list[BaseMessage]) -> None:
-    assert langgraph.chat_messages(messages) == list(convert_to_openai_messages(messages))
+def test_langchain_messages_convert_as_langchain_converts_them(examples: Callable[[int], int]) -> None:
+    @given(LANGCHAIN_MESSAGES)
+    @settings(max_examples=examples(300), deadline=None)
+    def converted_as_langchain_converts(messages: list[BaseMessage]) -> None:
+        assert langgraph.chat_messages(messages) == list(convert_to_openai_messages(messages))
+
+    converted_as_langchain_converts()
 
 
 def steps(history: list[Any], cuts: list[int]) -> list[list[Any]]:
@@ -116,15 +123,17 @@ def sdk_turn(n: int, name: str, arguments: str, output: str) -> list[dict[str, A
             {"type": "function_call_output", "call_id": f"call_{n}", "output": output}]
 
 
-@given(st.lists(st.tuples(NAMES, ARGUMENTS, RESULT), max_size=5), st.lists(st.integers(0, 12), max_size=4))
-@settings(max_examples=150, deadline=None)
-def test_the_agents_sdk_adapter_judges_as_the_embedded_guard(turns: list[tuple[str, str, str]],
-                                                             cuts: list[int]) -> None:
+def test_the_agents_sdk_adapter_judges_as_the_embedded_guard(examples: Callable[[int], int]) -> None:
     from precond_client.adapters import openai_agents
 
-    history: list[Any] = [{"role": "user", "content": "cancel R1"},
-                          *(i for n, turn in enumerate(turns) for i in sdk_turn(n, *turn))]
-    same(verdict_after(history, cuts, openai_agents.chat_messages), whole(sdk_reference(history)))
+    @given(st.lists(st.tuples(NAMES, ARGUMENTS, RESULT), max_size=5), st.lists(st.integers(0, 12), max_size=4))
+    @settings(max_examples=examples(150), deadline=None)
+    def judged_as_the_embedded_guard(turns: list[tuple[str, str, str]], cuts: list[int]) -> None:
+        history: list[Any] = [{"role": "user", "content": "cancel R1"},
+                              *(i for n, turn in enumerate(turns) for i in sdk_turn(n, *turn))]
+        same(verdict_after(history, cuts, openai_agents.chat_messages), whole(sdk_reference(history)))
+
+    judged_as_the_embedded_guard()
 
 
 def langchain_turn(n: int, name: str, reservation: str, output: str) -> list[BaseMessage]:
@@ -132,12 +141,14 @@ def langchain_turn(n: int, name: str, reservation: str, output: str) -> list[Bas
             ToolMessage(output, tool_call_id=f"call_{n}", name=name)]
 
 
-@given(st.lists(st.tuples(NAMES, st.sampled_from(["R1", "R2"]), RESULT), max_size=5),
-       st.lists(st.integers(0, 12), max_size=4))
-@settings(max_examples=150, deadline=None)
-def test_the_langgraph_adapter_judges_as_the_embedded_guard(turns: list[tuple[str, str, str]],
-                                                            cuts: list[int]) -> None:
-    history: list[Any] = [HumanMessage("cancel R1"),
-                          *(m for n, turn in enumerate(turns) for m in langchain_turn(n, *turn))]
-    same(verdict_after(history, cuts, langgraph.chat_messages),
-         whole(list(convert_to_openai_messages(history))))
+def test_the_langgraph_adapter_judges_as_the_embedded_guard(examples: Callable[[int], int]) -> None:
+    @given(st.lists(st.tuples(NAMES, st.sampled_from(["R1", "R2"]), RESULT), max_size=5),
+           st.lists(st.integers(0, 12), max_size=4))
+    @settings(max_examples=examples(150), deadline=None)
+    def judged_as_the_embedded_guard(turns: list[tuple[str, str, str]], cuts: list[int]) -> None:
+        history: list[Any] = [HumanMessage("cancel R1"),
+                              *(m for n, turn in enumerate(turns) for m in langchain_turn(n, *turn))]
+        same(verdict_after(history, cuts, langgraph.chat_messages),
+             whole(list(convert_to_openai_messages(history))))
+
+    judged_as_the_embedded_guard()

@@ -19,6 +19,8 @@ from precond_client.schemas.errors import Cancelled, InvalidInput, InvalidProgra
 from tests.engine.conftest import SHARED
 from tests.sandbox.warm_probe import COUNTING_SPEC
 
+pytestmark = pytest.mark.long  # collected first: pytest-xdist starts it first
+
 
 @pytest.fixture(scope="module")
 def engine() -> Iterator[Engine]:

@@ -14,6 +14,8 @@ from precond.engine.factory import build_engine
 from precond.evaluation import tools_domain
 from tests.cli.inprocess import precond
 
+pytestmark = pytest.mark.long  # collected first: pytest-xdist starts it first
+
 DOMAINS = Path(__file__).resolve().parents[1] / "fixtures" / "tools_domains"
 
 

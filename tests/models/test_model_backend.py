@@ -16,6 +16,8 @@ from precond.engine.models.stopping import StopRule, statement_end, stop_index
 from precond.engine.models.weights import choose_dtype, cpu_dtype, cpu_flags
 from precond.engine.scope import scoped
 
+pytestmark = pytest.mark.long  # collected first: pytest-xdist starts it first
+
 PREFIX = "class USER:\n  def __init__(self):\n    self.informed_slot = defaultdict(lambda: False)\n" * 12
 SUFFIXES = ["  def INFORM(self, slot):\n    assert", "  def SELECT(self):\n    assert", "user = USER()\n"]
 

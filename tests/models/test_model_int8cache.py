@@ -16,6 +16,8 @@ from transformers import AutoModelForCausalLM
 from precond.engine.models import int8cache
 from precond.engine.models.quant import Int8Embedding, Int8Linear, quantize
 
+pytestmark = pytest.mark.long  # collected first: pytest-xdist starts it first
+
 KEY = "0123abcd-float32"
 
 

@@ -4,6 +4,7 @@ each step): the same as `ast.get_source_segment`, read off one split of the text
 from __future__ import annotations
 
 import ast
+from collections.abc import Callable
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -15,17 +16,20 @@ PIECES = st.sampled_from(["x = 1", "f('é\\u2028', 2)", "y = [1,\n 2]", "z = {'a
 BREAKS = st.sampled_from(["\n", "\r\n", "\r"])
 
 
-@settings(max_examples=300, deadline=None)
-@given(st.lists(st.tuples(PIECES, BREAKS), max_size=8), st.booleans())
-def test_each_statements_text_is_what_get_source_segment_reads(lines: list[tuple[str, str]], last_break: bool) -> None:
-    source = "".join(piece + brk for piece, brk in lines)
-    if not last_break:
-        source = source.rstrip("\r\n")
-    try:
-        body = ast.parse(source).body
-    except SyntaxError:
-        return
-    assert source_segments(source, body) == [ast.get_source_segment(source, s) for s in body]
+def test_each_statements_text_is_what_get_source_segment_reads(examples: Callable[[int], int]) -> None:
+    @settings(max_examples=examples(300), deadline=None)
+    @given(st.lists(st.tuples(PIECES, BREAKS), max_size=8), st.booleans())
+    def segments_are_get_source_segments(lines: list[tuple[str, str]], last_break: bool) -> None:
+        source = "".join(piece + brk for piece, brk in lines)
+        if not last_break:
+            source = source.rstrip("\r\n")
+        try:
+            body = ast.parse(source).body
+        except SyntaxError:
+            return
+        assert source_segments(source, body) == [ast.get_source_segment(source, s) for s in body]
+
+    segments_are_get_source_segments()
 
 
 def test_a_long_program_is_split_once() -> None:

@@ -32,6 +32,8 @@ from precond.stack.differential import TAG, check_sgd_domain, compare, labels
 from precond_client.schemas import CheckRequest
 from tests.client.test_guard_differential import CLAUSE, MAX_CALLS, fixture_calls
 
+pytestmark = pytest.mark.long  # collected first: pytest-xdist starts it first
+
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SGD_FIXTURES = FIXTURES / "data" / "sgd"
 @pytest.fixture(scope="module")

@@ -20,6 +20,8 @@ from precond.stack.differential import check_sgd_domain
 from tests.client.test_guard_differential import CLAUSE
 from tests.service.test_interpreted_differential import check_tau
 
+pytestmark = pytest.mark.long  # collected first: pytest-xdist starts it first
+
 PREFIXES = 12
 """Prefixes of a development SGD domain judged (of about 55): every rule set meets a dozen states a domain, and
 the whole sweep stays a fraction of the suite's time."""

@@ -18,7 +18,7 @@ from precond.worker.training_process import TrainingCrashed, train
 from precond_client.schemas.errors import Cancelled, InvalidInput, ResourceLimit
 from tests.models.test_policy_training import _request
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.long]  # long: collected first, started first
 GIB = 1024**3
 
 
