@@ -3,11 +3,11 @@
 # two steps: the fast suite (`-m "not model and not stack"`), then the tests that start real stacks, pod
 # simulations and fresh installs (`-m stack`) together with those that run the real embedded model (`-m model`):
 # the model's tests are single-threaded and CPU-bound, the stacks' tests mostly wait for processes, so they share
-# the cores. The property tests that draw many hypothesis examples (`-m generated`) run a tenth of them in the
-# fast step and all of them in the second.
+# the cores, and mypy runs beside them. The property tests that draw many hypothesis examples (`-m generated`)
+# run a tenth of them in the fast step and all of them in the second.
 # The fast step runs one test process a core (pytest-xdist `-n`): its tests mostly compute, and each further
-# process costs its own collection (about 6 CPU s) and more contention than the waits it would fill; mypy and the
-# model's conversion, beside it, take what waits there are. The second step runs two a core: much of it waits
+# process costs its own collection (about 6 CPU s) and more contention than the waits it would fill; the model's
+# conversion, beside it, takes what waits there are. The second step runs two a core: much of it waits
 # (for child processes, sockets, the sandbox's wall-clock limits), and a core's second process fills those waits.
 # PYTEST_XDIST_AUTO_NUM_WORKERS sets both. A test file per process (`--dist loadfile`: a module's stack is
 # started once, in the process that runs it); the fast step hands them out in the order collected
@@ -22,8 +22,8 @@ export OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 TOKENIZERS_PARALLELISM=false
 # Compiled modules, pytest's rewritten test modules among them, are kept (__pycache__/, ignored by git): every
 # pytest process and every process a stack starts reads them instead of compiling the sources again.
 unset PYTHONDONTWRITEBYTECODE
-# The embedded model's converted copies (MODEL_CACHE_DIR; minutes, once a machine) are built beside the lint, the
-# type check and the fast step; else the model tests' processes would each build them at once.
+# The embedded model's converted copies (MODEL_CACHE_DIR; minutes, once a machine) are built beside the lint and
+# the fast step; else the model tests' processes would each build them at once.
 precond prepare-model &
 prepared=$!
 # One collection beside them writes those compiled modules before the steps' processes each need them (a
@@ -31,13 +31,6 @@ prepared=$!
 python -m pytest --collect-only -q -p no:xdist >/dev/null 2>&1 &
 collected=$!
 ruff check .
-# mypy is one process on one core (a minute without its cache, as on a fresh clone): the fast step runs beside
-# it on the other cores; mypy's report is printed once that step is done, and a mypy failure ends the run there,
-# before the second step, with mypy's exit code.
-typecheck_log=$(mktemp)
-trap 'rm -f "$typecheck_log"' EXIT
-mypy >"$typecheck_log" 2>&1 &
-typed=$!
 wait "$collected" || true
 
 pytest_step() {
@@ -52,18 +45,33 @@ pytest_step() {
   return "$code"
 }
 
+# mypy is one process on one core (a minute without its cache, as on a fresh clone): it runs beside the second
+# step, whose processes mostly wait, rather than beside the fast step, whose processes compute; its report is
+# printed at the end, and a mypy failure fails the run with mypy's exit code (after the fast step's failure, if
+# that failed: mypy still runs then, so that one run reports both).
+typecheck_log=$(mktemp)
+trap 'rm -f "$typecheck_log"' EXIT
+typecheck() {
+  local code=0
+  wait "$1" || code=$?
+  cat "$typecheck_log"
+  if [ "$code" -ne 0 ]; then
+    echo "mypy failed (exit $code)" >&2
+  fi
+  return "$code"
+}
+
 fast=0
 pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$(nproc)}" --no-loadscope-reorder -m "not model and not stack" \
   --examples-share 0.1 "$@" || fast=$?
-typecheck=0
-wait "$typed" || typecheck=$?
-cat "$typecheck_log"
-if [ "$typecheck" -ne 0 ]; then
-  echo "mypy failed (exit $typecheck)" >&2
-  exit "$typecheck"
-fi
+mypy >"$typecheck_log" 2>&1 &
+typed=$!
 if [ "$fast" -ne 0 ]; then
+  typecheck "$typed" || true
   exit "$fast"
 fi
 wait "$prepared"
-pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}" -m "stack or model or generated" "$@"
+second=0
+pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}" -m "stack or model or generated" "$@" || second=$?
+typecheck "$typed"
+exit "$second"
