@@ -5,11 +5,10 @@
 # the model's tests are single-threaded and CPU-bound, the stacks' tests mostly wait for processes, so they share
 # the cores, and mypy runs beside them. The property tests that draw many hypothesis examples (`-m generated`)
 # run a tenth of them in the fast step and all of them in the second.
-# The fast step runs one test process a core (pytest-xdist `-n`): its tests mostly compute, and each further
-# process costs its own collection (about 6 CPU s) and more contention than the waits it would fill; the model's
-# conversion, beside it, takes what waits there are. The second step runs two a core: much of it waits
-# (for child processes, sockets, the sandbox's wall-clock limits), and a core's second process fills those waits.
-# PYTEST_XDIST_AUTO_NUM_WORKERS sets both. A test file per process (`--dist loadfile`: a module's stack is
+# Both steps run two test processes a core (pytest-xdist `-n`): much of each waits (for child processes, sockets,
+# the sandbox's wall-clock limits), and a core's second process fills those waits (on a fresh clone of 2 cores,
+# one process a core took the fast step from 132 s to 202 s, though it spends less CPU: each process pays its own
+# collection, about 6 CPU s). PYTEST_XDIST_AUTO_NUM_WORKERS sets both. A test file per process (`--dist loadfile`: a module's stack is
 # started once, in the process that runs it); the fast step hands them out in the order collected
 # (`--no-loadscope-reorder`), the files marked `long` first (tests/conftest.py), so that none of them starts last
 # and ends the step alone on one core.
@@ -62,7 +61,7 @@ typecheck() {
 }
 
 fast=0
-pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$(nproc)}" --no-loadscope-reorder -m "not model and not stack" \
+pytest_step "${PYTEST_XDIST_AUTO_NUM_WORKERS:-$((2 * $(nproc)))}" --no-loadscope-reorder -m "not model and not stack" \
   --examples-share 0.1 "$@" || fast=$?
 mypy >"$typecheck_log" 2>&1 &
 typed=$!
