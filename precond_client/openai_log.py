@@ -29,6 +29,8 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import Any
 
+from precond_client.parsing import parse_module
+
 USER_SPEC = '''from collections import defaultdict
 class USER:
   def __init__(self):
@@ -163,7 +165,7 @@ def converter_spec(spec: str) -> tuple[tuple[Tool, ...], frozenset[str]]:
     spec written again from what is read must be the text given); ValueError says where it is not. What such a
     spec does is `AgentState`: nothing of the text is run."""
     try:
-        tree = ast.parse(spec)
+        tree = parse_module(spec)
     except (SyntaxError, ValueError, RecursionError, MemoryError) as exc:
         raise ValueError(f"not Python: {exc}") from None
     writes = next((node.value for node in tree.body if isinstance(node, ast.Assign)

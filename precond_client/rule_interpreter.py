@@ -44,6 +44,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
+from precond_client.parsing import parse_expression
 from precond_client.rule_work import (
     CONTAINER_TYPES,
     MAX_INT_BITS,
@@ -136,7 +137,7 @@ def compile_rule(text: str, scope: Scope) -> Evaluate:
     """The rule as a function of a `Frame` whose truth is the rule's verdict; `OutsideGrammar` when it is not one
     of the forms above (or does not parse)."""
     try:
-        tree = ast.parse(text, mode="eval")
+        tree = parse_expression(text)
     except SyntaxError as exc:
         raise OutsideGrammar(f"not an expression: {exc.msg}") from None
     except (RecursionError, MemoryError, ValueError) as exc:
@@ -512,7 +513,7 @@ def constant_work(text: str, frame: Frame) -> str | None:
     rules) at every call. Each such part is evaluated here, as the guard would, within that budget; None when
     all are within it, raise (the verdicts say so) or are outside the grammar (the guard does not embed the set)."""
     try:
-        tree = ast.parse(text.strip(), mode="eval")
+        tree = parse_expression(text.strip())
     except (SyntaxError, ValueError, RecursionError, MemoryError):
         return None  # the static check names it
     if _depth(tree.body) > MAX_DEPTH:
