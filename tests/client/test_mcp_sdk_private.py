@@ -8,6 +8,7 @@ import os
 import sys
 import time
 from importlib.metadata import version
+from pathlib import Path
 
 import anyio
 import pytest
@@ -18,6 +19,26 @@ from mcp_types.version import KNOWN_PROTOCOL_VERSIONS
 
 from precond.stack.harness import alive
 from precond_client.mcp import sdk_private
+
+
+def stubborn(pids: Path) -> str:
+    """A process that ignores SIGTERM and its closed stdin, with a child; it writes both pids to `pids`."""
+    return (
+        "import os, signal, subprocess, sys, time\n"
+        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'])\n"
+        f"open({str(pids)!r}, 'w').write(f'{{os.getpid()}} {{child.pid}}')\n"
+        "time.sleep(600)\n"
+    )
+
+
+def assert_ended(pids: Path) -> None:
+    for pid in map(int, pids.read_text().split()):
+        for _ in range(100):
+            if not alive(pid):
+                break
+            time.sleep(0.05)
+        assert not alive(pid), f"process {pid} outlived the stop"
 
 
 def test_the_installed_sdk_is_the_minor_version_the_helpers_were_read_in() -> None:
@@ -43,13 +64,7 @@ def test_fields_of_later_revisions_are_named_for_older_sessions_only() -> None:
 
 def test_a_process_that_ignores_its_closed_stdin_is_ended_with_its_children(tmp_path) -> None:
     pids = tmp_path / "pids"
-    script = (
-        "import os, signal, subprocess, sys, time\n"
-        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
-        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'])\n"
-        f"open({str(pids)!r}, 'w').write(f'{{os.getpid()}} {{child.pid}}')\n"
-        "time.sleep(600)\n"
-    )
+    script = stubborn(pids)
 
     async def run() -> None:
         process = await anyio.open_process([sys.executable, "-c", script], start_new_session=True)
@@ -58,12 +73,7 @@ def test_a_process_that_ignores_its_closed_stdin_is_ended_with_its_children(tmp_
         await sdk_private.stop_server_process(process)
 
     anyio.run(run)
-    for pid in map(int, pids.read_text().split()):
-        for _ in range(100):
-            if not alive(pid):
-                break
-            time.sleep(0.05)
-        assert not alive(pid), f"process {pid} outlived the stop"
+    assert_ended(pids)
 
 
 def test_a_process_on_the_callers_own_pipes_is_stopped_as_the_sdk_stops_one(tmp_path) -> None:
@@ -71,13 +81,7 @@ def test_a_process_on_the_callers_own_pipes_is_stopped_as_the_sdk_stops_one(tmp_
     its end of input goes in the grace period), stdout after, and one that ignores both is ended with its
     children."""
     pids = tmp_path / "pids"
-    script = (
-        "import os, signal, subprocess, sys, time\n"
-        "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
-        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(600)'])\n"
-        f"open({str(pids)!r}, 'w').write(f'{{os.getpid()}} {{child.pid}}')\n"
-        "time.sleep(600)\n"
-    )
+    script = stubborn(pids)
     closed: list[str] = []
 
     async def stop(code: str) -> float:
@@ -95,9 +99,4 @@ def test_a_process_on_the_callers_own_pipes_is_stopped_as_the_sdk_stops_one(tmp_
     assert anyio.run(stop, "import sys; sys.stdin.read()") < 1.5
     assert closed == ["stdin", "stdout"]
     anyio.run(stop, script)
-    for pid in map(int, pids.read_text().split()):
-        for _ in range(100):
-            if not alive(pid):
-                break
-            time.sleep(0.05)
-        assert not alive(pid), f"process {pid} outlived the stop"
+    assert_ended(pids)
