@@ -104,7 +104,7 @@ def outcome(verdict: Any) -> str:
 def run(spec: str, repeat: int) -> dict[str, Any]:
     found: dict[str, Any] = {}
     change = {"reservation_id": "BIG001", "cabin": "economy", "payment_id": "a" * 2999 + "b",
-              "flights": [{"flight_number": 7, "date": "2024-05-20"}]}
+              "flights": [{"flight_number": "HAT007", "date": "2024-05-20"}]}  # keeps the schema: the rules run
     for case, rule in RULES.items():
         messages, size = history(case)
         session = Guard(spec, {"AGENT.update_reservation_flights": [rule]}).session(messages)
